@@ -1,0 +1,1 @@
+"""Fault injection: wrappers that add scheduled faults to any driver, real or simulated."""

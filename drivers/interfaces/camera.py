@@ -1,0 +1,77 @@
+"""Stereo camera interface: synchronised left/right frames with timestamps."""
+
+from __future__ import annotations
+
+from abc import abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.interfaces.lifecycle import Device
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One image from one camera.
+
+    Attributes:
+        image: HxW uint8 (mono) or HxWx3 uint8 (BGR).
+        t_ns: host monotonic time of the exposure (or of reception when the device gives
+            nothing better), ns, on the clock the controller uses.
+        seq: per-camera frame counter (device frame id where there is one).
+        device_t_ns: the device's own timestamp, ns, when it has one; None otherwise.
+    """
+
+    image: NDArray[np.uint8]
+    t_ns: int
+    seq: int
+    device_t_ns: int | None = None
+
+
+@dataclass(frozen=True)
+class StereoFrame:
+    """A left/right pair grabbed as one. ``skew_ns`` is right.t_ns - left.t_ns."""
+
+    left: Frame
+    right: Frame
+
+    @property
+    def skew_ns(self) -> int:
+        return self.right.t_ns - self.left.t_ns
+
+    @property
+    def t_ns(self) -> int:
+        """Pair time: the mean of left and right exposure times."""
+        return (self.left.t_ns + self.right.t_ns) // 2
+
+
+class StereoCamera(Device):
+    """A calibrated stereo source. A sensor: it has no command that moves anything."""
+
+    kind = "camera"
+
+    @abstractmethod
+    def grab(self, timeout_s: float) -> StereoFrame:
+        """Block until the next synchronised pair (newer than the last one returned).
+
+        Raises:
+            LifecycleError: not active.
+            DeviceTimeoutError: no pair within ``timeout_s``.
+            DisconnectedError: the stream is gone.
+        """
+
+    @property
+    @abstractmethod
+    def frame_rate_hz(self) -> float:
+        """The configured frame rate, Hz."""
+
+    @property
+    @abstractmethod
+    def exposure_us(self) -> float:
+        """The configured exposure time, microseconds."""
+
+    @property
+    @abstractmethod
+    def image_size(self) -> tuple[int, int]:
+        """(width, height) in pixels of each camera's image."""

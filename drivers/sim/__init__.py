@@ -1,0 +1,1 @@
+"""Simulated devices sharing one deterministic simulated world (patient, robot, cameras, tracker)."""

@@ -1,0 +1,1 @@
+"""Magnetic trackers over a serial port (``pyserial``): Ascension Flock of Birds, NDI Aurora."""

@@ -1,0 +1,1 @@
+"""UR3 / UR e-Series arm over RTDE through the ``ur-rtde`` library."""

@@ -1,0 +1,67 @@
+"""The ``hil`` command line.
+
+Each subcommand lives in its own module under :mod:`hil.cli` and exposes
+``add_parser(subparsers) -> None``; the parser's ``func`` default takes the parsed arguments and
+returns the exit code. Every :class:`hil.errors.HilError` (and driver error) a command raises
+becomes one clear line on stderr and exit code 2 — never a traceback for a user mistake.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from hil import __version__
+from hil.errors import HilError
+from hil.log import configure_logging
+
+# Subcommand modules, in the order `hil --help` lists them. A module missing here is not a command.
+COMMAND_MODULES: tuple[str, ...] = (
+    "hil.cli.cmd_register",
+)
+
+EXIT_USAGE = 2
+EXIT_ERROR = 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="hil",
+        description="Hardware-in-the-loop controller for an image-guided needle-puncture robot.",
+    )
+    parser.add_argument("--version", action="version", version=f"hil {__version__}")
+    parser.add_argument("--log-json", action="store_true", help="log JSON lines on stderr")
+    parser.add_argument(
+        "--log-level", default="warning", choices=["debug", "info", "warning", "error"],
+        help="minimum log level on stderr (default: warning)",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``hil`` console script. Returns the process exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    configure_logging(json=args.log_json, level=args.log_level)
+    if not getattr(args, "func", None):
+        parser.print_help(sys.stderr)
+        return EXIT_USAGE
+    try:
+        code: int = args.func(args)
+    except HilError as exc:
+        for line in str(exc).splitlines() or [type(exc).__name__]:
+            print(f"hil {args.command}: error: {line}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print(f"hil {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Vision: stereo calibration, ring-marker detection, stereo matching, synthetic rendering."""

@@ -1,0 +1,1 @@
+"""pluggy hook specifications and the built-in plugins (project name ``hil``)."""

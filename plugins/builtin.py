@@ -1,0 +1,1 @@
+"""The built-in drivers, registered through the same hooks as third-party plugins."""
