@@ -207,8 +207,13 @@ class RigidTransform:
 
     def rotation_angle_rad(self) -> float:
         """Angle of the rotation part, rad, in [0, pi]."""
+        # atan2 of (sin, cos) keeps full precision near 0 and pi, unlike acos of the trace.
         c = (float(np.trace(self.R)) - 1.0) / 2.0
-        return math.acos(max(-1.0, min(1.0, c)))
+        R = self.R
+        s = 0.5 * math.sqrt(
+            (R[2, 1] - R[1, 2]) ** 2 + (R[0, 2] - R[2, 0]) ** 2 + (R[1, 0] - R[0, 1]) ** 2
+        )
+        return math.atan2(s, c)
 
     def translation_norm(self) -> float:
         return float(np.linalg.norm(self.t))
