@@ -1,1 +1,332 @@
-"""Fault injection: wrappers that add scheduled faults to any driver, real or simulated."""
+"""Fault injection: wrappers that play a fault schedule on any driver, real or simulated.
+
+``wrap_device(device, role, faults, clock)`` returns a :class:`FaultyStereoCamera`,
+:class:`FaultyRobot` or :class:`FaultyTracker` with the same interface as ``device``. Fault
+windows are measured on the injected clock from the moment the wrapper was opened. Each fault
+shows up at the interface as the typed error or flag a real failure would give, and logs
+``fault_injected`` once when its window opens.
+
+The schedule's shape (:class:`hil.config.faults.FaultSpec`) belongs to the core; the wrappers
+live here, outside it.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
+from drivers.interfaces.errors import (
+    DeviceFaultError,
+    DeviceTimeoutError,
+    DisconnectedError,
+    ProtocolError,
+    SafetyStopError,
+)
+from drivers.interfaces.lifecycle import Device
+from drivers.interfaces.robot import Robot, RobotMode, RobotState, SafetyStatus
+from drivers.interfaces.tracker import PoseTracker, TrackerSample
+from hil.clock import Clock
+from hil.config.faults import FaultKind, FaultSpec
+from hil.geometry.transform import RigidTransform
+from hil.log import get_logger
+
+_log = get_logger(__name__)
+
+
+def _rng(name: str, index: int) -> np.random.Generator:
+    """Reproducible randomness of the fault layer (independent of any simulator)."""
+    return np.random.default_rng([sum(name.encode()), index])
+
+
+class _Schedule:
+    """The faults of one device and when they are active (relative to open)."""
+
+    def __init__(self, role: str, faults: Sequence[FaultSpec], clock: Clock) -> None:
+        self.role = role
+        self.faults = tuple(faults)
+        self.clock = clock
+        self.t_open_ns: int | None = None
+        self._announced: set[int] = set()
+
+    def start(self) -> None:
+        self.t_open_ns = self.clock.now_ns()
+        self._announced.clear()
+
+    def t_s(self) -> float:
+        return 0.0 if self.t_open_ns is None else (self.clock.now_ns() - self.t_open_ns) * 1e-9
+
+    def active(self, kind: FaultKind) -> FaultSpec | None:
+        """The first active fault of ``kind`` (logging ``fault_injected`` on its first use)."""
+        if self.t_open_ns is None:
+            return None
+        t = self.t_s()
+        for i, f in enumerate(self.faults):
+            if f.kind is kind and f.active(t):
+                if i not in self._announced:
+                    self._announced.add(i)
+                    _log.warning("fault_injected", device=self.role, kind=kind.value, index=i,
+                                 start_s=f.start_s, duration_s=f.duration_s, t_s=round(t, 6))
+                return f
+        return None
+
+
+class _Delegating:
+    """Attributes the wrapper does not have (e.g. a simulator's ground truth) come from ``inner``."""
+
+    def __getattr__(self, name: str) -> object:
+        inner = self.__dict__.get("inner")
+        if inner is None or name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(inner, name)
+
+
+class FaultyStereoCamera(_Delegating, StereoCamera):
+    """A stereo camera with scheduled frame drops, frozen frames, stale timestamps, left/right
+    desynchronisation, occlusions and glare blobs."""
+
+    def __init__(self, inner: StereoCamera, faults: Sequence[FaultSpec], clock: Clock) -> None:
+        super().__init__(inner.name)
+        self.inner = inner
+        self.schedule = _Schedule(inner.name, faults, clock)
+        self._last: StereoFrame | None = None
+        self._prev_right: Frame | None = None
+        self._drop_count = 0
+
+    def _open(self) -> None:
+        self.inner.open()
+        self.schedule.start()
+
+    def _close(self) -> None:
+        self.inner.close()
+
+    @property
+    def frame_rate_hz(self) -> float:
+        return self.inner.frame_rate_hz
+
+    @property
+    def exposure_us(self) -> float:
+        return self.inner.exposure_us
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.inner.image_size
+
+    def grab(self, timeout_s: float) -> StereoFrame:
+        self.require_active("grab")
+        clock = self.schedule.clock
+        deadline_ns = clock.now_ns() + round(timeout_s * 1e9)
+        while True:
+            remaining_s = (deadline_ns - clock.now_ns()) * 1e-9
+            if remaining_s <= 0:
+                raise DeviceTimeoutError(self.name, f"no stereo pair within {timeout_s} s")
+            pair = self.inner.grab(remaining_s)
+            drop = self.schedule.active(FaultKind.FRAME_DROP)
+            if drop is None:
+                break
+            self._drop_count += 1
+            if drop.probability < 1.0 and _rng("frame_drop", self._drop_count).random() >= drop.probability:
+                break
+        return self._apply(pair)
+
+    def _apply(self, pair: StereoFrame) -> StereoFrame:
+        s = self.schedule
+        out = pair
+        if s.active(FaultKind.FROZEN_FRAME) is not None and self._last is not None:
+            out = StereoFrame(replace(pair.left, image=self._last.left.image),
+                              replace(pair.right, image=self._last.right.image))
+        else:
+            self._last = pair
+        if s.active(FaultKind.LR_DESYNC) is not None and self._prev_right is not None:
+            out = StereoFrame(out.left, self._prev_right)
+        self._prev_right = pair.right
+        stale = s.active(FaultKind.STALE_TIMESTAMP)
+        if stale is not None:
+            age_ns = round(stale.age_ms * 1e6)
+            out = StereoFrame(replace(out.left, t_ns=out.left.t_ns - age_ns),
+                              replace(out.right, t_ns=out.right.t_ns - age_ns))
+        occ = s.active(FaultKind.OCCLUSION)
+        if occ is not None:
+            out = StereoFrame(
+                _occlude(out.left, occ) if occ.eye in ("left", "both") else out.left,
+                _occlude(out.right, occ) if occ.eye in ("right", "both") else out.right)
+        glare = s.active(FaultKind.GLARE)
+        if glare is not None:
+            out = _glare(out, glare, seq=pair.left.seq)
+        return out
+
+
+def _occlude(frame: Frame, f: FaultSpec) -> Frame:
+    img = frame.image.copy()
+    x0, y0, x1, y1 = f.region_px
+    img[max(y0, 0):max(y1, 0), max(x0, 0):max(x1, 0)] = 200
+    return replace(frame, image=img)
+
+
+def _glare(pair: StereoFrame, f: FaultSpec, seq: int) -> StereoFrame:
+    """Ring-shaped blobs (dark annulus, bright centre) at the same rows in both images, shifted by
+    ``disparity_px``: the stereo matcher sees them as extra 3-D markers."""
+    left, right = pair.left.image.copy(), pair.right.image.copy()
+    h, w = left.shape[:2]
+    rng = _rng("glare", seq)
+    r = f.radius_px
+    margin = int(r) + 2
+    for _ in range(f.count):
+        x = float(rng.uniform(margin + f.disparity_px, w - margin))
+        y = float(rng.uniform(margin, h - margin))
+        for img, cx in ((left, x), (right, x - f.disparity_px)):
+            centre = (round(cx * 16), round(y * 16))
+            cv2.circle(img, centre, round(r * 16), 40, -1, lineType=cv2.LINE_AA, shift=4)
+            cv2.circle(img, centre, round(r * 0.43 * 16), 255, -1, lineType=cv2.LINE_AA, shift=4)
+    return StereoFrame(replace(pair.left, image=left), replace(pair.right, image=right))
+
+
+class FaultyTracker(_Delegating, PoseTracker):
+    """A tracker with scheduled timeouts, corrupt records, bad-quality flags and missing sensors."""
+
+    def __init__(self, inner: PoseTracker, faults: Sequence[FaultSpec], clock: Clock) -> None:
+        super().__init__(inner.name)
+        self.inner = inner
+        self.schedule = _Schedule(inner.name, faults, clock)
+
+    def _open(self) -> None:
+        self.inner.open()
+        self.schedule.start()
+
+    def _close(self) -> None:
+        self.inner.close()
+
+    @property
+    def sensors(self) -> tuple[str, ...]:
+        return self.inner.sensors
+
+    def latest(self) -> dict[str, TrackerSample]:
+        self.require_active("latest")
+        s = self.schedule
+        if s.active(FaultKind.TRACKER_TIMEOUT) is not None:
+            raise DeviceTimeoutError(self.name, "no valid record from the tracker (injected timeout)")
+        if s.active(FaultKind.CORRUPT_RECORD) is not None:
+            raise ProtocolError(self.name, "corrupt record: bad checksum (injected)")
+        samples = self.inner.latest()
+        bad = s.active(FaultKind.BAD_QUALITY)
+        missing = s.active(FaultKind.SENSOR_MISSING)
+        out = {}
+        for name, smp in samples.items():
+            if missing is not None and (not missing.sensors or name in missing.sensors):
+                smp = replace(smp, T_tracker_from_sensor=None, missing=True, flags=(*smp.flags, "missing"))
+            elif bad is not None and (not bad.sensors or name in bad.sensors):
+                smp = replace(smp, quality=bad.quality, flags=(*smp.flags, "bad_quality"))
+            out[name] = smp
+        return out
+
+
+class FaultyRobot(_Delegating, Robot):
+    """A robot with scheduled disconnects, protective stops, rejected and lagging motion.
+
+    The base class re-checks limits here, and the inner robot checks them again: faults never
+    let a command skip the check.
+    """
+
+    def __init__(self, inner: Robot, faults: Sequence[FaultSpec], clock: Clock) -> None:
+        super().__init__(inner.name, inner.limits)
+        self.inner = inner
+        self.schedule = _Schedule(inner.name, faults, clock)
+        self._stopped_by_fault = False
+        self._servo_queue: deque[tuple[int, RigidTransform, float]] = deque()
+
+    def _open(self) -> None:
+        self.inner.open()
+        self.schedule.start()
+
+    def _close(self) -> None:
+        self.inner.close()
+
+    @property
+    def control_rate_hz(self) -> float:
+        return self.inner.control_rate_hz
+
+    def _check_connected(self) -> None:
+        if self.schedule.active(FaultKind.ROBOT_DISCONNECT) is not None:
+            raise DisconnectedError(self.name, "RTDE connection lost (injected)")
+
+    def _check_protective(self) -> None:
+        if self.schedule.active(FaultKind.PROTECTIVE_STOP) is not None and not self._stopped_by_fault:
+            self._stopped_by_fault = True
+            self.inner.stop()
+
+    def _state_now(self) -> RobotState:
+        self._check_connected()
+        self._check_protective()
+        st = self.inner.state_now()
+        if self._stopped_by_fault:
+            st = replace(st, safety=SafetyStatus.PROTECTIVE_STOP, mode=RobotMode.STOPPED)
+        return st
+
+    def _check_motion(self) -> None:
+        if self.schedule.active(FaultKind.MOTION_REJECTED) is not None:
+            raise DeviceFaultError(self.name, "motion command rejected by the controller (injected)")
+
+    def _move_linear(self, T_robot_from_tcp: RigidTransform, speed_mm_s: float, accel_mm_s2: float,
+                     blocking: bool) -> None:
+        self._check_connected()
+        self._check_motion()
+        lag = self.schedule.active(FaultKind.MOTION_LAG)
+        if lag is not None:
+            self.schedule.clock.sleep(lag.lag_ms * 1e-3)
+        self.inner.move_linear(T_robot_from_tcp, speed_mm_s, accel_mm_s2, blocking=blocking)
+
+    def _servo(self, T_robot_from_tcp: RigidTransform, period_s: float) -> None:
+        self._check_connected()
+        self._check_motion()
+        lag = self.schedule.active(FaultKind.MOTION_LAG)
+        now = self.schedule.clock.now_ns()
+        if lag is None:
+            self._servo_queue.clear()
+            self.inner.servo(T_robot_from_tcp, period_s)
+            return
+        self._servo_queue.append((now, T_robot_from_tcp, period_s))
+        due = now - round(lag.lag_ms * 1e6)
+        target = None
+        while self._servo_queue and self._servo_queue[0][0] <= due:
+            target = self._servo_queue.popleft()
+        if target is not None:
+            self.inner.servo(target[1], target[2])
+
+    def _stop(self, decel_mm_s2: float) -> None:
+        self._check_connected()
+        self._servo_queue.clear()
+        self.inner.stop(decel_mm_s2)
+
+    def recover(self) -> None:
+        """Clears an injected protective stop once its window is over (and the inner one)."""
+        self.require_active("recover")
+        self._check_connected()
+        if self.schedule.active(FaultKind.PROTECTIVE_STOP) is not None:
+            raise SafetyStopError(self.name, "protective stop cannot be cleared yet")
+        self._stopped_by_fault = False
+        self.inner.recover()
+
+
+def wrap_device(device: Device, role: str, faults: Sequence[FaultSpec], clock: Clock) -> Device:
+    """The fault wrapper registered by the built-in plugin.
+
+    Raises:
+        TypeError: ``device`` is not a camera, robot or tracker, or a fault does not fit its kind.
+    """
+    for f in faults:
+        if f.device != role:
+            raise TypeError(f"{f.kind.value} is a {f.device} fault, not for the {role}")
+    if isinstance(device, StereoCamera):
+        return FaultyStereoCamera(device, faults, clock)
+    if isinstance(device, Robot):
+        return FaultyRobot(device, faults, clock)
+    if isinstance(device, PoseTracker):
+        return FaultyTracker(device, faults, clock)
+    raise TypeError(f"cannot inject faults into {type(device).__name__}")
+
+
+__all__ = ["FaultyRobot", "FaultyStereoCamera", "FaultyTracker", "wrap_device"]

@@ -30,7 +30,7 @@ def configure_logging(*, json: bool = False, level: str = "info", stream: TextIO
     """
     if level not in _LEVELS:
         raise ValueError(f"unknown log level {level!r}; use one of {sorted(_LEVELS)}")
-    out = stream if stream is not None else sys.stderr
+    out: Any = stream if stream is not None else _CurrentStderr()
     processors: list[Any] = [
         structlog.contextvars.merge_contextvars,
         structlog.processors.add_log_level,
@@ -50,4 +50,30 @@ def configure_logging(*, json: bool = False, level: str = "info", stream: TextIO
 
 def get_logger(name: str) -> Any:
     """A structlog logger bound with ``logger=name``."""
-    return structlog.get_logger().bind(logger=name)
+    # Lazy: a module-level logger created before configure_logging() still follows the
+    # configuration made later (structlog's bind() would resolve it at import time).
+    return _LazyLogger(name)
+
+
+class _LazyLogger:
+    """Resolves ``structlog.get_logger().bind(logger=name)`` at each use."""
+
+    def __init__(self, name: str) -> None:
+        self._name = name
+
+    def __getattr__(self, item: str) -> Any:
+        return getattr(structlog.get_logger().bind(logger=self._name), item)
+
+
+class _CurrentStderr:
+    """Writes to whatever ``sys.stderr`` is at the time of writing (not at configuration), so a
+    replaced stderr (pytest capture, a closed pipe) does not leave a dangling logger behind."""
+
+    def write(self, text: str) -> int:
+        return sys.stderr.write(text)
+
+    def flush(self) -> None:
+        sys.stderr.flush()
+
+    def isatty(self) -> bool:
+        return sys.stderr.isatty()

@@ -1,0 +1,1 @@
+"""Hardware setups as files (package data, so that an installed ``hil`` finds ``sim.toml``)."""

@@ -1,0 +1,145 @@
+"""Simulated stereo camera: renders every frame of the simulated world with the synthetic renderer.
+
+Frames are exposed at ``t0 + k / frame_rate_hz`` on the injected clock and become available
+``latency_ms`` later; :meth:`SimStereoCamera.grab` blocks (``clock.sleep``) until the next one
+is available and returns the newest available pair (older ones are dropped, like a camera
+driver that keeps the latest buffer). A frame is rendered only when grabbed, so a fast
+simulation pays only for the frames it uses. The right camera exposes ``skew_ms`` after the left
+one: with a non-zero skew the right image is rendered from the world at its own exposure time
+(a second render, so skewed rigs cost twice as much per pair).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
+from drivers.interfaces.errors import DeviceTimeoutError
+from drivers.sim.world import FLANGE_MARKER_ID_BASE, SimWorld
+from hil.clock import Clock
+from hil.config.types import STRICT
+from hil.vision.camera_model import StereoCalibration, load_calibration
+from hil.vision.render import MarkerTruth, RenderOptions, RingMarker3D, render_stereo
+from plugins.registry import DriverContext
+
+
+class SimCameraConfig(BaseModel):
+    """``[camera] driver = "sim"``. Uses ``[calibration] stereo`` when given, else a synthetic rig."""
+
+    model_config = STRICT
+
+    driver: Literal["sim"]
+    frame_rate_hz: float = Field(15.0, gt=0, le=240, description="exposures per second")
+    exposure_us: float = Field(5000.0, gt=0, description="reported exposure time")
+    latency_ms: float = Field(30.0, ge=0, description="exposure to availability")
+    skew_ms: float = Field(0.0, ge=-50, le=50, description="right timestamp minus left timestamp")
+    noise_sigma: float = Field(2.0, ge=0, description="sensor noise, grey levels")
+    blur_sigma_px: float = Field(0.7, ge=0, description="defocus blur")
+    glare_spots: int = Field(0, ge=0, le=20, description="specular highlights per image")
+    flange_marker_diameter_mm: float = Field(7.0, gt=0, description="outer diameter of flange markers")
+    flange_marker_inner_diameter_mm: float = Field(3.0, gt=0)
+    synthetic_f_px: float = Field(1394.0, gt=0, description="focal length without a calibration file")
+    synthetic_baseline_mm: float = Field(120.0, gt=0, description="baseline without a calibration file")
+
+
+class SimStereoCamera(StereoCamera):
+    """Stereo frames of the simulated world (skin markers and flange markers)."""
+
+    def __init__(self, name: str, cfg: SimCameraConfig, clock: Clock, world: SimWorld,
+                 calibration: StereoCalibration) -> None:
+        super().__init__(name)
+        self.cfg = cfg
+        self.clock = clock
+        self.world = world
+        self.calibration = calibration
+        self.options = RenderOptions(noise_sigma=cfg.noise_sigma, blur_sigma_px=cfg.blur_sigma_px,
+                                     glare_spots=cfg.glare_spots, seed=world.seed)
+        self._period_ns = round(1e9 / cfg.frame_rate_hz)
+        self._latency_ns = round(cfg.latency_ms * 1e6)
+        self._skew_ns = round(cfg.skew_ms * 1e6)
+        self._t0_ns = 0
+        self._last_k = -1
+        self.last_truth: tuple[MarkerTruth, ...] = ()        # markers at the left exposure
+        self.last_truth_right: tuple[MarkerTruth, ...] = ()  # markers at the right exposure
+        self.frames_rendered = 0
+
+    def _open(self) -> None:
+        self._t0_ns = self.clock.now_ns()
+        self._last_k = -1
+
+    def _close(self) -> None:
+        pass
+
+    @property
+    def frame_rate_hz(self) -> float:
+        return self.cfg.frame_rate_hz
+
+    @property
+    def exposure_us(self) -> float:
+        return self.cfg.exposure_us
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.calibration.image_size
+
+    def exposure_time_ns(self, k: int) -> int:
+        return self._t0_ns + k * self._period_ns
+
+    def markers_at(self, t_ns: int) -> list[RingMarker3D]:
+        """The ring markers the rig sees at ``t_ns`` (optical frame): skin, then flange."""
+        w = self.world
+        centres, normals = w.patient_markers_optical(t_ns)
+        out = [RingMarker3D(center_mm=c, normal=n, outer_diameter_mm=w.phantom.outer_diameter_mm,
+                            inner_diameter_mm=w.phantom.inner_diameter_mm, marker_id=i)
+               for i, (c, n) in enumerate(zip(centres, normals, strict=True))]
+        fc, fn = w.flange_markers_optical(t_ns)
+        out += [RingMarker3D(center_mm=c, normal=n, outer_diameter_mm=self.cfg.flange_marker_diameter_mm,
+                             inner_diameter_mm=self.cfg.flange_marker_inner_diameter_mm,
+                             marker_id=FLANGE_MARKER_ID_BASE + i)
+                for i, (c, n) in enumerate(zip(fc, fn, strict=True))]
+        return out
+
+    def grab(self, timeout_s: float) -> StereoFrame:
+        self.require_active("grab")
+        now = self.clock.now_ns()
+        newest = math.floor((now - self._latency_ns - self._t0_ns) / self._period_ns)
+        k = max(newest, self._last_k + 1)
+        ready_ns = self.exposure_time_ns(k) + self._latency_ns
+        if ready_ns > now:
+            wait_s = (ready_ns - now) * 1e-9
+            if wait_s > timeout_s:
+                self.clock.sleep(timeout_s)
+                raise DeviceTimeoutError(self.name, f"no stereo pair within {timeout_s} s")
+            self.clock.sleep(wait_s)
+        self._last_k = k
+        t_exp = self.exposure_time_ns(k)
+        pair = render_stereo(self.calibration, self.markers_at(t_exp), self.options,
+                             self.world.rng("camera", k))
+        right_image = pair.right
+        self.last_truth = pair.truth
+        self.last_truth_right = pair.truth
+        if self._skew_ns != 0:
+            skewed = render_stereo(self.calibration, self.markers_at(t_exp + self._skew_ns), self.options,
+                                   self.world.rng("camera_right", k))
+            right_image = skewed.right
+            self.last_truth_right = skewed.truth
+        self.frames_rendered += 1
+        left = Frame(image=pair.left, t_ns=t_exp, seq=k, device_t_ns=t_exp - self._t0_ns)
+        right = Frame(image=right_image, t_ns=t_exp + self._skew_ns, seq=k,
+                      device_t_ns=t_exp - self._t0_ns + self._skew_ns)
+        return StereoFrame(left, right)
+
+
+def make_sim_camera(config: SimCameraConfig, ctx: DriverContext) -> SimStereoCamera:
+    """Factory registered as camera driver ``sim`` (needs the simulated world)."""
+    if not isinstance(ctx.world, SimWorld):
+        raise TypeError("the sim camera needs the simulated world (DriverContext.world)")
+    if ctx.calibration_path is not None:
+        cal = load_calibration(ctx.calibration_path)
+    else:
+        cal = StereoCalibration.synthetic(f_px=config.synthetic_f_px,
+                                          baseline_mm=config.synthetic_baseline_mm)
+    return SimStereoCamera(ctx.role, config, ctx.clock, ctx.world, cal)

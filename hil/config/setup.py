@@ -1,0 +1,127 @@
+"""The setup model: which device fills each role, and everything around them.
+
+A setup is one TOML file (``configs/*.toml``). Device sections are validated against the model
+the driver registry holds for their ``driver``; :func:`hil.config.loader.load_setup` does that.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, Field, PrivateAttr, field_validator, model_validator
+
+from drivers.interfaces.robot import MotionLimits
+from hil.config.faults import FaultSpec
+from hil.config.simulation import SimulationConfig
+from hil.config.types import STRICT, ConfigPath, TransformConfig, Vec3
+from hil.controller.config import ProcedureConfig
+
+
+class SafetyConfig(BaseModel):
+    """``[safety]``: hard motion limits (checked before any command reaches a robot) and the
+    watchdog ages beyond which data counts as missing."""
+
+    model_config = STRICT
+
+    workspace_min_mm: Vec3 = Field((-500.0, -500.0, -100.0), description="TCP box, robot base frame")
+    workspace_max_mm: Vec3 = Field((500.0, 500.0, 600.0), description="TCP box, robot base frame")
+    max_speed_mm_s: float = Field(100.0, gt=0, le=1000, description="TCP linear speed")
+    max_accel_mm_s2: float = Field(500.0, gt=0, le=5000, description="TCP linear acceleration")
+    max_angular_speed_rad_s: float = Field(1.0, gt=0, le=6.3, description="TCP angular speed")
+    camera_frame_max_age_ms: float = Field(200.0, gt=0, description="watchdog: newest stereo pair")
+    tracker_max_age_ms: float = Field(200.0, gt=0, description="watchdog: newest tracker sample")
+    robot_state_max_age_ms: float = Field(50.0, gt=0, description="watchdog: newest robot state")
+
+    @model_validator(mode="after")
+    def _box(self) -> SafetyConfig:
+        for axis, lo, hi in zip("xyz", self.workspace_min_mm, self.workspace_max_mm, strict=True):
+            if lo >= hi:
+                raise ValueError(f"workspace {axis}: min {lo} must be below max {hi}")
+        return self
+
+    def motion_limits(self) -> MotionLimits:
+        return MotionLimits(
+            workspace_min_mm=self.workspace_min_mm, workspace_max_mm=self.workspace_max_mm,
+            max_speed_mm_s=self.max_speed_mm_s, max_accel_mm_s2=self.max_accel_mm_s2,
+            max_angular_speed_rad_s=self.max_angular_speed_rad_s,
+        )
+
+
+class FramesConfig(BaseModel):
+    """``[frames]``: fixed transforms of the rig."""
+
+    model_config = STRICT
+
+    T_flange_from_guide: TransformConfig = Field(
+        TransformConfig(translation_mm=(0.0, 0.0, 60.0), rotvec_rad=(0.0, 0.0, 0.0)),
+        description="needle-guide axis frame in the flange (tool0) frame; guide z = needle direction")
+    flange_markers_mm: tuple[Vec3, ...] = Field(
+        ((40.0, 90.0, 10.0), (-35.0, 105.0, 10.0), (-10.0, 140.0, 10.0), (30.0, 150.0, 25.0)),
+        description="ring-marker centres on the flange plate, flange frame, mm (>= 3)")
+    flange_marker_normal: Vec3 = Field((0.0, 0.0, -1.0), description="marker plate normal, flange frame")
+
+    @field_validator("flange_markers_mm")
+    @classmethod
+    def _enough(cls, v: tuple[Vec3, ...]) -> tuple[Vec3, ...]:
+        if len(v) < 3:
+            raise ValueError(f"at least 3 flange markers needed, got {len(v)}")
+        return v
+
+
+class CalibrationConfig(BaseModel):
+    """``[calibration]``: calibration files (relative to the config file)."""
+
+    model_config = STRICT
+
+    stereo: ConfigPath | None = Field(None, description="stereo calibration JSON (hil.vision format)")
+
+
+class SetupConfig(BaseModel):
+    """A whole hardware setup. Build it with :func:`hil.config.load_setup` (TOML file) or
+    :func:`hil.config.parse_setup` (a mapping): device sections need the driver registry.
+
+    ``camera``, ``robot``, ``tracker`` hold instances of the driver's own config model.
+    """
+
+    model_config = STRICT
+
+    name: str = Field("", description="free text shown in logs")
+    camera: Any = Field(description="stereo camera: driver = name + that driver's keys")
+    robot: Any = Field(description="robot arm: driver = name + that driver's keys")
+    tracker: Any = Field(None, description="optional magnetic tracker: driver = name + its keys")
+    calibration: CalibrationConfig = Field(CalibrationConfig(), description="calibration files")
+    safety: SafetyConfig = Field(SafetyConfig(), description="motion limits and watchdog ages")
+    frames: FramesConfig = Field(FramesConfig(), description="fixed transforms of the rig")
+    simulation: SimulationConfig = Field(SimulationConfig(), description="the simulated world")
+    procedure: ProcedureConfig = Field(ProcedureConfig(), description="controller tolerances and policies")
+    faults: tuple[FaultSpec, ...] = Field((), description="scheduled faults ([[faults]] tables)")
+    _config_dir: Path = PrivateAttr(default_factory=Path.cwd)
+
+    @property
+    def config_dir(self) -> Path:
+        """Directory of the setup file (relative paths were resolved against it)."""
+        return self._config_dir
+
+    @field_validator("camera", "robot", "tracker")
+    @classmethod
+    def _driver_model(cls, v: Any) -> Any:
+        if v is None:
+            return v
+        if not isinstance(v, BaseModel) or "driver" not in type(v).model_fields:
+            raise ValueError("must be a driver config model instance (load the file with load_setup)")
+        return v
+
+    def device_sections(self) -> dict[str, BaseModel]:
+        """The configured device sections by role (tracker only when present)."""
+        out: dict[str, BaseModel] = {"camera": self.camera, "robot": self.robot}
+        if self.tracker is not None:
+            out["tracker"] = self.tracker
+        return out
+
+    def resolved(self) -> dict[str, Any]:
+        """JSON-ready dump of the whole resolved setup (paths absolute, defaults filled)."""
+        data: dict[str, Any] = self.model_dump(mode="json", exclude={"camera", "robot", "tracker"})
+        for role, section in self.device_sections().items():
+            data[role] = section.model_dump(mode="json")
+        return data

@@ -1,0 +1,194 @@
+"""Camera and tracker interfaces exercised through the simulator (built from configs/sim.toml)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drivers.interfaces import DeviceTimeoutError, LifecycleError
+from drivers.sim.camera import SimCameraConfig, SimStereoCamera
+from drivers.sim.tracker import SimSensorConfig, SimTracker, SimTrackerConfig
+from drivers.sim.world import FLANGE_MARKER_ID_BASE, SimWorld
+from hil.clock import ManualClock
+from hil.config import Devices, FramesConfig, ScenarioWorld, SimulationConfig
+from hil.geometry.transform import RigidTransform
+from hil.vision.camera_model import StereoCalibration
+
+SMALL = StereoCalibration.synthetic(image_size=(320, 240), f_px=300.0)
+
+
+def _camera(clock: ManualClock, **kw: object) -> SimStereoCamera:
+    world = SimWorld(SimulationConfig(), FramesConfig(), clock)
+    return SimStereoCamera("camera", SimCameraConfig(driver="sim", **kw), clock, world, SMALL)  # type: ignore[arg-type]
+
+
+def test_camera_lifecycle_and_sensor_has_no_motion_command(clock: ManualClock) -> None:
+    cam = _camera(clock)
+    with pytest.raises(LifecycleError, match="grab"):
+        cam.grab(1.0)
+    assert not any(hasattr(cam, m) for m in ("move_linear", "servo"))
+    cam.open()
+    cam.close()
+    with pytest.raises(LifecycleError, match="grab"):
+        cam.grab(1.0)
+
+
+def test_frames_at_the_frame_rate_with_latency_and_skew(clock: ManualClock) -> None:
+    cam = _camera(clock, frame_rate_hz=20.0, latency_ms=30.0, skew_ms=2.0)
+    cam.open()
+    t0 = clock.now_ns()
+    pairs = [cam.grab(1.0) for _ in range(3)]
+    assert [p.left.seq for p in pairs] == [0, 1, 2]
+    assert [p.left.t_ns - t0 for p in pairs] == [0, 50_000_000, 100_000_000]
+    assert all(p.skew_ns == 2_000_000 for p in pairs)
+    assert clock.now_ns() - t0 == 100_000_000 + 30_000_000    # waited for the third to be ready
+    assert pairs[0].left.image.shape == (240, 320)
+    assert pairs[0].left.device_t_ns == 0
+    assert cam.frames_rendered == 3
+
+
+def test_late_grab_returns_the_newest_pair(clock: ManualClock) -> None:
+    cam = _camera(clock, frame_rate_hz=10.0, latency_ms=0.0)
+    cam.open()
+    clock.advance(1.05)
+    p = cam.grab(1.0)
+    assert p.left.seq == 10
+    assert cam.frames_rendered == 1     # skipped frames were never rendered
+
+
+def test_grab_timeout(clock: ManualClock) -> None:
+    cam = _camera(clock, frame_rate_hz=1.0, latency_ms=0.0)
+    cam.open()
+    cam.grab(0.1)
+    t = clock.now_ns()
+    with pytest.raises(DeviceTimeoutError, match=r"no stereo pair within 0\.2 s"):
+        cam.grab(0.2)
+    assert clock.now_ns() - t == 200_000_000
+
+
+def test_full_rig_sees_skin_and_flange_markers(devices: Devices, clock: ManualClock) -> None:
+    pair = devices.camera.grab(1.0)
+    assert pair.left.image.shape == (1080, 1920)
+    truth = devices.camera.last_truth  # type: ignore[attr-defined]
+    ids = [m.marker_id for m in truth]
+    assert ids == [*range(6), *range(FLANGE_MARKER_ID_BASE, FLANGE_MARKER_ID_BASE + 4)]
+    assert all(m.visible_left and m.visible_right for m in truth)
+    world = devices.world
+    assert isinstance(world, SimWorld)
+    assert isinstance(world, ScenarioWorld)
+    skin, _ = world.patient_markers_optical(pair.left.t_ns)
+    np.testing.assert_allclose([m.center_mm for m in truth[:6]], skin)
+    # each marker is dark on the light background where the renderer says it is
+    for m in truth:
+        u, v = np.round(m.center_left_px).astype(int)
+        ring = pair.left.image[v - 8:v + 9, u - 8:u + 9]
+        assert ring.min() < 120 < pair.left.image[5:50, 5:50].mean()
+
+
+def test_flange_markers_follow_the_robot(devices: Devices, clock: ManualClock) -> None:
+    world = devices.world
+    assert isinstance(world, SimWorld)
+    before, _ = world.flange_markers_optical(clock.now_ns())
+    T = devices.robot.state_now().T_robot_from_tcp
+    devices.robot.move_linear(RigidTransform(T.R, T.t + np.array([0.0, 0.0, -30.0])), 50.0, 200.0)
+    after, _ = world.flange_markers_optical(clock.now_ns())
+    shift_optical = world.T_optical_from_robot.apply_vector(np.array([0.0, 0.0, -30.0]))
+    np.testing.assert_allclose(after - before, np.repeat(shift_optical[None], 4, 0), atol=1e-6)
+
+
+def test_tracker_samples(devices: Devices, clock: ManualClock) -> None:
+    tracker = devices.tracker
+    assert tracker is not None
+    assert tracker.sensors == ("reference", "needle")
+    a = tracker.latest()
+    assert a["reference"].seq == 0
+    assert not a["reference"].missing
+    assert tracker.latest() == a                         # same sample until the next one exists
+    clock.advance(0.025)
+    b = tracker.latest()
+    assert b["reference"].seq == 1
+    assert b["reference"].t_ns - a["reference"].t_ns == 25_000_000
+    world = devices.world
+    assert isinstance(world, SimWorld)
+    true = world.T_optical_from_tracker.inverse() @ world.T_optical_from_image(b["needle"].t_ns)
+    assert b["reference"].T_tracker_from_sensor is not None
+    assert b["needle"].quality == pytest.approx(np.sqrt(3) * 0.1)
+    err = np.linalg.norm(b["reference"].T_tracker_from_sensor.t - true.apply(np.array([-40.0, 60.0, -2.0])))
+    assert 0.0 < err < 0.6
+
+
+def _tracker(clock: ManualClock, **kw: object) -> tuple[SimTracker, SimWorld]:
+    world = SimWorld(SimulationConfig(), FramesConfig(), clock)
+    cfg = SimTrackerConfig(driver="sim", position_noise_mm=0.0, rotation_noise_rad=0.0, **kw)  # type: ignore[arg-type]
+    t = SimTracker("tracker", cfg, clock, world)
+    t.open()
+    return t, world
+
+
+def test_tracker_field_distortion_and_volume(clock: ManualClock) -> None:
+    plain, _world = _tracker(clock)
+    distorted, _ = _tracker(clock, distortion_mm_per_m2=10.0)
+    p = plain.latest()["reference"]
+    d = distorted.latest()["reference"]
+    assert p.T_tracker_from_sensor is not None
+    assert d.T_tracker_from_sensor is not None
+    r_m = np.linalg.norm(p.T_tracker_from_sensor.t) / 1000.0
+    shift_mm = np.linalg.norm(d.T_tracker_from_sensor.t - p.T_tracker_from_sensor.t)
+    assert shift_mm == pytest.approx(10.0 * r_m**2)
+    assert d.quality == pytest.approx(10.0 * r_m**2)
+    small, _ = _tracker(clock, volume_radius_mm=50.0)
+    s = small.latest()["reference"]
+    assert s.missing
+    assert s.T_tracker_from_sensor is None
+    assert s.flags == ("out_of_volume",)
+
+
+def test_tracker_flange_sensor_without_robot_is_missing(clock: ManualClock) -> None:
+    t, _ = _tracker(clock, sensors=(SimSensorConfig(name="needle", attached_to="flange"),))
+    s = t.latest()["needle"]
+    assert s.missing
+    assert s.flags == ("not_attached",)
+
+
+def test_duplicate_sensor_names_are_refused() -> None:
+    with pytest.raises(ValueError, match="unique"):
+        SimTrackerConfig(driver="sim", sensors=(SimSensorConfig(name="a"), SimSensorConfig(name="a")))
+
+
+def test_a_simulated_session_reproduces_bit_for_bit(sim_setup: object, registry: object) -> None:
+    """Same setup, same commands, same clock steps: identical images, states and samples."""
+    from hil.config import build_devices
+
+    def session() -> list[object]:
+        clock = ManualClock(start_ns=1_000_000_000)
+        devs = build_devices(sim_setup, clock, registry)  # type: ignore[arg-type]
+        devs.open_all()
+        out: list[object] = []
+        T0 = devs.robot.state_now().T_robot_from_tcp
+        for i in range(4):
+            pair = devs.camera.grab(1.0)
+            devs.robot.servo(RigidTransform(T0.R, T0.t + np.array([0.3 * (i + 1), 0.0, 0.0])), 0.008)
+            clock.advance(0.013)
+            assert devs.tracker is not None
+            smp = devs.tracker.latest()["reference"]
+            assert smp.T_tracker_from_sensor is not None
+            out += [pair.left.image.tobytes(), pair.right.image.tobytes(), pair.left.t_ns,
+                    devs.robot.state_now().q_rad.tobytes(), smp.T_tracker_from_sensor.as_matrix().tobytes()]
+        devs.close_all()
+        return out
+
+    assert session() == session()
+
+
+def test_skewed_right_image_shows_the_world_at_its_own_exposure(clock: ManualClock) -> None:
+    cam = _camera(clock, frame_rate_hz=10.0, latency_ms=0.0, skew_ms=20.0)
+    cam.open()
+    clock.advance(1.0)                                   # mid-breath: the phantom moves
+    pair = cam.grab(1.0)
+    left_truth = {m.marker_id: m.center_right_px for m in cam.last_truth}
+    right_truth = {m.marker_id: m.center_right_px for m in cam.last_truth_right}
+    moved = [float(np.linalg.norm(right_truth[i] - left_truth[i])) for i in range(6)]
+    assert min(moved) > 0.01                             # the right camera saw the later world
+    world_pts, _ = cam.world.patient_markers_optical(pair.right.t_ns)
+    _, uv_right = SMALL.project(world_pts)
+    np.testing.assert_allclose([right_truth[i] for i in range(6)], uv_right, atol=1e-6)
