@@ -8,6 +8,9 @@ HIL_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${HIL_VENV:-$HIL_ROOT/.venv}"
 PY="${PYTHON:-python3}"
 
+# Extras every set-up installs: dev tools, and the report/console/OpenIGTLink features.
+HIL_DEFAULT_EXTRAS="dev,report,console,igtl"
+
 log() { printf '[setup] %s\n' "$*" >&2; }
 
 apt_install_missing() {
@@ -35,7 +38,7 @@ ensure_venv() {
         "$PY" -m venv "$VENV"
     fi
     local stamp="$VENV/.hil-installed"
-    local extras="${HIL_EXTRAS:-dev}"
+    local extras="${HIL_EXTRAS:-$HIL_DEFAULT_EXTRAS}"
     # Reinstall only when pyproject.toml or the extras changed since the last install.
     local want
     want="$(sha256sum "$HIL_ROOT/pyproject.toml" | cut -d' ' -f1) $extras"
@@ -49,5 +52,18 @@ ensure_venv() {
             return 1
         fi
         echo "$want" > "$stamp"
+    fi
+}
+
+ensure_device_support() {
+    # Debian packages for the camera (Aravis) and serial (socat) tests; adds the `aravis` extra
+    # when they are present. In CI (CI=true) a failure here is an error: those tests must run.
+    source "$HIL_ROOT/tools/setup_aravis.sh"
+    if ensure_aravis_apt; then
+        HIL_EXTRAS="${HIL_EXTRAS:-$HIL_DEFAULT_EXTRAS},aravis"
+        export HIL_EXTRAS
+    elif [ "${CI:-}" = "true" ]; then
+        log "CI: the Aravis/socat Debian packages could not be installed"
+        return 1
     fi
 }

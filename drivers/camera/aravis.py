@@ -1,0 +1,372 @@
+"""Aravis stereo camera: two GigE Vision / USB3 Vision cameras through PyGObject, as one source.
+
+Needs the ``aravis`` extra (PyGObject) and the Debian typelib ``gir1.2-aravis-0.8``
+(``tools/setup_aravis.sh`` installs both).
+
+Triggering (config ``trigger``):
+- ``software``: TriggerSelector=FrameStart, TriggerMode=On, TriggerSource=Software; ``grab()``
+  sends one TriggerSoftware to each camera and waits for that trigger's two frames.
+- ``hardware``: TriggerSource=<trigger_line> on both cameras (one pulse drives both).
+- ``free_run``: no trigger; the cameras stream at ``frame_rate_hz``.
+
+Pairing (see :mod:`drivers.camera.pairing`): trigger id > device timestamps > nearest host time
+within half a frame period. A frame's trigger id / frame index is its device frame id (GVSP block
+id, unwrapped) counted from the side's first frame, which is given the trigger in flight when it
+arrived (software trigger) or 1 (hardware trigger). Failed buffers still advance the count.
+
+Timestamps: ``Frame.device_t_ns`` is the camera's timestamp (``arv_buffer_get_timestamp``, camera
+clock, ns). ``Frame.t_ns`` is the host reception time of the frame's first packet
+(``arv_buffer_get_system_timestamp``, wall clock) moved onto the controller clock by subtracting
+the frame's age at the moment it is handed over.
+
+Teardown: ``close()`` stops acquisition and drops the streams before the cameras; without that the
+process can abort at exit (environment.md, Aravis).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from types import ModuleType
+from typing import Any
+
+from drivers.camera.config import AravisCameraConfig
+from drivers.camera.pairing import FrameIdUnwrapper, PairRule, Side, StereoPairer
+from drivers.camera.pixels import PIXEL_FORMATS, PixelFormatError, to_mono8
+from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
+from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError
+from hil.clock import Clock
+from hil.log import get_logger
+
+log = get_logger(__name__)
+
+#: Longest single blocking pop, s, so a lost control channel is noticed between pops.
+_POP_SLICE_S = 0.05
+
+
+class AravisUnavailableError(DriverError):
+    """PyGObject or the Aravis typelib is not installed."""
+
+
+def import_aravis(device: str = "camera") -> tuple[ModuleType, Any]:
+    """Return ``(Aravis, GLib)`` from PyGObject.
+
+    Raises:
+        AravisUnavailableError: with what to install.
+    """
+    try:
+        import gi
+
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis, GLib
+    except (ImportError, ValueError) as exc:
+        raise AravisUnavailableError(
+            device,
+            f"Aravis is not available ({exc}); install the 'aravis' extra (PyGObject==3.50.2) and the "
+            "Debian packages gir1.2-aravis-0.8 libaravis-0.8-0 (tools/setup_aravis.sh does both)",
+        ) from exc
+    return Aravis, GLib
+
+
+def resolve_pair_rule(config: AravisCameraConfig) -> PairRule:
+    """The pairing rule the config asks for (``auto`` resolved by trigger mode)."""
+    if config.pairing != "auto":
+        return PairRule(config.pairing)
+    if config.trigger == "software":
+        return PairRule.TRIGGER_ID
+    if config.trigger == "hardware":
+        return PairRule.FRAME_ID
+    return PairRule.DEVICE_TIME if config.device_clocks_synchronised else PairRule.HOST_TIME
+
+
+@dataclass
+class _Side:
+    side: Side
+    device_id: str
+    camera: Any
+    stream: Any = None
+    unwrap: FrameIdUnwrapper = field(default_factory=FrameIdUnwrapper)
+    lost_handler: int | None = None
+    frames: int = 0
+    failed_buffers: int = 0
+    dead: bool = False  # control lost / a command failed: teardown does not talk to it
+    key_offset: int | None = None  # trigger id (or 1) of this side's first frame
+
+
+class AravisStereoCamera(StereoCamera):
+    """Two Aravis cameras as one :class:`StereoCamera`.
+
+    Args:
+        name: role name used in errors (``camera``).
+        config: the validated ``[camera]`` section.
+        clock: the controller clock; ``Frame.t_ns`` is on it.
+        wall_clock_ns: the host wall clock Aravis' system timestamps use (injectable for tests).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        config: AravisCameraConfig,
+        clock: Clock,
+        *,
+        wall_clock_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
+        super().__init__(name)
+        self.config = config
+        self._clock = clock
+        self._wall_clock_ns = wall_clock_ns
+        self._rule = resolve_pair_rule(config)
+        self._pairer = StereoPairer(self._rule, round(1e9 / config.frame_rate_hz))
+        self._sides: dict[Side, _Side] = {}
+        self._lost = threading.Event()
+        self._lost_reason = ""
+        self._trigger_id = 0
+        self._aravis: ModuleType | None = None
+        self._glib: Any = None
+
+    # -- properties -------------------------------------------------------------------------
+    @property
+    def frame_rate_hz(self) -> float:
+        return self.config.frame_rate_hz
+
+    @property
+    def exposure_us(self) -> float:
+        return self.config.exposure_us
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return (self.config.width_px, self.config.height_px)
+
+    @property
+    def pair_rule(self) -> PairRule:
+        return self._rule
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """Counters: frames received and failed buffers per side, frames dropped unpaired,
+        frame-id offset re-learnings (hardware trigger)."""
+        out = {"dropped_unpaired": self._pairer.dropped, "realigned": self._pairer.realigned}
+        for s in self._sides.values():
+            out[f"{s.side}_frames"] = s.frames
+            out[f"{s.side}_failed_buffers"] = s.failed_buffers
+        return out
+
+    # -- lifecycle --------------------------------------------------------------------------
+    def _open(self) -> None:
+        Aravis, GLib = import_aravis(self.name)
+        self._aravis, self._glib = Aravis, GLib
+        if self.config.enable_fake_interface:
+            Aravis.enable_interface("Fake")
+        try:
+            wanted: tuple[tuple[Side, str], ...] = (("left", self.config.left_device_id),
+                                                    ("right", self.config.right_device_id))
+            for side, device_id in wanted:
+                self._sides[side] = self._open_one(side, device_id)
+            for s in self._sides.values():
+                self._start(s)
+        except BaseException:
+            self._teardown()
+            raise
+        log.info("aravis_stereo_opened", device=self.name, left=self.config.left_device_id,
+                 right=self.config.right_device_id, trigger=self.config.trigger, pairing=str(self._rule),
+                 width_px=self.config.width_px, height_px=self.config.height_px,
+                 frame_rate_hz=self.config.frame_rate_hz, exposure_us=self.config.exposure_us)
+
+    def _open_one(self, side: Side, device_id: str) -> _Side:
+        Aravis, GLib = self._aravis, self._glib
+        assert Aravis is not None
+        cfg = self.config
+        try:
+            camera = Aravis.Camera.new(device_id)
+        except GLib.Error as exc:
+            raise DisconnectedError(
+                self.name, f"{side} camera {device_id!r} not found ({exc.message}); "
+                "check the id/address with arv-tool-0.8"
+            ) from exc
+        state = _Side(side=side, device_id=device_id, camera=camera)
+        try:
+            camera.set_pixel_format_from_string(cfg.pixel_format)
+            camera.set_region(cfg.offset_x_px, cfg.offset_y_px, cfg.width_px, cfg.height_px)
+            # Frame rate first: Aravis turns FrameStart triggering off when it sets the rate.
+            camera.set_frame_rate(cfg.frame_rate_hz)
+            camera.set_exposure_time(cfg.exposure_us)
+            if cfg.gain_db is not None:
+                camera.set_gain(cfg.gain_db)
+            if cfg.trigger == "software":
+                camera.set_trigger("Software")
+            elif cfg.trigger == "hardware":
+                camera.set_trigger(cfg.trigger_line)
+            else:
+                camera.clear_triggers()
+            camera.set_acquisition_mode(Aravis.AcquisitionMode.CONTINUOUS)
+            if cfg.packet_size_bytes is not None and camera.is_gv_device():
+                camera.gv_set_packet_size(cfg.packet_size_bytes)
+            _x, _y, width, height = camera.get_region()
+            if (width, height) != (cfg.width_px, cfg.height_px):
+                raise DriverError(self.name, f"{side} camera {device_id!r} refused region "
+                                             f"{cfg.width_px}x{cfg.height_px} (has {width}x{height})")
+            stream = camera.create_stream(None, None)
+        except GLib.Error as exc:
+            raise DriverError(self.name, f"{side} camera {device_id!r}: configuration failed: "
+                                         f"{exc.message}") from exc
+        if stream is None:
+            raise DisconnectedError(self.name, f"{side} camera {device_id!r}: no stream could be created")
+        state.stream = stream
+        payload = camera.get_payload()
+        for _ in range(cfg.n_buffers):
+            stream.push_buffer(Aravis.Buffer.new_allocate(payload))
+        device = camera.get_device()
+        state.lost_handler = device.connect("control-lost", self._on_control_lost, side, device_id)
+        return state
+
+    def _start(self, s: _Side) -> None:
+        try:
+            s.camera.start_acquisition()
+        except self._glib.Error as exc:
+            raise DisconnectedError(self.name, f"{s.side} camera {s.device_id!r}: acquisition did not "
+                                               f"start: {exc.message}") from exc
+
+    def _on_control_lost(self, _device: Any, side: str, device_id: str) -> None:
+        # Called from Aravis' heartbeat thread.
+        self._lost_reason = f"{side} camera {device_id!r}: control channel lost (no heartbeat answer)"
+        state = self._sides.get(side)  # type: ignore[call-overload]
+        if state is not None:
+            state.dead = True
+        self._lost.set()
+
+    def _close(self) -> None:
+        stats = self.stats
+        self._teardown()
+        log.info("aravis_stereo_closed", device=self.name, **stats)
+
+    def _teardown(self) -> None:
+        """Stop acquisition, then drop streams before cameras (avoids the abort at exit)."""
+        glib_error: type[BaseException] = self._glib.Error if self._glib is not None else RuntimeError
+        for s in self._sides.values():
+            if s.dead:
+                continue
+            try:
+                s.camera.stop_acquisition()
+            except glib_error as exc:
+                log.warning("aravis_stop_failed", device=self.name, side=s.side, error=str(exc))
+        for s in self._sides.values():
+            if s.lost_handler is not None:
+                s.camera.get_device().disconnect(s.lost_handler)
+                s.lost_handler = None
+        dead = [(s.stream, s.camera) for s in self._sides.values() if s.dead]
+        for s in self._sides.values():
+            s.stream = None
+        for s in self._sides.values():
+            s.camera = None
+        self._sides.clear()
+        if dead:
+            # Finalising an unreachable GigE device waits for GVCP write timeouts (~10 s: stream
+            # channel close, leave control). Do it off the caller's thread; the thread is not a
+            # daemon, so the interpreter still finishes it before exiting (no abort at exit).
+            threading.Thread(target=_release_later, args=(dead,), name="aravis-teardown").start()
+            dead = []
+
+    # -- acquisition ------------------------------------------------------------------------
+    def grab(self, timeout_s: float) -> StereoFrame:
+        """Block until the next synchronised pair (see the module doc for the pair rule).
+
+        Raises:
+            LifecycleError: not active.
+            DeviceTimeoutError: no pair within ``timeout_s`` (says which side had no frame).
+            DisconnectedError: a camera's control channel was lost or a trigger failed.
+        """
+        self.require_active("grab")
+        self._check_lost()
+        deadline = time.monotonic() + timeout_s
+        min_key: int | None = None
+        if self.config.trigger == "software":
+            self._trigger_id += 1
+            min_key = self._trigger_id
+            for s in self._sides.values():
+                try:
+                    s.camera.software_trigger()
+                except self._glib.Error as exc:
+                    s.dead = True
+                    raise DisconnectedError(self.name, f"{s.side} camera {s.device_id!r}: software trigger "
+                                                       f"failed: {exc.message}") from exc
+        while True:
+            for s in self._sides.values():
+                self._drain(s)
+            pair = self._pairer.pop_pair(min_key=min_key)
+            if pair is not None:
+                return pair
+            self._check_lost()
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise DeviceTimeoutError(self.name, self._timeout_message(timeout_s))
+            # Wait on the side that has fewer frames waiting.
+            s = min(self._sides.values(), key=lambda x: self._pairer.pending(x.side))
+            buffer = s.stream.timeout_pop_buffer(int(min(remaining, _POP_SLICE_S) * 1e6))
+            if buffer is not None:
+                self._handle(s, buffer)
+
+    def _timeout_message(self, timeout_s: float) -> str:
+        waiting = [s for s in self._sides.values() if self._pairer.pending(s.side) == 0]
+        what = (", ".join(f"{s.side} camera {s.device_id!r}" for s in waiting) or "both cameras (unpaired)")
+        trig = f" after software trigger {self._trigger_id}" if self.config.trigger == "software" else ""
+        return f"no stereo pair within {timeout_s:g} s{trig}: no frame from {what}"
+
+    def _check_lost(self) -> None:
+        if self._lost.is_set():
+            raise DisconnectedError(self.name, self._lost_reason)
+
+    def _drain(self, s: _Side) -> None:
+        while True:
+            buffer = s.stream.try_pop_buffer()
+            if buffer is None:
+                return
+            self._handle(s, buffer)
+
+    def _handle(self, s: _Side, buffer: Any) -> None:
+        """Turn one popped buffer into a frame for the pairer; always gives the buffer back."""
+        Aravis = self._aravis
+        assert Aravis is not None
+        try:
+            raw_id = int(buffer.get_frame_id())
+            index = s.unwrap(raw_id) if raw_id != 0 else None
+            if index is not None and s.key_offset is None:
+                # Software trigger: the first frame answers the trigger in flight (so a first
+                # trigger lost entirely does not shift every later pair). Else count from 1.
+                s.key_offset = self._trigger_id if self.config.trigger == "software" else 1
+            if buffer.get_status() != Aravis.BufferStatus.SUCCESS:
+                s.failed_buffers += 1
+                log.warning("aravis_buffer_failed", device=self.name, side=s.side,
+                            status=buffer.get_status().value_nick, frame_id=raw_id)
+                return
+            if index is None:
+                s.failed_buffers += 1
+                return
+            width, height = buffer.get_image_width(), buffer.get_image_height()
+            try:
+                image = to_mono8(buffer.get_data(), width, height, int(buffer.get_image_pixel_format()))
+            except PixelFormatError as exc:
+                s.failed_buffers += 1
+                log.warning("aravis_bad_payload", device=self.name, side=s.side, frame_id=raw_id,
+                            error=str(exc))
+                return
+            age_ns = max(0, self._wall_clock_ns() - int(buffer.get_system_timestamp()))
+            frame = Frame(image=image, t_ns=self._clock.now_ns() - age_ns, seq=index,
+                          device_t_ns=int(buffer.get_timestamp()))
+            s.frames += 1
+            self._pairer.push(s.side, frame, key=index + (s.key_offset or 1))
+        finally:
+            s.stream.push_buffer(buffer)
+
+
+def _release_later(objects: list[tuple[Any, Any]]) -> None:
+    """Drop the last references (stream before camera) of cameras that stopped answering."""
+    while objects:
+        stream, camera = objects.pop()
+        del stream
+        del camera
+
+
+__all__ = ["PIXEL_FORMATS", "AravisStereoCamera", "AravisUnavailableError", "import_aravis",
+           "resolve_pair_rule"]

@@ -1,0 +1,1 @@
+"""Device emulators the project ships (run them as separate processes; see docs/)."""

@@ -1,0 +1,1 @@
+"""Fake GigE Vision cameras serving custom images (Aravis GvFakeCamera + a ctypes fill callback)."""
