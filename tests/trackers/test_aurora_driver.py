@@ -1,0 +1,182 @@
+"""AuroraTracker through the real pyserial on a pty, against the byte-exact emulator."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from emulators.trackersim.poses import StaticPoses
+
+from drivers.interfaces.errors import DeviceFaultError, DeviceTimeoutError, ProtocolError
+from drivers.interfaces.tracker import TrackerSample
+from drivers.tracker_serial.aurora import AuroraTracker
+from drivers.tracker_serial.config import AuroraConfig
+from hil.geometry.transform import RigidTransform
+
+from .conftest import AuroraFactory, wait_until
+
+
+def _config(port: str, **kw: object) -> AuroraConfig:
+    base: dict[str, object] = {"driver": "aurora", "port": port,
+                               "sensors": {"needle": "0A", "reference": "0b"},
+                               "break_as_nul": True, "reset_timeout_s": 2.0, "response_timeout_s": 0.5,
+                               "timeout_s": 0.5, "poll_rate_hz": 100.0}
+    base.update(kw)
+    return AuroraConfig.model_validate(base)
+
+
+class Recorder:
+    def __init__(self) -> None:
+        self.samples: list[TrackerSample] = []
+
+    def __call__(self, s: TrackerSample) -> None:
+        self.samples.append(s)
+
+    def count(self, sensor: str) -> int:
+        return sum(1 for s in self.samples if s.sensor == sensor)
+
+
+def _truth(dev: object, handle: str) -> RigidTransform:
+    T = dev.poses.pose(handle, 0.0)  # type: ignore[attr-defined]
+    assert T is not None
+    return T
+
+
+def _assert_matches(s: TrackerSample, truth: RigidTransform, tol_mm: float) -> None:
+    assert s.T_tracker_from_sensor is not None
+    np.testing.assert_allclose(s.T_tracker_from_sensor.t, truth.t, atol=tol_mm)
+    assert (s.T_tracker_from_sensor.inverse() @ truth).rotation_angle_rad() < 2e-4
+
+
+@pytest.mark.parametrize(("reply_format", "tol_mm"), [("bx", 1e-3), ("tx", 0.006)])
+def test_tracking_at_115200(aurora_emulator: AuroraFactory, reply_format: str, tol_mm: float) -> None:
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, reply_format=reply_format))
+    rec = Recorder()
+    tracker.add_listener(rec)
+    with tracker:
+        assert dev.baud == 115200
+        assert dev.link.host_baud() == 115200
+        assert tracker.info["handles"] == "0A,0B"
+        wait_until(lambda: rec.count("needle") >= 10, what="10 frames")
+        latest = tracker.latest()
+    wait_until(lambda: dev.baud == 9600 and not dev.tracking, what="TSTOP and COMM back to 9600 on close")
+    _assert_matches(latest["needle"], _truth(dev, "0A"), tol_mm)
+    _assert_matches(latest["reference"], _truth(dev, "0B"), tol_mm)
+    assert latest["needle"].quality == pytest.approx(0.05)
+    frames = [s.seq for s in rec.samples if s.sensor == "needle"]
+    assert frames == sorted(set(frames))  # each device frame once, in order
+
+
+@pytest.mark.parametrize("fault", ["bad_crc,p=0.3", "garbage,p=0.3", "truncate,p=0.3"])
+def test_damaged_replies_are_skipped(aurora_emulator: AuroraFactory, fault: str) -> None:
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, response_timeout_s=0.1, timeout_s=5.0))
+    rec = Recorder()
+    tracker.add_listener(rec)
+    with tracker:
+        dev.faults.inject(fault, dev.now_s())
+        wait_until(lambda: rec.count("needle") >= 30, what="frames despite damage")
+        wait_until(lambda: tracker.damaged_records > 0, what="a damaged reply")
+    assert dev.faults.fired[fault.split(",")[0]] > 0
+    for s in rec.samples:
+        _assert_matches(s, _truth(dev, "0A" if s.sensor == "needle" else "0B"), 1e-3)
+
+
+def test_missing_and_out_of_volume_tools(aurora_emulator: AuroraFactory) -> None:
+    poses = StaticPoses({"0A": None, "0B": RigidTransform.from_translation([0.0, 0.0, -800.0]),
+                         "0C": RigidTransform.from_translation([0.0, 240.0, -250.0])})
+    dev = aurora_emulator(n_tools=3, poses=poses)
+    tracker = AuroraTracker(_config(dev.link.path, sensors={"needle": "0A", "ref": "0B", "edge": "0C"}))
+    with tracker:
+        wait_until(lambda: len(tracker.latest()) == 3, what="all three tools")
+        latest = tracker.latest()
+    assert latest["needle"].missing
+    assert latest["needle"].T_tracker_from_sensor is None
+    assert "missing" in latest["needle"].flags
+    assert latest["ref"].missing
+    assert latest["ref"].flags == ("out_of_volume",)
+    assert not latest["edge"].missing
+    assert latest["edge"].flags == ("partially_out",)
+
+
+def test_silence_is_a_typed_timeout(aurora_emulator: AuroraFactory) -> None:
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, timeout_s=0.2, response_timeout_s=0.1))
+    with tracker:
+        wait_until(lambda: "needle" in tracker.latest(), what="first frame")
+        dev.faults.inject("silence", dev.now_s())
+
+        def timed_out() -> bool:
+            try:
+                tracker.latest()
+            except DeviceTimeoutError:
+                return True
+            return False
+
+        wait_until(timed_out, what="DeviceTimeoutError")
+        dev.faults.clear()
+
+
+def test_no_reset_reply_without_break_on_a_pty(aurora_emulator: AuroraFactory) -> None:
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, break_as_nul=False, reset_timeout_s=0.3))
+    with pytest.raises(DeviceTimeoutError, match="no RESET after a serial break"):
+        tracker.open()
+
+
+def test_wrong_baud_after_comm_is_a_protocol_error(aurora_emulator: AuroraFactory) -> None:
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path))
+    tracker_ok = AuroraTracker(_config(dev.link.path, baud_rate=57600))
+    dev.faults.inject("wrong_baud,baud=57600")  # COMM is accepted but the device ends up at 57600
+    # The reset and INIT at 9600 are garbled too: the device really runs at 57600.
+    with pytest.raises((ProtocolError, DeviceTimeoutError)):
+        tracker.open()
+    dev.faults.clear()
+    with tracker_ok:
+        wait_until(lambda: "needle" in tracker_ok.latest(), what="frames at 57600")
+
+
+def test_unconfigured_handle_is_a_device_fault(aurora_emulator: AuroraFactory) -> None:
+    dev = aurora_emulator(n_tools=1)
+    tracker = AuroraTracker(_config(dev.link.path))
+    with pytest.raises(DeviceFaultError, match="port handle 0B is not enabled"):
+        tracker.open()
+
+
+def test_device_reset_mid_tracking_is_a_device_fault(aurora_emulator: AuroraFactory) -> None:
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, timeout_s=30.0))
+    with tracker:
+        wait_until(lambda: "needle" in tracker.latest(), what="first frame")
+        with dev.lock:
+            dev.reset()
+            dev.baud = 115200  # power cycle seen at the same speed: not tracking any more
+
+        def faulted() -> bool:
+            try:
+                tracker.latest()
+            except DeviceFaultError:
+                return True
+            return False
+
+        wait_until(faulted, what="DeviceFaultError")
+
+
+def test_frame_numbers_map_to_host_time_through_the_least_delayed_reply() -> None:
+    tracker = AuroraTracker(_config("/dev/null", frame_rate_hz=40.0))
+    # Frame 0 arrives 3 ms late, frame 1 only 1 ms late: the offset follows the least delay.
+    assert tracker._frame_time_ns(0, 1_003_000_000) == 1_003_000_000
+    assert tracker._frame_time_ns(1, 1_026_000_000) == 1_001_000_000 + 25_000_000
+    assert tracker._frame_time_ns(2, 1_060_000_000) == 1_001_000_000 + 50_000_000
+
+
+def test_config_handles() -> None:
+    cfg = _config("/dev/x", sensors={"a": 10, "b": "0b"})
+    assert cfg.sensors == {"a": "0A", "b": "0B"}
+    with pytest.raises(ValueError, match="two hex digits"):
+        _config("/dev/x", sensors={"a": "XYZ"})
+    with pytest.raises(ValueError, match="share"):
+        _config("/dev/x", sensors={"a": "0A", "b": 10})
+    with pytest.raises(ValueError, match="COMM code"):
+        _config("/dev/x", baud_rate=12345)
