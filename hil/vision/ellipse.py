@@ -1,0 +1,302 @@
+"""Ellipse fitting: the paper's least squares (seed 001 eqs 12-17) and the direct ellipse-specific
+fit (Fitzgibbon, Pilu & Fisher 1999, in the numerically stable form of Halir & Flusser 1998),
+plus conic -> ellipse parameters, Sampson residuals, and the supporting-plane normals of a circle
+seen as an ellipse (for the perspective-bias correction).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class Ellipse:
+    """An ellipse in pixels: centre, semi-axes ``a >= b``, angle of the major axis (rad, from +x),
+    the normalised conic matrix, the RMS Sampson residual of the fitted points and their count."""
+
+    center_px: FloatArray
+    a_px: float
+    b_px: float
+    angle_rad: float
+    conic: FloatArray
+    residual_rms_px: float
+    n_points: int
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "center_px": [float(v) for v in self.center_px],
+            "a_px": self.a_px,
+            "b_px": self.b_px,
+            "angle_rad": self.angle_rad,
+            "residual_rms_px": self.residual_rms_px,
+            "n_points": self.n_points,
+        }
+
+
+def _normalisation(x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    mx, my = float(x.mean()), float(y.mean())
+    xc, yc = x - mx, y - my
+    s = math.sqrt(float(xc @ xc + yc @ yc) / (2.0 * x.size)) or 1.0
+    N = np.array([[1 / s, 0.0, -mx / s], [0.0, 1 / s, -my / s], [0.0, 0.0, 1.0]])
+    return xc / s, yc / s, N
+
+
+def _coeffs_to_conic(v: FloatArray) -> FloatArray:
+    a, b, c, d, e, f = v
+    return np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
+
+
+def fit_conic_direct(x: FloatArray, y: FloatArray) -> FloatArray | None:
+    """Direct least-squares ellipse-specific fit (Fitzgibbon 1999 / Halir-Flusser 1998).
+
+    Minimises the algebraic distance subject to ``4ac - b^2 = 1``, which always returns an ellipse.
+    Returns the 3x3 conic (pixels) or None when fewer than 5 points or the system is degenerate.
+    """
+    if x.size < 5:
+        return None
+    xn, yn, N = _normalisation(x, y)
+    D = np.empty((6, xn.size))
+    D[0], D[1], D[2], D[3], D[4], D[5] = xn * xn, xn * yn, yn * yn, xn, yn, 1.0
+    S = D @ D.T
+    S1, S2, S3 = S[:3, :3], S[:3, 3:], S[3:, 3:]
+    try:
+        T = -np.linalg.inv(S3) @ S2.T
+    except np.linalg.LinAlgError:
+        return None
+    M = S1 + S2 @ T
+    M = np.stack([M[2] / 2.0, -M[1], M[0] / 2.0])
+    _, V = np.linalg.eig(M)
+    V = V.real
+    cond = 4.0 * V[0] * V[2] - V[1] ** 2
+    ok = np.nonzero(cond > 0)[0]
+    if ok.size == 0:
+        return None
+    a1 = V[:, ok[0]]
+    Cn = _coeffs_to_conic(np.concatenate([a1, T @ a1]))
+    C = N.T @ Cn @ N
+    return np.asarray(C / np.linalg.norm(C), dtype=np.float64)
+
+
+def fit_conic_paper(x: FloatArray, y: FloatArray) -> FloatArray | None:
+    """Seed 001 eqs 13-16: ordinary least squares of the general conic.
+
+    As printed, eq 14 keeps a constant column *and* a right-hand side of ones, which has the
+    trivial solution (0, ..., 0, 1); the usable form drops the constant (``f = -1``):
+    ``[x^2 xy y^2 x y] X = 1``, ``X = (A^T A)^-1 A^T 1`` (eq 16). Coordinates are taken relative to
+    the points' mean (the paper's ROI-corner offset) for conditioning. Not ellipse-specific: noisy
+    points can return a hyperbola (then None).
+    """
+    if x.size < 5:
+        return None
+    mx, my = float(x.mean()), float(y.mean())
+    xs, ys = x - mx, y - my
+    A = np.stack([xs * xs, xs * ys, ys * ys, xs, ys], axis=1)
+    sol, *_ = np.linalg.lstsq(A, np.ones_like(xs), rcond=None)
+    a, b, c, d, e = sol
+    if 4 * a * c - b * b <= 0:
+        return None
+    Cl = _coeffs_to_conic(np.array([a, b, c, d, e, -1.0]))
+    Tm = np.array([[1.0, 0.0, -mx], [0.0, 1.0, -my], [0.0, 0.0, 1.0]])
+    C = Tm.T @ Cl @ Tm
+    return np.asarray(C / np.linalg.norm(C), dtype=np.float64)
+
+
+def sampson_distances(C: FloatArray, x: FloatArray, y: FloatArray) -> FloatArray:
+    """First-order geometric distance of points to the conic (pixels)."""
+    gx = C[0, 0] * x + C[0, 1] * y + C[0, 2]
+    gy = C[1, 0] * x + C[1, 1] * y + C[1, 2]
+    alg = gx * x + gy * y + (C[2, 0] * x + C[2, 1] * y + C[2, 2])
+    grad = 2.0 * np.sqrt(gx * gx + gy * gy)
+    return np.asarray(alg / np.maximum(grad, 1e-300), dtype=np.float64)
+
+
+def ellipse_from_conic(
+    C: FloatArray,
+    x: FloatArray | None = None,
+    y: FloatArray | None = None,
+    residuals: FloatArray | None = None,
+) -> Ellipse | None:
+    """Ellipse parameters of a conic (None if it is not a real ellipse). With points, also the
+    RMS Sampson residual."""
+    if C[0, 0] + C[1, 1] < 0:
+        C = -C
+    A, B, Cq = float(C[0, 0]), float(C[0, 1]), float(C[1, 1])
+    det = A * Cq - B * B
+    if det <= 0:
+        return None
+    d, e = float(C[0, 2]), float(C[1, 2])
+    cx, cy = (B * e - Cq * d) / det, (B * d - A * e) / det
+    k = float(C[2, 2]) + d * cx + e * cy
+    if k >= 0:
+        return None
+    # eigenvalues of the 2x2 block, ascending: the smaller one belongs to the major axis
+    mean, diff = 0.5 * (A + Cq), math.hypot(0.5 * (A - Cq), B)
+    lam_small, lam_big = mean - diff, mean + diff
+    if lam_small <= 0:
+        return None
+    a_ax, b_ax = math.sqrt(-k / lam_small), math.sqrt(-k / lam_big)
+    angle = 0.5 * math.atan2(2.0 * B, A - Cq) + math.pi / 2  # direction of the major axis
+    res = 0.0
+    n = 0
+    if residuals is not None:
+        res, n = float(np.sqrt(np.mean(residuals * residuals))), int(residuals.size)
+    elif x is not None and y is not None:
+        dist = sampson_distances(C, x, y)
+        res, n = float(np.sqrt(np.mean(dist * dist))), int(x.size)
+    return Ellipse(np.array([cx, cy]), a_ax, b_ax, angle, C, res, n)
+
+
+def circle_normals_from_conic(C_px: FloatArray, K: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+    """The two possible unit normals (pointing towards the camera) of a circle's supporting plane,
+    from its image conic and the intrinsics (Shiu & Ahmad 1989; Kanatani). The true one is fixed
+    by a second view. Returns None when the conic is not an ellipse."""
+    Q = K.T @ C_px @ K
+    lam, V = np.linalg.eigh(Q)
+    if np.sum(lam > 0) == 1:
+        lam, V = -lam, V
+    order = np.argsort(-lam)  # l1 >= l2 > 0 > l3
+    lam, V = lam[order], V[:, order]
+    l1, l2, l3 = lam
+    if not (l1 >= l2 > 0 > l3):
+        return None
+    g = math.sqrt(max((l1 - l2) / (l1 - l3), 0.0))
+    h = math.sqrt(max((l2 - l3) / (l1 - l3), 0.0))
+    out = []
+    for sgn in (1.0, -1.0):
+        n = V @ np.array([sgn * g, 0.0, h])
+        n = n / np.linalg.norm(n)
+        if n[2] > 0:
+            n = -n
+        out.append(np.asarray(n, dtype=np.float64))
+    return out[0], out[1]
+
+
+def projected_center_from_normal(C_px: FloatArray, K: FloatArray, normal_cam: FloatArray) -> FloatArray:
+    """Image of the circle's centre: the pole of the plane's vanishing line ``l = K^-T n`` with
+    respect to the image conic (pole-polar relation). (2,) pixels."""
+    # l = K^-T n for an upper-triangular K, then the pole p ~ adj(C) l (C symmetric)
+    fx, s, cx, fy, cy = float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])
+    n0, n1, n2 = (float(v) for v in normal_cam)
+    l0 = n0 / fx
+    l1 = (n1 - s * l0) / fy
+    l2 = n2 - cx * l0 - cy * l1
+    a, b, d = float(C_px[0, 0]), float(C_px[0, 1]), float(C_px[0, 2])
+    c, e, f = float(C_px[1, 1]), float(C_px[1, 2]), float(C_px[2, 2])
+    A00, A01, A02 = c * f - e * e, d * e - b * f, b * e - c * d
+    A11, A12, A22 = a * f - d * d, b * d - a * e, a * c - b * b
+    p0 = A00 * l0 + A01 * l1 + A02 * l2
+    p1 = A01 * l0 + A11 * l1 + A12 * l2
+    p2 = A02 * l0 + A12 * l1 + A22 * l2
+    return np.array([p0 / p2, p1 / p2])
+
+
+def _direct_fit_batch(X: FloatArray, Y: FloatArray, W: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Weighted direct ellipse fits of E point sets at once: X, Y, W are (E, R) (weight 0 = unused
+    point). Returns conics (E, 3, 3) (normalised) and a validity mask (E,)."""
+    n = W.sum(axis=1)
+    ok = n >= 6
+    n = np.where(ok, n, 1.0)
+    mx = (W * X).sum(axis=1) / n
+    my = (W * Y).sum(axis=1) / n
+    xc, yc = X - mx[:, None], Y - my[:, None]
+    s = np.sqrt((W * (xc * xc + yc * yc)).sum(axis=1) / (2.0 * n))
+    s = np.where(s > 0, s, 1.0)
+    xn, yn = xc / s[:, None], yc / s[:, None]
+    D = np.stack([xn * xn, xn * yn, yn * yn, xn, yn, np.ones_like(xn)], axis=1)  # (E, 6, R)
+    S = np.einsum("eir,ejr->eij", D * W[:, None, :], D)
+    S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
+    det3 = np.linalg.det(S3)
+    ok &= np.abs(det3) > 1e-12
+    S3 = np.where(ok[:, None, None], S3, np.eye(3))
+    T = -np.linalg.solve(S3, np.transpose(S2, (0, 2, 1)))
+    M = S1 + S2 @ T
+    M = np.stack([M[:, 2] / 2.0, -M[:, 1], M[:, 0] / 2.0], axis=1)
+    M = np.where(np.isfinite(M), M, 0.0)
+    _, V = np.linalg.eig(M)
+    V = V.real
+    cond = 4.0 * V[:, 0, :] * V[:, 2, :] - V[:, 1, :] ** 2  # (E, 3)
+    has = np.any(cond > 0, axis=1)
+    ok &= has
+    k = np.argmax(cond > 0, axis=1)
+    a1 = V[np.arange(V.shape[0]), :, k]  # (E, 3)
+    a2 = np.einsum("eij,ej->ei", T, a1)
+    a, b, c = a1[:, 0], a1[:, 1], a1[:, 2]
+    d, e, f = a2[:, 0], a2[:, 1], a2[:, 2]
+    Cn = np.stack(
+        [np.stack([a, b / 2, d / 2], -1), np.stack([b / 2, c, e / 2], -1), np.stack([d / 2, e / 2, f], -1)], 1
+    )
+    N = np.zeros((X.shape[0], 3, 3))
+    N[:, 0, 0] = N[:, 1, 1] = 1.0 / s
+    N[:, 0, 2], N[:, 1, 2], N[:, 2, 2] = -mx / s, -my / s, 1.0
+    C = np.transpose(N, (0, 2, 1)) @ Cn @ N
+    C /= np.linalg.norm(C, axis=(1, 2), keepdims=True)
+    return C, ok
+
+
+def _sampson_batch(C: FloatArray, X: FloatArray, Y: FloatArray) -> FloatArray:
+    c = C[:, :, :, None]
+    gx = c[:, 0, 0] * X + c[:, 0, 1] * Y + c[:, 0, 2]
+    gy = c[:, 1, 0] * X + c[:, 1, 1] * Y + c[:, 1, 2]
+    alg = gx * X + gy * Y + (c[:, 2, 0] * X + c[:, 2, 1] * Y + c[:, 2, 2])
+    return np.asarray(alg / np.maximum(2.0 * np.sqrt(gx * gx + gy * gy), 1e-300), dtype=np.float64)
+
+
+def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> list[Ellipse | None]:
+    """Robust direct ellipse fits of E point sets (X, Y (E, R), M the used points): a fit, the
+    points beyond 3 MAD of the Sampson distances (and 0.05 px) dropped, a re-fit. Same result as
+    fitting each set on its own, with far fewer numpy calls."""
+    if X.shape[0] == 0:
+        return []
+    W = M.astype(np.float64)
+    C, ok = _direct_fit_batch(X, Y, W)
+    d = np.abs(_sampson_batch(C, X, Y))
+    cnt = M.sum(axis=1)
+    srt = np.sort(np.where(M, d, np.inf), axis=1)
+    mad = np.take_along_axis(srt, np.maximum(cnt // 2, 0)[:, None], axis=1)[:, 0] * 1.4826 + 1e-3
+    keep = M & (d <= np.maximum(3.0 * mad, 0.05)[:, None])
+    refit = (keep.sum(axis=1) < M.sum(axis=1)) & (keep.sum(axis=1) >= 6)
+    if np.any(refit):
+        W2 = np.where(refit[:, None], keep, M).astype(np.float64)
+        C2, ok2 = _direct_fit_batch(X, Y, W2)
+        C = np.where(refit[:, None, None], C2, C)
+        ok = np.where(refit, ok & ok2, ok)
+        M = W2 > 0
+        d = np.abs(_sampson_batch(C, X, Y))
+    # ellipse parameters of all conics at once (closed forms of ellipse_from_conic)
+    C = np.where((C[:, 0, 0] + C[:, 1, 1] < 0)[:, None, None], -C, C)
+    A, B, Cq = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
+    dd, ee, ff = C[:, 0, 2], C[:, 1, 2], C[:, 2, 2]
+    det = A * Cq - B * B
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cx, cy = (B * ee - Cq * dd) / det, (B * dd - A * ee) / det
+        k = ff + dd * cx + ee * cy
+        mean, diff = 0.5 * (A + Cq), np.hypot(0.5 * (A - Cq), B)
+        lam_s, lam_b = mean - diff, mean + diff
+        a_ax, b_ax = np.sqrt(-k / lam_s), np.sqrt(-k / lam_b)
+    angle = 0.5 * np.arctan2(2.0 * B, A - Cq) + math.pi / 2
+    good = ok & (det > 0) & (k < 0) & (lam_s > 0) & np.isfinite(a_ax) & np.isfinite(b_ax)
+    n_pts = M.sum(axis=1)
+    res = np.sqrt(np.where(M, d * d, 0.0).sum(axis=1) / np.maximum(n_pts, 1))
+    out: list[Ellipse | None] = []
+    for i in range(X.shape[0]):
+        if not good[i]:
+            out.append(None)
+            continue
+        out.append(
+            Ellipse(
+                np.array([cx[i], cy[i]]),
+                float(a_ax[i]),
+                float(b_ax[i]),
+                float(angle[i]),
+                C[i],
+                float(res[i]),
+                int(n_pts[i]),
+            )
+        )
+    return out

@@ -1,0 +1,269 @@
+"""Stereo matching and triangulation of ring detections (seed 001 section 4.1, seed 003 section 4.1).
+
+1. Undistort the detected centres and map them into the rectified pair (rows are epipolar lines).
+2. Pair left/right detections by a global assignment (Hungarian, ``linear_sum_assignment``) on a
+   cost of the rectified row difference (tolerance in pixels) and, when the marker diameter is
+   known, the agreement of the ring's apparent size with the depth implied by the disparity.
+3. Perspective-bias correction: under perspective the centre of the fitted ellipse is not the
+   image of the circle's centre. The supporting-plane normal of each ring is recovered from its
+   outer conic in both views (each view gives two candidates; the common one is the answer);
+   the projected centre is then the pole of the plane's vanishing line ``K^-T n`` with respect
+   to the conic, in each view. (Alternative: the concentric-conic construction, per view.)
+4. Triangulate with the DLT (hil.geometry.triangulation) and check with the skew-ray midpoint:
+   a pair whose rays pass further apart than ``max_gap_mm`` is rejected and reported (seed 003).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+
+from hil.geometry.triangulation import triangulate_dlt, triangulate_midpoint
+from hil.vision.camera_model import StereoCalibration, undistort_pixels
+from hil.vision.conics import concentric_center, conic_center
+from hil.vision.detect import RingDetection, center_weights
+from hil.vision.ellipse import circle_normals_from_conic, projected_center_from_normal
+
+FloatArray = NDArray[np.float64]
+Correction = Literal["normal", "concentric", "none"]
+
+_FORBIDDEN = 1e6
+
+
+@dataclass(frozen=True)
+class StereoParams:
+    """epipolar_tol_px: largest rectified row difference of a pair. max_gap_mm: largest distance
+    between the two rays (seed 003). outer_diameter_mm: the markers' outer diameter for the size
+    check (None disables it); size_tol: allowed relative size error. correction: perspective-bias
+    correction ("normal", "concentric" or "none")."""
+
+    epipolar_tol_px: float = 2.0
+    max_gap_mm: float = 1.0
+    outer_diameter_mm: float | None = 7.0
+    size_tol: float = 0.35
+    correction: Correction = "normal"
+
+
+@dataclass(frozen=True, eq=False)
+class StereoPoint:
+    """A triangulated marker: indices of its left/right detections, the 3D point (optical frame,
+    mm, DLT), rectified row difference (px), ray gap (mm), the centres used (undistorted px) and
+    the ring's plane normal (optical frame) when it was estimated."""
+
+    left_index: int
+    right_index: int
+    point_mm: FloatArray
+    epipolar_error_px: float
+    gap_mm: float
+    uv_left_px: FloatArray
+    uv_right_px: FloatArray
+    normal: FloatArray | None
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "left_index": self.left_index,
+            "right_index": self.right_index,
+            "point_mm": [float(v) for v in self.point_mm],
+            "epipolar_error_px": self.epipolar_error_px,
+            "gap_mm": self.gap_mm,
+            "normal": None if self.normal is None else [float(v) for v in self.normal],
+        }
+
+
+@dataclass(frozen=True)
+class RejectedPair:
+    left_index: int
+    right_index: int
+    reason: str
+    gap_mm: float
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "left_index": self.left_index,
+            "right_index": self.right_index,
+            "reason": self.reason,
+            "gap_mm": self.gap_mm,
+        }
+
+
+@dataclass(frozen=True)
+class StereoResult:
+    points: tuple[StereoPoint, ...]
+    rejected: tuple[RejectedPair, ...] = ()
+    unmatched_left: tuple[int, ...] = ()
+    unmatched_right: tuple[int, ...] = ()
+    extra: dict[str, object] = field(default_factory=dict)
+
+    @property
+    def points_mm(self) -> FloatArray:
+        if not self.points:
+            return np.zeros((0, 3))
+        return np.stack([p.point_mm for p in self.points])
+
+
+def _rectify(cal: StereoCalibration, side: str, uv_ideal: FloatArray) -> FloatArray:
+    if uv_ideal.shape[0] == 0:
+        return uv_ideal
+    K, _, _, _ = cal.camera(side)
+    rect = cal.rectification
+    R, P = (rect.R1, rect.P1) if side == "left" else (rect.R2, rect.P2)
+    out = cv2.undistortPoints(uv_ideal.reshape(-1, 1, 2), K, None, R=R, P=P)
+    return np.asarray(out.reshape(-1, 2), dtype=np.float64)
+
+
+def _ideal_affines(cal: StereoCalibration, side: str, centers_px: FloatArray) -> list[FloatArray]:
+    """Per centre, the 3x3 affine map distorted -> ideal pixels linearised at the centre (exact
+    for no distortion; the second-order error over a ring is far below the noise)."""
+    K, dist, _, _ = cal.camera(side)
+    n = centers_px.shape[0]
+    if not np.any(dist):
+        return [np.eye(3) for _ in range(n)]
+    h = 1.0
+    pts = np.concatenate([centers_px, centers_px + np.array([h, 0.0]), centers_px + np.array([0.0, h])])
+    ideal = undistort_pixels(pts, K, dist)
+    out = []
+    for k in range(n):
+        c0, cx, cy = ideal[k], ideal[n + k], ideal[2 * n + k]
+        J = np.column_stack([(cx - c0) / h, (cy - c0) / h])
+        H = np.eye(3)
+        H[:2, :2] = J
+        H[:2, 2] = c0 - J @ centers_px[k]
+        out.append(H)
+    return out
+
+
+def _to_ideal(C: FloatArray, H: FloatArray) -> FloatArray:
+    if H[0, 0] == 1.0 and H[1, 1] == 1.0 and not H[0, 1] and not H[1, 0] and not H[0, 2] and not H[1, 2]:
+        return C
+    # inverse of the affine map [J t; 0 1] is [J^-1  -J^-1 t; 0 1]
+    Ji = np.linalg.inv(H[:2, :2])
+    Hi = np.eye(3)
+    Hi[:2, :2] = Ji
+    Hi[:2, 2] = -Ji @ H[:2, 2]
+    Ci = Hi.T @ C @ Hi
+    return np.asarray(Ci / np.linalg.norm(Ci), dtype=np.float64)
+
+
+def _weights(det: RingDetection) -> tuple[float, float]:
+    return center_weights(det.outer, det.inner)
+
+
+def _common_normal(cands_l: tuple[FloatArray, FloatArray], cands_r_in_left: list[FloatArray]) -> FloatArray:
+    best = None
+    for nl in cands_l:
+        for nr in cands_r_in_left:
+            c = float(nl @ nr)
+            if best is None or c > best[0]:
+                best = (c, nl, nr)
+    assert best is not None
+    n = best[1] + best[2]
+    return np.asarray(n / np.linalg.norm(n), dtype=np.float64)
+
+
+def match_and_triangulate(
+    cal: StereoCalibration,
+    left: list[RingDetection],
+    right: list[RingDetection],
+    params: StereoParams = StereoParams(),
+) -> StereoResult:
+    """Pair, correct and triangulate left/right ring detections (see module doc). Pure CPU.
+
+    Raises:
+        GeometryError (from the triangulation) only for degenerate input such as parallel rays.
+    """
+    KL, distL, _, _ = cal.camera("left")
+    KR, distR, R_rl, _ = cal.camera("right")
+    cL = np.array([d.center_px for d in left]).reshape(-1, 2)
+    cR = np.array([d.center_px for d in right]).reshape(-1, 2)
+    iL, iR = undistort_pixels(cL, KL, distL), undistort_pixels(cR, KR, distR)
+    rL, rR = _rectify(cal, "left", iL), _rectify(cal, "right", iR)
+    nl, nr = len(left), len(right)
+    if nl == 0 or nr == 0:
+        return StereoResult((), (), tuple(range(nl)), tuple(range(nr)))
+    P2 = cal.rectification.P2
+    f_rect = float(P2[0, 0])
+    fb = abs(float(P2[0, 3]))  # f * baseline (rectified)
+    dv = np.abs(rL[:, None, 1] - rR[None, :, 1])
+    disp = rL[:, None, 0] - rR[None, :, 0]
+    cost = (dv / params.epipolar_tol_px) ** 2
+    allowed = (dv <= params.epipolar_tol_px) & (disp > 0)
+    if params.outer_diameter_mm is not None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = fb / disp
+        sl = np.array([math.sqrt(d.outer.a_px * d.outer.b_px) for d in left])
+        sr = np.array([math.sqrt(d.outer.a_px * d.outer.b_px) for d in right])
+        # the ring's major axis ~ its diameter at its depth: D = 2 a Z / f (upper bound under tilt)
+        dl = 2.0 * np.array([d.outer.a_px for d in left])[:, None] * z / f_rect
+        dr = 2.0 * np.array([d.outer.a_px for d in right])[None, :] * z / f_rect
+        size_err = np.abs(0.5 * (dl + dr) / params.outer_diameter_mm - 1.0)
+        allowed &= size_err <= params.size_tol
+        cost = cost + (size_err / params.size_tol) ** 2 + np.abs(np.log(sl[:, None] / sr[None, :]))
+    cost = np.where(allowed, cost, _FORBIDDEN)
+    rows, cols = linear_sum_assignment(cost)
+    pairs = [(int(a), int(b)) for a, b in zip(rows, cols, strict=True) if allowed[a, b]]
+    used_l, used_r = {a for a, _ in pairs}, {b for _, b in pairs}
+    if not pairs:
+        return StereoResult((), (), tuple(range(nl)), tuple(range(nr)))
+    uvl, uvr, normals = [], [], []
+    if params.correction != "none":
+        HL = _ideal_affines(cal, "left", cL[[a for a, _ in pairs]])
+        HR = _ideal_affines(cal, "right", cR[[b for _, b in pairs]])
+    for k, (a, b) in enumerate(pairs):
+        ul, ur, n = iL[a], iR[b], None
+        if params.correction != "none":
+            CoL, CiL = _to_ideal(left[a].outer.conic, HL[k]), _to_ideal(left[a].inner.conic, HL[k])
+            CoR, CiR = _to_ideal(right[b].outer.conic, HR[k]), _to_ideal(right[b].inner.conic, HR[k])
+            wl, wr = _weights(left[a]), _weights(right[b])
+            if params.correction == "normal":
+                candL = circle_normals_from_conic(CoL, KL)
+                candR = circle_normals_from_conic(CoR, KR)
+                if candL is not None and candR is not None:
+                    n = _common_normal(candL, [R_rl.T @ c for c in candR])
+                    nR = R_rl @ n
+                    ul = (
+                        ul
+                        + wl[0] * (projected_center_from_normal(CoL, KL, n) - conic_center(CoL))
+                        + wl[1] * (projected_center_from_normal(CiL, KL, n) - conic_center(CiL))
+                    )
+                    ur = (
+                        ur
+                        + wr[0] * (projected_center_from_normal(CoR, KR, nR) - conic_center(CoR))
+                        + wr[1] * (projected_center_from_normal(CiR, KR, nR) - conic_center(CiR))
+                    )
+            else:
+                ccl, ccr = concentric_center(CoL, CiL), concentric_center(CoR, CiR)
+                if ccl is not None and ccr is not None:
+                    ul = ul + (ccl - (wl[0] * conic_center(CoL) + wl[1] * conic_center(CiL)))
+                    ur = ur + (ccr - (wr[0] * conic_center(CoR) + wr[1] * conic_center(CiR)))
+        uvl.append(ul)
+        uvr.append(ur)
+        normals.append(n)
+    UL, UR = np.array(uvl), np.array(uvr)
+    pts = triangulate_dlt(cal.P_left(), cal.P_right(), UL, UR)
+    dirs_l = np.column_stack([UL, np.ones(len(UL))]) @ np.linalg.inv(KL).T
+    dirs_r = (np.column_stack([UR, np.ones(len(UR))]) @ np.linalg.inv(KR).T) @ R_rl
+    _, gaps = triangulate_midpoint(np.zeros(3), dirs_l, cal.right_center_mm, dirs_r)
+    epi = np.abs(_rectify(cal, "left", UL)[:, 1] - _rectify(cal, "right", UR)[:, 1])
+    good: list[StereoPoint] = []
+    rejected: list[RejectedPair] = []
+    for k, (a, b) in enumerate(pairs):
+        if gaps[k] > params.max_gap_mm:
+            rejected.append(
+                RejectedPair(
+                    a, b, f"rays pass {gaps[k]:.3f} mm apart (> {params.max_gap_mm} mm)", float(gaps[k])
+                )
+            )
+            continue
+        good.append(StereoPoint(a, b, pts[k], float(epi[k]), float(gaps[k]), UL[k], UR[k], normals[k]))
+    return StereoResult(
+        tuple(good),
+        tuple(rejected),
+        tuple(i for i in range(nl) if i not in used_l),
+        tuple(i for i in range(nr) if i not in used_r),
+    )
