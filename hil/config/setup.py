@@ -16,6 +16,7 @@ from hil.config.faults import FaultSpec
 from hil.config.simulation import SimulationConfig
 from hil.config.types import STRICT, ConfigPath, TransformConfig, Vec3
 from hil.controller.config import ProcedureConfig
+from hil.igtl.config import IgtlConfig
 
 
 class SafetyConfig(BaseModel):
@@ -96,6 +97,7 @@ class SetupConfig(BaseModel):
     simulation: SimulationConfig = Field(SimulationConfig(), description="the simulated world")
     procedure: ProcedureConfig = Field(ProcedureConfig(), description="controller tolerances and policies")
     faults: tuple[FaultSpec, ...] = Field((), description="scheduled faults ([[faults]] tables)")
+    igtl: IgtlConfig = Field(IgtlConfig(), description="OpenIGTLink streaming to 3D Slicer (docs/igtl.md)")
     _config_dir: Path = PrivateAttr(default_factory=Path.cwd)
 
     @property

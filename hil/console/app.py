@@ -1,0 +1,314 @@
+"""The operator console: a textual TUI over a running :class:`ConsoleSession`.
+
+The UI only *reads* snapshots (:class:`~hil.console.view.ConsoleView`) the controller thread
+publishes, on a 10 Hz timer, and only *posts* operator commands to the controller's queue. It
+never calls the robot, never changes the state machine directly and never waits on the
+controller loop: every command the operator gives goes through the state machine and the
+safety layer exactly like ``hil run``'s.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+from rich.text import Text
+from textual.app import App, ComposeResult
+from textual.binding import Binding, BindingType
+from textual.containers import Horizontal, Vertical
+from textual.screen import ModalScreen
+from textual.widgets import Button, DataTable, Footer, Header, Label, Sparkline, Static
+
+from hil.console.session import ConsoleSession
+from hil.console.view import WORKFLOW, ConsoleView
+from hil.controller.fsm import TRANSITIONS, Event, Reject, State
+
+REFRESH_HZ = 10.0
+
+#: key -> (operator event, button label). The console posts nothing else.
+COMMANDS: dict[str, tuple[Event, str]] = {
+    "s": (Event.START_REQUESTED, "Start"),
+    "c": (Event.CONFIRM_REQUESTED, "Confirm"),
+    "p": (Event.PAUSE_REQUESTED, "Pause"),
+    "r": (Event.RESUME_REQUESTED, "Resume"),
+    "t": (Event.RETRACT_REQUESTED, "Retract"),
+    "a": (Event.ABORT_REQUESTED, "Abort"),
+    "x": (Event.RESET_REQUESTED, "Reset"),
+}
+
+#: What confirming each transition does, for the prompt.
+CONFIRM_TEXT: dict[str, str] = {
+    "register_to_plan": "Accept the registration and plan the guide pose.",
+    "plan_to_approach": "The robot will MOVE to the stand-off pose above the entry.",
+    "approach_to_gate": "Start waiting for the hold-breath gate.",
+    "gate_to_compensate": "The robot will FOLLOW the patient to the corrected entry.",
+    "compensate_to_lock": "Stop and hold the guide at the corrected entry.",
+    "lock_to_done": "Finish the procedure (the robot stays stopped).",
+}
+
+_STATE_STYLE = {"fault": "bold white on red", "safe_stop": "bold white on dark_red",
+                "paused": "bold black on yellow", "retract": "bold white on dark_orange"}
+
+
+def gate_windows(samples: tuple[float, ...], tolerance_mm: float, width: int) -> Text:
+    """A strip under the breathing sparkline: green where the deviation was within the gate
+    tolerance, red where it was over, bucketed like the sparkline (max per bucket)."""
+    out = Text(no_wrap=True)
+    n = len(samples)
+    if n == 0:
+        return out.append("no breathing data yet (register first)", style="dim")
+    for k in range(width):
+        lo, hi = k * n // width, max((k + 1) * n // width, k * n // width + 1)
+        chunk = samples[lo:min(hi, n)]
+        if not chunk:
+            continue
+        ok = max(chunk) <= tolerance_mm
+        out.append("▀", style="green" if ok else "red")
+    return out
+
+
+def _mm(x: float | None, digits: int = 3) -> str:
+    return "—" if x is None else f"{x:.{digits}f} mm"
+
+
+class ConfirmScreen(ModalScreen[bool]):
+    """Asks the operator to confirm a pending transition (y / n, or the buttons)."""
+
+    BINDINGS: ClassVar[list[BindingType]] = [Binding("y", "answer(True)", "Yes"),
+                                             Binding("n", "answer(False)", "No")]
+    DEFAULT_CSS = """
+    ConfirmScreen { align: center middle; }
+    #confirm-box { width: 72; height: auto; border: thick $warning; background: $surface; padding: 1 2; }
+    #confirm-box Label { width: 100%; margin-bottom: 1; }
+    #confirm-box Horizontal { height: auto; align: center middle; }
+    """
+
+    def __init__(self, transition: str, reason: str) -> None:
+        super().__init__()
+        self.transition_name = transition
+        self.hint_text = CONFIRM_TEXT.get(transition, "") + (f" ({reason})" if reason else "")
+
+    def compose(self) -> ComposeResult:
+        with Vertical(id="confirm-box"):
+            yield Label(Text(f"Confirm {self.transition_name}?", style="bold"))
+            yield Label(Text(self.hint_text))
+            with Horizontal():
+                yield Button("Yes (y)", id="yes", variant="success")
+                yield Button("No (n)", id="no", variant="error")
+
+    def action_answer(self, yes: bool) -> None:
+        self.dismiss(yes)
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        self.dismiss(event.button.id == "yes")
+
+
+class ConsoleApp(App[dict[str, Any]]):
+    """The console. ``session`` is already running (its controller thread ticks on its own)."""
+
+    TITLE = "needle-guide HIL console"
+    CSS = """
+    #banner { display: none; height: auto; padding: 0 1; background: $error; color: $text; text-style: bold; }
+    #banner.shown { display: block; }
+    #workflow { height: auto; padding: 0 1; }
+    #main { height: 1fr; }
+    #left { width: 44; }
+    #mid { width: 1fr; }
+    #right { width: 46; }
+    .panel { border: round $primary; height: auto; padding: 0 1; }
+    #markers { height: 1fr; border: round $primary; }
+    #breathing { height: 4; border: round $primary; border-bottom: none; }
+    #gatebar { height: 2; border: round $primary; border-top: none; padding: 0 0; }
+    #buttons { height: 3; }
+    #buttons Button { min-width: 10; margin: 0 1 0 0; }
+    """
+    BINDINGS: ClassVar[list[BindingType]] = [
+        *[Binding(k, f"command('{k}')", label) for k, (_e, label) in COMMANDS.items()],
+        Binding("q", "quit_console", "Quit"),
+    ]
+
+    def __init__(self, session: ConsoleSession) -> None:
+        super().__init__()
+        self.session = session
+        self._hil_shown: ConsoleView | None = None
+        self._hil_prompted: str | None = None
+        self._hil_confirm: ConfirmScreen | None = None
+        self._hil_quitting = False
+        self.summary: dict[str, Any] | None = None
+        self.sub_title = f"{session.setup.name or session.config_path.name} — plan {session.plan.source}"
+
+    # ---------------------------------------------------------------- layout
+    def compose(self) -> ComposeResult:
+        yield Header()
+        yield Static(id="banner")
+        yield Static(id="workflow")
+        with Horizontal(id="main"):
+            with Vertical(id="left"):
+                yield Static(id="registration", classes="panel")
+                yield Static(id="robot", classes="panel")
+                yield Static(id="plan", classes="panel")
+            with Vertical(id="mid"):
+                yield DataTable(id="markers", zebra_stripes=True, cursor_type="none")
+            with Vertical(id="right"):
+                yield Static(id="gate", classes="panel")
+                yield Sparkline([], id="breathing", summary_function=max)
+                yield Static(id="gatebar")
+                yield Static(id="timeline", classes="panel")
+        with Horizontal(id="buttons"):
+            for key, (_e, label) in COMMANDS.items():
+                yield Button(f"{label} ({key})", id=f"cmd-{key}")
+            yield Button("Quit (q)", id="cmd-q", variant="error")
+        yield Footer()
+
+    def on_mount(self) -> None:
+        table = self.query_one("#markers", DataTable)
+        table.border_title = "Markers (optical frame)"
+        table.add_columns("marker", "x mm", "y mm", "z mm", "residual", "seen")
+        for pid, title in (("registration", "Registration"), ("robot", "Robot"), ("plan", "Plan"),
+                           ("gate", "Hold-breath gate"), ("timeline", "Timeline")):
+            self.query_one(f"#{pid}", Static).border_title = title
+        self.query_one("#breathing", Sparkline).border_title = "breathing: deviation from reference"
+        self.set_interval(1.0 / REFRESH_HZ, self.refresh_view)
+        self.refresh_view()
+
+    # ---------------------------------------------------------------- commands
+    def action_command(self, key: str) -> None:
+        """Post one operator command; say so when the current state will reject it."""
+        if self._hil_quitting:
+            return
+        event, label = COMMANDS[key]
+        v = self._hil_shown
+        if v is not None:
+            out = TRANSITIONS[(State(v.state), event)]
+            if isinstance(out, Reject) and event is not Event.CONFIRM_REQUESTED:
+                self.notify(f"{label}: not possible in {v.state} — {out.reason}", severity="warning")
+            elif event is Event.CONFIRM_REQUESTED and v.pending is None:
+                self.notify("Confirm: nothing awaits confirmation", severity="warning")
+        self.session.operator.post(event)
+
+    def action_quit_console(self) -> None:
+        """End the session: the loop aborts a procedure under way, then everything closes."""
+        if not self._hil_quitting:
+            self._hil_quitting = True
+            self.notify("stopping: aborting any motion, closing the session…")
+            self.session.operator.request_quit()
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        bid = event.button.id or ""
+        if bid == "cmd-q":
+            self.action_quit_console()
+        elif bid.startswith("cmd-"):
+            self.action_command(bid[4:])
+
+    def _on_confirm(self, yes: bool | None) -> None:
+        self._hil_confirm = None
+        if yes:
+            self.session.operator.post(Event.CONFIRM_REQUESTED)
+
+    # ---------------------------------------------------------------- refresh
+    def refresh_view(self) -> None:
+        """Show the latest snapshot (cheap; never waits on the controller)."""
+        runner = self.session.runner
+        v = runner.latest()
+        if v is not None and v is not self._hil_shown:
+            self._hil_shown = v
+            self._render_view(v)
+            self._handle_prompt(v)
+        if runner.ended and self.summary is None:
+            self.summary = self.session.close()
+            self.exit(self.summary)
+
+    def _handle_prompt(self, v: ConsoleView) -> None:
+        if v.pending is None:
+            self._hil_prompted = None
+            if self._hil_confirm is not None:
+                self._hil_confirm.dismiss(None)
+                self._hil_confirm = None
+            return
+        if v.pending != self._hil_prompted and self._hil_confirm is None and not self._hil_quitting:
+            self._hil_prompted = v.pending
+            self._hil_confirm = ConfirmScreen(v.pending, v.pending_reason)
+            self.push_screen(self._hil_confirm, self._on_confirm)
+
+    def _render_view(self, v: ConsoleView) -> None:
+        # fault banner
+        banner = self.query_one("#banner", Static)
+        if v.error or v.state in ("fault", "safe_stop", "paused"):
+            reason = v.error or v.last_reason or (v.faults[-1] if v.faults else "")
+            banner.update(Text(f"{v.state.upper()}: {reason}\nway out: {v.hint}"))
+            banner.add_class("shown")
+        else:
+            banner.remove_class("shown")
+        # workflow
+        wf = Text()
+        for i, s in enumerate(WORKFLOW):
+            if i:
+                wf.append(" → ", style="dim")
+            wf.append(f" {s.value} ", style="bold black on green" if s.value == v.state else "")
+        if v.state not in {s.value for s in WORKFLOW}:
+            wf.append("   ")
+            wf.append(f" {v.state} ", style=_STATE_STYLE.get(v.state, "bold reverse"))
+        wf.append(f"   t = {v.t_s:7.2f} s   frames {v.frames}", style="dim")
+        wf.append(f"\nnext: {v.hint}", style="italic")
+        self.query_one("#workflow", Static).update(wf)
+        # registration
+        self.query_one("#registration", Static).update(Text(
+            f"FRE            {_mm(v.fre_mm)}\n"
+            f"expected TRE   {_mm(v.tre_expected_mm)}\n"
+            f"robot FRE      {_mm(v.robot_fre_mm)}\n"
+            f"comp. error    {_mm(v.comp_error_mm)}" + ("" if v.comp_error_mm is None else " (truth)")))
+        # robot
+        tcp = "—" if v.robot_tcp_mm is None else "[" + ", ".join(f"{x:.1f}" for x in v.robot_tcp_mm) + "]"
+        robot = Text()
+        robot.append("connected      ")
+        robot.append("yes" if v.robot_connected else "NO", style="green" if v.robot_connected else "bold red")
+        robot.append(f"\nmode           {v.robot_mode}\nsafety         ")
+        robot.append(v.robot_safety, style="green" if v.robot_safety == "normal" else "bold red")
+        speed = "—" if v.robot_speed_mm_s is None else f"{v.robot_speed_mm_s:.1f} mm/s"
+        robot.append(f"\nspeed          {speed}\nTCP (robot)    {tcp}\n"
+                     f"guide error    {_mm(v.guide_error_mm)}\n"
+                     f"commands       {v.commands_sent} sent, {v.commands_refused} refused")
+        self.query_one("#robot", Static).update(robot)
+        # plan
+        e, t = v.plan_entry_mm, v.plan_target_mm
+        self.query_one("#plan", Static).update(Text(
+            f"{v.plan_source}\n{v.plan_fiducials} fiducials\n"
+            f"entry  [{e[0]:.1f}, {e[1]:.1f}, {e[2]:.1f}]\ntarget [{t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}]\n"
+            f"session log: {v.session_log}\nOpenIGTLink: {v.igtl}"))
+        # markers
+        table = self.query_one("#markers", DataTable)
+        table.clear()
+        for m in v.markers:
+            name = f"{m.kind} {m.index}"
+            if m.position_mm is None:
+                table.add_row(name, "—", "—", "—", "—", Text("missing", style="bold red"))
+            else:
+                x, y, z = m.position_mm
+                table.add_row(name, f"{x:.2f}", f"{y:.2f}", f"{z:.2f}",
+                              "—" if m.residual_mm is None else f"{m.residual_mm:.3f}",
+                              Text("visible", style="green"))
+        # gate
+        gate = Text()
+        if v.gate_open:
+            gate.append("OPEN", style="bold black on green")
+        else:
+            gate.append("CLOSED", style="bold white on red")
+        dev = v.gate_deviation_mm
+        within = dev is not None and dev <= v.gate_tolerance_mm
+        gate.append(f"\ndeviation  {_mm(dev)}  (tolerance {v.gate_tolerance_mm} mm, "
+                    f"dwell {v.gate_dwell_s} s)")
+        gate.append("\n" + ("within tolerance" if within else "over tolerance" if dev is not None
+                            else "no reference yet (register first)"),
+                    style="green" if within else "yellow")
+        self.query_one("#gate", Static).update(gate)
+        self.query_one("#breathing", Sparkline).data = list(v.breathing_mm)
+        bar = self.query_one("#gatebar", Static)
+        bar.update(gate_windows(v.breathing_mm, v.gate_tolerance_mm, max(bar.content_size.width, 1)))
+        # timeline
+        tl_widget = self.query_one("#timeline", Static)
+        width = max(tl_widget.content_size.width, 20)
+        tl = Text(no_wrap=True)
+        for ts, st, why in v.timeline[-8:]:
+            tl.append(f"{ts:7.2f} s  {st:<10} {why}"[:width] + "\n")
+        if v.faults:
+            tl.append(f"faults: {len(v.faults)} (last: {v.faults[-1][:60]})", style="bold red")
+        tl_widget.update(tl)

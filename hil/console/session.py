@@ -1,0 +1,174 @@
+"""Open everything a console session needs: the setup's devices, the session log, the
+controller with the console's operator, the runner thread and (optionally) the OpenIGTLink
+server — the same controller ``hil run`` drives, built the same way.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil.clock import Clock, ManualClock
+from hil.config import build_devices, default_setup_path, load_setup
+from hil.config.build import Devices, clock_for
+from hil.config.setup import SetupConfig
+from hil.console.operator import ConsoleOperator
+from hil.console.runner import ControllerRunner
+from hil.controller.perception import StereoMarkerLocator
+from hil.controller.plan_file import ProcedurePlan, load_plan
+from hil.controller.planning import RigGeometry
+from hil.controller.procedure import Controller
+from hil.controller.truth import BreathHoldCoach, GroundTruth
+from hil.errors import InputFileError
+from hil.geometry.transform import RigidTransform
+from hil.igtl.config import IgtlConfig
+from hil.session.log import SessionLog, file_sha256
+from hil.vision.camera_model import StereoCalibration, load_calibration
+
+
+@dataclass
+class ConsoleSession:
+    """A running console session. :meth:`close` ends it (idempotent)."""
+
+    config_path: Path
+    setup: SetupConfig
+    plan: ProcedurePlan
+    devices: Devices
+    session: SessionLog
+    ctl: Controller
+    operator: ConsoleOperator
+    runner: ControllerRunner
+    igtl: Any  # IgtlServer | None (pyigtl is optional)
+    clock: Clock
+    closed: bool = False
+
+    def close(self) -> dict[str, Any]:
+        """Stop the loop (aborting a procedure under way), close the devices, the OpenIGTLink
+        server and the session log. Returns a summary (final state, session log, faults)."""
+        if not self.closed:
+            self.closed = True
+            self.runner.stop()
+            try:
+                self.devices.close_all()
+            finally:
+                if self.igtl is not None:
+                    self.igtl.close()
+                self.session.close(final_state=self.ctl.state.value, origin="console")
+        return {"final_state": self.ctl.state.value, "session_log": str(self.session.path),
+                "faults": list(self.ctl.faults), "frames": self.ctl.frames,
+                "error": self.runner.error or None}
+
+
+def _rig(setup: SetupConfig) -> RigGeometry:
+    tcp_cfg = getattr(setup.robot, "T_flange_from_tcp", None)
+    T_flange_from_tcp = tcp_cfg.as_transform() if tcp_cfg is not None else RigidTransform.identity()
+    return RigGeometry(setup.frames.T_flange_from_guide.as_transform(),
+                       np.asarray(setup.frames.flange_markers_mm, dtype=np.float64), T_flange_from_tcp)
+
+
+def _calibration(setup: SetupConfig, camera: object) -> StereoCalibration:
+    if setup.calibration.stereo is not None:
+        return load_calibration(setup.calibration.stereo)
+    cal = getattr(camera, "calibration", None)
+    return cal if isinstance(cal, StereoCalibration) else StereoCalibration.synthetic()
+
+
+def resolve_plan_path(config_path: Path, plan: str | Path | None) -> Path:
+    """``plan`` when given, else ``plans/<config stem>_plan.json`` next to the config (as ``hil run``).
+
+    Raises:
+        InputFileError: no plan given and none bundled.
+    """
+    if plan is not None:
+        return Path(plan)
+    p = config_path.resolve().parent / "plans" / f"{config_path.stem}_plan.json"
+    if not p.is_file():
+        raise InputFileError(str(p), "no bundled plan for this setup; give one with --plan")
+    return p
+
+
+def igtl_config_for(setup: SetupConfig, port: int | None) -> IgtlConfig:
+    """The setup's ``[igtl]`` table when it has one, overridden by ``--igtl-port`` (enables it)."""
+    cfg = getattr(setup, "igtl", None)
+    base = cfg if isinstance(cfg, IgtlConfig) else IgtlConfig()
+    if port is not None:
+        base = base.model_copy(update={"enabled": True, "port": port})
+    return base
+
+
+def open_console_session(config: str | Path | None, *, plan: str | Path | None = None,
+                         session_dir: str | Path = "sessions", seed: int | None = None,
+                         fast: bool = False, igtl_port: int | None = None,
+                         clock: Clock | None = None) -> ConsoleSession:
+    """Load the setup and plan, build and open the devices, create the session log and the
+    controller, start the OpenIGTLink server when enabled, start the controller thread.
+
+    ``fast``: on a simulated clock, do not pace to the wall clock (faster than real time).
+
+    Raises:
+        ConfigError, InputFileError: bad setup or plan (names file and key).
+        IgtlError: the OpenIGTLink server cannot start.
+        DriverError: a device cannot be opened.
+    """
+    config_path = Path(config) if config is not None else default_setup_path()
+    setup = load_setup(config_path)
+    if seed is not None:
+        if seed < 0:
+            raise InputFileError("--seed", f"must be >= 0, got {seed}")
+        setup = setup.model_copy(update={"simulation": setup.simulation.model_copy(update={"seed": seed})})
+    the_plan = load_plan(resolve_plan_path(config_path, plan))
+    igtl_cfg = igtl_config_for(setup, igtl_port)
+    clk = clock if clock is not None else clock_for(setup)
+    igtl = None
+    if igtl_cfg.enabled:
+        from hil.igtl.server import IgtlServer
+
+        igtl = IgtlServer(igtl_cfg, clk)
+        igtl.start()
+    devices = build_devices(setup, clk)
+    world = devices.world
+    stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
+    header: dict[str, Any] = {
+        "setup": str(config_path), "setup_name": setup.name, "origin": "console",
+        "config_sha256": file_sha256(config_path),
+        "resolved_setup_sha256": hashlib.sha256(
+            json.dumps(setup.resolved(), sort_keys=True, default=str).encode()).hexdigest(),
+        "plan": the_plan.source,
+        "plan_sha256": file_sha256(the_plan.source) if Path(the_plan.source).is_file() else None,
+        "calibration": str(setup.calibration.stereo) if setup.calibration.stereo else None,
+        "calibration_sha256": file_sha256(setup.calibration.stereo) if setup.calibration.stereo else None,
+        "seed": setup.simulation.seed if world is not None else None,
+        "procedure": setup.procedure.model_dump(mode="json"),
+        "igtl": igtl_cfg.model_dump(mode="json"),
+    }
+    session = SessionLog(Path(session_dir) / f"session_{stamp}.jsonl", clk, header)
+    try:
+        devices.open_all()
+    except BaseException:
+        session.close(final_state="idle", error="devices could not be opened")
+        if igtl is not None:
+            igtl.close()
+        raise
+    sf = setup.safety
+    operator = ConsoleOperator()
+    ctl = Controller(
+        camera=devices.camera, robot=devices.robot, tracker=devices.tracker, clock=clk,
+        locate=StereoMarkerLocator(_calibration(setup, devices.camera)), plan=the_plan, rig=_rig(setup),
+        procedure=setup.procedure, limits=sf.motion_limits(),
+        watchdog_ages_s={"camera": sf.camera_frame_max_age_ms / 1e3,
+                         "robot": sf.robot_state_max_age_ms / 1e3,
+                         "tracker": sf.tracker_max_age_ms / 1e3},
+        session=session, operator=operator,
+        coach=world if isinstance(world, BreathHoldCoach) else None,
+        truth=world if isinstance(world, GroundTruth) else None,
+    )
+    runner = ControllerRunner(ctl, operator, pace=isinstance(clk, ManualClock) and not fast, igtl=igtl,
+                              session_log=str(session.path))
+    runner.start()
+    return ConsoleSession(config_path, setup, the_plan, devices, session, ctl, operator, runner, igtl, clk)

@@ -1,0 +1,89 @@
+"""What the OpenIGTLink stream carries, computed from the controller's state.
+
+Transform names follow the SlicerIGT convention ``<From>To<To>`` (a ``GuideToImage`` transform
+maps points from the guide frame into the image frame, i.e. our ``T_image_from_guide``), so a
+Slicer scene built with "OpenIGTLinkIF" shows them with no extra code:
+
+- ``GuideToImage``: the needle guide in the CT frame, where the controller believes it is —
+  the robot's reported TCP pose, the closed-loop optical bias, the robot and patient
+  registrations and the live rigid change of the patient since registration (seed 000 eq 12
+  and section 3): ``T_image_from_guide = T_optical_from_image^-1 @ T_change^-1 @
+  T_robot_from_optical^-1 @ T_bias^-1 @ T_robot_from_tcp @ T_tcp_from_guide``.
+- ``ImageToOptical``: the patient registration (``T_optical_from_image``, at registration time).
+- ``PatientToOptical``: the live patient (``T_change @ T_optical_from_image``).
+- ``<Sensor>ToTracker``: each magnetic-tracker sensor that has a pose (``T_tracker_from_sensor``).
+
+Plus a ``Status`` STRING (state, pending confirmation, last reason) and a ``Plan`` POINT list
+(entry and target, image frame). Units: millimetres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hil.geometry.transform import RigidTransform
+
+if TYPE_CHECKING:
+    from hil.controller.procedure import Controller
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class IgtlSnapshot:
+    """One set of messages: ``transforms`` (device name -> 4x4 matrix, mm), a status line, and
+    named points (image frame, mm)."""
+
+    transforms: dict[str, FloatArray] = field(default_factory=dict)
+    status: str = ""
+    points: dict[str, FloatArray] = field(default_factory=dict)
+
+
+def _sensor_device_name(sensor: str) -> str:
+    clean = "".join(ch for ch in sensor.title() if ch.isalnum()) or "Sensor"
+    return f"{clean}ToTracker"
+
+
+def guide_in_image(ctrl: Controller) -> RigidTransform | None:
+    """``T_image_from_guide`` from a controller's registrations, bias, live change and robot
+    state (see the module doc); None before both registrations and a robot state exist."""
+    preg, rreg, st = ctrl.patient_reg, ctrl.robot_reg, ctrl.last_state
+    if preg is None or rreg is None or st is None:
+        return None
+    T_change = ctrl.T_change_meas if ctrl.T_change_meas is not None else RigidTransform.identity()
+    T_optical_from_tcp = rreg.T_robot_from_optical.inverse() @ ctrl.T_bias.inverse() @ st.T_robot_from_tcp
+    return (preg.T_optical_from_image.inverse() @ T_change.inverse() @ T_optical_from_tcp
+            @ ctrl.rig.T_tcp_from_guide)
+
+
+def snapshot_from_controller(ctrl: Controller) -> IgtlSnapshot:
+    """Build the snapshot from a :class:`hil.controller.procedure.Controller` (read-only; call it
+    in the controller's thread, between ticks)."""
+    tf: dict[str, FloatArray] = {}
+    g = guide_in_image(ctrl)
+    if g is not None:
+        tf["GuideToImage"] = g.as_matrix()
+    preg = ctrl.patient_reg
+    if preg is not None:
+        tf["ImageToOptical"] = preg.T_optical_from_image.as_matrix()
+        T_change = ctrl.T_change_meas if ctrl.T_change_meas is not None else RigidTransform.identity()
+        tf["PatientToOptical"] = (T_change @ preg.T_optical_from_image).as_matrix()
+    tracker = ctrl.tracker
+    if tracker is not None:
+        for name, sample in sorted(tracker.latest().items()):
+            if not sample.missing and sample.T_tracker_from_sensor is not None:
+                tf[_sensor_device_name(name)] = sample.T_tracker_from_sensor.as_matrix()
+    view = ctrl.view()
+    status = f"state={view.state.value}"
+    if view.pending:
+        status += f" pending={view.pending}"
+    if view.last_reason:
+        status += f" reason={view.last_reason}"
+    plan = ctrl.plan
+    points = {"entry": np.asarray(plan.entry_mm, dtype=np.float64).reshape(3),
+              "target": np.asarray(plan.target_mm, dtype=np.float64).reshape(3)}
+    return IgtlSnapshot(tf, status, points)

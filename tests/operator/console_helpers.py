@@ -1,0 +1,62 @@
+"""Helpers for the console's headless tests: a setup file with chosen faults, waiting on the
+(real, threaded) controller with a deadline."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from pathlib import Path
+
+from textual.pilot import Pilot
+
+from hil.console.app import ConsoleApp
+from hil.console.view import ConsoleView
+
+REPO = Path(__file__).resolve().parents[2]
+SIM_TOML = REPO / "configs" / "sim.toml"
+SIM_PLAN = REPO / "configs" / "plans" / "sim_plan.json"
+DEADLINE_S = 90.0
+
+
+def write_setup(tmp: Path, extra: str = "") -> Path:
+    """configs/sim.toml with an absolute calibration path, a shorter lock hold, and ``extra``."""
+    text = SIM_TOML.read_text()
+    cal = REPO / "configs" / "calibration" / "sim_stereo.json"
+    text = text.replace('stereo = "calibration/sim_stereo.json"', f'stereo = "{cal}"')
+    text += "\n[procedure.lock]\nhold_s = 0.5\n" + extra
+    path = tmp / "setup.toml"
+    path.write_text(text)
+    return path
+
+
+async def wait_view(pilot: Pilot[object], app: ConsoleApp, cond: Callable[[ConsoleView], bool],
+                    what: str) -> ConsoleView:
+    """Let the UI run until the latest controller snapshot satisfies ``cond`` (bounded)."""
+    loop = asyncio.get_running_loop()
+    end = loop.time() + DEADLINE_S
+    while True:
+        v = app.session.runner.latest()
+        if v is not None and cond(v):
+            await pilot.pause()
+            return v
+        if v is not None and v.error:
+            raise AssertionError(f"controller loop failed while waiting for {what}: {v.error}")
+        if loop.time() > end:
+            raise AssertionError(f"not reached within {DEADLINE_S} s: {what}; last state "
+                                 f"{None if v is None else (v.state, v.last_reason, v.faults)}")
+        await pilot.pause(0.05)
+
+
+async def quit_app(pilot: Pilot[object], app: ConsoleApp) -> dict[str, object]:
+    """Press q and wait (bounded) for the app to close the session and exit. After the app
+    exits the pilot must not be awaited, so this waits on the event loop directly."""
+    app.action_quit_console()
+    loop = asyncio.get_running_loop()
+    end = loop.time() + DEADLINE_S
+    while app.return_value is None:
+        if loop.time() > end:
+            raise AssertionError("console did not exit")
+        await asyncio.sleep(0.05)
+    rv = app.return_value
+    assert isinstance(rv, dict)
+    return rv

@@ -1,0 +1,267 @@
+"""hil console, headless (textual's pilot) over the real controller and the simulator:
+a full procedure driven by key presses, a fault shown and recovered, an abort."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+from pathlib import Path
+
+import numpy as np
+import pyigtl
+import pytest
+from textual.widgets import DataTable, Static
+
+from hil.console.app import ConfirmScreen, ConsoleApp
+from hil.console.operator import ConsoleOperator
+from hil.console.session import ConsoleSession, open_console_session
+from hil.controller.fsm import Event
+from hil.errors import HilError
+from hil.report import build_report
+from hil.session.log import read_session_log, verify_session_log
+from tests.operator.console_helpers import SIM_PLAN, quit_app, wait_view, write_setup
+
+SIZE = (170, 50)
+
+
+def _events(log: Path) -> list[dict[str, object]]:
+    return list(read_session_log(log))
+
+
+def _transitions(log: Path) -> list[str]:
+    return [str(r["transition"]) for r in _events(log) if r["event"] == "transition_applied"]
+
+
+def _text(app: ConsoleApp, wid: str) -> str:
+    return str(app.query_one(wid, Static).render())
+
+
+def test_operator_queue_takes_only_operator_commands() -> None:
+    op = ConsoleOperator()
+    with pytest.raises(HilError, match="gate_opened is not an operator command"):
+        op.post(Event.GATE_OPENED)
+    with pytest.raises(HilError, match="registered is not an operator command"):
+        op.post(Event.REGISTERED)
+    op.post(Event.START_REQUESTED)
+    op.post(Event.ABORT_REQUESTED)
+    assert op.pending_commands() == 2
+    view = None
+    assert op.poll(view) is Event.START_REQUESTED  # type: ignore[arg-type]
+    assert op.poll(view) is Event.ABORT_REQUESTED  # type: ignore[arg-type]
+    assert op.poll(view) is None  # type: ignore[arg-type]
+    assert not op.finished(view)  # type: ignore[arg-type]
+    op.request_quit()
+    assert op.finished(view)  # type: ignore[arg-type]
+
+
+def test_full_procedure_by_key_presses(tmp_path: Path) -> None:
+    asyncio.run(_full_procedure_by_key_presses(tmp_path))
+
+
+async def _full_procedure_by_key_presses(tmp_path: Path) -> None:
+    setup = write_setup(tmp_path)
+    session = open_console_session(setup, plan=SIM_PLAN, session_dir=tmp_path / "sessions", fast=False,
+                                   igtl_port=0)
+    assert session.igtl is not None
+    host, port = session.igtl.address
+    assert host == "127.0.0.1"
+    client = pyigtl.OpenIGTLinkClient(host=host, port=port)
+    app = ConsoleApp(session)
+    prompts: list[str] = []
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_view(pilot, app, lambda v: session.igtl.clients == 1, "OpenIGTLink client connected")
+        v = await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
+        assert "press s to start" in _text(app, "#workflow")
+        await pilot.press("s")
+        for expected in ("plan_to_approach", "lock_to_done"):  # the sim config's confirmations
+            v = await wait_view(pilot, app, lambda v: v.pending is not None, f"prompt {expected}")
+            assert v.pending == expected
+            await pilot.pause()
+            assert isinstance(app.screen, ConfirmScreen)
+            assert app.screen.transition_name == expected
+            prompts.append(expected)
+            if expected == "lock_to_done":
+                # everything on screen while locked
+                assert "lock" in _text(app, "#workflow")
+                assert f"{session.ctl.patient_reg.fre_rms_mm:.3f} mm" in _text(app, "#registration")  # type: ignore[union-attr]
+                table = app.query_one("#markers", DataTable)
+                assert table.row_count == 6 + 4  # skin markers of the plan + flange markers
+                assert "OPEN" in _text(app, "#gate")
+                app.save_screenshot(filename="console_lock.svg", path=str(tmp_path))
+                _check_igtl_stream(client, session)
+            await pilot.press("y")
+            await wait_view(pilot, app, lambda v, e=expected: v.pending != e, f"{expected} confirmed")
+        v = await wait_view(pilot, app, lambda v: v.state == "done", "done")
+        assert v.faults == ()
+        assert v.fre_mm is not None
+        assert len(v.breathing_mm) > 10
+        summary = await quit_app(pilot, app)
+    client.stop()
+    assert prompts == ["plan_to_approach", "lock_to_done"]
+    assert summary["final_state"] == "done"
+    log = Path(str(summary["session_log"]))
+    chain = verify_session_log(log)
+    assert chain.ok
+    assert chain.closed
+    assert _transitions(log) == ["start", "register_to_plan", "plan_to_approach", "approach_to_gate",
+                                 "gate_to_compensate", "compensate_to_lock", "lock_to_done"]
+    cmds = [r["input"] for r in _events(log) if r["event"] == "operator_command"]
+    assert cmds == ["start_requested", "confirm_requested", "confirm_requested"]
+    assert (tmp_path / "console_lock.svg").stat().st_size > 10_000
+    # the recorded session makes a full report
+    rep = build_report(log, tmp_path / "report")
+    nums = {n.key: n.value for n in rep.numbers}
+    assert nums["fre_mm"] == pytest.approx(session.ctl.patient_reg.fre_rms_mm)  # type: ignore[union-attr]
+    assert nums["final_state"] == "done"
+    assert {p.key: p.has_data for p in rep.plots} == {"states": True, "breathing": True, "errors": True,
+                                                      "residuals": False, "speed": True}
+
+
+def test_fault_shown_and_recovered(tmp_path: Path) -> None:
+    asyncio.run(_fault_shown_and_recovered(tmp_path))
+
+
+def _check_igtl_stream(client: pyigtl.OpenIGTLinkClient, session: ConsoleSession) -> None:
+    """While locked: the streamed matrices are the controller's own (registration exactly, in
+    float32; the guide where the plan puts it: on the path, the stand-off above the entry)."""
+    ctl = session.ctl
+    assert ctl.patient_reg is not None
+    msg = client.wait_for_message("ImageToOptical", timeout=10.0)
+    assert msg is not None
+    np.testing.assert_array_equal(np.asarray(msg.matrix, dtype=np.float32)[:3],
+                                  ctl.patient_reg.T_optical_from_image.as_matrix().astype(np.float32)[:3])
+    msg = client.wait_for_message("GuideToImage", timeout=10.0)
+    assert msg is not None
+    M = np.asarray(msg.matrix, dtype=np.float64)
+    entry, target = ctl.plan.entry_mm.reshape(3), ctl.plan.target_mm.reshape(3)
+    u = (target - entry) / np.linalg.norm(target - entry)
+    assert ctl.guide_plan is not None
+    ideal = entry - ctl.guide_plan.standoff_mm * u
+    assert float(np.linalg.norm(M[:3, 3] - ideal)) < 1.0  # locked: lock tolerance + registration
+    assert float(np.degrees(np.arccos(np.clip(M[:3, 2] @ u, -1, 1)))) < 1.0
+    status = client.wait_for_message("Status", timeout=10.0)
+    assert status is not None
+    assert status.string.startswith("state=lock pending=lock_to_done")
+    pts = client.wait_for_message("Plan", timeout=10.0)
+    assert pts is not None
+    np.testing.assert_allclose(np.asarray(pts.positions, dtype=float), [entry, target], atol=1e-4)
+
+
+async def _fault_shown_and_recovered(tmp_path: Path) -> None:
+    # a protective stop of the arm after the plan was confirmed (approach or gate)
+    setup = write_setup(tmp_path, '\n[[faults]]\nkind = "protective_stop"\nstart_s = 5.0\nduration_s = 0.2\n')
+    session = open_console_session(setup, plan=SIM_PLAN, session_dir=tmp_path / "sessions", fast=False)
+    app = ConsoleApp(session)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
+        await pilot.press("s")
+        await wait_view(pilot, app, lambda v: v.pending == "plan_to_approach", "plan prompt")
+        await pilot.press("y")
+        v = await wait_view(pilot, app, lambda v: v.state == "fault", "fault")
+        await pilot.pause()
+        banner = _text(app, "#banner")
+        assert banner.startswith("FAULT: ")
+        assert "protective_stop" in banner
+        assert "way out: fault: r recover" in banner
+        assert app.query_one("#banner", Static).has_class("shown")
+        assert "protective_stop" in v.faults[0]
+        await pilot.press("r")
+        v = await wait_view(pilot, app, lambda v: v.state in ("gate", "compensate", "lock"), "recovered")
+        assert not app.query_one("#banner", Static).has_class("shown")
+        summary = await quit_app(pilot, app)
+    log = Path(str(summary["session_log"]))
+    tr = _transitions(log)
+    assert tr[:3] == ["start", "register_to_plan", "plan_to_approach"]
+    i_fault = tr.index("fault")
+    assert tr[i_fault + 1] == "recover"
+    assert "approach_to_gate" in tr[i_fault + 2:]
+    # quitting while the procedure was under way aborted it: robot stopped, safe stop
+    assert summary["final_state"] == "safe_stop"
+    assert tr[-1] == "abort"
+    assert verify_session_log(log).ok
+
+
+def test_abort_and_rejected_command(tmp_path: Path) -> None:
+    asyncio.run(_abort_and_rejected_command(tmp_path))
+
+
+async def _abort_and_rejected_command(tmp_path: Path) -> None:
+    setup = write_setup(tmp_path)
+    session = open_console_session(setup, plan=SIM_PLAN, session_dir=tmp_path / "sessions", fast=False)
+    app = ConsoleApp(session)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
+        await pilot.press("p")  # nothing to pause: rejected by the state machine, nothing happens
+        await pilot.press("s")
+        await wait_view(pilot, app, lambda v: v.pending == "plan_to_approach", "plan prompt")
+        await pilot.press("y")
+        await wait_view(pilot, app, lambda v: v.state == "approach" and (v.robot_speed_mm_s or 0) > 1.0,
+                        "robot moving")
+        await pilot.press("a")
+        await wait_view(pilot, app, lambda v: v.state == "safe_stop", "safe stop")
+        await pilot.pause()
+        assert _text(app, "#banner").startswith("SAFE_STOP")
+        await wait_view(pilot, app, lambda v: v.robot_speed_mm_s == 0.0, "robot at rest")
+        summary = await quit_app(pilot, app)
+    assert summary["final_state"] == "safe_stop"
+    log = Path(str(summary["session_log"]))
+    ev = _events(log)
+    rejected = [r for r in ev if r["event"] == "transition_rejected"]
+    assert rejected[0]["input"] == "pause_requested"
+    assert rejected[0]["source"] == "idle"
+    assert _transitions(log) == ["start", "register_to_plan", "plan_to_approach", "abort"]
+    i_abort = next(i for i, r in enumerate(ev)
+                   if r["event"] == "transition_applied" and r["transition"] == "abort")
+    assert any(r["event"] == "stop_sent" for r in ev[i_abort:])
+    assert json.dumps(summary)  # the CLI prints it as JSON
+
+
+def test_cli_bad_config_and_plan_are_one_line_errors(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from hil.cli import main
+
+    assert main(["console", str(tmp_path / "missing.toml"), "--session-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert err[0].startswith(f"hil console: error: {tmp_path / 'missing.toml'}: ")
+    setup = write_setup(tmp_path)
+    assert main(["console", str(setup), "--plan", str(tmp_path / "nope.json"),
+                 "--session-dir", str(tmp_path)]) == 2
+    assert "nope.json: cannot read plan" in capsys.readouterr().err
+
+
+def test_ui_stays_responsive_while_the_loop_is_blocked(tmp_path: Path) -> None:
+    asyncio.run(_ui_stays_responsive(tmp_path))
+
+
+async def _ui_stays_responsive(tmp_path: Path) -> None:
+    """A controller tick stuck in a device call (here: held on an event) must not freeze the UI:
+    keys are still taken and queued, and applied once the loop moves again."""
+    session = open_console_session(write_setup(tmp_path), plan=SIM_PLAN, session_dir=tmp_path / "s")
+    hold, held = threading.Event(), threading.Event()
+    release = threading.Event()
+    real_tick = session.ctl.tick
+
+    def tick() -> None:
+        if hold.is_set() and not release.is_set():
+            held.set()
+            release.wait(30.0)
+        real_tick()
+
+    session.ctl.tick = tick  # type: ignore[method-assign]
+    app = ConsoleApp(session)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
+        hold.set()
+        await wait_view(pilot, app, lambda v: held.is_set(), "loop held inside a tick")
+        await pilot.press("s")  # returns although the loop is stuck
+        await pilot.press("p")
+        assert session.operator.pending_commands() == 2
+        v = session.runner.latest()
+        assert v is not None
+        assert v.state == "idle"  # nothing applied while the loop is stuck
+        release.set()
+        await wait_view(pilot, app, lambda v: v.state == "register", "start applied after release")
+        summary = await quit_app(pilot, app)
+    assert summary["final_state"] == "safe_stop"

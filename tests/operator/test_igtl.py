@@ -1,0 +1,173 @@
+"""OpenIGTLink: the stream received by a pyigtl client on loopback, matrices checked."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from types import SimpleNamespace
+
+import numpy as np
+import pyigtl
+import pytest
+from pydantic import ValidationError
+
+from hil.clock import ManualClock
+from hil.controller.fsm import State
+from hil.controller.procedure import OperatorView
+from hil.geometry.transform import RigidTransform
+from hil.igtl import IgtlConfig, IgtlSnapshot, guide_in_image, snapshot_from_controller
+from hil.igtl.server import IgtlError, IgtlServer
+
+DEADLINE_S = 5.0
+
+
+def _wait_until(cond: Callable[[], bool]) -> None:
+    """Poll a condition of a real network exchange, bounded by DEADLINE_S."""
+    end = time.monotonic() + DEADLINE_S
+    while not cond():
+        if time.monotonic() > end:
+            raise AssertionError("condition not reached within the deadline")
+        time.sleep(0.005)
+
+
+@pytest.fixture
+def server() -> Iterator[IgtlServer]:
+    srv = IgtlServer(IgtlConfig(enabled=True, port=0), ManualClock())
+    srv.start()
+    yield srv
+    srv.close()
+
+
+@pytest.fixture
+def client(server: IgtlServer) -> Iterator[pyigtl.OpenIGTLinkClient]:
+    c = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=server.address[1])
+    _wait_until(lambda: server.clients == 1)
+    yield c
+    c.stop()
+
+
+def test_config_defaults_and_validation() -> None:
+    cfg = IgtlConfig()
+    assert (cfg.enabled, cfg.host, cfg.port, cfg.rate_hz) == (False, "127.0.0.1", 18944, 20.0)
+    with pytest.raises(ValidationError, match="extra"):
+        IgtlConfig.model_validate({"enabled": True, "command_port": 1})
+    with pytest.raises(ValidationError, match="not an IPv4 address"):
+        IgtlConfig(host="slicer.example")
+    with pytest.raises(ValidationError):
+        IgtlConfig(port=70000)
+
+
+def test_binds_loopback_and_port_in_use_is_a_typed_error(server: IgtlServer) -> None:
+    host, port = server.address
+    assert host == "127.0.0.1"
+    assert port > 0
+    other = IgtlServer(IgtlConfig(enabled=True, port=port), ManualClock())
+    with pytest.raises(IgtlError, match=f"cannot listen on 127.0.0.1:{port}"):
+        other.start()
+
+
+def test_stream_received_matrices_status_points(server: IgtlServer, client: pyigtl.OpenIGTLinkClient) -> None:
+    rng = np.random.default_rng(3)
+    mats = {name: RigidTransform.from_rotvec(rng.normal(size=3), rng.normal(size=3) * 300.0).as_matrix()
+            for name in ("GuideToImage", "ImageToOptical", "PatientToOptical", "ReferenceToTracker")}
+    snap = IgtlSnapshot(mats, "state=lock pending=lock_to_done",
+                        {"entry": np.array([1.0, 2.0, 3.0]), "target": np.array([4.0, 5.0, -6.5])})
+    assert server.publish(snap) == 6
+    for name, m in mats.items():
+        msg = client.wait_for_message(name, timeout=DEADLINE_S)
+        assert msg is not None, name
+        assert isinstance(msg, pyigtl.TransformMessage)
+        # the wire format is float32: exactly the float32 of what was sent
+        np.testing.assert_array_equal(np.asarray(msg.matrix, dtype=np.float32)[:3],
+                                      m.astype(np.float32)[:3])
+        np.testing.assert_allclose(msg.matrix, m, atol=1e-3)
+    st = client.wait_for_message("Status", timeout=DEADLINE_S)
+    assert st is not None
+    assert st.string == "state=lock pending=lock_to_done"
+    pts = client.wait_for_message("Plan", timeout=DEADLINE_S)
+    assert pts is not None
+    assert list(pts.names) == ["entry", "target"]
+    np.testing.assert_allclose(np.asarray(pts.positions, dtype=float), [[1, 2, 3], [4, 5, -6.5]])
+
+
+def test_rate_limit_on_the_controller_clock(server: IgtlServer, client: pyigtl.OpenIGTLinkClient) -> None:
+    snap = IgtlSnapshot({"GuideToImage": np.eye(4)}, "state=gate", {})
+    t0 = 1_000_000_000
+    assert server.publish(snap, t0) == 2          # transform + status
+    assert server.publish(snap, t0 + 10_000_000) == 0   # 10 ms later: nothing due at 20 Hz
+    assert server.publish(snap, t0 + 50_000_000) == 1   # 50 ms: transforms again
+    assert server.publish(snap, t0 + 500_000_000) == 2  # 0.5 s: status due too (2 Hz)
+    assert server.publish(snap, t0 + 510_000_000, force=True) == 2
+
+
+def test_client_input_is_ignored_and_stream_continues(server: IgtlServer,
+                                                      client: pyigtl.OpenIGTLinkClient) -> None:
+    client.send_message(pyigtl.TransformMessage(np.eye(4), device_name="RobotTarget"), wait=True)
+    client.send_message(pyigtl.StringMessage("abort", device_name="Command"), wait=True)
+    _wait_until(lambda: server.ignored_bytes_now() > 0)
+    m = np.eye(4)
+    m[:3, 3] = [10.0, 20.0, 30.0]
+    server.publish(IgtlSnapshot({"GuideToImage": m}), force=True)
+    msg = client.wait_for_message("GuideToImage", timeout=DEADLINE_S)
+    assert msg is not None
+    np.testing.assert_allclose(msg.matrix, m)
+
+
+def test_no_client_nothing_queued_and_close_is_idempotent() -> None:
+    srv = IgtlServer(IgtlConfig(enabled=True, port=0), ManualClock())
+    srv.start()
+    assert srv.publish(IgtlSnapshot({"GuideToImage": np.eye(4)})) == 0
+    srv.close()
+    srv.close()
+
+
+def _fake_controller(T_optical_from_image: RigidTransform, T_robot_from_optical: RigidTransform,
+                     T_change: RigidTransform, T_bias: RigidTransform, T_robot_from_tcp: RigidTransform,
+                     T_tcp_from_guide: RigidTransform) -> SimpleNamespace:
+    """The attributes snapshot_from_controller reads, with the Controller's names."""
+    ref = RigidTransform.from_rotvec([0.1, 0.2, 0.3], [5.0, 6.0, 7.0])
+    sensors = {"reference": SimpleNamespace(missing=False, T_tracker_from_sensor=ref),
+               "needle": SimpleNamespace(missing=True, T_tracker_from_sensor=None)}
+    return SimpleNamespace(
+        patient_reg=SimpleNamespace(T_optical_from_image=T_optical_from_image),
+        robot_reg=SimpleNamespace(T_robot_from_optical=T_robot_from_optical),
+        last_state=SimpleNamespace(T_robot_from_tcp=T_robot_from_tcp),
+        T_change_meas=T_change, T_bias=T_bias, rig=SimpleNamespace(T_tcp_from_guide=T_tcp_from_guide),
+        tracker=SimpleNamespace(latest=lambda: sensors),
+        view=lambda: OperatorView(State.COMPENSATE, None, "gate open", 12.0, True),
+        plan=SimpleNamespace(entry_mm=np.array([1.0, 2.0, 3.0]), target_mm=np.array([1.0, 2.0, -70.0])),
+    )
+
+
+def test_guide_in_image_follows_the_moving_patient() -> None:
+    """Place the robot so that the guide sits at a known image point on the patient *after*
+    the patient moved by T_change (and with a robot bias): GuideToImage must give that point."""
+    T_oi = RigidTransform.from_rotvec([np.pi, 0.0, 0.0], [60.0, 0.0, 1000.0])
+    T_ro = RigidTransform.from_rotvec([0.2, -0.1, 3.0], [-50.0, 300.0, 1100.0])
+    T_change = RigidTransform.from_rotvec([0.01, 0.02, -0.01], [1.0, -2.0, 4.0])
+    T_bias = RigidTransform.from_rotvec([0.0, 0.0, 0.002], [0.3, -0.2, 0.1])
+    T_tg = RigidTransform.from_rotvec([0.0, 0.0, 0.0], [0.0, 0.0, 60.0])
+    T_image_from_guide_wanted = RigidTransform.from_rotvec([0.3, 0.1, 0.0], [5.0, -10.0, 30.0])
+    # where the robot must be (robot frame) for the guide to be there, seen by the camera
+    T_optical_from_guide = T_change @ T_oi @ T_image_from_guide_wanted
+    T_robot_from_tcp = T_bias @ T_ro @ T_optical_from_guide @ T_tg.inverse()
+    ctrl = _fake_controller(T_oi, T_ro, T_change, T_bias, T_robot_from_tcp, T_tg)
+    got = guide_in_image(ctrl)  # type: ignore[arg-type]
+    assert got is not None
+    np.testing.assert_allclose(got.as_matrix(), T_image_from_guide_wanted.as_matrix(), atol=1e-9)
+    snap = snapshot_from_controller(ctrl)  # type: ignore[arg-type]
+    assert sorted(snap.transforms) == ["GuideToImage", "ImageToOptical", "PatientToOptical",
+                                       "ReferenceToTracker"]
+    np.testing.assert_allclose(snap.transforms["PatientToOptical"], (T_change @ T_oi).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(snap.transforms["ReferenceToTracker"],
+                               RigidTransform.from_rotvec([0.1, 0.2, 0.3], [5.0, 6.0, 7.0]).as_matrix())
+    assert snap.status == "state=compensate reason=gate open"
+    np.testing.assert_array_equal(snap.points["target"], [1.0, 2.0, -70.0])
+
+
+def test_nothing_before_registration() -> None:
+    ctrl = _fake_controller(*(RigidTransform.identity(),) * 6)
+    ctrl.patient_reg = None
+    ctrl.tracker = None
+    assert guide_in_image(ctrl) is None  # type: ignore[arg-type]
+    assert snapshot_from_controller(ctrl).transforms == {}  # type: ignore[arg-type]
