@@ -1,0 +1,2 @@
+"""UR controller emulator for the ``ur-rtde`` client: RTDE 30004, script 30003, dashboard 29999,
+fault control 30200. Run it as a separate process: ``tools/ursim`` (see docs/ursim.md)."""
