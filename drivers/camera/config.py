@@ -55,7 +55,7 @@ class AravisCameraConfig(BaseModel):
         enable_fake_interface: also enumerate Aravis' in-process ``Fake`` interface (tests).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     driver: Literal["aravis"]
     left_device_id: str = Field(min_length=1)
@@ -104,7 +104,7 @@ class V4l2CameraConfig(BaseModel):
             returned is fresh (grab until a grab returns without waiting).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     driver: Literal["v4l2"]
     left_device: str | None = None
@@ -144,7 +144,7 @@ class ReplayCameraConfig(BaseModel):
         loop: start again at the first pair after the last one (else DisconnectedError).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     driver: Literal["replay"]
     recording_dir: Path

@@ -127,6 +127,8 @@ def parse_command(line: bytes) -> ParsedCommand:
     """
     text = line.decode("ascii", errors="replace")
     for i, ch in enumerate(text):
+        if ch in ": " and i == 0:
+            raise NdiDecodeError(f"command {text!r} has no name")
         if ch == ":":
             body, crc_text = text[:-4], text[-4:]
             if len(body) <= i:

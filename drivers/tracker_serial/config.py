@@ -63,7 +63,7 @@ class FlockOfBirdsConfig(BaseModel):
             checks; costs one record of delay after a genuine jump.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     driver: Literal["fob"]
     port: str = Field(min_length=1)
@@ -120,7 +120,7 @@ class AuroraConfig(BaseModel):
             for the emulator on a pseudo-terminal, which carries no break.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     driver: Literal["aurora"]
     port: str = Field(min_length=1)

@@ -142,6 +142,10 @@ def load_setup(path: str | Path, registry: DriverRegistry | None = None) -> Setu
         raise ConfigError(str(path), ["not UTF-8 text"]) from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(str(path), [f"not valid TOML: {exc}"]) from None
+    except ValueError as exc:  # e.g. an integer literal beyond Python's 4300-digit limit
+        raise ConfigError(str(path), [f"unusable TOML: {exc}"]) from None
+    except RecursionError:
+        raise ConfigError(str(path), ["unusable TOML: nested too deeply"]) from None
     return parse_setup(data, source=str(path), config_dir=p.resolve().parent, registry=registry)
 
 
@@ -166,6 +170,10 @@ def load_fault_schedule(path: str | Path) -> tuple[FaultSpec, ...]:
         raise ConfigError(str(path), [f"cannot read: {exc.strerror or exc}"]) from None
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ConfigError(str(path), [f"not valid TOML: {exc}"]) from None
+    except ValueError as exc:  # e.g. an integer literal beyond Python's 4300-digit limit
+        raise ConfigError(str(path), [f"unusable TOML: {exc}"]) from None
+    except RecursionError:
+        raise ConfigError(str(path), ["unusable TOML: nested too deeply"]) from None
     try:
         return _FaultSchedule.model_validate(data).faults
     except ValidationError as exc:

@@ -18,6 +18,11 @@ from hil.config.types import STRICT, ConfigPath, TransformConfig, Vec3
 from hil.controller.config import ProcedureConfig
 from hil.igtl.config import IgtlConfig
 
+#: Largest accepted camera / tracker watchdog age, ms (stale data beyond this cannot guide a needle).
+MAX_WATCHDOG_AGE_MS = 2000.0
+#: Largest accepted robot-state watchdog age, ms (a UR streams state at 125-500 Hz).
+MAX_ROBOT_STATE_AGE_MS = 1000.0
+
 
 class SafetyConfig(BaseModel):
     """``[safety]``: hard motion limits (checked before any command reaches a robot) and the
@@ -30,9 +35,14 @@ class SafetyConfig(BaseModel):
     max_speed_mm_s: float = Field(100.0, gt=0, le=1000, description="TCP linear speed")
     max_accel_mm_s2: float = Field(500.0, gt=0, le=5000, description="TCP linear acceleration")
     max_angular_speed_rad_s: float = Field(1.0, gt=0, le=6.3, description="TCP angular speed")
-    camera_frame_max_age_ms: float = Field(200.0, gt=0, description="watchdog: newest stereo pair")
-    tracker_max_age_ms: float = Field(200.0, gt=0, description="watchdog: newest tracker sample")
-    robot_state_max_age_ms: float = Field(50.0, gt=0, description="watchdog: newest robot state")
+    # Upper bounds: data older than this is useless for guiding a needle; a larger age would
+    # quietly turn the watchdog off.
+    camera_frame_max_age_ms: float = Field(200.0, gt=0, le=MAX_WATCHDOG_AGE_MS,
+                                           description="watchdog: newest stereo pair")
+    tracker_max_age_ms: float = Field(200.0, gt=0, le=MAX_WATCHDOG_AGE_MS,
+                                      description="watchdog: newest tracker sample")
+    robot_state_max_age_ms: float = Field(50.0, gt=0, le=MAX_ROBOT_STATE_AGE_MS,
+                                          description="watchdog: newest robot state")
 
     @model_validator(mode="after")
     def _box(self) -> SafetyConfig:

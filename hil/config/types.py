@@ -10,7 +10,9 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationInf
 from hil.errors import GeometryError
 from hil.geometry.transform import RigidTransform
 
-STRICT = ConfigDict(extra="forbid", frozen=True)
+#: Every config model's settings. ``allow_inf_nan=False``: TOML has ``inf``/``nan`` literals, and an
+#: infinite watchdog age or fault start would pass ``gt=0``/``ge=0`` and silently disable it.
+STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 Vec3 = tuple[float, float, float]
 

@@ -28,9 +28,13 @@ def as_points(points: ArrayLike, name: str = "points") -> FloatArray:
     A single point of shape (3,) is returned as (1, 3).
 
     Raises:
-        GeometryError: wrong shape, or any NaN/inf.
+        GeometryError: not numbers (e.g. strings, ragged lists, an integer beyond float range),
+            wrong shape, or any NaN/inf.
     """
-    arr = np.asarray(points, dtype=np.float64)
+    try:
+        arr = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise GeometryError(f"{name} is not an array of numbers ({exc})") from None
     if arr.ndim == 1 and arr.shape[0] == 3:
         arr = arr[np.newaxis, :]
     if arr.ndim != 2 or arr.shape[1] != 3:
@@ -281,11 +285,17 @@ def matrix_to_quaternion(R: ArrayLike) -> FloatArray:
 
 
 def rotvec_to_matrix(rotvec: ArrayLike) -> FloatArray:
-    """Rodrigues: rotation matrix from axis * angle (rad)."""
+    """Rodrigues: rotation matrix from axis * angle (rad).
+
+    Raises:
+        GeometryError: not 3 finite values, or an angle too large to represent (norm overflows).
+    """
     v = np.asarray(rotvec, dtype=np.float64).reshape(-1)
     if v.shape != (3,) or not np.all(np.isfinite(v)):
         raise GeometryError(f"rotation vector must be 3 finite values, got {rotvec!r}")
-    theta = float(np.linalg.norm(v))
+    theta = math.hypot(float(v[0]), float(v[1]), float(v[2]))  # no overflow in the squares
+    if not math.isfinite(theta):
+        raise GeometryError(f"rotation vector angle overflows a float, got {rotvec!r}")
     if theta < 1e-12:
         return np.eye(3)
     k = v / theta

@@ -239,6 +239,10 @@ def _load_json(name: str, text: str) -> Any:
         return json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputFileError(name, f"bad JSON (line {exc.lineno}, col {exc.colno}): {exc.msg}") from None
+    except ValueError as exc:  # e.g. an integer literal beyond Python's 4300-digit limit
+        raise InputFileError(name, f"unusable JSON: {exc}") from None
+    except RecursionError:
+        raise InputFileError(name, "unusable JSON: nested too deeply") from None
 
 
 def _read_json(name: str, text: str, out_cs: CoordinateSystem) -> PointSet:

@@ -273,3 +273,64 @@ def test_reference_update_keeps_the_introduction() -> None:
     assert update_document(f"intro\n{MARKER}\nold tables\n", "new") == f"intro\n{MARKER}\n\nnew\n"
     with pytest.raises(ValueError, match="not found"):
         update_document("no marker", "new")
+
+
+# ----------------------------------------------------------------------------- hostile values
+@pytest.mark.parametrize("value", ["inf", "-inf", "nan", "1e400"])
+def test_non_finite_numbers_are_refused(tmp_path: Path, registry: DriverRegistry, value: str) -> None:
+    """TOML's inf/nan (and 1e400, which tomllib reads as inf) would pass gt=0 / ge=0 and silently
+    turn a watchdog or a fault off; every config model refuses them (STRICT allow_inf_nan=False)."""
+    path = _write(tmp_path, f"""
+[camera]
+driver = "sim"
+[robot]
+driver = "sim"
+[safety]
+tracker_max_age_ms = {value}
+[[faults]]
+kind = "frame_drop"
+start_s = {value}
+duration_s = 1
+""")
+    with pytest.raises(ConfigError) as info:
+        load_setup(path, registry)
+    keys = [p.split(":")[0] for p in info.value.problems]
+    assert keys == ["safety.tracker_max_age_ms", "faults[0].start_s"]
+
+
+def test_watchdog_ages_have_an_upper_bound(tmp_path: Path, registry: DriverRegistry) -> None:
+    from hil.config.setup import MAX_ROBOT_STATE_AGE_MS, MAX_WATCHDOG_AGE_MS
+
+    base = '[camera]\ndriver = "sim"\n[robot]\ndriver = "sim"\n[safety]\n'
+    ok = (f"camera_frame_max_age_ms = {MAX_WATCHDOG_AGE_MS}\ntracker_max_age_ms = {MAX_WATCHDOG_AGE_MS}\n"
+          f"robot_state_max_age_ms = {MAX_ROBOT_STATE_AGE_MS}\n")
+    assert load_setup(_write(tmp_path, base + ok), registry).safety.robot_state_max_age_ms == 1000.0
+    too_old = (f"camera_frame_max_age_ms = {MAX_WATCHDOG_AGE_MS + 1}\n"
+               f"tracker_max_age_ms = {MAX_WATCHDOG_AGE_MS + 1}\n"
+               f"robot_state_max_age_ms = {MAX_ROBOT_STATE_AGE_MS + 1}\n")
+    with pytest.raises(ConfigError) as info:
+        load_setup(_write(tmp_path, base + too_old), registry)
+    assert info.value.problems == [
+        "safety.camera_frame_max_age_ms: Input should be less than or equal to 2000",
+        "safety.tracker_max_age_ms: Input should be less than or equal to 2000",
+        "safety.robot_state_max_age_ms: Input should be less than or equal to 1000",
+    ]
+
+
+@pytest.mark.parametrize(("text", "why"), [
+    ("a = " + "[" * 100_000, "nested too deeply"),
+    ("a = " + "1" * 5000, "Exceeds the limit (4300 digits)"),
+], ids=["deep", "huge_int"])
+def test_hostile_toml_is_a_config_error(
+    tmp_path: Path, registry: DriverRegistry, text: str, why: str
+) -> None:
+    from hil.config import load_fault_schedule
+
+    path = _write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_setup(path, registry)
+    assert info.value.path == str(path)
+    assert info.value.problems[0].startswith("unusable TOML: ")
+    assert why in info.value.problems[0]
+    with pytest.raises(ConfigError, match="unusable TOML"):
+        load_fault_schedule(path)

@@ -134,3 +134,26 @@ def test_invalid_inputs_raise_typed_errors() -> None:
         as_points([[1.0, 2.0]])
     with pytest.raises(GeometryError):
         as_points([[1.0, 2.0, np.inf]])
+
+
+def test_rotvec_whose_norm_overflows_is_a_geometry_error() -> None:
+    """Finite components whose norm overflows a float (> 1.8e308) name the problem instead of a
+    ValueError from math.sin(inf); large but representable angles still work (no overflow in the
+    squares)."""
+    from hil.geometry.transform import rotvec_to_matrix
+
+    with pytest.raises(GeometryError, match="overflows"):
+        rotvec_to_matrix([1.5e308, 1.5e308, 1.5e308])
+    R = rotvec_to_matrix([1e200, 0.0, 0.0])
+    assert np.allclose(R @ R.T, np.eye(3))
+    assert R[0, 0] == 1.0
+
+
+@pytest.mark.parametrize(
+    "points", [[10**400, 0, 0], [[1.0, 2.0], [3.0]], ["a", 1.0, 2.0], [{"a": 1}, 1.0, 2.0]]
+)
+def test_as_points_refuses_non_numbers_with_a_geometry_error(points: object) -> None:
+    """Whatever numpy raises converting the input (TypeError, ValueError, OverflowError for an
+    integer beyond float range, as a JSON file can hold) becomes the documented GeometryError."""
+    with pytest.raises(GeometryError, match="fiducials_mm is not an array of numbers"):
+        as_points(points, "fiducials_mm")

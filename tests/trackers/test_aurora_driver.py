@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from emulators.trackersim.poses import StaticPoses
+from pydantic import ValidationError
 
 from drivers.interfaces.errors import DeviceFaultError, DeviceTimeoutError, ProtocolError
 from drivers.interfaces.tracker import TrackerSample
@@ -180,3 +183,10 @@ def test_config_handles() -> None:
         _config("/dev/x", sensors={"a": "0A", "b": 10})
     with pytest.raises(ValueError, match="COMM code"):
         _config("/dev/x", baud_rate=12345)
+
+
+@pytest.mark.parametrize("value", [math.inf, math.nan])
+def test_non_finite_timeouts_are_refused(value: float) -> None:
+    """An infinite timeout_s would pass gt=0 and block forever: the config refuses it."""
+    with pytest.raises(ValidationError, match="finite number"):
+        _config("/dev/null", timeout_s=value)

@@ -50,6 +50,12 @@ def test_parse_command_both_forms_and_bad_crc() -> None:
         ap.parse_command(b"\x01\x02")
 
 
+@pytest.mark.parametrize("line", [b" ", b" TX 0801", b":", b":0801E3A5", b""])
+def test_parse_command_without_a_name_is_a_decode_error(line: bytes) -> None:
+    with pytest.raises(ap.NdiDecodeError, match="no name" if line else "not a command"):
+        ap.parse_command(line)
+
+
 def test_check_reply() -> None:
     assert ap.check_reply(b"OKAYA896") == "OKAY"
     with pytest.raises(ap.NdiReplyError) as err:

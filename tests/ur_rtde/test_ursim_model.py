@@ -10,6 +10,7 @@ import pytest
 from emulators.ursim import protocol as proto
 from emulators.ursim.controller import (
     HOME_Q,
+    RT_CMDS,
     ControllerVersion,
     RuntimeState,
     SafetyMode,
@@ -237,3 +238,58 @@ def test_custom_program_runs_statements_in_order_then_stops() -> None:
     run_until(c, lambda: c.runtime_state is RuntimeState.STOPPED)
     np.testing.assert_allclose(c.q, q, atol=1e-12)
     assert c.out_int[0] == 2
+
+
+# ----------------------------------------------------------------------------- hostile registers
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize("cmd", [1, 3, 9, 10, 11, 24])
+def test_non_finite_register_faults_the_program_and_leaves_the_arm(cmd: int, bad: float) -> None:
+    """A real controller faults the program on a non-finite value; the emulator must not raise
+    out of tick() (that would end its tick task and hang every client)."""
+    c = make()
+    q0 = c.q.copy()
+    command(c, cmd, [0.1, bad, 0.2, 0.0, math.pi, 0.0, 0.1, 0.5, 0.0, 0.1, 300.0])
+    for _ in range(5):
+        c.tick()
+    assert c.runtime_state is RuntimeState.STOPPED
+    assert c.last_error.startswith("input_double_register_1 is not finite")
+    assert np.array_equal(c.q, q0)
+
+
+@pytest.mark.parametrize(("pose", "why"), [
+    ([1e308, -1e308, 1e308, 0.0, math.pi, 0.0], "inverse kinematics"),
+    ([0.1, 0.1, 0.2, 1.5e308, 1.5e308, 1.5e308], "rotation vector angle overflows"),
+], ids=["position", "rotation"])
+@pytest.mark.parametrize("cmd", [2, 3, 24])
+def test_pose_beyond_float_range_faults_the_program(cmd: int, pose: list[float], why: str) -> None:
+    """Finite but absurd poses (1e308 m, a rotation vector whose norm overflows) fault the program
+    naming the problem: no exception out of tick() and no overflow warning."""
+    c = make()
+    command(c, cmd, [*pose, 0.1, 0.5, 0.0, 0.1, 300.0])
+    c.tick()
+    assert c.runtime_state is RuntimeState.STOPPED
+    assert why in c.last_error
+
+
+def test_speedj_is_limited_to_the_joint_speed_limits() -> None:
+    from emulators.ursim.motion import JOINT_SPEED_LIMIT_RAD_S
+
+    c = make()
+    command(c, 9, [1e308, -1e308, 1e308, -1e308, 1e308, -1e308, 1e308])
+    for _ in range(3):
+        c.tick()
+    assert c.runtime_state is RuntimeState.PLAYING
+    assert np.allclose(np.abs(c.qd), JOINT_SPEED_LIMIT_RAD_S)
+
+
+@given(st.sampled_from(sorted(RT_CMDS | {1, 2, 3, 4, 5, 7, 8, 30, 33, 34, 35, 44, 46})),
+       st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=12, max_size=12))
+def test_any_registers_never_break_the_tick(cmd: int, dbl: list[float]) -> None:
+    c = make()
+    command(c, cmd, dbl)
+    for _ in range(4):
+        c.tick()
+    command(c, 0, [])
+    c.tick()
+    assert np.all(np.isfinite(c.q))
+    assert np.all(np.isfinite(c.tcp))

@@ -31,10 +31,14 @@ from emulators.ursim.motion import (
     SpeedL,
 )
 from emulators.ursim.urscript import ScriptSyntaxError, Statement, parse_program_body
+from hil.errors import GeometryError
 from hil.geometry.transform import RigidTransform, matrix_to_rotvec, rotvec_to_matrix
 from hil.kinematics.ur import ur_inverse, ur_joint_frames
 
 FloatArray = NDArray[np.float64]
+
+#: A TCP target farther than this from the base (m) is unreachable for every UR arm.
+_FAR_M = 100.0
 
 HOME_Q = np.array([0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0])
 
@@ -237,6 +241,9 @@ class UrController:
         return T
 
     def ik(self, T: FloatArray, q_near: FloatArray) -> FloatArray | None:
+        """Joint solution nearest ``q_near`` for the TCP pose ``T`` (m), or None (unreachable)."""
+        if not np.all(np.abs(T[:3, 3]) < _FAR_M):  # also NaN; no float overflow in the mm scaling
+            return None
         try:
             target = RigidTransform(T[:3, :3], T[:3, 3] * 1000.0)
         except ValueError:
@@ -410,8 +417,19 @@ class UrController:
         return self.in_int[idx + off]
 
     def _in_d(self, idx: int, n: int = 1) -> FloatArray:
+        """Input double registers ``idx..idx+n-1`` of the program.
+
+        Raises:
+            MotionError: one is NaN or infinite (the script would hand it to a motion command;
+                a real controller faults the program on such a value).
+        """
         off = self.program.reg_offset if self.program else 0
-        return np.array(self.in_dbl[idx + off: idx + off + n], dtype=np.float64)
+        values = np.array(self.in_dbl[idx + off: idx + off + n], dtype=np.float64)
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            raise MotionError(f"input_double_register_{idx + off + int(bad[0])} is not finite "
+                              f"({values[bad[0]]})")
+        return values
 
     def _async_progress(self, value: int) -> None:
         """write_async_progress_register of the control script (bit 15 running, bits 0-14 progress)."""
@@ -439,7 +457,11 @@ class UrController:
             if self.timestamp_s - self._cmd_seen[1] < self.slow_responses_s:
                 return
         if cmd in RT_CMDS:
-            self._process_rt(cmd)
+            try:
+                self._process_rt(cmd)
+            except (MotionError, GeometryError) as exc:
+                self._fault(str(exc))
+                return
             self._out_i(0, 1)
         elif cmd == 0:
             self.executing_cmd = False
@@ -453,7 +475,7 @@ class UrController:
                 return
             try:
                 blocking = self._process(cmd)
-            except MotionError as exc:
+            except (MotionError, GeometryError) as exc:
                 self._fault(str(exc))
                 return
             if blocking:
@@ -474,7 +496,7 @@ class UrController:
             self._pc += 1
             try:
                 self._execute(st)
-            except MotionError as exc:
+            except (MotionError, GeometryError) as exc:
                 self._fault(f"{prog.name}: {exc}")
                 return
 

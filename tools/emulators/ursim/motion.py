@@ -178,9 +178,17 @@ class Servo:
         return False
 
 
+def _norm(x: FloatArray) -> float:
+    """Euclidean norm without overflow in the squares (inputs up to 1e308 give a finite norm or inf)."""
+    m = float(np.max(np.abs(x))) if x.size else 0.0
+    if m == 0.0 or not math.isfinite(m):
+        return m
+    return m * float(np.linalg.norm(x / m))
+
+
 def _ramp(current: FloatArray, target: FloatArray, max_change: float) -> FloatArray:
     diff = target - current
-    n = float(np.linalg.norm(diff))
+    n = _norm(diff)
     if n <= max_change or n < 1e-15:
         return target.copy()
     return current + diff * (max_change / n)
@@ -234,6 +242,8 @@ class SpeedJ:
     def step(self, arm: Arm, dt_s: float) -> bool:
         if self._qd is None:
             self._qd = self.qd_start.copy()
-        self._qd = _ramp(self._qd, self.qd_target, self.accel * dt_s)
+        # the joints cannot turn faster than their speed limits, whatever speedj asks for
+        target = np.clip(self.qd_target, -JOINT_SPEED_LIMIT_RAD_S, JOINT_SPEED_LIMIT_RAD_S)
+        self._qd = _ramp(self._qd, target, self.accel * dt_s)
         arm.q = arm.q + self._qd * dt_s
         return self.stop_at_zero and float(np.linalg.norm(self._qd)) == 0.0

@@ -25,6 +25,11 @@ DASHBOARD_PORT = 29999
 CONTROL_PORT = 30200
 _MAX_WRITE_BUFFER = 1 << 20
 _READ_TIMEOUT_S = 3600.0
+#: Recipe ids are one byte on the wire; id 0 means "setup failed".
+MAX_RECIPE_ID = 255
+#: Below this an output frequency is treated like 0 (the controller's rate): a denormal one would
+#: make frequency_hz / freq overflow.
+MIN_OUTPUT_FREQUENCY_HZ = 1e-3
 
 
 @dataclass
@@ -121,12 +126,15 @@ class RtdeConnection:
                 self.sim.warn(f"rtde_outputs_not_found {[n for n in names if n not in proto.OUTPUT_TYPES]}")
                 return
             self.output = recipe
-            freq = freq if freq > 0 else ctl.frequency_hz
+            # <= 0, NaN or a denormal (frequency_hz / freq would overflow): the controller's rate
+            freq = freq if freq >= MIN_OUTPUT_FREQUENCY_HZ else ctl.frequency_hz
             self.every = max(1, round(ctl.frequency_hz / min(freq, ctl.frequency_hz)))
             self.send(proto.CONTROL_PACKAGE_SETUP_OUTPUTS, b"\x01" + ",".join(recipe.types).encode())
         elif msg_type == proto.CONTROL_PACKAGE_SETUP_INPUTS:
             names = proto.split_names(body)
             rid = len(self.inputs) + 1
+            if rid > MAX_RECIPE_ID:
+                raise proto.ProtocolViolationError(f"more than {MAX_RECIPE_ID} input recipes")
             in_recipe = proto.Recipe.build(rid, names, proto.INPUT_TYPES)
             if in_recipe is None:
                 types = [proto.INPUT_TYPES.get(n, "NOT_FOUND") for n in names]
