@@ -20,6 +20,19 @@ from hil.log import configure_logging
 # Subcommand modules, in the order `hil --help` lists them. A module missing here is not a command.
 COMMAND_MODULES: tuple[str, ...] = (
     "hil.cli.cmd_register",
+    "hil.cli.cmd_states",
+    "hil.cli.cmd_run",
+    "hil.cli.cmd_campaign",
+    "hil.cli.cmd_soak",
+    "hil.cli.cmd_drivers",
+    "hil.cli.cmd_check_config",
+    "hil.cli.cmd_tracker_calibrate",
+    "hil.cli.cmd_calibrate",
+    "hil.cli.cmd_locate",
+    "hil.cli.cmd_report",
+    "hil.cli.cmd_console",
+    "hil.cli.cmd_probe",
+    "hil.cli.cmd_stereotaxy",
 )
 
 EXIT_USAGE = 2

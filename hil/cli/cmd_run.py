@@ -1,0 +1,232 @@
+"""``hil run``: run a whole procedure (register -> plan -> approach -> gate -> compensate -> lock).
+
+``hil run`` with no arguments runs ``configs/sim.toml`` with its bundled plan, auto-confirming,
+faster than real time (simulated clock), and prints a summary (``--json``: one JSON object,
+fields documented in docs/run.md). Exit code 0 when the procedure reached DONE, 1 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import hashlib
+import json
+import select
+import sys
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from hil.clock import Clock, ManualClock, MonotonicClock
+from hil.config import build_devices, default_setup_path, load_setup
+from hil.config.setup import SetupConfig
+from hil.controller.fsm import Event, State
+from hil.controller.perception import StereoMarkerLocator
+from hil.controller.plan_file import ProcedurePlan, load_plan
+from hil.controller.planning import RigGeometry
+from hil.controller.procedure import AutoOperator, Controller, Operator, OperatorView, RunSummary
+from hil.controller.truth import BreathHoldCoach, GroundTruth
+from hil.errors import InputFileError
+from hil.geometry.transform import RigidTransform
+from hil.session.log import SessionLog, file_sha256
+from hil.vision.camera_model import StereoCalibration, load_calibration
+
+
+def add_parser(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "run", help="run a whole procedure (default: the simulator, auto-confirmed)",
+        description="Run register -> plan -> approach -> hold-breath gate -> compensate -> lock on the "
+                    "devices of a setup. Without CONFIG: configs/sim.toml and its plan, --auto.")
+    p.add_argument("config", nargs="?", help="setup TOML (default: the embedded configs/sim.toml)")
+    p.add_argument("--plan", help="plan JSON (default: plans/<config name>_plan.json next to the config)")
+    p.add_argument("--auto", action="store_true", help="confirm every confirmation automatically")
+    p.add_argument("--seed", type=int, help="override [simulation] seed")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--session-dir", default="sessions",
+                   help="where the session log goes (default: sessions/)")
+    p.add_argument("--max-duration", type=float, help="stop after this many seconds of procedure time")
+    p.set_defaults(func=run)
+
+
+class InteractiveOperator:
+    """Asks on stderr and reads single-letter answers from stdin when a decision is needed.
+
+    The question is asked once per decision; the answer is polled without blocking (``select``)
+    when stdin is a real file, so the control loop keeps ticking (watchdogs, drift watch while
+    locked) while the operator thinks. A stream without a file descriptor is read blocking.
+    """
+
+    def __init__(self, inp: TextIO = sys.stdin, out: TextIO = sys.stderr) -> None:
+        self.inp, self.out = inp, out
+        self._started = False
+        self._quit = False
+        self._asked: tuple[str, str | None] | None = None
+
+    def _answer(self, key: tuple[str, str | None], prompt: str) -> str | None:
+        if self._asked != key:
+            self._asked = key
+            self.out.write(prompt)
+            self.out.flush()
+        try:
+            fd = self.inp.fileno()
+        except (OSError, ValueError, AttributeError):
+            fd = None
+        if fd is not None:
+            ready, _, _ = select.select([self.inp], [], [], 0.0)
+            if not ready:
+                return None
+        line = self.inp.readline()
+        self._asked = None
+        if not line:
+            self._quit = True
+            return ""
+        return line.strip().lower()[:1]
+
+    def poll(self, view: OperatorView) -> Event | None:
+        if not self._started and view.state is State.IDLE:
+            self._started = True
+            return Event.START_REQUESTED
+        key = (view.state.value, view.pending)
+        if view.pending is not None:
+            a = self._answer(key, f"[{view.t_s:7.2f} s] {view.state.value}: confirm {view.pending}? "
+                                  "[y]es / [a]bort: ")
+            return Event.CONFIRM_REQUESTED if a == "y" else Event.ABORT_REQUESTED if a == "a" else None
+        if view.state in (State.PAUSED, State.FAULT, State.SAFE_STOP):
+            a = self._answer(key, f"[{view.t_s:7.2f} s] {view.state.value} ({view.last_reason}): [r]esume / "
+                                  "re-[s]tart registration / re[t]ract / [q]uit: ")
+            if a == "q":
+                self._quit = True
+            return {"r": Event.RESUME_REQUESTED, "s": Event.START_REQUESTED,
+                    "t": Event.RETRACT_REQUESTED}.get(a or "")
+        return None
+
+    def finished(self, view: OperatorView) -> bool:
+        return self._quit or view.state is State.DONE or (view.state is State.IDLE and view.started)
+
+
+def _resolve(args: argparse.Namespace) -> tuple[Path, SetupConfig, ProcedurePlan, bool]:
+    config_path = Path(args.config) if args.config else default_setup_path()
+    setup = load_setup(config_path)
+    auto = bool(args.auto or args.config is None)
+    if args.seed is not None:
+        if args.seed < 0:
+            raise InputFileError("--seed", f"must be >= 0, got {args.seed}")
+        sim = setup.simulation.model_copy(update={"seed": args.seed})
+        setup = setup.model_copy(update={"simulation": sim})
+    if args.plan:
+        plan_path = Path(args.plan)
+    else:
+        plan_path = config_path.resolve().parent / "plans" / f"{config_path.stem}_plan.json"
+        if not plan_path.is_file():
+            raise InputFileError(str(plan_path), "no bundled plan for this setup; give one with --plan")
+    return config_path, setup, load_plan(plan_path), auto
+
+
+def _rig(setup: SetupConfig) -> RigGeometry:
+    tcp_cfg = getattr(setup.robot, "T_flange_from_tcp", None)
+    T_flange_from_tcp = tcp_cfg.as_transform() if tcp_cfg is not None else RigidTransform.identity()
+    return RigGeometry(setup.frames.T_flange_from_guide.as_transform(),
+                       np.asarray(setup.frames.flange_markers_mm, dtype=np.float64), T_flange_from_tcp)
+
+
+def _calibration(setup: SetupConfig, camera: object) -> StereoCalibration:
+    if setup.calibration.stereo is not None:
+        return load_calibration(setup.calibration.stereo)
+    cal = getattr(camera, "calibration", None)
+    if isinstance(cal, StereoCalibration):
+        return cal
+    return StereoCalibration.synthetic()
+
+
+def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *, auto: bool,
+                  session_dir: Path, max_duration_s: float | None = None,
+                  clock: Clock | None = None, operator: Operator | None = None) -> RunSummary:
+    """Build the devices of ``setup``, run the procedure, close everything; return the summary.
+
+    Simulated setups run on a :class:`ManualClock` (faster than real time) unless
+    ``[simulation] real_time``; other setups on the monotonic clock. ``operator`` overrides the
+    auto / interactive operator chosen by ``auto``.
+    """
+    if clock is None:
+        from plugins.manager import default_registry
+
+        reg = default_registry()
+        simulated = any(reg.get(role, str(getattr(cfg, "driver", ""))).simulated
+                        for role, cfg in setup.device_sections().items())
+        fast = simulated and not setup.simulation.real_time
+        clock = ManualClock(1_000_000_000) if fast else MonotonicClock()
+    devices = build_devices(setup, clock)
+    world = devices.world
+    stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
+    header: dict[str, Any] = {
+        "setup": str(config_path), "setup_name": setup.name,
+        "config_sha256": file_sha256(config_path),
+        "resolved_setup_sha256": hashlib.sha256(
+            json.dumps(setup.resolved(), sort_keys=True, default=str).encode()).hexdigest(),
+        "plan": plan.source,
+        "plan_sha256": file_sha256(plan.source) if Path(plan.source).is_file() else None,
+        "calibration": str(setup.calibration.stereo) if setup.calibration.stereo else None,
+        "calibration_sha256": file_sha256(setup.calibration.stereo) if setup.calibration.stereo else None,
+        "seed": setup.simulation.seed if world is not None else None,
+        "procedure": setup.procedure.model_dump(mode="json"), "auto": auto,
+    }
+    session = SessionLog(session_dir / f"session_{stamp}.jsonl", clock, header)
+    sf = setup.safety
+    devices.open_all()
+    try:
+        ctl = Controller(
+            camera=devices.camera, robot=devices.robot, tracker=devices.tracker, clock=clock,
+            locate=StereoMarkerLocator(_calibration(setup, devices.camera)), plan=plan, rig=_rig(setup),
+            procedure=setup.procedure, limits=sf.motion_limits(),
+            watchdog_ages_s={"camera": sf.camera_frame_max_age_ms / 1e3,
+                             "robot": sf.robot_state_max_age_ms / 1e3,
+                             "tracker": sf.tracker_max_age_ms / 1e3},
+            session=session,
+            operator=operator or (AutoOperator() if auto else InteractiveOperator()),
+            coach=world if isinstance(world, BreathHoldCoach) else None,
+            truth=world if isinstance(world, GroundTruth) else None,
+        )
+        summary = ctl.run(max_duration_s)
+    finally:
+        devices.close_all()
+    session.close(final_state=summary.final_state, states=summary.states)
+    return summary
+
+
+def _fmt(x: float | None, unit: str, digits: int = 3) -> str:
+    return "n/a" if x is None else f"{x:.{digits}f} {unit}"
+
+
+def print_text(s: RunSummary, out: TextIO) -> None:
+    out.write(f"final state      {s.final_state}\n")
+    out.write("timeline\n")
+    for row in s.timeline:
+        reason = f"  ({row['reason']})" if row.get("reason") else ""
+        out.write(f"  {row['t_s']:8.3f} s  {row['state']:<11}{reason}\n")
+    out.write(f"FRE              {_fmt(s.fre_mm, 'mm')}\n")
+    out.write(f"expected TRE     {_fmt(s.tre_expected_mm, 'mm')}\n")
+    out.write(f"robot reg. FRE   {_fmt(s.robot_fre_mm, 'mm')}\n")
+    out.write(f"lock error       {_fmt(s.lock_error_mm, 'mm')}, direction "
+              f"{_fmt(s.lock_direction_error_deg, 'deg')} (vs simulator truth)\n")
+    out.write(f"compensation     RMS {_fmt(s.comp_error_rms_mm, 'mm')}, "
+              f"p95 {_fmt(s.comp_error_p95_mm, 'mm')}\n")
+    out.write(f"latency          p50 {_fmt(s.latency_ms['p50'], 'ms', 1)}, "
+              f"p95 {_fmt(s.latency_ms['p95'], 'ms', 1)}"
+              " (exposure -> command)\n")
+    out.write(f"time to lock     {_fmt(s.time_to_lock_s, 's', 2)}\n")
+    if s.faults:
+        out.write(f"faults           {'; '.join(s.faults)}\n")
+    out.write(f"session log      {s.session_log}\n")
+
+
+def run(args: argparse.Namespace) -> int:
+    config_path, setup, plan, auto = _resolve(args)
+    summary = run_procedure(config_path, setup, plan, auto=auto, session_dir=Path(args.session_dir),
+                            max_duration_s=args.max_duration)
+    if args.json:
+        sys.stdout.write(json.dumps(summary.to_dict(), default=str) + "\n")
+    else:
+        print_text(summary, sys.stdout)
+    return 0 if summary.final_state == State.DONE.value else 1
+

@@ -1,0 +1,1 @@
+"""The procedure controller: state machine, registration, planning, gate, compensation, lock."""

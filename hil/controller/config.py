@@ -1,0 +1,145 @@
+"""Procedure configuration: every tolerance, limit and policy the controller follows.
+
+The devices engineer's ``SetupConfig`` embeds :class:`ProcedureConfig` as its ``[procedure]``
+table. All models are pydantic v2, ``extra="forbid"``, frozen; field names carry units.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+_STRICT = ConfigDict(extra="forbid", frozen=True)
+
+
+class RegistrationConfig(BaseModel):
+    """REGISTER: image->optical from the skin markers, robot->optical from the flange markers."""
+
+    model_config = _STRICT
+
+    frames_averaged: int = Field(10, ge=1, le=1000, description="stereo frames averaged per marker set")
+    fre_max_mm: float = Field(1.0, gt=0, description="refuse a registration with a larger FRE (RMS)")
+    fle_rms_mm: float = Field(0.3, gt=0, description="fiducial localisation error used for expected TRE")
+    tre_max_mm: float = Field(3.0, gt=0, description="refuse when the expected TRE at the target is larger")
+    match_tolerance_mm: float = Field(3.0, gt=0, description="marker identification tolerance")
+    min_markers: int = Field(4, ge=3, description="fewest identified skin markers accepted")
+    hold_request_s: float = Field(3.0, gt=0, description="breath-hold asked for while registering")
+    timeout_s: float = Field(30.0, gt=0, description="give up without a still, visible marker set")
+
+
+class PlanningConfig(BaseModel):
+    """PLAN: the guide pose on the path, stand-off above the entry, reachability."""
+
+    model_config = _STRICT
+
+    standoff_mm: float = Field(30.0, ge=0, le=200, description="guide tip distance above the entry")
+    robot_model: Literal["ur3", "ur3e"] = "ur3"
+    joint_margin_rad: float = Field(0.05, ge=0, description="keep this far from every joint limit")
+    check_kinematics: bool = Field(True, description="require an inverse-kinematics solution")
+
+
+class ApproachConfig(BaseModel):
+    """APPROACH: move to the stand-off pose, then optical closed-loop correction (seed 001 2.3)."""
+
+    model_config = _STRICT
+
+    speed_mm_s: float = Field(50.0, gt=0)
+    accel_mm_s2: float = Field(200.0, gt=0)
+    tolerance_mm: float = Field(0.3, gt=0, description="optical guide error accepted after correction")
+    max_corrections: int = Field(5, ge=0, description="closed-loop correction moves before giving up")
+    correction_gain: float = Field(1.0, gt=0, le=1.0)
+    timeout_s: float = Field(60.0, gt=0)
+
+
+class GateConfig(BaseModel):
+    """GATE: hold-breath gate (seed 003 section 3, clinical step 4)."""
+
+    model_config = _STRICT
+
+    tolerance_mm: float = Field(1.5, gt=0, description="RMS deviation of live markers from the reference")
+    dwell_s: float = Field(1.0, ge=0, description="the deviation must stay under tolerance this long "
+                                                  "(longer than the natural end-exhale pause)")
+    timeout_s: float = Field(30.0, gt=0, description="give up waiting (back to waiting, with a message)")
+    hold_request_s: float = Field(8.0, gt=0, description="breath-hold asked for on entering the gate")
+
+
+class CompensationConfig(BaseModel):
+    """COMPENSATE: follow the rigid change reference->live applied to the plan (seed 000 section 3)."""
+
+    model_config = _STRICT
+
+    filter_alpha: float = Field(0.9, gt=0, le=1, description="alpha-beta filter: position gain")
+    filter_beta: float = Field(0.7, ge=0, le=2, description="alpha-beta filter: velocity gain")
+    max_speed_mm_s: float = Field(60.0, gt=0, description="rate limit of the commanded correction")
+    max_accel_mm_s2: float = Field(400.0, gt=0, description="acceleration limit of the correction")
+    max_angular_speed_rad_s: float = Field(0.5, gt=0)
+    max_correction_mm: float = Field(25.0, gt=0, description="beyond this change: pause, ask the operator")
+    max_correction_deg: float = Field(10.0, gt=0)
+    predict_latency: bool = Field(True, description="extrapolate the motion over the measured latency")
+    servo_at_robot_rate: bool = Field(True, description="stream servo targets at the robot's control rate "
+                                                        "between frames (else one per frame)")
+    max_prediction_s: float = Field(0.15, ge=0, description="never extrapolate further than this")
+    actuation_lag_s: float = Field(0.03, ge=0, description="robot servo lag added to the prediction")
+    bias_gain: float = Field(0.1, ge=0, le=1, description="closed-loop optical correction gain per frame")
+    bias_max_speed_mm_s: float = Field(3.0, gt=0, description="update the optical bias only slower than this")
+    settle_s: float = Field(0.3, ge=0, description="error must stay under lock tolerance this long")
+    timeout_s: float = Field(60.0, gt=0)
+
+
+class LockConfig(BaseModel):
+    """LOCK: hold at the corrected entry; watch for drift."""
+
+    model_config = _STRICT
+
+    tolerance_mm: float = Field(0.5, gt=0, description="guide error to enter LOCK")
+    drift_alarm_mm: float = Field(2.0, gt=0, description="drift while locked that raises the alarm")
+    on_drift: Literal["alarm", "retract", "compensate"] = "retract"
+    retract_mm: float = Field(40.0, gt=0, description="back-off distance along the guide axis")
+    retract_speed_mm_s: float = Field(30.0, gt=0)
+    hold_s: float = Field(2.0, ge=0, description="stay locked this long before DONE (0: until operator)")
+
+
+class ResumeConfig(BaseModel):
+    """Resumption after pause, protective stop, reconnect or fault: from the actual pose, ramped."""
+
+    model_config = _STRICT
+
+    ramp_s: float = Field(1.0, gt=0, description="speed ramps from 0 to full over this time")
+    initial_speed_fraction: float = Field(0.1, gt=0, le=1.0)
+
+
+#: Names of the forward transitions that can be made to wait for an operator CONFIRM.
+Confirmation = Literal[
+    "register_to_plan", "plan_to_approach", "approach_to_gate", "gate_to_compensate",
+    "compensate_to_lock", "lock_to_done",
+]
+
+
+class ProcedureConfig(BaseModel):
+    """Everything the controller needs beyond the devices.
+
+    ``confirm``: the transitions that wait for an operator CONFIRM (``--auto`` confirms them).
+    Watchdog ages and hard motion limits live in the setup's ``[safety]`` table
+    (:class:`hil.config.setup.SafetyConfig`), owned with the devices.
+    """
+
+    model_config = _STRICT
+
+    registration: RegistrationConfig = RegistrationConfig()
+    planning: PlanningConfig = PlanningConfig()
+    approach: ApproachConfig = ApproachConfig()
+    gate: GateConfig = GateConfig()
+    compensation: CompensationConfig = CompensationConfig()
+    lock: LockConfig = LockConfig()
+    resume: ResumeConfig = ResumeConfig()
+    confirm: tuple[Confirmation, ...] = ("plan_to_approach", "lock_to_done")
+    max_duration_s: float = Field(300.0, gt=0, description="abort the whole procedure after this")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ProcedureConfig:
+        if self.lock.drift_alarm_mm <= self.lock.tolerance_mm:
+            raise ValueError("lock.drift_alarm_mm must be larger than lock.tolerance_mm")
+        if len(set(self.confirm)) != len(self.confirm):
+            raise ValueError("confirm lists a transition twice")
+        return self

@@ -1,0 +1,184 @@
+"""REGISTER: image -> optical from the skin markers, robot -> optical from the flange markers.
+
+- Patient (seed 000 section 2.2, eqs 13-21; seed 002 eq 24): N frames of triangulated markers
+  are identified against the CT fiducials (correspondence-free matching), averaged per
+  fiducial, and registered with Horn's method: ``T_optical_from_image``, FRE, and the expected
+  TRE at the target (Fitzpatrick-West-Maurer). The averaged marker set is the **reference marker
+  state** (recorded during a breath-hold) used by the gate and the compensation.
+- Robot (seed 000 eqs 7-11 in spirit — markers on the robot end seen by the camera — solved
+  with Horn on the whole flange marker layout): the flange markers are known in the TCP frame;
+  the robot reports ``T_robot_from_tcp``; their optical positions give ``T_robot_from_optical``.
+  Frames from several robot poses may be stacked.
+- The chain (seed 000 eq 12, seed 002 eq 24): ``T_robot_from_image = T_robot_from_optical @
+  T_optical_from_image``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hil.controller.config import RegistrationConfig
+from hil.controller.plan_file import ProcedurePlan
+from hil.errors import GeometryError, HilError
+from hil.geometry.matching import match_markers
+from hil.geometry.registration import register_horn
+from hil.geometry.transform import RigidTransform
+from hil.geometry.tre import expected_tre_mm
+
+FloatArray = NDArray[np.float64]
+
+
+class RegistrationFailedError(HilError):
+    """Registration cannot be accepted; ``reason`` says why."""
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+        super().__init__(f"registration failed: {reason}")
+
+
+def identify(points_mm: FloatArray, model_mm: FloatArray, tolerance_mm: float,
+             min_matched: int = 3) -> FloatArray | None:
+    """Rows of ``points_mm`` put in model order (NaN rows for model markers not found), or
+    None when no consistent match of ``min_matched`` markers exists."""
+    if points_mm.shape[0] < min_matched:
+        return None
+    try:
+        m = match_markers(points_mm, model_mm, tolerance_mm=tolerance_mm, min_matched=min_matched)
+    except GeometryError:
+        return None
+    if m.ambiguous:
+        return None
+    out = np.full((model_mm.shape[0], 3), np.nan)
+    for model_i, meas_i in m.model_to_measured.items():
+        out[model_i] = points_mm[meas_i]
+    return out
+
+
+def track(points_mm: FloatArray, predicted_mm: FloatArray, tolerance_mm: float) -> FloatArray:
+    """Fast frame-to-frame identification: each predicted marker (NaN rows skipped) takes the
+    nearest measured point within ``tolerance_mm``, uniquely (greedy by distance). Rows with
+    no point stay NaN."""
+    out = np.full(predicted_mm.shape, np.nan)
+    if points_mm.shape[0] == 0:
+        return out
+    valid = np.all(np.isfinite(predicted_mm), axis=1)
+    d = np.linalg.norm(predicted_mm[:, None, :] - points_mm[None, :, :], axis=2)
+    d[~valid] = np.inf
+    used_r: set[int] = set()
+    used_c: set[int] = set()
+    for flat in np.argsort(d, axis=None):
+        r, c = divmod(int(flat), points_mm.shape[0])
+        if d[r, c] > tolerance_mm:
+            break
+        if r in used_r or c in used_c:
+            continue
+        out[r] = points_mm[c]
+        used_r.add(r)
+        used_c.add(c)
+    return out
+
+
+def average_identified(sets: Sequence[FloatArray], min_fraction: float = 0.5) -> FloatArray:
+    """Per-marker mean over frames (rows in model order, NaN = not seen); a marker seen in fewer
+    than ``min_fraction`` of the frames stays NaN."""
+    stack = np.stack(sets)  # (F, N, 3)
+    seen = np.all(np.isfinite(stack), axis=2)  # (F, N)
+    count = seen.sum(axis=0)
+    out = np.full(stack.shape[1:], np.nan)
+    for i in range(stack.shape[1]):
+        if count[i] >= max(1, min_fraction * stack.shape[0]):
+            out[i] = stack[seen[:, i], i].mean(axis=0)
+    return out
+
+
+@dataclass(frozen=True)
+class PatientRegistration:
+    """Image -> optical registration and the reference marker state.
+
+    Attributes:
+        T_optical_from_image: the registration.
+        fre_rms_mm: fiducial registration error.
+        tre_expected_mm: expected RMS TRE at the target for the configured FLE.
+        reference_optical_mm: (N, 3) averaged marker positions, CT fiducial order (NaN: unseen).
+        markers_used: how many fiducials entered the registration.
+        frames: how many frames were averaged.
+    """
+
+    T_optical_from_image: RigidTransform
+    fre_rms_mm: float
+    tre_expected_mm: float
+    reference_optical_mm: FloatArray
+    markers_used: int
+    frames: int
+
+
+def register_patient(frames_identified: Sequence[FloatArray], plan: ProcedurePlan,
+                     cfg: RegistrationConfig) -> PatientRegistration:
+    """Average the identified frames and register image -> optical; check FRE and expected TRE.
+
+    Raises:
+        RegistrationFailedError: too few markers, degenerate layout, FRE or TRE over threshold.
+    """
+    if not frames_identified:
+        raise RegistrationFailedError("no frame with identified skin markers")
+    ref = average_identified(frames_identified)
+    ok = np.all(np.isfinite(ref), axis=1)
+    n = int(ok.sum())
+    if n < cfg.min_markers:
+        raise RegistrationFailedError(f"only {n} skin markers identified reliably (need {cfg.min_markers})")
+    try:
+        reg = register_horn(ref[ok], plan.fiducials_mm[ok])
+    except GeometryError as exc:
+        raise RegistrationFailedError(f"skin markers do not fix a transform: {exc}") from None
+    tre = expected_tre_mm(plan.fiducials_mm[ok], plan.target_mm, cfg.fle_rms_mm)
+    if reg.fre_rms_mm > cfg.fre_max_mm:
+        raise RegistrationFailedError(f"FRE {reg.fre_rms_mm:.3f} mm exceeds {cfg.fre_max_mm} mm")
+    if tre > cfg.tre_max_mm:
+        raise RegistrationFailedError(f"expected TRE at the target {tre:.3f} mm exceeds {cfg.tre_max_mm} mm")
+    return PatientRegistration(reg.T_fixed_from_moving, reg.fre_rms_mm, tre, ref, n, len(frames_identified))
+
+
+@dataclass(frozen=True)
+class RobotRegistration:
+    """Robot -> optical registration from the flange markers.
+
+    Attributes:
+        T_robot_from_optical: the registration.
+        fre_rms_mm: RMS residual of the flange markers.
+        pairs: marker observations used.
+    """
+
+    T_robot_from_optical: RigidTransform
+    fre_rms_mm: float
+    pairs: int
+
+
+def register_robot(flange_optical: Sequence[FloatArray], T_robot_from_tcp: Sequence[RigidTransform],
+                   markers_tcp_mm: FloatArray) -> RobotRegistration:
+    """Horn on the flange marker layout, stacked over frames.
+
+    Args:
+        flange_optical: per frame, (M, 3) flange markers in model order (NaN: unseen), optical.
+        T_robot_from_tcp: per frame, the robot's reported TCP pose at that frame's time.
+        markers_tcp_mm: (M, 3) the marker layout in the TCP frame.
+
+    Raises:
+        RegistrationFailedError: fewer than 3 usable pairs or a degenerate set.
+    """
+    opt: list[FloatArray] = []
+    rob: list[FloatArray] = []
+    for pts, T in zip(flange_optical, T_robot_from_tcp, strict=True):
+        ok = np.all(np.isfinite(pts), axis=1)
+        opt.append(pts[ok])
+        rob.append(T.apply(markers_tcp_mm[ok]))
+    if not opt or sum(len(o) for o in opt) < 3:
+        raise RegistrationFailedError("flange markers not seen (fewer than 3 observations)")
+    try:
+        reg = register_horn(np.concatenate(rob), np.concatenate(opt))
+    except GeometryError as exc:
+        raise RegistrationFailedError(f"flange markers do not fix a transform: {exc}") from None
+    return RobotRegistration(reg.T_fixed_from_moving, reg.fre_rms_mm, int(sum(len(o) for o in opt)))

@@ -1,0 +1,46 @@
+"""A minimal in-memory robot for unit tests of the safety layer (no simulator)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
+from hil.clock import ManualClock
+from hil.geometry.transform import RigidTransform
+
+
+class FakeRobot(Robot):
+    """Records every command that reaches the driver; the pose jumps to each target."""
+
+    def __init__(self, clock: ManualClock, limits: MotionLimits | None = None) -> None:
+        super().__init__("robot", limits or MotionLimits())
+        self.clock = clock
+        self.pose = RigidTransform.from_translation((0.0, 0.0, 300.0))
+        self.calls: list[tuple[str, RigidTransform | None]] = []
+        self.safety_status = SafetyStatus.NORMAL
+        self.state_delay_ns = 0
+
+    def _open(self) -> None:
+        pass
+
+    def _close(self) -> None:
+        pass
+
+    @property
+    def control_rate_hz(self) -> float:
+        return 125.0
+
+    def _move_linear(self, T: RigidTransform, speed_mm_s: float, accel_mm_s2: float, blocking: bool) -> None:
+        self.calls.append(("move_linear", T))
+        self.pose = T
+
+    def _servo(self, T: RigidTransform, period_s: float) -> None:
+        self.calls.append(("servo", T))
+        self.pose = T
+
+    def _stop(self, decel_mm_s2: float) -> None:
+        self.calls.append(("stop", None))
+
+    def _state_now(self) -> RobotState:
+        return RobotState(self.pose, np.zeros(6), RobotMode.IDLE, self.safety_status,
+                          self.clock.now_ns() - self.state_delay_ns)

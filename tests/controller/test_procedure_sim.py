@@ -1,0 +1,238 @@
+"""End-to-end simulated procedures (simulated devices, real vision pipeline, ManualClock).
+
+One run per scenario; each takes a few seconds of CPU (every frame is rendered and detected).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from hil.config import load_setup
+from hil.config.faults import FaultKind, FaultSpec
+from hil.config.setup import SetupConfig
+from hil.config.simulation import DriftConfig, ShiftConfig
+from hil.controller.plan_file import load_plan
+from hil.controller.procedure import RunSummary
+from hil.session import read_session_log, verify_session_log
+
+CONFIG = Path("configs/sim.toml")
+PLAN = load_plan("configs/plans/sim_plan.json")
+
+
+def _setup(sim: dict[str, Any] | None = None, proc: dict[str, Any] | None = None,
+           faults: tuple[FaultSpec, ...] = ()) -> SetupConfig:
+    s = load_setup(CONFIG)
+    return s.model_copy(update={"simulation": s.simulation.model_copy(update=sim or {}),
+                                "procedure": s.procedure.model_copy(update=proc or {}),
+                                "faults": faults})
+
+
+def _run(setup: SetupConfig, tmp_path: Path, max_s: float = 40.0) -> RunSummary:
+    from hil.cli.cmd_run import run_procedure
+
+    return run_procedure(CONFIG, setup, PLAN, auto=True, session_dir=tmp_path, max_duration_s=max_s)
+
+
+def _events(summary: RunSummary) -> list[str]:
+    return [r["event"] for r in read_session_log(summary.session_log)]
+
+
+NOMINAL = ["idle", "register", "plan", "approach", "gate", "compensate", "lock", "done"]
+
+
+@pytest.mark.slow
+def test_still_patient_locks_within_half_a_millimetre(tmp_path: Path) -> None:
+    s0 = load_setup(CONFIG).simulation
+    s = _run(_setup({"breathing": s0.breathing.model_copy(update={"enabled": False}),
+                     "drift": DriftConfig()}), tmp_path)
+    assert s.final_state == "done"
+    assert s.states == NOMINAL
+    assert s.fre_mm is not None
+    assert s.fre_mm < 0.2
+    assert s.lock_error_mm is not None
+    assert s.lock_error_mm < 0.5
+    assert s.lock_direction_error_deg is not None
+    assert s.lock_direction_error_deg < 1.0
+    assert s.commands_refused == 0
+    summary = s.to_dict()
+    for key in ("final_state", "states", "fre_mm", "tre_expected_mm", "lock_error_mm",
+                "lock_direction_error_deg", "comp_error_p95_mm", "latency_ms", "session_log", "timeline",
+                "gate_open_fraction"):
+        assert key in summary
+    assert set(summary["latency_ms"]) == {"p50", "p95"}
+    header = next(read_session_log(s.session_log))
+    assert len(header["config_sha256"]) == 64
+    assert len(header["calibration_sha256"]) == 64
+    rep = verify_session_log(s.session_log)
+    assert (rep.ok, rep.closed) == (True, True)
+    ev = _events(s)
+    for name in ("registration_done", "plan_accepted", "command_sent", "compensation_step", "frame_measured",
+                 "transition_applied", "truth_error"):
+        assert name in ev
+
+
+@pytest.mark.slow
+def test_breathing_patient_is_gated_and_compensated(tmp_path: Path) -> None:
+    s0 = load_setup(CONFIG).simulation
+    s = _run(_setup({"breathing": s0.breathing.model_copy(update={"amplitude_mm": 10.0, "period_s": 4.0})}),
+             tmp_path)
+    assert s.final_state == "done"
+    assert s.states == NOMINAL
+    assert s.gate_open_fraction is not None
+    assert s.gate_open_fraction < 1.0  # breathing took the markers out of the gate tolerance
+    t_gate = next(r["t_s"] for r in s.timeline if r["state"] == "gate")
+    t_comp = next(r["t_s"] for r in s.timeline if r["state"] == "compensate")
+    assert t_comp - t_gate > 1.0  # the gate waited for the requested breath-hold (1 s reaction)
+    assert s.comp_error_p95_mm is not None
+    assert s.comp_error_p95_mm < 1.0
+    assert s.lock_error_mm is not None
+    assert s.lock_error_mm < 0.5
+    assert s.latency_ms["p50"] is not None
+    assert "breath_hold_requested" in _events(s)
+
+
+@pytest.mark.slow
+def test_drift_while_locked_raises_the_alarm_and_retracts(tmp_path: Path) -> None:
+    proc = load_setup(CONFIG).procedure
+    s = _run(_setup({"drift": DriftConfig(velocity_mm_s=(1.0, 0.0, 0.0), max_mm=20.0)},
+                    {"lock": proc.lock.model_copy(update={"hold_s": 0.0}),
+                     "gate": proc.gate.model_copy(update={"tolerance_mm": 8.0})}), tmp_path)
+    assert s.states == ["idle", "register", "plan", "approach", "gate", "compensate", "lock", "retract",
+                        "safe_stop"]
+    assert "drift_alarm" in _events(s)
+    assert s.timeline[-2]["event"] == "drift_detected"
+
+
+@pytest.mark.slow
+def test_sudden_shift_beyond_bounds_pauses_and_re_registers(tmp_path: Path) -> None:
+    comp = load_setup(CONFIG).procedure.compensation.model_copy(update={"settle_s": 3.0})
+    s = _run(_setup({"shifts": (ShiftConfig(at_s=7.0, translation_mm=(30.0, 0.0, 0.0)),)},
+                    {"compensation": comp}), tmp_path)
+    assert s.states[:7] == ["idle", "register", "plan", "approach", "gate", "compensate", "paused"]
+    paused = next(r for r in s.timeline if r["state"] == "paused")
+    assert paused["event"] == "correction_out_of_bounds"
+    assert "bound 25.0 mm" in paused["reason"]
+    assert "correction_out_of_bounds" in _events(s)
+    # the auto operator re-registers on the shifted patient and the procedure completes
+    assert s.states[7:] == ["register", "plan", "approach", "gate", "compensate", "lock", "done"]
+    assert s.lock_error_mm is not None
+    assert s.lock_error_mm < 0.5
+
+
+def test_protective_stop_enters_fault_and_stops(tmp_path: Path) -> None:
+    s = _run(_setup(faults=(FaultSpec(kind=FaultKind.PROTECTIVE_STOP, start_s=3.0, duration_s=5.0),)),
+             tmp_path)
+    assert s.final_state == "fault"
+    assert s.faults
+    assert "protective_stop" in s.faults[0]
+    ev = _events(s)
+    assert "fault_detected" in ev
+    assert "stop_sent" in ev[ev.index("fault_detected"):]
+
+
+@pytest.mark.parametrize(("kind", "params", "expect"), [
+    (FaultKind.STALE_TIMESTAMP, {"age_ms": 400.0}, "watchdog: camera data"),
+    (FaultKind.ROBOT_DISCONNECT, {}, "robot"),
+])
+def test_device_faults_enter_fault_with_the_reason(kind: FaultKind, params: dict[str, Any], expect: str,
+                                                   tmp_path: Path) -> None:
+    s = _run(_setup(faults=(FaultSpec(kind=kind, start_s=1.0, duration_s=2.0, **params),)), tmp_path, 10.0)
+    assert s.final_state == "fault"
+    assert expect in s.faults[0]
+
+
+class _PauseOnceOperator:
+    """Pauses the first time COMPENSATE is seen, resumes 1 s later; otherwise like --auto."""
+
+    def __init__(self) -> None:
+        from hil.controller.procedure import AutoOperator
+
+        self.auto = AutoOperator()
+        self.paused_at: float | None = None
+        self.resumed = False
+
+    def poll(self, view: Any) -> Any:
+        from hil.controller.fsm import Event, State
+
+        if view.state is State.COMPENSATE and self.paused_at is None:
+            self.paused_at = view.t_s
+            return Event.PAUSE_REQUESTED
+        if view.state is State.PAUSED:
+            if not self.resumed and view.t_s > (self.paused_at or 0.0) + 1.0:
+                self.resumed = True
+                return Event.RESUME_REQUESTED
+            return None
+        return self.auto.poll(view)
+
+    def finished(self, view: Any) -> bool:
+        from hil.controller.fsm import State
+
+        return view.state is not State.PAUSED and self.auto.finished(view)
+
+
+@pytest.mark.slow
+def test_pause_and_resume_restart_from_the_actual_pose_with_a_ramp(tmp_path: Path) -> None:
+    from hil.cli.cmd_run import run_procedure
+
+    setup = _setup()
+    s = run_procedure(CONFIG, setup, PLAN, auto=True, session_dir=tmp_path, max_duration_s=40.0,
+                      operator=_PauseOnceOperator())
+    assert s.states == ["idle", "register", "plan", "approach", "gate", "compensate", "paused", "approach",
+                        "gate", "compensate", "lock", "done"]
+    recs = list(read_session_log(s.session_log))
+    i_resume = next(i for i, r in enumerate(recs) if r["event"] == "transition_applied"
+                    and r["transition"] == "resume")
+    i_pause = next(i for i, r in enumerate(recs) if r["event"] == "transition_applied"
+                   and r["transition"] == "pause")
+    assert any(r["event"] == "stop_sent" for r in recs[i_pause:i_resume])
+    first_move = next(r for r in recs[i_resume:] if r["event"] == "command_sent")
+    a = setup.procedure.approach
+    frac = setup.procedure.resume.initial_speed_fraction
+    assert first_move["command"] == "move_linear"
+    assert first_move["speed_mm_s"] == a.speed_mm_s * frac
+    assert first_move["accel_mm_s2"] == a.accel_mm_s2 * frac
+
+
+def test_a_refused_command_is_never_sent_and_faults(tmp_path: Path) -> None:
+    """The approach acceleration exceeds the [safety] limit: the safety layer refuses the move
+    before the driver sees it, and the controller enters FAULT with the reason."""
+    base = _setup()
+    setup = base.model_copy(update={"safety": base.safety.model_copy(update={"max_accel_mm_s2": 100.0})})
+    s = _run(setup, tmp_path, 15.0)
+    assert s.final_state == "fault"
+    assert s.states[-2:] == ["approach", "fault"]
+    assert s.commands_refused == 1
+    assert s.commands_sent == 0
+    assert s.faults[0].startswith("entering approach: safety: acceleration: 200.0 mm/s^2 not in (0, 100.0]")
+
+
+def test_an_internal_error_in_a_tick_becomes_a_fault(tmp_path: Path) -> None:
+    from hil.cli.cmd_run import _rig
+    from hil.clock import ManualClock
+    from hil.config import build_devices
+    from hil.controller.procedure import AutoOperator, Controller
+    from hil.session import SessionLog
+
+    setup = _setup()
+    clock = ManualClock(10**9)
+    dev = build_devices(setup, clock)
+    dev.open_all()
+
+    def broken(frame: Any) -> Any:
+        raise ValueError("boom")
+
+    try:
+        with SessionLog(tmp_path / "s.jsonl", clock) as log:
+            ctl = Controller(camera=dev.camera, robot=dev.robot, tracker=None, clock=clock, locate=broken,
+                             plan=PLAN, rig=_rig(setup), procedure=setup.procedure,
+                             limits=setup.safety.motion_limits(),
+                             watchdog_ages_s={"camera": 0.25, "robot": 0.05}, session=log,
+                             operator=AutoOperator())
+            s = ctl.run(5.0)
+    finally:
+        dev.close_all()
+    assert s.final_state == "fault"
+    assert s.faults == ["internal error: ValueError: boom"]

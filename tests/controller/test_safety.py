@@ -1,0 +1,161 @@
+"""Safety layer refusals (nothing is sent) and watchdogs."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from drivers.interfaces.robot import MotionLimits, SafetyStatus
+from hil.clock import ManualClock
+from hil.geometry.transform import RigidTransform
+from hil.safety import SafetyLayer, SafetyViolationError, Watchdog, WatchdogSet
+from tests.controller.fakes import FakeRobot
+
+LIMITS = MotionLimits(workspace_min_mm=(-200.0, -200.0, 0.0), workspace_max_mm=(200.0, 200.0, 400.0),
+                      max_speed_mm_s=50.0, max_accel_mm_s2=200.0, max_angular_speed_rad_s=0.5)
+
+
+def _layer() -> tuple[SafetyLayer, FakeRobot, ManualClock, list[tuple[str, dict[str, Any]]]]:
+    clock = ManualClock(10**9)
+    robot = FakeRobot(clock)
+    robot.open()
+    log: list[tuple[str, dict[str, Any]]] = []
+    layer = SafetyLayer(robot, LIMITS, clock, robot_state_max_age_s=0.05,
+                        log=lambda e, f: log.append((e, f)))
+    return layer, robot, clock, log
+
+
+def _at(x: float, y: float = 0.0, z: float = 300.0) -> RigidTransform:
+    return RigidTransform.from_translation((x, y, z))
+
+
+class TestRefusals:
+    @pytest.mark.parametrize(("target", "speed", "accel", "check"), [
+        (_at(250.0), 10.0, 100.0, "workspace"),
+        (_at(0.0, 0.0, -1.0), 10.0, 100.0, "workspace"),
+        (_at(10.0), 60.0, 100.0, "speed"),
+        (_at(10.0), 0.0, 100.0, "speed"),
+        (_at(10.0), float("nan"), 100.0, "speed"),
+        (_at(10.0), 10.0, 300.0, "acceleration"),
+    ])
+    def test_move_linear_refusal_is_never_sent(self, target: RigidTransform, speed: float, accel: float,
+                                               check: str) -> None:
+        layer, robot, _, log = _layer()
+        with pytest.raises(SafetyViolationError) as ei:
+            layer.move_linear(target, speed, accel)
+        assert ei.value.check == check
+        assert robot.calls == []
+        assert log[-1][0] == "command_refused"
+        assert log[-1][1]["check"] == check
+        assert (layer.commands_sent, layer.commands_refused) == (0, 1)
+
+    def test_servo_speed_refusal(self) -> None:
+        layer, robot, _, _ = _layer()
+        with pytest.raises(SafetyViolationError, match="speed"):
+            layer.servo(_at(1.0), 0.01)  # 100 mm/s
+        assert robot.calls == []
+
+    def test_servo_acceleration_refusal_from_rest(self) -> None:
+        layer, robot, _, _ = _layer()
+        with pytest.raises(SafetyViolationError) as ei:
+            layer.servo(_at(0.4), 0.01)  # 40 mm/s from rest in 10 ms = 4000 mm/s^2
+        assert ei.value.check == "acceleration"
+        assert robot.calls == []
+
+    def test_servo_angular_speed_refusal(self) -> None:
+        layer, robot, _, _ = _layer()
+        T = RigidTransform.from_rotvec((0.0, 0.0, 0.01), (0.0, 0.0, 300.0))
+        with pytest.raises(SafetyViolationError) as ei:
+            layer.servo(T, 0.01)  # 1 rad/s
+        assert ei.value.check == "angular_speed"
+        assert robot.calls == []
+
+    def test_servo_within_limits_is_sent_and_ramps(self) -> None:
+        layer, robot, clock, log = _layer()
+        x = 0.0
+        v = 0.0
+        for _ in range(20):
+            v = min(v + 1.5, 40.0)  # 150 mm/s^2 at 100 Hz
+            x += v * 0.01
+            clock.advance(0.01)
+            layer.servo(_at(x), 0.01)
+        assert len(robot.calls) == 20
+        assert log[-1][0] == "command_sent"
+
+    def test_stale_robot_state_refuses(self) -> None:
+        layer, robot, _, _ = _layer()
+        robot.state_delay_ns = 60_000_000
+        with pytest.raises(SafetyViolationError) as ei:
+            layer.move_linear(_at(10.0), 10.0, 100.0)
+        assert ei.value.check == "state_age"
+        assert robot.calls == []
+
+    def test_protective_stop_refuses(self) -> None:
+        layer, robot, _, _ = _layer()
+        robot.safety_status = SafetyStatus.PROTECTIVE_STOP
+        with pytest.raises(SafetyViolationError) as ei:
+            layer.servo(_at(0.01), 0.01)
+        assert ei.value.check == "robot_safety"
+        assert robot.calls == []
+
+    def test_nonpositive_period_refuses(self) -> None:
+        layer, robot, _, _ = _layer()
+        with pytest.raises(SafetyViolationError) as ei:
+            layer.servo(_at(0.0), 0.0)
+        assert ei.value.check == "period"
+        assert robot.calls == []
+
+    def test_stop_is_never_refused_and_restarts_the_stream_from_rest(self) -> None:
+        layer, robot, _, _ = _layer()
+        robot.safety_status = SafetyStatus.PROTECTIVE_STOP
+        layer.stop("test")
+        assert robot.calls == [("stop", None)]
+        robot.safety_status = SafetyStatus.NORMAL
+        layer.servo(_at(0.01), 0.01)  # 1 mm/s from rest: fine
+        with pytest.raises(SafetyViolationError, match="acceleration"):
+            layer.servo(_at(0.4), 0.01)
+
+
+class TestWatchdogs:
+    def test_unarmed_watchdog_is_silent(self) -> None:
+        assert Watchdog("camera", 0.1).check(10**12) is None
+
+    def test_no_data_after_arming(self) -> None:
+        w = Watchdog("camera", 0.1)
+        w.arm(0)
+        assert w.check(100_000_000) is None
+        assert w.check(100_000_001) == "watchdog: no camera data for 0.100 s > 0.100 s"
+
+    def test_stale_data(self) -> None:
+        w = Watchdog("robot", 0.05)
+        w.feed(1_000_000_000, 1_000_000_000)
+        assert w.check(1_050_000_000) is None
+        assert w.check(1_060_000_000) == "watchdog: robot data 0.060 s old > 0.050 s"
+        assert w.age_s(1_060_000_000) == pytest.approx(0.06)
+
+    def test_data_time_not_arrival_time_counts(self) -> None:
+        """A frame delivered now but exposed long ago is stale."""
+        w = Watchdog("camera", 0.2)
+        w.feed(0, 500_000_000)
+        assert w.check(500_000_000) == "watchdog: camera data 0.500 s old > 0.200 s"
+        assert not w.is_fresh(0, 500_000_000)
+
+    def test_older_data_does_not_refresh(self) -> None:
+        w = Watchdog("tracker", 0.2)
+        w.feed(1_000_000_000, 1_000_000_000)
+        w.feed(900_000_000, 1_000_000_000)
+        assert w.last_t_ns == 1_000_000_000
+
+    def test_set_reports_each_violation(self) -> None:
+        s = WatchdogSet({"camera": 0.1, "robot": 0.05, "tracker": 0.2})
+        s.arm(0)
+        s["camera"].feed(0, 0)
+        s["robot"].feed(0, 0)
+        s["tracker"].feed(0, 0)
+        assert s.check(150_000_000) == ["watchdog: camera data 0.150 s old > 0.100 s",
+                                        "watchdog: robot data 0.150 s old > 0.050 s"]
+
+    def test_bad_age_is_refused(self) -> None:
+        with pytest.raises(ValueError, match="max_age_s must be > 0"):
+            Watchdog("camera", 0.0)
