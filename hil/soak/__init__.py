@@ -1,0 +1,1 @@
+"""Real-time soak of the simulated procedure in compensation (see docs/benchmarks.md)."""
