@@ -7,18 +7,24 @@ available here for tests; the controller never sees it, only device data.
 
 from __future__ import annotations
 
+import bisect
 import math
 import threading
+from collections import deque
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from drivers.interfaces.errors import DriverError
+from drivers.interfaces.lifecycle import DeviceState
+from drivers.interfaces.robot import Robot
 from drivers.sim.motion import MotionSample, PatientMotion, stream_rng
 from hil.clock import Clock
 from hil.config.setup import FramesConfig, SetupConfig
 from hil.config.simulation import BreathHoldConfig, PatientConfig, SimulationConfig
+from hil.errors import ConfigError
 from hil.geometry.transform import RigidTransform
 from hil.log import get_logger
 
@@ -84,9 +90,83 @@ def plan_document(cfg: PatientConfig) -> dict[str, Any]:
 
 
 class FlangeSource(Protocol):
-    """What the world needs from a simulated robot: its flange pose at a time."""
+    """What the world needs from a robot: its flange pose at a time (None: not known yet)."""
 
-    def T_robot_from_flange_at(self, t_ns: int) -> RigidTransform: ...
+    def T_robot_from_flange_at(self, t_ns: int) -> RigidTransform | None: ...
+
+
+def _interpolate(a: tuple[int, RigidTransform], b: tuple[int, RigidTransform], t_ns: int) -> RigidTransform:
+    """Pose at ``t_ns`` between two timed poses: translation linear, rotation along the geodesic."""
+    (ta, Ta), (tb, Tb) = a, b
+    s = 0.0 if tb <= ta else min(max((t_ns - ta) / (tb - ta), 0.0), 1.0)
+    rel = RigidTransform(Ta.R.T @ Tb.R, np.zeros(3))
+    R = Ta.R @ RigidTransform.from_rotvec(s * rel.as_rotvec()).R
+    return RigidTransform(R, Ta.t + s * (Tb.t - Ta.t))
+
+
+class RobotPoseFollower:
+    """Flange poses of a non-simulated robot driver (e.g. ``ur_rtde`` on the UR emulator), for the
+    simulated camera and tracker of a mixed setup.
+
+    A daemon thread samples ``robot.state_now()`` every ``period_s`` (wall time) while the robot is
+    ACTIVE and keeps the last ``history`` samples (timestamped by the driver, on the controller
+    clock); :meth:`T_robot_from_flange_at` interpolates them at the asked time (the newest sample
+    after it, the oldest before it). While the driver cannot report (lost connection, recovery),
+    the last known pose stands: the physical arm is somewhere, and the world keeps seeing it
+    there. The thread ends when the robot is closed. ``T_flange_from_tcp`` of the driver (its
+    attribute, identity without one) turns the reported TCP pose into the flange pose.
+    """
+
+    def __init__(self, robot: Robot, period_s: float = 0.01, history: int = 300) -> None:
+        self.robot = robot
+        self.period_s = period_s
+        tcp = getattr(robot, "T_flange_from_tcp", None)
+        self.T_tcp_from_flange = (tcp.inverse() if isinstance(tcp, RigidTransform)
+                                  else RigidTransform.identity())
+        self._samples: deque[tuple[int, RigidTransform]] = deque(maxlen=history)
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self.read_errors = 0
+        self._thread = threading.Thread(target=self._run, name=f"world-follows-{robot.name}", daemon=True)
+        self._thread.start()
+
+    def _sample(self) -> None:
+        try:
+            st = self.robot.state_now()
+        except DriverError:
+            self.read_errors += 1
+            return
+        T = st.T_robot_from_tcp @ self.T_tcp_from_flange
+        with self._lock:
+            if not self._samples or st.t_ns > self._samples[-1][0]:
+                self._samples.append((st.t_ns, T))
+
+    def _run(self) -> None:
+        seen_active = False
+        while not self._stop.wait(self.period_s):
+            state = self.robot.state
+            if state is DeviceState.ACTIVE:
+                seen_active = True
+                self._sample()
+            elif state is DeviceState.CLOSED and seen_active:
+                return
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+
+    def T_robot_from_flange_at(self, t_ns: int) -> RigidTransform | None:
+        with self._lock:
+            samples = list(self._samples)
+        if not samples:
+            return None
+        times = [t for t, _ in samples]
+        i = bisect.bisect_left(times, t_ns)
+        if i == 0:
+            return samples[0][1]
+        if i >= len(samples):
+            return samples[-1][1]
+        return _interpolate(samples[i - 1], samples[i], t_ns)
 
 
 class SimWorld:
@@ -144,6 +224,24 @@ class SimWorld:
         """The simulated robot registers itself so the camera sees its flange markers."""
         self._robot = robot
 
+    def follow_robot(self, robot: Robot) -> None:
+        """Take the flange pose from a non-simulated robot driver (mixed setups such as a simulated
+        camera with ``ur_rtde`` on the UR emulator): the setup builder calls this with the
+        configured robot (``hil.config.build.RobotFollower``). See :class:`RobotPoseFollower`.
+
+        Raises:
+            ConfigError: ``[simulation] real_time = false`` (``hil run`` would then run the world on
+                a simulated clock): a real driver lives in real time, so the whole setup must.
+        """
+        if not self.sim.real_time:
+            raise ConfigError("setup", [
+                f"simulation.real_time: the robot ({type(robot).__name__}) is not simulated and runs in "
+                "real time; set [simulation] real_time = true"])
+        if isinstance(self._robot, RobotPoseFollower):
+            self._robot.stop()
+        self._robot = RobotPoseFollower(robot)
+        _log.info("world_follows_robot", robot=robot.name, driver=type(robot).__name__)
+
     # ------------------------------------------------------------------ ground truth
     def motion_at(self, t_ns: int) -> MotionSample:
         with self._lock:
@@ -167,7 +265,8 @@ class SimWorld:
     def T_optical_from_flange(self, t_ns: int) -> RigidTransform | None:
         if self._robot is None:
             return None
-        return self.T_optical_from_robot @ self._robot.T_robot_from_flange_at(t_ns)
+        T = self._robot.T_robot_from_flange_at(t_ns)
+        return None if T is None else self.T_optical_from_robot @ T
 
     def flange_markers_optical(self, t_ns: int) -> tuple[FloatArray, FloatArray]:
         """Flange marker centres and normals in the optical frame (empty without a robot)."""

@@ -30,6 +30,14 @@ class ScenarioWorld(Protocol):
         ...
 
 
+@runtime_checkable
+class RobotFollower(Protocol):
+    """A simulated world that can take its robot pose from a non-simulated robot driver (a real
+    driver on an emulator, in a mixed setup): the builder attaches the configured robot."""
+
+    def follow_robot(self, robot: Robot) -> None: ...
+
+
 @dataclass
 class Devices:
     """The devices of one setup, CONFIGURED (not opened). ``world`` is the simulated world when
@@ -111,9 +119,12 @@ def build_devices(
         if not isinstance(device, _EXPECTED[role]):
             raise ConfigError("setup", [f"{role}.driver: {info.name} factory returned "
                                         f"{type(device).__name__}, not a {_EXPECTED[role].__name__}"])
+        unwrapped = device
         faults = [f for f in setup.faults if f.device == role]
         if faults:
-            if role == "robot" and not info.simulated and not allow_faults_on_real_robot:
+            # transport faults go to an emulator's fault channel (the wrapper refuses them without one)
+            wrapped = [f for f in faults if f.transport_command is None]
+            if role == "robot" and not info.simulated and wrapped and not allow_faults_on_real_robot:
                 raise ConfigError("setup", ["faults: fault injection on a real robot needs "
                                             "allow_faults_on_real_robot"])
             if registry.fault_wrapper is None:
@@ -121,6 +132,9 @@ def build_devices(
             device = registry.fault_wrapper(device, role, faults, clock)
         _log.info("device_built", role=role, driver=info.name, origin=info.origin, faults=len(faults))
         built[role] = device
+        if (role == "robot" and not info.simulated and isinstance(world, RobotFollower)
+                and isinstance(unwrapped, Robot)):
+            world.follow_robot(unwrapped)  # the simulated camera sees the real arm's flange markers
     return Devices(camera=built["camera"], robot=built["robot"], tracker=built.get("tracker"), world=world)
 
 

@@ -3,6 +3,12 @@
 
 Each fault has a kind (which fixes the device it applies to), a time window on the controller's
 clock measured from the moment the device was opened, and the few parameters its kind uses.
+
+Robot faults with ``transport`` set are not simulated in the wrapper: at their scheduled time
+they are sent to the fault-control channel of the UR controller emulator (``tools/ursim``) the
+robot driver talks to, so they reach the real driver over the real protocol (docs/ursim.md). The
+kind stays the symptom the controller sees; ``transport`` names the emulator command that causes it
+(``true``: the kind's first command in :data:`TRANSPORT_COMMANDS`).
 """
 
 from __future__ import annotations
@@ -45,6 +51,24 @@ FAULT_DEVICE: dict[FaultKind, Literal["camera", "tracker", "robot"]] = {
     FaultKind.MOTION_REJECTED: "robot", FaultKind.MOTION_LAG: "robot",
 }
 
+#: An emulator fault-channel command (docs/ursim.md) a robot fault can be sent as.
+TransportCommand = Literal["protective_stop", "estop", "drop_connection", "stop_program", "stall",
+                           "slow_responses"]
+
+#: The emulator commands each robot kind may be sent as with ``transport`` (the first one for
+#: ``transport = true``), and what happens on the emulator:
+#: protective_stop -> ``protective_stop`` at the start (``recover()`` is refused until the window
+#: ends) or ``estop`` at the start and ``release`` (the button) at the end; robot_disconnect ->
+#: ``drop_connection duration_s`` (a network outage as long as the window); motion_rejected ->
+#: ``stop_program`` at the start (motion is refused until ``recover()`` restarts the script);
+#: motion_lag -> ``slow_responses lag_ms`` / ``slow_responses 0``, or ``stall on`` / ``stall off``.
+TRANSPORT_COMMANDS: dict[FaultKind, tuple[TransportCommand, ...]] = {
+    FaultKind.PROTECTIVE_STOP: ("protective_stop", "estop"),
+    FaultKind.ROBOT_DISCONNECT: ("drop_connection",),
+    FaultKind.MOTION_REJECTED: ("stop_program",),
+    FaultKind.MOTION_LAG: ("slow_responses", "stall"),
+}
+
 # Parameters each kind accepts (beyond kind, start_s, duration_s).
 _PARAMS: dict[FaultKind, frozenset[str]] = {
     FaultKind.FRAME_DROP: frozenset({"probability"}),
@@ -57,10 +81,10 @@ _PARAMS: dict[FaultKind, frozenset[str]] = {
     FaultKind.CORRUPT_RECORD: frozenset(),
     FaultKind.BAD_QUALITY: frozenset({"quality", "sensors"}),
     FaultKind.SENSOR_MISSING: frozenset({"sensors"}),
-    FaultKind.ROBOT_DISCONNECT: frozenset(),
-    FaultKind.PROTECTIVE_STOP: frozenset(),
-    FaultKind.MOTION_REJECTED: frozenset(),
-    FaultKind.MOTION_LAG: frozenset({"lag_ms"}),
+    FaultKind.ROBOT_DISCONNECT: frozenset({"transport"}),
+    FaultKind.PROTECTIVE_STOP: frozenset({"transport"}),
+    FaultKind.MOTION_REJECTED: frozenset({"transport"}),
+    FaultKind.MOTION_LAG: frozenset({"lag_ms", "transport"}),
 }
 _BASE = frozenset({"kind", "start_s", "duration_s"})
 
@@ -85,6 +109,9 @@ class FaultSpec(BaseModel):
     sensors: tuple[str, ...] = Field(
         (), description="bad_quality/sensor_missing: sensors hit (all when empty)")
     lag_ms: float = Field(200.0, gt=0, description="motion_lag: command delay, ms")
+    transport: bool | TransportCommand = Field(
+        False, description="robot faults: send to the UR emulator's fault channel as this command "
+                           "(true: the kind's default) instead of simulating in the wrapper")
 
     @model_validator(mode="after")
     def _params_fit_kind(self) -> FaultSpec:
@@ -92,6 +119,9 @@ class FaultSpec(BaseModel):
         if extra:
             raise ValueError(f"{sorted(extra)} do not apply to a {self.kind.value} fault "
                              f"(it takes {sorted(_PARAMS[self.kind]) or 'no parameters'})")
+        if isinstance(self.transport, str) and self.transport not in TRANSPORT_COMMANDS[self.kind]:
+            raise ValueError(f"transport = {self.transport!r} does not cause a {self.kind.value} "
+                             f"(it takes {list(TRANSPORT_COMMANDS[self.kind])} or true)")
         x0, y0, x1, y1 = self.region_px
         if x1 <= x0 or y1 <= y0:
             raise ValueError(f"region_px {self.region_px} must be x0 < x1, y0 < y1")
@@ -100,6 +130,15 @@ class FaultSpec(BaseModel):
     @property
     def device(self) -> Literal["camera", "tracker", "robot"]:
         return FAULT_DEVICE[self.kind]
+
+    @property
+    def transport_command(self) -> TransportCommand | None:
+        """The emulator command this fault is sent as, or None when the wrapper simulates it."""
+        if self.transport is False:
+            return None
+        if self.transport is True:
+            return TRANSPORT_COMMANDS[self.kind][0]
+        return self.transport
 
     @property
     def end_s(self) -> float:
