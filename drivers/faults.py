@@ -6,15 +6,23 @@ windows are measured on the injected clock from the moment the wrapper was opene
 shows up at the interface as the typed error or flag a real failure would give, and logs
 ``fault_injected`` once when its window opens.
 
+Robot faults with ``transport`` set are not simulated here: :class:`TransportFaults` sends them,
+on a thread, at their scheduled times, to the fault channel of the UR controller emulator the
+``ur_rtde`` driver is connected to (``emulator_control_port``), and the real driver meets them
+over the real protocol. A robot without an emulator fault channel (a real controller) refuses them
+with a ConfigError when the wrapper is built.
+
 The schedule's shape (:class:`hil.config.faults.FaultSpec`) belongs to the core; the wrappers
 live here, outside it.
 """
 
 from __future__ import annotations
 
+import threading
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -24,6 +32,7 @@ from drivers.interfaces.errors import (
     DeviceFaultError,
     DeviceTimeoutError,
     DisconnectedError,
+    DriverError,
     ProtocolError,
     SafetyStopError,
 )
@@ -32,6 +41,7 @@ from drivers.interfaces.robot import Robot, RobotMode, RobotState, SafetyStatus
 from drivers.interfaces.tracker import PoseTracker, TrackerSample
 from hil.clock import Clock
 from hil.config.faults import FaultKind, FaultSpec
+from hil.errors import ConfigError
 from hil.geometry.transform import RigidTransform
 from hil.log import get_logger
 
@@ -224,6 +234,15 @@ class FaultyTracker(_Delegating, PoseTracker):
         return out
 
 
+@runtime_checkable
+class LinkAware(Protocol):
+    """A robot that models what the arm does when its command link drops (the simulator)."""
+
+    def connection_lost(self, at_ns: int | None = None) -> None:
+        """The link dropped at ``at_ns`` (default now): stop the running program / motion."""
+        ...
+
+
 class FaultyRobot(_Delegating, Robot):
     """A robot with scheduled disconnects, protective stops, rejected and lagging motion.
 
@@ -231,18 +250,30 @@ class FaultyRobot(_Delegating, Robot):
     let a command skip the check.
     """
 
-    def __init__(self, inner: Robot, faults: Sequence[FaultSpec], clock: Clock) -> None:
+    def __init__(self, inner: Robot, faults: Sequence[FaultSpec], clock: Clock,
+                 channel: FaultChannel | None = None) -> None:
         super().__init__(inner.name, inner.limits)
         self.inner = inner
-        self.schedule = _Schedule(inner.name, faults, clock)
+        simulated = [f for f in faults if f.transport_command is None]
+        sent = [(i, f) for i, f in enumerate(faults) if f.transport_command is not None]
+        self.schedule = _Schedule(inner.name, simulated, clock)
+        self.transport: TransportFaults | None = None
+        if sent:
+            self.transport = TransportFaults(
+                inner.name, sent, channel if channel is not None else transport_channel(inner), clock)
         self._stopped_by_fault = False
+        self._link_down = False
         self._servo_queue: deque[tuple[int, RigidTransform, float]] = deque()
 
     def _open(self) -> None:
         self.inner.open()
         self.schedule.start()
+        if self.transport is not None:
+            self.transport.start()
 
     def _close(self) -> None:
+        if self.transport is not None:
+            self.transport.stop()
         self.inner.close()
 
     @property
@@ -250,8 +281,26 @@ class FaultyRobot(_Delegating, Robot):
         return self.inner.control_rate_hz
 
     def _check_connected(self) -> None:
-        if self.schedule.active(FaultKind.ROBOT_DISCONNECT) is not None:
-            raise DisconnectedError(self.name, "RTDE connection lost (injected)")
+        f = self.schedule.active(FaultKind.ROBOT_DISCONNECT)
+        if f is None:
+            self._link_down = False
+            return
+        if not self._link_down:
+            self._link_down = True
+            self._program_stops(f)
+        raise DisconnectedError(self.name, "RTDE connection lost (injected)")
+
+    def _program_stops(self, f: FaultSpec) -> None:
+        """The link dropped: a UR's program stops, so the arm comes to rest during the outage. A
+        robot that models it (:class:`LinkAware`, the simulator) stops from the onset; any other
+        gets a stop now (when the drop is first noticed)."""
+        assert self.schedule.t_open_ns is not None
+        onset_ns = self.schedule.t_open_ns + round(f.start_s * 1e9)
+        if isinstance(self.inner, LinkAware):
+            self.inner.connection_lost(onset_ns)
+        else:
+            self.inner.stop()
+        _log.warning("robot_link_lost_program_stopped", device=self.name, onset_ns=onset_ns)
 
     def _check_protective(self) -> None:
         if self.schedule.active(FaultKind.PROTECTIVE_STOP) is not None and not self._stopped_by_fault:
@@ -305,10 +354,177 @@ class FaultyRobot(_Delegating, Robot):
         """Clears an injected protective stop once its window is over (and the inner one)."""
         self.require_active("recover")
         self._check_connected()
-        if self.schedule.active(FaultKind.PROTECTIVE_STOP) is not None:
+        if self.schedule.active(FaultKind.PROTECTIVE_STOP) is not None or (
+                self.transport is not None and self.transport.active("protective_stop", "estop")):
             raise SafetyStopError(self.name, "protective stop cannot be cleared yet")
         self._stopped_by_fault = False
         self.inner.recover()
+
+
+# ---------------------------------------------------------------------- faults through the transport
+class FaultChannel(Protocol):
+    """Where transport faults go: one emulator fault-channel command line per call
+    (:class:`drivers.ur_rtde.ursim_control.UrsimControl`). Raises DriverError on failure."""
+
+    def command(self, line: str) -> str: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class _Action:
+    t_s: float
+    index: int
+    line: str
+    phase: str  # "start" | "end" | "cleanup" (sent only by stop(), when the fault was started)
+
+
+def _transport_actions(index: int, f: FaultSpec) -> list[_Action]:
+    """The emulator commands of one transport fault (hil.config.faults.TRANSPORT_COMMANDS)."""
+    cmd = f.transport_command
+    start: dict[str | None, str] = {
+        "protective_stop": "protective_stop", "estop": "estop",
+        "drop_connection": f"drop_connection {f.duration_s:g}", "stop_program": "stop_program",
+        "stall": "stall on", "slow_responses": f"slow_responses {f.lag_ms:g}",
+    }
+    end: dict[str | None, str] = {"estop": "release", "stall": "stall off",
+                                  "slow_responses": "slow_responses 0"}
+    out = [_Action(f.start_s, index, start[cmd], "start")]
+    if cmd in end:
+        out.append(_Action(f.end_s, index, end[cmd], "end"))
+    if cmd == "protective_stop":  # the driver's recover() unlocks it; closing leaves none behind
+        out.append(_Action(f.end_s, index, "release", "cleanup"))
+    return out
+
+
+class TransportFaults:
+    """Plays transport faults on an emulator's fault channel at their scheduled times.
+
+    A daemon thread, started by :meth:`start` (when the robot is opened), waits on the injected
+    clock (polling every ``poll_s`` of wall time, so a ManualClock works too) and sends each
+    command when its time comes, logging ``fault_injected`` (``transport=True``). :meth:`stop` ends
+    the thread and sends the closing command (``release``, ``stall off``, ...) of every fault whose
+    window was opened and not yet closed, and ``release`` for a protective stop it caused (a no-op
+    when the driver already unlocked it), so the emulator is left as the run found it. A command the emulator
+    rejects or cannot receive is logged (``transport_fault_failed``) and kept in :attr:`errors`.
+
+    Args:
+        role: device role (logs).
+        faults: the transport faults (``transport_command`` not None), with their schedule index.
+        channel: the emulator's fault channel.
+        clock: the controller clock; times are relative to :meth:`start`.
+    """
+
+    def __init__(self, role: str, faults: Sequence[tuple[int, FaultSpec]], channel: FaultChannel,
+                 clock: Clock, poll_s: float = 0.005) -> None:
+        self.role = role
+        self.faults = dict(faults)
+        self.channel = channel
+        self.clock = clock
+        self.poll_s = poll_s
+        every = [a for i, f in faults for a in _transport_actions(i, f)]
+        self.actions = sorted((a for a in every if a.phase != "cleanup"),
+                              key=lambda a: (a.t_s, a.phase != "end"))
+        self.cleanup = [a for a in every if a.phase == "cleanup"]
+        self.sent: list[tuple[float, str]] = []
+        self.errors: list[str] = []
+        self.t_open_ns: int | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._next = 0
+
+    def t_s(self) -> float:
+        return 0.0 if self.t_open_ns is None else (self.clock.now_ns() - self.t_open_ns) * 1e-9
+
+    def start(self, thread: bool = True) -> None:
+        """Time 0 is now; with ``thread`` (the default) a daemon thread calls :meth:`poll` every
+        ``poll_s`` until every command is sent or :meth:`stop` is called."""
+        self._join()
+        self.t_open_ns = self.clock.now_ns()
+        self._next = 0
+        self._stop.clear()
+        if thread:
+            self._thread = threading.Thread(target=self._run, name=f"{self.role}-transport-faults",
+                                            daemon=True)
+            self._thread.start()
+
+    def poll(self) -> bool:
+        """Send every command that is due; False when none is left."""
+        with self._lock:
+            while self._next < len(self.actions) and self.t_s() >= self.actions[self._next].t_s:
+                a = self.actions[self._next]
+                self._next += 1
+                self._send(a)
+            return self._next < len(self.actions)
+
+    def _run(self) -> None:
+        while not self._stop.is_set() and self.poll():
+            self._stop.wait(self.poll_s)
+
+    def _send(self, a: _Action) -> None:
+        f = self.faults[a.index]
+        t = round(self.t_s(), 6)
+        try:
+            self.channel.command(a.line)
+        except DriverError as exc:
+            self.errors.append(f"{a.line}: {exc}")
+            _log.error("transport_fault_failed", device=self.role, kind=f.kind.value, index=a.index,
+                       command=a.line, error=str(exc), t_s=t)
+            return
+        self.sent.append((t, a.line))
+        if a.phase == "start":
+            _log.warning("fault_injected", device=self.role, kind=f.kind.value, index=a.index,
+                         start_s=f.start_s, duration_s=f.duration_s, t_s=t, transport=True, command=a.line)
+        else:
+            _log.info("fault_window_closed", device=self.role, kind=f.kind.value, index=a.index,
+                      t_s=t, transport=True, command=a.line, phase=a.phase)
+
+    def active(self, *commands: str) -> bool:
+        """A fault sent as one of ``commands`` is inside its window now."""
+        t = self.t_s()
+        return self.t_open_ns is not None and any(
+            f.transport_command in commands and f.active(t) for f in self.faults.values())
+
+    def _join(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+            self._thread = None
+
+    def stop(self) -> None:
+        """End the thread; close the windows already opened (idempotent)."""
+        self._join()
+        with self._lock:
+            started = {a.index for a in self.actions[:self._next] if a.phase == "start"}
+            pending = [a for a in self.actions[self._next:] + self.cleanup
+                       if a.phase != "start" and a.index in started]
+            self._next = len(self.actions)
+            for a in pending:
+                self._send(a)
+        self.channel.close()
+
+
+def transport_channel(device: Robot) -> FaultChannel:
+    """The emulator fault channel of a robot driver, for transport faults.
+
+    Raises:
+        ConfigError: the robot is not a ``ur_rtde`` driver with ``emulator_control_port`` set (a
+            real controller has no fault channel: transport faults cannot be injected there).
+    """
+    from drivers.ur_rtde.config import UrRtdeRobotConfig
+    from drivers.ur_rtde.ursim_control import UrsimControl
+
+    cfg = getattr(device, "cfg", None)
+    if not isinstance(cfg, UrRtdeRobotConfig):
+        raise ConfigError("setup", [f"faults: transport faults need the ur_rtde robot driver on the UR "
+                                    f"emulator (tools/ursim); the robot is a {type(device).__name__}"])
+    if cfg.emulator_control_port is None:
+        raise ConfigError("setup", [
+            f"faults: transport faults need the UR emulator's fault channel, and robot.host "
+            f"{cfg.host} has none configured (a real controller cannot be faulted through its "
+            f"transport); for tools/ursim set robot.emulator_control_port = 30200"])
+    return UrsimControl(cfg.host, cfg.emulator_control_port)
 
 
 def wrap_device(device: Device, role: str, faults: Sequence[FaultSpec], clock: Clock) -> Device:
@@ -316,6 +532,7 @@ def wrap_device(device: Device, role: str, faults: Sequence[FaultSpec], clock: C
 
     Raises:
         TypeError: ``device`` is not a camera, robot or tracker, or a fault does not fit its kind.
+        ConfigError: transport faults on a robot without an emulator fault channel.
     """
     for f in faults:
         if f.device != role:
@@ -329,4 +546,5 @@ def wrap_device(device: Device, role: str, faults: Sequence[FaultSpec], clock: C
     raise TypeError(f"cannot inject faults into {type(device).__name__}")
 
 
-__all__ = ["FaultyRobot", "FaultyStereoCamera", "FaultyTracker", "wrap_device"]
+__all__ = ["FaultChannel", "FaultyRobot", "FaultyStereoCamera", "FaultyTracker", "TransportFaults",
+           "transport_channel", "wrap_device"]

@@ -7,6 +7,13 @@ driver that keeps the latest buffer). A frame is rendered only when grabbed, so 
 simulation pays only for the frames it uses. The right camera exposes ``skew_ms`` after the left
 one: with a non-zero skew the right image is rendered from the world at its own exposure time
 (a second render, so skewed rigs cost twice as much per pair).
+
+With ``render_needle`` the needle carried by the guide is drawn into both images too (seed 004
+§III's cylinder, :func:`hil.vision.render_instrument.render_instrument_stereo`): a dark cylinder of
+``needle_radius_mm`` from the guide origin (the needle tip, resting in the guide) back along the
+guide's -z over ``needle_length_mm``, at the left exposure time. The guide is mounted on the flange
+at ``T_flange_from_needle_guide`` when given (the *true* mounting, to simulate a guide that differs
+from what the controller believes), else at the setup's ``[frames] T_flange_from_guide``.
 """
 
 from __future__ import annotations
@@ -20,10 +27,15 @@ from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
 from drivers.interfaces.errors import DeviceTimeoutError
 from drivers.sim.world import FLANGE_MARKER_ID_BASE, SimWorld
 from hil.clock import Clock
-from hil.config.types import STRICT
+from hil.config.types import STRICT, TransformConfig
+from hil.geometry.transform import RigidTransform
 from hil.vision.camera_model import StereoCalibration, load_calibration
-from hil.vision.render import MarkerTruth, RenderOptions, RingMarker3D, render_stereo
+from hil.vision.render import MarkerTruth, RenderedPair, RenderOptions, RingMarker3D, render_stereo
+from hil.vision.render_instrument import Instrument3D, render_instrument_stereo
 from plugins.registry import DriverContext
+
+#: never render further ahead of the clock than this (real time only; see SimStereoCamera.grab)
+_MAX_RENDER_LEAD_NS = 500_000_000
 
 
 class SimCameraConfig(BaseModel):
@@ -43,6 +55,12 @@ class SimCameraConfig(BaseModel):
     flange_marker_inner_diameter_mm: float = Field(3.0, gt=0)
     synthetic_f_px: float = Field(1394.0, gt=0, description="focal length without a calibration file")
     synthetic_baseline_mm: float = Field(120.0, gt=0, description="baseline without a calibration file")
+    render_needle: bool = Field(False, description="draw the needle carried by the guide (seed 004 check)")
+    needle_radius_mm: float = Field(0.6, gt=0, le=10, description="radius of the rendered needle")
+    needle_length_mm: float = Field(100.0, gt=0, le=500,
+                                    description="rendered needle length, from the guide tip back along -z")
+    T_flange_from_needle_guide: TransformConfig | None = Field(
+        None, description="true guide mounting of the rendered needle (default [frames] T_flange_from_guide)")
 
 
 class SimStereoCamera(StereoCamera):
@@ -62,9 +80,13 @@ class SimStereoCamera(StereoCamera):
         self._skew_ns = round(cfg.skew_ms * 1e6)
         self._t0_ns = 0
         self._last_k = -1
+        tg = cfg.T_flange_from_needle_guide
+        self.T_flange_from_guide: RigidTransform = (
+            tg.as_transform() if tg is not None else world.frames.T_flange_from_guide.as_transform())
         self.last_truth: tuple[MarkerTruth, ...] = ()        # markers at the left exposure
         self.last_truth_right: tuple[MarkerTruth, ...] = ()  # markers at the right exposure
         self.frames_rendered = 0
+        self._render_lead_ns = 0  # clock time a render is expected to take (peak-hold, decaying)
 
     def _open(self) -> None:
         self._t0_ns = self.clock.now_ns()
@@ -105,7 +127,14 @@ class SimStereoCamera(StereoCamera):
     def grab(self, timeout_s: float) -> StereoFrame:
         self.require_active("grab")
         now = self.clock.now_ns()
-        newest = math.floor((now - self._latency_ns - self._t0_ns) / self._period_ns)
+        # At real time rendering takes clock time (none on a manual clock, where the lead stays 0):
+        # pick the newest pair that is due once rendered, start rendering ``lead`` before it is due,
+        # and hand it over when due -- so a frame is ``latency_ms`` old on delivery, as the camera
+        # model says, however slow rendering is on a loaded machine. The exposure may lie up to
+        # ``lead`` ahead of the clock: the world is a function of time and the robot's commanded
+        # motion, which cannot change while its only commander waits here for the frame.
+        lead = min(self._render_lead_ns, round(timeout_s * 1e9))
+        newest = math.floor((now + lead - self._latency_ns - self._t0_ns) / self._period_ns)
         k = max(newest, self._last_k + 1)
         ready_ns = self.exposure_time_ns(k) + self._latency_ns
         if ready_ns > now:
@@ -113,24 +142,54 @@ class SimStereoCamera(StereoCamera):
             if wait_s > timeout_s:
                 self.clock.sleep(timeout_s)
                 raise DeviceTimeoutError(self.name, f"no stereo pair within {timeout_s} s")
-            self.clock.sleep(wait_s)
+            if ready_ns - lead > now:
+                self.clock.sleep((ready_ns - lead - now) * 1e-9)
         self._last_k = k
+        t_render_ns = self.clock.now_ns()
         t_exp = self.exposure_time_ns(k)
         pair = render_stereo(self.calibration, self.markers_at(t_exp), self.options,
                              self.world.rng("camera", k))
+        pair = self._with_needle(pair, t_exp, k)
         right_image = pair.right
         self.last_truth = pair.truth
         self.last_truth_right = pair.truth
         if self._skew_ns != 0:
             skewed = render_stereo(self.calibration, self.markers_at(t_exp + self._skew_ns), self.options,
                                    self.world.rng("camera_right", k))
+            skewed = self._with_needle(skewed, t_exp + self._skew_ns, k)
             right_image = skewed.right
             self.last_truth_right = skewed.truth
         self.frames_rendered += 1
+        done_ns = self.clock.now_ns()
+        self._render_lead_ns = min(max(done_ns - t_render_ns, round(0.9 * self._render_lead_ns)),
+                                   _MAX_RENDER_LEAD_NS)
+        if done_ns < ready_ns:
+            self.clock.sleep((ready_ns - done_ns) * 1e-9)  # never before the camera would deliver it
         left = Frame(image=pair.left, t_ns=t_exp, seq=k, device_t_ns=t_exp - self._t0_ns)
         right = Frame(image=right_image, t_ns=t_exp + self._skew_ns, seq=k,
                       device_t_ns=t_exp - self._t0_ns + self._skew_ns)
         return StereoFrame(left, right)
+
+    def needle_at(self, t_ns: int) -> Instrument3D | None:
+        """The needle resting in the guide at ``t_ns`` (optical frame; tip at the guide origin,
+        hub ``needle_length_mm`` back along the guide's -z), or None without a robot."""
+        T_of = self.world.T_optical_from_flange(t_ns)
+        if T_of is None:
+            return None
+        T_og = T_of @ self.T_flange_from_guide
+        tip = T_og.t
+        return Instrument3D(tip, tip - self.cfg.needle_length_mm * T_og.R[:, 2],
+                            radius_mm=self.cfg.needle_radius_mm)
+
+    def _with_needle(self, pair: RenderedPair, t_ns: int, k: int) -> RenderedPair:
+        if not self.cfg.render_needle:
+            return pair
+        inst = self.needle_at(t_ns)
+        if inst is None:
+            return pair
+        ri = render_instrument_stereo(self.calibration, inst, self.options, self.world.rng("needle", k),
+                                      base=pair)
+        return RenderedPair(ri.left, ri.right, pair.truth)
 
 
 def make_sim_camera(config: SimCameraConfig, ctx: DriverContext) -> SimStereoCamera:

@@ -7,6 +7,7 @@ per query, so queries are cheap); a servo target is followed by a first-order la
 kinematics, a joint limit, a joint-speed limit, a wrist flip) put it in a protective stop, as a
 real controller does; it stays there until :meth:`SimRobot.recover`. ``stop`` decelerates a
 running linear move along its path at the given deceleration; a servo follow simply holds.
+:meth:`SimRobot.connection_lost` does the same when the link drops (a UR program stops then).
 Servo targets are inverted by Newton steps from the previous target (fast, same branch), falling
 back to the analytic solver of :mod:`hil.kinematics.ur`. Joint accelerations are not limited.
 
@@ -356,7 +357,19 @@ class SimRobot(Robot):
     def _stop(self, decel_mm_s2: float) -> None:
         """A running linear move decelerates at ``decel_mm_s2`` along its path (returns at once);
         anything else holds where the arm is now."""
-        t = self.clock.now_ns()
+        self._stop_from(self.clock.now_ns(), decel_mm_s2)
+
+    def connection_lost(self, at_ns: int | None = None) -> None:
+        """The RTDE / script link dropped at ``at_ns`` (default: now): as on a UR, the running
+        program stops -- a linear move decelerates to rest at the stop deceleration (the
+        acceleration limit), a servo follow holds. Later commands start from rest. Works in any
+        lifecycle state (it is what the arm does, not a command); returns at once."""
+        with self._lock:
+            t = self.clock.now_ns() if at_ns is None else max(at_ns, self._segments[-1].start_ns)
+            self._stop_from(t, self.limits.max_accel_mm_s2)
+        _log.warning("robot_connection_lost_stop", device=self.name, t_ns=t)
+
+    def _stop_from(self, t: int, decel_mm_s2: float) -> None:
         with self._lock:
             seg = self._segment_at(t)
             q_now = self.q_at(t)

@@ -14,10 +14,7 @@ from hil.config import build_devices, load_setup
 from hil.config.faults import FAULT_DEVICE, FaultKind, FaultSpec
 from hil.config.setup import SetupConfig
 from hil.controller.fsm import State
-from hil.controller.perception import StereoMarkerLocator
 from hil.controller.plan_file import load_plan
-from hil.controller.procedure import Controller
-from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.session.log import SessionLog, file_sha256, read_session_log, verify_session_log
 
 from .operator import CampaignOperator
@@ -122,15 +119,16 @@ def _latency_bound_ms(setup: SetupConfig, device: str, frame_rate_hz: float) -> 
 def execute(spec: RunSpec) -> tuple[RunResult, Recording, Path, CampaignOperator, float]:
     """Run the procedure for ``spec``; returns the unjudged result, the recording, the log path,
     the operator and the camera frame rate."""
-    from hil.cli.cmd_run import _calibration, _rig  # the same rig/calibration `hil run` uses
+    from hil.cli.cmd_run import build_controller, wrap_robot  # the controller `hil run` builds
 
     config = Path(spec.config)
     setup = _setup_for(spec)
     plan = load_plan(_plan_path(config, spec.plan))
     clock = ManualClock(1_000_000_000)
-    devices = build_devices(setup, clock)
-    sf = setup.safety
-    recorder = RecordingRobot(devices.robot, sf.motion_limits(), clock)
+    limits = setup.safety.motion_limits()
+    devices = wrap_robot(build_devices(setup, clock), lambda robot: RecordingRobot(robot, limits, clock))
+    recorder = devices.robot
+    assert isinstance(recorder, RecordingRobot)
     log_path = Path(spec.log_dir) / f"{spec.run_id}.jsonl"
     if log_path.exists():
         log_path.unlink()
@@ -149,37 +147,14 @@ def execute(spec: RunSpec) -> tuple[RunResult, Recording, Path, CampaignOperator
     operator = CampaignOperator(
         recover_after_s=end_s + RECOVER_SETTLE_S if spec.kind else 0.0, max_recoveries=2 if spec.kind else 0
     )
-    world = devices.world
     result = RunResult(
         spec.run_id, spec.scenario, spec.kind, spec.state, spec.seed, passed=False, session_log=str(log_path)
     )
-    devices.camera.open()
-    recorder.open()
-    if devices.tracker is not None:
-        devices.tracker.open()
+    devices.open_all()
     frame_rate = devices.camera.frame_rate_hz
     closed_fields: dict[str, Any] = {}
     try:
-        ctl = Controller(
-            camera=devices.camera,
-            robot=recorder,
-            tracker=devices.tracker,
-            clock=clock,
-            locate=StereoMarkerLocator(_calibration(setup, devices.camera)),
-            plan=plan,
-            rig=_rig(setup),
-            procedure=setup.procedure,
-            limits=sf.motion_limits(),
-            watchdog_ages_s={
-                "camera": sf.camera_frame_max_age_ms / 1e3,
-                "robot": sf.robot_state_max_age_ms / 1e3,
-                "tracker": sf.tracker_max_age_ms / 1e3,
-            },
-            session=session,
-            operator=operator,
-            coach=world if isinstance(world, BreathHoldCoach) else None,
-            truth=world if isinstance(world, GroundTruth) else None,
-        )
+        ctl = build_controller(setup, plan, devices, clock=clock, session=session, operator=operator)
         summary = ctl.run(spec.max_duration_s)
         result.final_state = summary.final_state
         result.lock_error_mm = summary.lock_error_mm
@@ -189,10 +164,7 @@ def execute(spec: RunSpec) -> tuple[RunResult, Recording, Path, CampaignOperator
         result.error = "".join(traceback.format_exception(exc))[-4000:]
         closed_fields = {"final_state": "crashed", "error": f"{type(exc).__name__}: {exc}"}
     finally:
-        recorder.close()
-        devices.camera.close()
-        if devices.tracker is not None:
-            devices.tracker.close()
+        devices.close_all()
         session.close(**closed_fields)
     if spec.kind is not None:
         result.latency_bound_ms = _latency_bound_ms(setup, FAULT_DEVICE[FaultKind(spec.kind)], frame_rate)

@@ -8,29 +8,38 @@ fields documented in docs/run.md). Exit code 0 when the procedure reached DONE, 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as _dt
 import hashlib
 import json
 import select
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
+from drivers.interfaces.robot import Robot
 from hil.clock import Clock, ManualClock, MonotonicClock
-from hil.config import build_devices, default_setup_path, load_setup
+from hil.config import Devices, build_devices, default_setup_path, load_setup
 from hil.config.setup import SetupConfig
 from hil.controller.fsm import Event, State
-from hil.controller.perception import StereoMarkerLocator
+from hil.controller.perception import StereoMarkerLocator, StereoNeedleChecker
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.controller.planning import RigGeometry
 from hil.controller.procedure import AutoOperator, Controller, Operator, OperatorView, RunSummary
+from hil.controller.tracker_use import TrackerUse
 from hil.controller.truth import BreathHoldCoach, GroundTruth
-from hil.errors import InputFileError
+from hil.errors import HilError, InputFileError
 from hil.geometry.transform import RigidTransform
+from hil.igtl.snapshot import snapshot_from_controller
 from hil.session.log import SessionLog, file_sha256
+from hil.tracking.session import load_tracker_calibration
 from hil.vision.camera_model import StereoCalibration, load_calibration
+
+if TYPE_CHECKING:
+    from hil.igtl.server import IgtlServer
 
 
 def add_parser(sub: Any) -> None:
@@ -46,6 +55,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--session-dir", default="sessions",
                    help="where the session log goes (default: sessions/)")
     p.add_argument("--max-duration", type=float, help="stop after this many seconds of procedure time")
+    p.add_argument("--no-report", action="store_true",
+                   help="do not build the HTML report (hil report) after the session")
     p.set_defaults(func=run)
 
 
@@ -139,14 +150,114 @@ def _calibration(setup: SetupConfig, camera: object) -> StereoCalibration:
     return StereoCalibration.synthetic()
 
 
+def _needle_checker(setup: SetupConfig, camera: object) -> StereoNeedleChecker | None:
+    """The seed-004 needle-axis check when ``[procedure.lock.needle_check]`` is set, else None."""
+    nc = setup.procedure.lock.needle_check
+    return None if nc is None else StereoNeedleChecker(_calibration(setup, camera), nc.radius_mm)
+
+
+#: Takes the robot driver the setup built (CONFIGURED, not opened) and returns the robot the
+#: controller commands instead -- a recording, checking or fault-injecting wrapper. The wrapper
+#: owns the inner driver's lifecycle: its ``open``/``close`` open and close the inner one.
+RobotWrapper = Callable[[Robot], Robot]
+
+
+def wrap_robot(devices: Devices, wrapper: RobotWrapper) -> Devices:
+    """``devices`` (not opened) with the robot replaced by ``wrapper(devices.robot)``; open and
+    close the result (``open_all``/``close_all``) instead of the original."""
+    return dataclasses.replace(devices, robot=wrapper(devices.robot))
+
+
+def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, *, clock: Clock,
+                     session: SessionLog, operator: Operator,
+                     observers: Sequence[Callable[[Controller], None]] = ()) -> Controller:
+    """The controller ``hil run`` builds for ``setup`` on ``devices`` (ACTIVE, or opened before
+    :meth:`Controller.run`): marker locator on the setup's stereo calibration, rig geometry,
+    procedure, ``[safety]`` limits and watchdog ages, the simulated world as breath-hold coach and
+    ground truth when there is one, the needle-axis check when configured. To command the robot
+    through a wrapper, build ``devices`` with :func:`wrap_robot` first. Raises what the
+    calibration loader raises (InputFileError) for a bad calibration file."""
+    sf = setup.safety
+    world = devices.world
+    return Controller(
+        camera=devices.camera, robot=devices.robot, tracker=devices.tracker, clock=clock,
+        locate=StereoMarkerLocator(_calibration(setup, devices.camera)), plan=plan, rig=_rig(setup),
+        procedure=setup.procedure, limits=sf.motion_limits(),
+        watchdog_ages_s={"camera": sf.camera_frame_max_age_ms / 1e3,
+                         "robot": sf.robot_state_max_age_ms / 1e3,
+                         "tracker": sf.tracker_max_age_ms / 1e3},
+        session=session, operator=operator,
+        coach=world if isinstance(world, BreathHoldCoach) else None,
+        truth=world if isinstance(world, GroundTruth) else None,
+        needle_check=_needle_checker(setup, devices.camera),
+        observers=observers,
+        tracker_use=_tracker_use(setup, world is not None),
+    )
+
+
+def _tracker_use(setup: SetupConfig, simulated_world: bool) -> TrackerUse | None:
+    """The tracker's part in the procedure (``[procedure.tracking]``), or None when no sensor is
+    configured for use or the setup has no tracker. The tracker registration comes from
+    ``calibration`` (a ``hil tracker-calibrate`` file); a simulated setup without one uses its
+    own transmitter mounting (``[simulation] T_optical_from_tracker``).
+
+    Raises:
+        InputFileError: no usable tracker registration.
+        CalibrationError: the calibration file is malformed.
+    """
+    tc = setup.procedure.tracking
+    if setup.tracker is None or (tc.needle_sensor is None and tc.reference_sensor is None):
+        return None
+    if tc.calibration is not None:
+        path = Path(tc.calibration)
+        if not path.is_absolute():
+            path = setup.config_dir / path
+        _, T = load_tracker_calibration(path)
+        if T is None:
+            raise InputFileError(str(path), "no registration (T_optical_from_tracker): run "
+                                            "hil tracker-calibrate with stylus touches")
+    elif simulated_world:
+        T = setup.simulation.T_optical_from_tracker.as_transform()
+    else:
+        raise InputFileError("[procedure.tracking]", "uses tracker sensors but names no calibration "
+                                                     "(the tracker registration)")
+    return TrackerUse(tc, T)
+
+
+def _start_igtl(setup: SetupConfig, clock: Clock) -> IgtlServer | None:
+    """The read-only OpenIGTLink server of ``[igtl]`` when enabled (started), else None.
+
+    Raises:
+        IgtlError: the port cannot be bound, or the ``igtl`` extra (pyigtl) is missing.
+    """
+    if not setup.igtl.enabled:
+        return None
+    from hil.igtl.server import IgtlServer
+
+    server = IgtlServer(setup.igtl, clock)
+    server.start()
+    return server
+
+
+def _igtl_publisher(igtl: IgtlServer) -> Callable[[Controller], None]:
+    """A controller observer that streams a snapshot after every tick (rate-limited by the server)."""
+
+    def igtl_publish(ctl: Controller) -> None:
+        igtl.publish(snapshot_from_controller(ctl), ctl.clock.now_ns())
+
+    return igtl_publish
+
+
 def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *, auto: bool,
                   session_dir: Path, max_duration_s: float | None = None,
-                  clock: Clock | None = None, operator: Operator | None = None) -> RunSummary:
+                  clock: Clock | None = None, operator: Operator | None = None,
+                  robot_wrapper: RobotWrapper | None = None) -> RunSummary:
     """Build the devices of ``setup``, run the procedure, close everything; return the summary.
 
     Simulated setups run on a :class:`ManualClock` (faster than real time) unless
     ``[simulation] real_time``; other setups on the monotonic clock. ``operator`` overrides the
-    auto / interactive operator chosen by ``auto``.
+    auto / interactive operator chosen by ``auto``. ``robot_wrapper`` (see :data:`RobotWrapper`)
+    puts a wrapper between the controller and the robot driver.
     """
     if clock is None:
         from plugins.manager import default_registry
@@ -157,6 +268,8 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
         fast = simulated and not setup.simulation.real_time
         clock = ManualClock(1_000_000_000) if fast else MonotonicClock()
     devices = build_devices(setup, clock)
+    if robot_wrapper is not None:
+        devices = wrap_robot(devices, robot_wrapper)
     world = devices.world
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
     header: dict[str, Any] = {
@@ -171,27 +284,44 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
         "seed": setup.simulation.seed if world is not None else None,
         "procedure": setup.procedure.model_dump(mode="json"), "auto": auto,
     }
-    session = SessionLog(session_dir / f"session_{stamp}.jsonl", clock, header)
-    sf = setup.safety
-    devices.open_all()
+    igtl = _start_igtl(setup, clock)  # first: a busy port is a usage error, nothing else started
     try:
-        ctl = Controller(
-            camera=devices.camera, robot=devices.robot, tracker=devices.tracker, clock=clock,
-            locate=StereoMarkerLocator(_calibration(setup, devices.camera)), plan=plan, rig=_rig(setup),
-            procedure=setup.procedure, limits=sf.motion_limits(),
-            watchdog_ages_s={"camera": sf.camera_frame_max_age_ms / 1e3,
-                             "robot": sf.robot_state_max_age_ms / 1e3,
-                             "tracker": sf.tracker_max_age_ms / 1e3},
-            session=session,
+        session = SessionLog(session_dir / f"session_{stamp}.jsonl", clock, header)
+        devices.open_all()
+    except BaseException:
+        if igtl is not None:
+            igtl.close()
+        raise
+    try:
+        ctl = build_controller(
+            setup, plan, devices, clock=clock, session=session,
             operator=operator or (AutoOperator() if auto else InteractiveOperator()),
-            coach=world if isinstance(world, BreathHoldCoach) else None,
-            truth=world if isinstance(world, GroundTruth) else None,
+            observers=() if igtl is None else (_igtl_publisher(igtl),),
         )
         summary = ctl.run(max_duration_s)
     finally:
         devices.close_all()
+        if igtl is not None:
+            igtl.close()
     session.close(final_state=summary.final_state, states=summary.states)
+    summary.session_log_sha256 = session.head_sha256  # the chain head, published outside the file
     return summary
+
+
+def build_session_report(session_log: str, err: TextIO) -> str | None:
+    """Build the HTML report of a finished session (``hil report``, default output directory)
+    and return its path; None (with one line on ``err``) when it cannot be built -- the
+    procedure's result stands without it."""
+    try:
+        from hil.report import build_report
+    except ImportError as exc:
+        err.write(f"hil run: report not built: it needs matplotlib (the [report] extra): {exc}\n")
+        return None
+    try:
+        return str(build_report(session_log).html_path)
+    except HilError as exc:
+        err.write(f"hil run: report not built: {exc}\n")
+        return None
 
 
 def _fmt(x: float | None, unit: str, digits: int = 3) -> str:
@@ -218,12 +348,18 @@ def print_text(s: RunSummary, out: TextIO) -> None:
     if s.faults:
         out.write(f"faults           {'; '.join(s.faults)}\n")
     out.write(f"session log      {s.session_log}\n")
+    if s.session_log_sha256 is not None:
+        out.write(f"chain head       {s.session_log_sha256} (SHA-256 of its last line; also in .head)\n")
+    if s.report is not None:
+        out.write(f"report           {s.report}\n")
 
 
 def run(args: argparse.Namespace) -> int:
     config_path, setup, plan, auto = _resolve(args)
     summary = run_procedure(config_path, setup, plan, auto=auto, session_dir=Path(args.session_dir),
                             max_duration_s=args.max_duration)
+    if not args.no_report:
+        summary.report = build_session_report(summary.session_log, sys.stderr)
     if args.json:
         sys.stdout.write(json.dumps(summary.to_dict(), default=str) + "\n")
     else:

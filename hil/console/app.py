@@ -43,6 +43,9 @@ CONFIRM_TEXT: dict[str, str] = {
     "gate_to_compensate": "The robot will FOLLOW the patient to the corrected entry.",
     "compensate_to_lock": "Stop and hold the guide at the corrected entry.",
     "lock_to_done": "Finish the procedure (the robot stays stopped).",
+    # a recovery re-asking a confirmation that was pending (never given) when the procedure stopped
+    "recover": "The robot will RECOVER and MOVE to the stand-off pose above the entry.",
+    "resume": "The robot will MOVE to the stand-off pose above the entry.",
 }
 
 _STATE_STYLE = {"fault": "bold white on red", "safe_stop": "bold white on dark_red",

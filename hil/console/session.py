@@ -61,6 +61,7 @@ class ConsoleSession:
                     self.igtl.close()
                 self.session.close(final_state=self.ctl.state.value, origin="console")
         return {"final_state": self.ctl.state.value, "session_log": str(self.session.path),
+                "session_log_sha256": self.session.head_sha256,  # the chain head (also <log>.head)
                 "faults": list(self.ctl.faults), "frames": self.ctl.frames,
                 "error": self.runner.error or None}
 

@@ -150,10 +150,9 @@ def build_view(ctl: Controller, *, breathing_mm: Sequence[float], comp_error_mm:
     connected = st is not None and (now_ns - st.t_ns) * 1e-9 <= _ROBOT_FRESH_S and not (
         v.state is State.FAULT and "disconnect" in v.last_reason.lower())
     guide_err: float | None = None
-    probe = getattr(ctl, "_guide_error_optical_mm", None)  # see docs/console.md (asked as a public API)
-    if callable(probe) and v.state in (State.APPROACH, State.GATE, State.COMPENSATE, State.LOCK):
+    if v.state in (State.APPROACH, State.GATE, State.COMPENSATE, State.LOCK):
         try:
-            guide_err = _finite(probe())
+            guide_err = _finite(ctl.guide_error_optical_mm())
         except Exception:  # noqa: BLE001 - a display probe must never stop the loop
             guide_err = None
     plan = ctl.plan

@@ -10,7 +10,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-_STRICT = ConfigDict(extra="forbid", frozen=True)
+#: infinities and NaN are refused everywhere (``max_duration_s = inf`` would never end a run)
+_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class RegistrationConfig(BaseModel):
@@ -87,6 +88,32 @@ class CompensationConfig(BaseModel):
     timeout_s: float = Field(60.0, gt=0)
 
 
+class NeedleCheckConfig(BaseModel):
+    """``[procedure.lock.needle_check]``: the optical needle-axis check (seed 004 §III, two views).
+
+    The needle resting in the guide is measured from its contour lines in both images and
+    compared with the planned path moved by the measured patient motion (optical frame). The
+    visible needle is searched between ``visible_from_mm`` and ``visible_to_mm`` before the entry
+    point, along the path. Needs a camera that sees the needle (docs/pose004.md).
+    """
+
+    model_config = _STRICT
+
+    radius_mm: float = Field(0.6, gt=0, description="needle radius (model check of the two-view fit)")
+    visible_from_mm: float = Field(10.0, ge=0, description="visible needle starts this far before the entry")
+    visible_to_mm: float = Field(110.0, gt=0, description="visible needle ends this far before the entry")
+    max_direction_deg: float = Field(2.0, gt=0, description="largest accepted axis direction error")
+    max_offset_mm: float = Field(2.0, gt=0, description="largest accepted axis offset at entry and target")
+    required_before_lock: bool = Field(True, description="no LOCK without a passing check")
+    alarm_while_locked: bool = Field(True, description="out-of-bounds while locked: alarm + lock.on_drift")
+
+    @model_validator(mode="after")
+    def _segment(self) -> NeedleCheckConfig:
+        if self.visible_to_mm <= self.visible_from_mm:
+            raise ValueError("visible_to_mm must be larger than visible_from_mm")
+        return self
+
+
 class LockConfig(BaseModel):
     """LOCK: hold at the corrected entry; watch for drift."""
 
@@ -98,6 +125,8 @@ class LockConfig(BaseModel):
     retract_mm: float = Field(40.0, gt=0, description="back-off distance along the guide axis")
     retract_speed_mm_s: float = Field(30.0, gt=0)
     hold_s: float = Field(2.0, ge=0, description="stay locked this long before DONE (0: until operator)")
+    needle_check: NeedleCheckConfig | None = Field(
+        None, description="optical needle-axis check before LOCK and while locked (None: off)")
 
 
 class ResumeConfig(BaseModel):
@@ -107,6 +136,33 @@ class ResumeConfig(BaseModel):
 
     ramp_s: float = Field(1.0, gt=0, description="speed ramps from 0 to full over this time")
     initial_speed_fraction: float = Field(0.1, gt=0, le=1.0)
+
+
+class TrackingConfig(BaseModel):
+    """The magnetic tracker in the procedure (seed 003 clinical step 5; docs/run.md).
+
+    Needs a tracker in the setup and its registration to the camera (``T_optical_from_tracker``:
+    ``calibration`` names a ``hil tracker-calibrate`` file; a simulated setup knows its own).
+    While LOCKed the tracked needle tip is reported against the planned target (``needle_tracked``
+    records); a patient reference sensor stands in for the skin markers when they cannot give
+    the patient's rigid change, and is checked against them when both can.
+    """
+
+    model_config = _STRICT
+
+    calibration: str | None = Field(None, description="tracker calibration JSON (hil.tracker_calibration), "
+                                                       "relative to the setup file")
+    needle_sensor: str | None = Field(None, description="the sensor on the needle (None: not tracked)")
+    needle_tip_sensor_mm: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="the needle tip in the needle sensor's frame (pivot calibration)")
+    needle_axis_sensor: tuple[float, float, float] | None = Field(
+        None, description="needle direction towards the tip, sensor frame (None: along the tip offset)")
+    reference_sensor: str | None = Field(None, description="the patient reference sensor (None: not used)")
+    reference_backup: bool = Field(True, description="use the reference sensor's motion when the skin "
+                                                     "markers cannot give the rigid change")
+    reference_disagreement_mm: float = Field(
+        2.0, gt=0, description="log reference_disagreement when sensor and markers move the entry "
+                               "differently by more than this")
 
 
 #: Names of the forward transitions that can be made to wait for an operator CONFIRM.
@@ -133,6 +189,7 @@ class ProcedureConfig(BaseModel):
     compensation: CompensationConfig = CompensationConfig()
     lock: LockConfig = LockConfig()
     resume: ResumeConfig = ResumeConfig()
+    tracking: TrackingConfig = TrackingConfig()
     confirm: tuple[Confirmation, ...] = ("plan_to_approach", "lock_to_done")
     max_duration_s: float = Field(300.0, gt=0, description="abort the whole procedure after this")
 

@@ -206,6 +206,10 @@ TRANSITIONS: Final[Mapping[tuple[State, Event], Outcome]] = _build()
 #: Every transition name that the confirmation config may list.
 CONFIRMABLE: Final = frozenset({"register_to_plan", "plan_to_approach", "approach_to_gate",
                                 "gate_to_compensate", "compensate_to_lock", "lock_to_done"})
+#: Recovery transitions: they re-enter the forward path (APPROACH) from a stop. A recovery into a
+#: state whose forward entry needs a confirmation that was not given for the current plan waits
+#: for that confirmation (a stop must never skip it; see :meth:`Fsm.fire`).
+RECOVERY: Final = frozenset({"resume", "recover"})
 
 
 def check_table(table: Mapping[tuple[State, Event], Outcome], initial: State = State.IDLE) -> None:
@@ -279,6 +283,8 @@ class Pending:
     event: Event
     goto: Goto
     reason: str
+    #: the forward confirmation this one stands in for (a recovery re-asking ``plan_to_approach``)
+    authorises: str = ""
 
 
 Listener = Callable[[FireResult], None]
@@ -314,6 +320,14 @@ class Fsm:
         self._state = initial
         self._pending: Pending | None = None
         self._listener = listener
+        # the confirmable forward transition entering each state (plan_to_approach for APPROACH)
+        self._entry: dict[State, Goto] = {
+            o.target: o for (s, _e), o in table.items()
+            if isinstance(o, Goto) and o.name in CONFIRMABLE and o.target is not s}
+        self._source = {o.name: s for (s, _e), o in table.items()
+                        if isinstance(o, Goto) and o.name in CONFIRMABLE}
+        # confirmable transitions applied (confirmed) since their source state was last entered
+        self._authorised: set[str] = set()
 
     @property
     def state(self) -> State:
@@ -336,19 +350,24 @@ class Fsm:
         """Feed one event. Never raises for a rejected event: the result says ``rejected``.
 
         A Goto whose guard is not reported true by ``guards`` is rejected. A Goto whose name is
-        in the confirmations becomes ``pending`` (state unchanged) until CONFIRM_REQUESTED. Any
-        applied transition (an abort, a fault …) clears a pending one; a rejected event changes
-        nothing at all.
+        in the confirmations becomes ``pending`` (state unchanged) until CONFIRM_REQUESTED. A
+        recovery (``resume``/``recover``) into a state whose forward entry needs a confirmation
+        that was never given since its source state was last entered (a stop while
+        ``plan_to_approach`` was pending) also becomes ``pending``: the confirmation is re-asked,
+        never skipped. Any applied transition (an abort, a fault …) and any fault clear a pending
+        one; a rejected event changes nothing at all.
         """
         source = self._state
         out = self._table[(source, event)]
+        if event is Event.FAULT_DETECTED:
+            self._pending = None  # also in FAULT (a stay): a new fault cancels a pending recovery
         if event is Event.CONFIRM_REQUESTED:
             if self._pending is None:
                 return self._emit(
                     FireResult("rejected", source, source, event, "nothing awaits confirmation"))
             p = self._pending
             self._pending = None
-            return self._apply(source, p.event, p.goto, p.reason or reason)
+            return self._apply(source, p.event, p.goto, p.reason or reason, p.authorises)
         if isinstance(out, Reject):
             return self._emit(FireResult("rejected", source, source, event, out.reason))
         if isinstance(out, Stay):
@@ -359,11 +378,32 @@ class Fsm:
         if out.name in self._confirm:
             self._pending = Pending(event, out, reason)
             return self._emit(FireResult("pending", source, out.target, event, reason, out.name))
+        unconfirmed = self._unconfirmed_entry(out)
+        if unconfirmed is not None:
+            why = (f"{unconfirmed} was not confirmed for the current plan; "
+                   f"confirm to {out.name} into {out.target.value}")
+            self._pending = Pending(event, out, why, authorises=unconfirmed)
+            return self._emit(FireResult("pending", source, out.target, event, why, out.name))
         return self._apply(source, event, out, reason)
 
-    def _apply(self, source: State, event: Event, goto: Goto, reason: str) -> FireResult:
+    def _unconfirmed_entry(self, goto: Goto) -> str | None:
+        """The name of the confirmation a recovery into ``goto.target`` still needs, if any."""
+        if goto.name not in RECOVERY:
+            return None
+        entry = self._entry.get(goto.target)
+        if entry is None or entry.name not in self._confirm or entry.name in self._authorised:
+            return None
+        return entry.name
+
+    def _apply(self, source: State, event: Event, goto: Goto, reason: str,
+               authorises: str = "") -> FireResult:
         self._pending = None
         self._state = goto.target
+        # entering a state starts it afresh (PLAN makes a new plan): its onward confirmations lapse
+        self._authorised -= {n for n, s in self._source.items() if s is goto.target}
+        for name in (goto.name, authorises):
+            if name in CONFIRMABLE:
+                self._authorised.add(name)
         return self._emit(FireResult("transition", source, goto.target, event, reason, goto.name))
 
     def _emit(self, result: FireResult) -> FireResult:

@@ -1,4 +1,5 @@
-"""Perception for the controller: stereo frame -> ring-marker centres in the optical frame."""
+"""Perception for the controller: stereo frame -> ring-marker centres in the optical frame, and the
+needle-axis check (seed 004 §III) against the plan."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from numpy.typing import NDArray
 
 from drivers.interfaces.camera import StereoFrame
 from hil.vision.camera_model import StereoCalibration
+from hil.vision.lines import NeedleAxisMeasurement, measure_needle_axis
 from hil.vision.pipeline import locate_markers
 
 FloatArray = NDArray[np.float64]
@@ -28,3 +30,23 @@ class StereoMarkerLocator:
         res = locate_markers(self.calibration, frame.left.image, frame.right.image)
         pts: FloatArray = np.asarray(res.points_mm, dtype=np.float64).reshape(-1, 3)
         return pts
+
+
+class StereoNeedleChecker:
+    """The seed-004 needle-axis check (§III, two views) as a
+    :data:`hil.controller.procedure.NeedleAxisChecker`: the needle's two contour lines in each view,
+    searched around the expected segment ``start_mm -> end_mm`` (optical frame, mm), the axis from
+    the two views' planes, and its error against the path ``entry_mm -> target_mm`` (optical frame).
+
+    Pure CPU (a few tens of ms), no blocking. Raises (when called): VisionError (needle not found
+    in a view), DegenerateConfigurationError (axis near an epipolar plane).
+    """
+
+    def __init__(self, calibration: StereoCalibration, radius_mm: float | None = None) -> None:
+        self.calibration = calibration
+        self.radius_mm = radius_mm
+
+    def __call__(self, frame: StereoFrame, start_mm: FloatArray, end_mm: FloatArray, entry_mm: FloatArray,
+                 target_mm: FloatArray) -> NeedleAxisMeasurement:
+        return measure_needle_axis(self.calibration, frame.left.image, frame.right.image, start_mm, end_mm,
+                                   entry_mm, target_mm, radius_mm=self.radius_mm)

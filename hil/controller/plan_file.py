@@ -87,7 +87,8 @@ def load_plan(path: str | Path) -> ProcedurePlan:
     """Read a plan file.
 
     Raises:
-        InputFileError: unreadable, not JSON, or invalid (naming the field).
+        InputFileError: unreadable, not JSON (also hostile JSON: nested too deeply, huge
+            integer literals), or invalid (naming the field).
     """
     try:
         text = Path(path).read_text(encoding="utf-8")
@@ -97,4 +98,8 @@ def load_plan(path: str | Path) -> ProcedurePlan:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputFileError(str(path), f"not JSON: {exc.msg} at line {exc.lineno}") from None
+    except ValueError as exc:  # e.g. an integer literal longer than Python's digit limit
+        raise InputFileError(str(path), f"unusable JSON: {exc}") from None
+    except RecursionError:
+        raise InputFileError(str(path), "unusable JSON: nested too deeply") from None
     return plan_from_dict(doc, str(path))

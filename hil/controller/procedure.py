@@ -22,7 +22,7 @@ import itertools
 import math
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from drivers.interfaces.camera import StereoCamera, StereoFrame
 from drivers.interfaces.errors import DriverError
 from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
-from drivers.interfaces.tracker import PoseTracker
+from drivers.interfaces.tracker import PoseTracker, TrackerSample
 from hil.clock import Clock
 from hil.controller.compensation import (
     MotionFilter,
@@ -55,6 +55,7 @@ from hil.controller.registration import (
     register_robot,
     track,
 )
+from hil.controller.tracker_use import TrackerUse, entry_disagreement_mm
 from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.errors import HilError
 from hil.geometry.registration import register_horn
@@ -63,12 +64,18 @@ from hil.log import get_logger
 from hil.safety.layer import SafetyLayer, SafetyViolationError
 from hil.safety.watchdog import WatchdogSet
 from hil.session.log import SessionLog
+from hil.vision.lines import NeedleAxisMeasurement
 
 FloatArray = NDArray[np.float64]
 _log = get_logger(__name__)
 
 #: Stereo frame -> triangulated marker centres (M, 3), optical frame, mm (any order).
 MarkerLocator = Callable[[StereoFrame], FloatArray]
+#: Needle-axis check (seed 004 §III): (frame, expected visible segment start, end, entry, target;
+#: optical frame, mm) -> the measured axis and its error against the path. Raises HilError
+#: (VisionError, DegenerateConfigurationError) when the needle cannot be measured.
+NeedleAxisChecker = Callable[[StereoFrame, FloatArray, FloatArray, FloatArray, FloatArray],
+                             NeedleAxisMeasurement]
 
 _TRACK_TOL_MM = 6.0
 _STILL_WINDOW_S = 0.3
@@ -141,7 +148,57 @@ class _Phase:
     target: RigidTransform | None = None
     biases: list[RigidTransform] = field(default_factory=list)
     alarmed: bool = False
+    needle_alarmed: bool = False
     resumed: bool = False
+
+
+class DeadlineTimer:
+    """Absolute periodic deadlines on a clock (a servo stream at the robot's rate).
+
+    After :meth:`start` (``t0_ns``), each :meth:`wait` moves the deadline one period on
+    (``next = previous deadline + period``) and sleeps until it, so the time spent working between
+    waits does not accumulate into the period. When the caller is already late by more than a
+    period, the missed slots are skipped (the grid is kept), ``missed`` is incremented and the wait
+    returns at once; late by less than a period it returns at once without counting.
+
+    Args:
+        clock: the controller clock (blocking ``sleep``).
+        period_s: the period, s (> 0).
+
+    Raises:
+        ValueError: the period is not a finite positive number.
+    """
+
+    def __init__(self, clock: Clock, period_s: float) -> None:
+        if not (math.isfinite(period_s) and period_s > 0):
+            raise ValueError(f"deadline period must be > 0 s, got {period_s}")
+        self.clock = clock
+        self.period_ns = max(1, round(period_s * 1e9))
+        self.deadline_ns = clock.now_ns()
+        self.missed = 0
+
+    def start(self, t0_ns: int) -> None:
+        """Anchor the grid: the first deadline is ``t0_ns`` + one period."""
+        self.deadline_ns = t0_ns
+
+    def next_ns(self) -> int:
+        """The deadline the next :meth:`wait` will wait for (before any skipping)."""
+        return self.deadline_ns + self.period_ns
+
+    def wait(self) -> int:
+        """Sleep until the next deadline (blocking on the clock); see the class doc. Returns the
+        number of slots skipped (0 when the deadline was met or missed by less than a period)."""
+        self.deadline_ns += self.period_ns
+        now = self.clock.now_ns()
+        late_ns = now - self.deadline_ns
+        if late_ns > self.period_ns:
+            skipped = late_ns // self.period_ns
+            self.deadline_ns += skipped * self.period_ns
+            self.missed += 1
+            return int(skipped)
+        if late_ns < 0:
+            self.clock.sleep(-late_ns * 1e-9)
+        return 0
 
 
 @dataclass
@@ -170,6 +227,13 @@ class RunSummary:
     commands_refused: int
     faults: list[str]
     session_log: str
+    needle_direction_error_deg: float | None = None
+    #: the published chain head: SHA-256 of the session log's last line (set once it is closed)
+    session_log_sha256: str | None = None
+    #: the HTML report built after the run (``hil run``; None when not built)
+    report: str | None = None
+    #: the tracked needle tip against the planned target while locked (last sample; see docs/run.md)
+    tracked_needle: dict[str, float] | None = None
     comp_errors_mm: list[float] = field(default_factory=list, repr=False)
     comp_error_age_s: list[float] = field(default_factory=list, repr=False)
 
@@ -198,10 +262,18 @@ class Controller:
         limits: the safety layer's motion limits.
         watchdog_ages_s: ``{"camera": s, "robot": s, "tracker": s}``.
         session: the session log (every event, transition, command, measurement, fault).
+        observers: called with the controller at the end of every tick (display, OpenIGTLink);
+            read-only, in the controller's thread; their exceptions are logged
+            (``observer_failed``) and never stop the control loop.
+        tracker_use: the magnetic tracker's part (``[procedure.tracking]``, issue 7): the
+            tracked needle tip against the target while LOCKed, the patient reference sensor as
+            a stand-in for / check on the skin markers; None (or no tracker): not used.
         operator: operator input.
         coach: asks the patient for breath-holds (the simulated world, or None on a rig where
             the operator asks).
         truth: ground truth for error measurement (simulation only).
+        needle_check: the optical needle-axis check (seed 004), used when
+            ``procedure.lock.needle_check`` is set; None: the check is never made.
     """
 
     def __init__(
@@ -209,8 +281,18 @@ class Controller:
         locate: MarkerLocator, plan: ProcedurePlan, rig: RigGeometry, procedure: ProcedureConfig,
         limits: MotionLimits, watchdog_ages_s: dict[str, float], session: SessionLog,
         operator: Operator, coach: BreathHoldCoach | None = None, truth: GroundTruth | None = None,
+        needle_check: NeedleAxisChecker | None = None,
+        observers: Sequence[Callable[[Controller], None]] = (),
+        tracker_use: TrackerUse | None = None,
     ) -> None:
         self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
+        self.observers = tuple(observers)
+        self._observer_errors: dict[int, str] = {}
+        self.tracker_use = tracker_use if tracker is not None else None
+        self.tracker_samples: dict[str, TrackerSample] = {}
+        self.tracked_needle: dict[str, float] | None = None
+        self._reference_in_use = False
+        self._reference_disagrees = False
         self.locate, self.plan, self.rig, self.cfg = locate, plan, rig, procedure
         self.session, self.operator, self.coach, self.truth = session, operator, coach, truth
         self.fsm = Fsm(procedure.confirm, listener=self._on_fire)
@@ -245,6 +327,9 @@ class Controller:
         self._started = False
         self._last_cmd_ns: int | None = None
         self._resumed_ns: int | None = None
+        self._stop_owed: tuple[str, int] | None = None   # (reason, attempts) of an undelivered stop
+        self.servo_deadlines_missed = 0   # servo-stream slots skipped because a command was late
+        self._primed = False   # the camera pipeline's first (late) pair has been consumed
         # measurements for the summary
         self.timeline: list[dict[str, Any]] = []
         self.latency_ms: list[float] = []
@@ -258,6 +343,8 @@ class Controller:
         self.faults: list[str] = []
         self.frames = 0
         self.lock_time_s: float | None = None
+        self.needle_check = needle_check
+        self.needle_errors_deg: list[tuple[str, float]] = []   # (state, direction error) per measurement
         self.timeline.append({"t_s": 0.0, "state": State.IDLE.value, "event": None, "reason": "initial"})
 
     # ------------------------------------------------------------------ helpers
@@ -313,29 +400,107 @@ class Controller:
             self.fire(Event.FAULT_DETECTED, reason)
 
     def _stop_robot(self, reason: str) -> None:
+        """Send a stop. When it cannot be delivered (``stop_failed``: the connection is down) it
+        stays owed and :meth:`_retry_stop` re-sends it every tick until one is delivered
+        (``stop_delivered`` with the number of attempts) or a later state entry supersedes it."""
+        attempts = 1 if self._stop_owed is None else self._stop_owed[1] + 1
         try:
             self.safety.stop(reason)
         except DriverError as exc:
-            self.session.write("stop_failed", reason=str(exc))
-            _log.error("stop_failed", reason=str(exc))
+            self._stop_owed = (reason, attempts)
+            self.session.write("stop_failed", reason=str(exc), stop_reason=reason, attempt=attempts)
+            _log.error("stop_failed", reason=str(exc), attempt=attempts)
+            return
+        self._stop_owed = None
+        if attempts > 1:
+            self.session.write("stop_delivered", reason=reason, attempts=attempts)
+            _log.warning("stop_delivered", reason=reason, attempts=attempts)
+
+    def _retry_stop(self) -> None:
+        """Re-send a stop that could not be delivered (once per tick)."""
+        if self._stop_owed is not None:
+            self._stop_robot(self._stop_owed[0])
+
+    def _robot_ready_for(self, cmd: Event) -> bool:
+        """Before an accepted RESET or START: when the robot reports a protective stop, try
+        ``robot.recover()`` (``robot_recover_attempted`` with the outcome). START is refused
+        (``start_refused`` with the reason; returns False) while the robot is still not in normal
+        safety status or its state cannot be read; RESET always proceeds (IDLE stops the robot).
+        Never raises."""
+        if cmd not in (Event.START_REQUESTED, Event.RESET_REQUESTED) or not self.fsm.accepts(cmd):
+            return True
+        why = ""
+        try:
+            st = self.robot.state_now()
+            if st.safety is SafetyStatus.PROTECTIVE_STOP:
+                error = ""
+                try:
+                    self.robot.recover()
+                except DriverError as exc:
+                    error = str(exc)
+                st = self.robot.state_now()
+                ok = st.safety is SafetyStatus.NORMAL
+                self.session.write("robot_recover_attempted", input=cmd, ok=ok, safety=st.safety, error=error)
+                (_log.info if ok else _log.warning)("robot_recover_attempted", input=cmd.value, ok=ok,
+                                                    error=error)
+                if not ok:
+                    why = f"robot still in {st.safety.value} after recover()"
+                    why += f": {error}" if error else ""
+            elif st.safety is not SafetyStatus.NORMAL:
+                why = f"robot in {st.safety.value}"
+        except DriverError as exc:
+            why = f"robot state unavailable: {exc}"
+        if not why or cmd is Event.RESET_REQUESTED:
+            return True
+        self._last_reason = why
+        self.session.write("start_refused", reason=why, state=self.state)
+        _log.warning("start_refused", reason=why, state=self.state.value)
+        return False
 
     # ------------------------------------------------------------------ the loop
     def run(self, max_duration_s: float | None = None) -> RunSummary:
         """Tick until the operator says the run is over or the time budget is spent."""
         limit = self.cfg.max_duration_s if max_duration_s is None else max_duration_s
+        self.prime()
         self.watchdogs.arm(self.clock.now_ns())
         while not self.operator.finished(self.view()):
             if self.t_s() > limit:
                 self.session.write("run_time_exceeded", limit_s=limit, state=self.state)
                 if self.state not in HALT_STATES:
                     self.fire(Event.ABORT_REQUESTED, f"procedure exceeded {limit} s")
+                    self._notify_observers()  # the abort happened outside a tick: show it
                 break
             self.tick()
         return self.summary()
 
+    def prime(self, timeout_s: float = 2.0) -> None:
+        """Grab and discard one stereo pair, once, before the first tick judges any (:meth:`run`
+        calls it before arming the watchdogs; the first :meth:`tick` calls it when nobody did).
+
+        A camera's first buffer or a simulator's first render is late (caches, buffers): it is
+        consumed here, so the first pair the controller judges is a fresh one and the watchdogs
+        stay strict for every pair. Logs ``pipeline_primed`` (the discarded pair's age) or
+        ``pipeline_prime_failed`` (then the camera watchdog reports the missing data). Blocks up to
+        ``timeout_s`` plus the grab's own work; never raises for a device error.
+        """
+        if self._primed:
+            return
+        self._primed = True
+        t_ns = self.clock.now_ns()
+        try:
+            frame = self.camera.grab(timeout_s=max(timeout_s, 4 * self.frame_period_s))
+        except DriverError as exc:
+            self.session.write("pipeline_prime_failed", reason=str(exc))
+            _log.warning("pipeline_prime_failed", reason=str(exc))
+            return
+        now = self.clock.now_ns()
+        self.session.write("pipeline_primed", frame_seq=frame.left.seq,
+                           first_frame_age_s=(now - frame.left.t_ns) * 1e-9, took_s=(now - t_ns) * 1e-9)
+
     def tick(self) -> None:
         """One control cycle (see module doc). Never raises: every device, safety or internal
         error becomes FAULT_DETECTED with the reason (the robot is stopped)."""
+        self.prime()  # once (run() already did)
         t_start_wall = time.perf_counter_ns()  # profiling only, never used for control
         try:
             self._tick()
@@ -348,14 +513,30 @@ class Controller:
             self.fault(f"internal error: {type(exc).__name__}: {exc}")
         self.processing_ms.append((time.perf_counter_ns() - t_start_wall) * 1e-6)
         self._measure_truth()
+        self._notify_observers()
+
+    def _notify_observers(self) -> None:
+        """Call every observer with the controller, after the tick (whatever it did). An
+        observer's exception is logged (``observer_failed``) and never reaches the control loop."""
+        for i, obs in enumerate(self.observers):
+            try:
+                obs(self)
+            except Exception as exc:  # noqa: BLE001 - an observer (display, stream) must not stop control
+                name, error = getattr(obs, "__name__", repr(obs)), f"{type(exc).__name__}: {exc}"
+                _log.warning("observer_failed", observer=name, error=error)
+                if self._observer_errors.get(i) != error:  # once per distinct error, not every tick
+                    self._observer_errors[i] = error
+                    self.session.write("observer_failed", observer=name, error=error)
 
     def _tick(self) -> None:
+        self._retry_stop()
         cmd = self.operator.poll(self.view())
         if cmd is not None:
             self.session.write("operator_command", input=cmd)
             if cmd is Event.START_REQUESTED:
                 self._started = True
-            self.fire(cmd, "operator")
+            if self._robot_ready_for(cmd):
+                self.fire(cmd, "operator")
         try:
             self._read_devices()
         except DriverError as exc:
@@ -363,9 +544,7 @@ class Controller:
             self.fault(f"{exc.device}: {exc.message}")
             return
         now = self.clock.now_ns()
-        # the first pair after opening primes the pipeline (a camera's first buffer, a simulator's
-        # first render) and may be late; the watchdogs judge every later one
-        for reason in self.watchdogs.check(now) if self.frames > 1 else []:
+        for reason in self.watchdogs.check(now):  # every pair (run() primed the pipeline before arming)
             self.fault(reason)
             return
         st = self.last_state
@@ -383,7 +562,9 @@ class Controller:
         self.session.write("frame_measured", frame_seq=frame.left.seq, exposure_t_ns=frame.left.t_ns,
                            skin_markers=_count(self.live_mm), flange_markers=_count(self.flange_mm),
                            gate_deviation_mm=self._gate_deviation(),
-                           robot_tcp_mm=None if st is None else st.T_robot_from_tcp.t)
+                           robot_tcp_mm=None if st is None else st.T_robot_from_tcp.t,
+                           tcp_speed_mm_s=None if st is None else st.tcp_speed_mm_s,
+                           live_mm=self.live_mm)
         self.fire(Event.FRAME_RECEIVED)
         self._step(frame)
 
@@ -399,6 +580,7 @@ class Controller:
         self.watchdogs["robot"].feed(st.t_ns, now)
         if self.tracker is not None:
             samples = self.tracker.latest()
+            self.tracker_samples = samples
             fresh = [s.t_ns for s in samples.values() if not s.missing]
             if fresh:
                 self.watchdogs["tracker"].feed(max(fresh), now)
@@ -419,6 +601,7 @@ class Controller:
             self.live_mm = live
             reg = rigid_change(ref, live)
             self.T_change_meas = None if reg is None else reg.T_fixed_from_moving
+            self._use_reference_sensor(frame)
             if self.T_change_meas is not None:
                 self.filter.update(self._local(self.T_change_meas), frame.left.t_ns)
         else:
@@ -494,6 +677,37 @@ class Controller:
         patient as seen in the latest frame, mm; None before registration/plan or without markers."""
         return self._guide_error_optical_mm()
 
+    def _needle_axis(self, frame: StereoFrame) -> NeedleAxisMeasurement | None:
+        """The needle-axis check (seed 004 §III) on ``frame`` against the planned path as the
+        patient is seen now (plan -> optical with the patient registration, then the measured
+        change). Logs ``needle_axis_measured`` or ``needle_axis_unavailable`` (with the reason);
+        returns None when the check is off, cannot be set up or the needle is not measured."""
+        nc = self.cfg.lock.needle_check
+        if nc is None or self.needle_check is None:
+            return None
+        if self.patient_reg is None or self.T_change_meas is None:
+            self.session.write("needle_axis_unavailable", state=self.state,
+                               reason="no patient registration or no live skin markers")
+            return None
+        T = self.T_change_meas @ self.patient_reg.T_optical_from_image
+        entry = T.apply(self.plan.entry_mm).reshape(3)
+        target = T.apply(self.plan.target_mm).reshape(3)
+        u = (target - entry) / np.linalg.norm(target - entry)
+        start, end = entry - nc.visible_to_mm * u, entry - nc.visible_from_mm * u
+        try:
+            m = self.needle_check(frame, start, end, entry, target)
+        except HilError as exc:
+            self.session.write("needle_axis_unavailable", state=self.state, frame_seq=frame.left.seq,
+                               reason=f"{type(exc).__name__}: {exc}")
+            return None
+        pe = m.path_error
+        self.needle_errors_deg.append((self.state.value, pe.direction_error_deg))
+        self.session.write("needle_axis_measured", state=self.state, frame_seq=frame.left.seq,
+                           direction_error_deg=pe.direction_error_deg, entry_offset_mm=pe.entry_offset_mm,
+                           target_offset_mm=pe.target_offset_mm,
+                           within=pe.within(nc.max_direction_deg, nc.max_offset_mm))
+        return m
+
     def _desired_tcp_robot(self, T_change: RigidTransform) -> RigidTransform:
         assert self.robot_reg is not None
         T_robot_from_optical = self.robot_reg.T_robot_from_optical
@@ -511,6 +725,7 @@ class Controller:
         if resumed:
             self._resumed_ns = now
         self._phase = _Phase(now, resumed=resumed)
+        self._stop_owed = None  # the new state's entry action commands the robot itself
         s = res.target
         self.session.write("state_entered", state=s, reason=res.reason, transition=res.transition_name)
         try:
@@ -556,6 +771,66 @@ class Controller:
         except (DriverError, SafetyViolationError) as exc:
             if s is not State.FAULT:
                 self.fault(f"entering {s.value}: {exc}")
+
+    # ------------------------------------------------------------------ the tracker (issue 7)
+    def _path_optical_now(self) -> tuple[FloatArray, FloatArray] | None:
+        """The planned entry and target where they are now (optical frame): the registration
+        moved by the patient's current rigid change."""
+        if self.patient_reg is None:
+            return None
+        T = self.patient_reg.T_optical_from_image
+        if self.T_change_meas is not None:
+            T = self.T_change_meas @ T
+        return T.apply(self.plan.entry_mm).reshape(3), T.apply(self.plan.target_mm).reshape(3)
+
+    def _use_reference_sensor(self, frame: StereoFrame) -> None:
+        """The patient reference sensor backs up the skin markers: when they give no rigid change
+        this tick its change stands in (``reference_in_use``); when both give one, a difference
+        at the entry beyond the configured bound is logged (``reference_disagreement``)."""
+        tu = self.tracker_use
+        if tu is None or tu.cfg.reference_sensor is None or self.patient_reg is None:
+            return
+        got = tu.reference_change(self.tracker_samples)
+        if got is None:
+            return
+        M, t_ns = got
+        entry = self.patient_reg.T_optical_from_image.apply(self.plan.entry_mm).reshape(3)
+        if self.T_change_meas is None:
+            if tu.cfg.reference_backup:
+                self.T_change_meas = M
+                if not self._reference_in_use:
+                    self.session.write("reference_in_use", sensor=tu.cfg.reference_sensor, state=self.state,
+                                       reason="skin markers give no rigid change", sample_t_ns=t_ns)
+                self._reference_in_use = True
+            return
+        if self._reference_in_use:
+            self.session.write("reference_released", sensor=tu.cfg.reference_sensor, state=self.state)
+            self._reference_in_use = False
+        d = entry_disagreement_mm(M, self.T_change_meas, entry)
+        disagrees = d > tu.cfg.reference_disagreement_mm
+        if disagrees != self._reference_disagrees:
+            self._reference_disagrees = disagrees
+            self.session.write("reference_disagreement" if disagrees else "reference_agrees",
+                               sensor=tu.cfg.reference_sensor, entry_difference_mm=d,
+                               limit_mm=tu.cfg.reference_disagreement_mm, state=self.state)
+
+    def _track_needle(self) -> None:
+        """While locked: the tracked needle tip against the planned target as it is now
+        (``needle_tracked``); the last sample goes to the summary."""
+        tu = self.tracker_use
+        path = self._path_optical_now()
+        if tu is None or tu.cfg.needle_sensor is None or path is None:
+            return
+        e = tu.needle_error(self.tracker_samples, path[0], path[1])
+        if e is None:
+            self.session.write("needle_tracked", sensor=tu.cfg.needle_sensor, available=False)
+            return
+        self.tracked_needle = {
+            "distance_to_target_mm": e.distance_to_target_mm, "lateral_error_mm": e.lateral_error_mm,
+            "depth_to_target_mm": e.depth_to_target_mm,
+            "direction_error_deg": math.degrees(e.direction_error_rad)}
+        self.session.write("needle_tracked", sensor=tu.cfg.needle_sensor, available=True,
+                           tip_optical_mm=e.tip_optical_mm, **self.tracked_needle)
 
     def _request_hold(self, why: str, duration_s: float) -> None:
         self.session.write("breath_hold_requested", purpose=why, duration_s=duration_s)
@@ -632,13 +907,19 @@ class Controller:
         self.patient_reg, self.robot_reg = preg, rreg
         self.T_center = RigidTransform.from_translation(preg.T_optical_from_image.apply(self.plan.entry_mm))
         self.gate = None
+        if self.tracker_use is not None and self.tracker_use.cfg.reference_sensor is not None:
+            ok = self.tracker_use.record_reference(self.tracker_samples)
+            self.session.write("reference_sensor_recorded", sensor=self.tracker_use.cfg.reference_sensor,
+                               available=ok)
         self.live_mm = preg.reference_optical_mm.copy()
         self.filter.reset()
         self.session.write("registration_done", fre_mm=preg.fre_rms_mm, tre_expected_mm=preg.tre_expected_mm,
                            markers=preg.markers_used, frames=preg.frames,
                            T_optical_from_image=preg.T_optical_from_image,
                            robot_fre_mm=rreg.fre_rms_mm, T_robot_from_optical=rreg.T_robot_from_optical,
-                           reference_optical_mm=preg.reference_optical_mm)
+                           reference_optical_mm=preg.reference_optical_mm,
+                           residuals_mm=np.linalg.norm(preg.T_optical_from_image.apply(self.plan.fiducials_mm)
+                                                       - preg.reference_optical_mm, axis=1))
         self.fire(Event.REGISTERED,
                   f"FRE {preg.fre_rms_mm:.3f} mm, expected TRE {preg.tre_expected_mm:.3f} mm")
 
@@ -744,15 +1025,23 @@ class Controller:
             if D is not None:
                 self.T_bias = interpolate_pose(self.T_bias, D, c.bias_gain)
         hold_s = servo_dt if c.servo_at_robot_rate else self.frame_period_s
+        t_send = self.clock.now_ns()  # the stream's deadlines count from this command's slot
         horizon_s, cmd = self._servo_once(frame, dt, hold_s)
         t_cmd = self.clock.now_ns()
         self.latency_ms.append((t_cmd - frame.left.t_ns) * 1e-6)
         if c.servo_at_robot_rate:
             # stream at the robot's rate until the next frame is due, on the predicted motion
+            # on absolute deadlines one servo period apart from the frame's command: the work per
+            # command does not stretch the period; a slot missed by more than a period is skipped
             next_ready_ns = now + round(self.frame_period_s * 1e9)
-            step_ns = round(servo_dt * 1e9)
-            while self.clock.now_ns() + step_ns + step_ns // 2 <= next_ready_ns:
-                self.clock.sleep(servo_dt)
+            timer = DeadlineTimer(self.clock, servo_dt)
+            timer.start(t_send)
+            half_ns = timer.period_ns // 2
+            while max(timer.next_ns(), self.clock.now_ns()) + half_ns <= next_ready_ns:
+                skipped = timer.wait()
+                if skipped:
+                    self.servo_deadlines_missed += 1
+                    self.session.write("servo_deadline_missed", slots_skipped=skipped, period_s=servo_dt)
                 self._servo_once(frame, servo_dt, servo_dt)
         err = self._guide_error_optical_mm()
         dev = self._gate_deviation()
@@ -763,12 +1052,40 @@ class Controller:
                            command_mm=cmd.t, guide_error_mm=err, gate_deviation_mm=dev)
         tol = self.cfg.lock.tolerance_mm
         if err is not None and err <= tol and dev <= self.cfg.gate.tolerance_mm:
+            if not self._needle_ok_for_lock(frame):
+                self._phase.settle_since_ns = None
+                return
             if self._phase.settle_since_ns is None:
                 self._phase.settle_since_ns = frame.left.t_ns
             if (frame.left.t_ns - self._phase.settle_since_ns) * 1e-9 >= c.settle_s:
                 self.fire(Event.ALIGNED, f"guide within {err:.3f} mm for {c.settle_s} s, gate open")
         else:
             self._phase.settle_since_ns = None
+
+    def _needle_ok_for_lock(self, frame: StereoFrame) -> bool:
+        """Before LOCK: True unless ``lock.needle_check.required_before_lock`` and the needle axis
+        is not measured or out of bounds (then ``needle_check_refused`` is logged with the reason)."""
+        nc = self.cfg.lock.needle_check
+        if nc is None or not nc.required_before_lock:
+            return True
+        if self.needle_check is None:
+            reason = "needle check required but no needle checker (camera model) is configured"
+            self.session.write("needle_check_refused", reason=reason)
+            return False
+        m = self._needle_axis(frame)
+        if m is None:
+            self.session.write("needle_check_refused", reason="needle axis not measured in this frame")
+            return False
+        pe = m.path_error
+        if not pe.within(nc.max_direction_deg, nc.max_offset_mm):
+            reason = (f"needle axis {pe.direction_error_deg:.2f} deg / entry {pe.entry_offset_mm:.2f} mm / "
+                      f"target {pe.target_offset_mm:.2f} mm off the plan "
+                      f"(limits {nc.max_direction_deg} deg, {nc.max_offset_mm} mm)")
+            self.session.write("needle_check_refused", reason=reason,
+                               direction_error_deg=pe.direction_error_deg, entry_offset_mm=pe.entry_offset_mm,
+                               target_offset_mm=pe.target_offset_mm)
+            return False
+        return True
 
     def _servo_once(self, frame: StereoFrame, dt: float, hold_s: float) -> tuple[float, RigidTransform]:
         """One rate-limited servo command on the motion predicted for when it takes effect:
@@ -805,6 +1122,7 @@ class Controller:
                 return
         err = self._guide_error_optical_mm()
         self.session.write("lock_measured", guide_error_mm=err, gate_deviation_mm=self._gate_deviation())
+        self._track_needle()
         if err is not None and err > lk.drift_alarm_mm:
             if not ph.alarmed:
                 ph.alarmed = True
@@ -817,8 +1135,37 @@ class Controller:
             if lk.on_drift == "compensate":
                 self.fire(Event.LOCK_LOST, f"guide {err:.2f} mm off the moving entry while locked")
                 return
+        if self._needle_alarm(frame):
+            return
         if lk.hold_s > 0 and self._elapsed_s() >= lk.hold_s and self.fsm.pending is None:
             self.fire(Event.LOCK_COMPLETED, f"held {lk.hold_s} s")
+
+    def _needle_alarm(self, frame: StereoFrame) -> bool:
+        """While locked: measure the needle axis; when it is out of bounds and
+        ``alarm_while_locked``, log ``needle_axis_alarm`` (once per LOCK) and apply
+        ``lock.on_drift``. Returns True when a transition was fired."""
+        nc, lk, ph = self.cfg.lock.needle_check, self.cfg.lock, self._phase
+        m = self._needle_axis(frame)
+        if nc is None or m is None or not nc.alarm_while_locked:
+            return False
+        pe = m.path_error
+        if pe.within(nc.max_direction_deg, nc.max_offset_mm):
+            return False
+        why = (f"needle axis {pe.direction_error_deg:.2f} deg / entry {pe.entry_offset_mm:.2f} mm / "
+               f"target {pe.target_offset_mm:.2f} mm off the plan while locked")
+        if not ph.needle_alarmed:
+            ph.needle_alarmed = True
+            self.session.write("needle_axis_alarm", reason=why, direction_error_deg=pe.direction_error_deg,
+                               entry_offset_mm=pe.entry_offset_mm, target_offset_mm=pe.target_offset_mm,
+                               limit_deg=nc.max_direction_deg, limit_mm=nc.max_offset_mm, policy=lk.on_drift)
+            _log.warning("needle_axis_alarm", direction_error_deg=pe.direction_error_deg, policy=lk.on_drift)
+        if lk.on_drift == "retract":
+            self.fire(Event.DRIFT_DETECTED, why)
+            return True
+        if lk.on_drift == "compensate":
+            self.fire(Event.LOCK_LOST, why)
+            return True
+        return False
 
     def _step_retract(self) -> None:
         st, ph = self.last_state, self._phase
@@ -890,7 +1237,17 @@ class Controller:
             commands_sent=self.safety.commands_sent, commands_refused=self.safety.commands_refused,
             faults=list(self.faults), session_log=str(self.session.path), comp_errors_mm=list(comp),
             comp_error_age_s=list(self.comp_error_age_s),
+            needle_direction_error_deg=self._needle_summary_deg(),
+            tracked_needle=self.tracked_needle,
         )
+
+    def _needle_summary_deg(self) -> float | None:
+        """The needle-axis direction error for the summary: the first measurement while locked,
+        else the last one made (before LOCK), else None."""
+        locked = [e for s, e in self.needle_errors_deg if s == State.LOCK.value]
+        if locked:
+            return locked[0]
+        return self.needle_errors_deg[-1][1] if self.needle_errors_deg else None
 
 
 def _count(markers: FloatArray | None) -> int:

@@ -58,7 +58,8 @@ class ReportResult:
             "report": str(self.html_path),
             "chain": {"valid": self.chain.ok, "records": self.chain.records,
                       "first_bad_line": self.chain.first_bad_line, "reason": self.chain.reason,
-                      "closed": self.chain.closed, "session_id": self.chain.session_id},
+                      "closed": self.chain.closed, "session_id": self.chain.session_id,
+                      "head": self.chain.head},
             "numbers": {n.key: n.value for n in self.numbers},
             "time_in_state_s": {k: round(v, 3) for k, v in self.time_in_state_s.items()},
             "plots": {p.key: ("ok" if p.has_data else "no data") for p in self.plots},
@@ -67,9 +68,12 @@ class ReportResult:
 
 
 def chain_status(chain: VerifyReport) -> str:
-    """One line for people: ``valid``, ``valid (session not closed …)`` or ``broken at line N: …``."""
+    """One line for people: ``valid``, ``valid (session not closed …)`` or ``broken at line N: …``;
+    a valid chain also says whether its last line matches the published chain head (``<log>.head``)."""
     if chain.ok:
-        return "valid" + ("" if chain.closed else f" ({chain.reason})")
+        head = {"matched": "; last line matches the published chain head",
+                "absent": "; no published chain head (the last line is not covered)"}.get(chain.head, "")
+        return "valid" + head + ("" if chain.closed else f" ({chain.reason})")
     if chain.first_bad_line is None:
         return f"invalid: {chain.reason}"
     return f"broken at line {chain.first_bad_line}: {chain.reason}"

@@ -10,6 +10,8 @@ Definitions (all on the monotonic wall clock):
   loop grabs and processes the next frame: those gaps are counted as missed deadlines instead).
 - *missed deadline*: an interval longer than ``2 T`` (at least one servo period passed without a
   command); ``longest_gap_ms`` is the worst.
+- *stream deadlines missed*: the controller's count of servo commands of a frame's stream that
+  were late by more than a period (the stream keeps absolute deadlines and skips those slots).
 - *frame-to-command latency*: exposure time of a stereo frame -> the first servo command computed
   from it (the controller's own measurement).
 - *memory growth*: resident set size (``/proc/self/statm``) at the end minus after the warm-up
@@ -32,10 +34,8 @@ from hil.clock import MonotonicClock
 from hil.config import build_devices, load_setup
 from hil.config.setup import SetupConfig
 from hil.controller.fsm import Event, State
-from hil.controller.perception import StereoMarkerLocator
 from hil.controller.plan_file import load_plan
 from hil.controller.procedure import Controller, OperatorView
-from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.errors import InputFileError
 from hil.session.log import SessionLog
 
@@ -76,6 +76,8 @@ class SoakResult:
     missed_deadlines: int = 0
     missed_fraction: float = 0.0
     longest_gap_ms: float | None = None
+    #: the controller's own count: stream commands late by more than a period (slots skipped)
+    stream_deadlines_missed: int = 0
     frame_to_command_ms: dict[str, float | None] = field(default_factory=dict)
     rss_mb: dict[str, float | None] = field(default_factory=dict)
     final_state: str = ""
@@ -180,9 +182,13 @@ def run_soak(
     plan_path = Path(plan) if plan else config.resolve().parent / "plans" / f"{config.stem}_plan.json"
     procedure_plan = load_plan(plan_path)
     clock = MonotonicClock()
-    devices = build_devices(setup, clock)
-    sf = setup.safety
-    recorder = RecordingRobot(devices.robot, sf.motion_limits(), clock, compact=True)
+    from hil.cli.cmd_run import build_controller, wrap_robot  # the controller `hil run` builds
+
+    limits = setup.safety.motion_limits()
+    devices = wrap_robot(build_devices(setup, clock),
+                         lambda robot: RecordingRobot(robot, limits, clock, compact=True))
+    recorder = devices.robot
+    assert isinstance(recorder, RecordingRobot)
     session = SessionLog(
         session_dir / f"soak_{time.strftime('%Y%m%dT%H%M%S')}_{os.getpid()}.jsonl",
         clock,
@@ -199,41 +205,14 @@ def run_soak(
 
     soak_s = minutes * 60.0
     operator = SoakOperator(soak_s, give_up_s=120.0, sample=sample)
-    from hil.cli.cmd_run import _calibration, _rig
-
-    world = devices.world
-    devices.camera.open()
-    recorder.open()
-    if devices.tracker is not None:
-        devices.tracker.open()
+    devices.open_all()
     say(f"soak: {minutes:g} min of compensation at {rate_hz:g} Hz (real time)")
     try:
-        ctl = Controller(
-            camera=devices.camera,
-            robot=recorder,
-            tracker=devices.tracker,
-            clock=clock,
-            locate=StereoMarkerLocator(_calibration(setup, devices.camera)),
-            plan=procedure_plan,
-            rig=_rig(setup),
-            procedure=setup.procedure,
-            limits=sf.motion_limits(),
-            watchdog_ages_s={
-                "camera": sf.camera_frame_max_age_ms / 1e3,
-                "robot": sf.robot_state_max_age_ms / 1e3,
-                "tracker": sf.tracker_max_age_ms / 1e3,
-            },
-            session=session,
-            operator=operator,
-            coach=world if isinstance(world, BreathHoldCoach) else None,
-            truth=world if isinstance(world, GroundTruth) else None,
-        )
+        ctl = build_controller(setup, procedure_plan, devices, clock=clock, session=session,
+                               operator=operator)
         summary = ctl.run()
     finally:
-        recorder.close()
-        devices.camera.close()
-        if devices.tracker is not None:
-            devices.tracker.close()
+        devices.close_all()
     session.close(final_state=summary.final_state)
     return analyse(
         rate_hz,
@@ -291,6 +270,7 @@ def analyse(
     res.missed_deadlines = int(missed.size)
     res.missed_fraction = round(float(missed.size) / max(iv.size, 1), 5)
     res.longest_gap_ms = round(float(iv.max()), 3) if iv.size else None
+    res.stream_deadlines_missed = ctl.servo_deadlines_missed
     res.frame_to_command_ms = _stats([float(x) for x in ctl.latency_ms])
     if rss:
         t0 = operator.t_comp or rss[0][0]

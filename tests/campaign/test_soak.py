@@ -32,7 +32,7 @@ def test_analyse_on_a_known_stream() -> None:
     # then 8 ms again; a 2 s pause (not compensating) is not counted as an interval
     times = [0, 8, 16, 24, 33, 73, 81, 2081, 2089]
     rec = SimpleNamespace(servo_t_ns=[_servo(t).t_ns for t in times], recording=Recording())
-    ctl = SimpleNamespace(frame_period_s=1 / 15, latency_ms=[30.0, 40.0, 50.0])
+    ctl = SimpleNamespace(frame_period_s=1 / 15, latency_ms=[30.0, 40.0, 50.0], servo_deadlines_missed=2)
     op = SoakOperator(60.0, 60.0, lambda: None)
     rss = [(0.0, 100.0), (10.0, 100.5), (20.0, 101.0), (30.0, 101.0), (40.0, 101.5)]
     op.t_comp = 0.0
@@ -41,6 +41,7 @@ def test_analyse_on_a_known_stream() -> None:
     assert res.limit_violations == 0
     assert res.intervals == 7  # the 2000 ms pause is dropped
     assert res.missed_deadlines == 1  # the 40 ms gap
+    assert res.stream_deadlines_missed == 2  # the controller's own count, reported as is
     assert res.longest_gap_ms == 40.0
     assert res.period_ms == {"p50": 8.0, "p99": 8.95, "max": 9.0}
     assert res.jitter_ms["max"] == 1.0

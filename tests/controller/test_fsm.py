@@ -173,3 +173,55 @@ def test_docs_states_md_is_current(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["states", "--format", "markdown"]) == 0
     with open("docs/states.md", encoding="utf-8") as fh:
         assert fh.read() == capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ recovery never skips a confirmation
+@pytest.mark.parametrize("stop", [Event.FAULT_DETECTED, Event.ABORT_REQUESTED])
+def test_recovery_re_asks_a_confirmation_that_was_never_given(stop: Event) -> None:
+    """Bug: a protective stop while plan_to_approach waited for its confirmation, then RESUME went
+    FAULT -> APPROACH and the robot moved unconfirmed. The recovery must wait for a confirmation."""
+    fsm = _fsm_in(State.PLAN, confirm=("plan_to_approach",))
+    assert fsm.fire(Event.PLAN_ACCEPTED).kind == "pending"
+    fsm.fire(stop, reason="robot: protective_stop")
+    assert fsm.pending is None
+    stopped = fsm.state
+    res = fsm.fire(Event.RESUME_REQUESTED, guards={"has_plan": True})
+    assert (res.kind, fsm.state, res.target) == ("pending", stopped, State.APPROACH)
+    assert "plan_to_approach" in res.reason
+    assert fsm.pending is not None
+    res = fsm.fire(Event.CONFIRM_REQUESTED)
+    assert (res.kind, fsm.state) == ("transition", State.APPROACH)
+    assert res.transition_name in ("recover", "resume")
+
+
+def test_recovery_after_a_given_confirmation_applies_at_once() -> None:
+    fsm = _fsm_in(State.PLAN, confirm=("plan_to_approach",))
+    fsm.fire(Event.PLAN_ACCEPTED)
+    fsm.fire(Event.CONFIRM_REQUESTED)
+    fsm.fire(Event.FAULT_DETECTED, reason="robot: protective_stop")
+    res = fsm.fire(Event.RESUME_REQUESTED, guards={"has_plan": True})
+    assert (res.kind, fsm.state, res.transition_name) == ("transition", State.APPROACH, "recover")
+
+
+def test_a_new_plan_needs_a_new_confirmation_before_recovery() -> None:
+    fsm = _fsm_in(State.PLAN, confirm=("plan_to_approach",))
+    fsm.fire(Event.PLAN_ACCEPTED)
+    fsm.fire(Event.CONFIRM_REQUESTED)
+    fsm.fire(Event.PAUSE_REQUESTED)
+    for ev in (Event.START_REQUESTED, Event.REGISTERED):  # re-register: a new plan is made
+        assert fsm.fire(ev).kind == "transition"
+    assert fsm.fire(Event.PLAN_ACCEPTED).kind == "pending"
+    fsm.fire(Event.FAULT_DETECTED, reason="robot: protective_stop")
+    assert fsm.fire(Event.RESUME_REQUESTED, guards={"has_plan": True}).kind == "pending"
+    assert fsm.state is State.FAULT
+
+
+def test_a_fault_cancels_a_pending_recovery() -> None:
+    fsm = _fsm_in(State.PLAN, confirm=("plan_to_approach",))
+    fsm.fire(Event.PLAN_ACCEPTED)
+    fsm.fire(Event.FAULT_DETECTED, reason="robot: protective_stop")
+    fsm.fire(Event.RESUME_REQUESTED, guards={"has_plan": True})
+    fsm.fire(Event.FAULT_DETECTED, reason="watchdog: camera")
+    assert fsm.pending is None
+    assert fsm.fire(Event.CONFIRM_REQUESTED).kind == "rejected"
+    assert fsm.state is State.FAULT

@@ -236,3 +236,60 @@ def test_an_internal_error_in_a_tick_becomes_a_fault(tmp_path: Path) -> None:
         dev.close_all()
     assert s.final_state == "fault"
     assert s.faults == ["internal error: ValueError: boom"]
+
+
+class _StopWhileAskedOperator:
+    """Starts; never confirms plan_to_approach by itself; once the robot has faulted (protective
+    stop while the confirmation was pending) asks to RESUME, and confirms only after ``hold_s``."""
+
+    def __init__(self, hold_s: float) -> None:
+        self.hold_s = hold_s
+        self.started = False
+        self.resumed_at: float | None = None
+        self.confirmed = False
+        self.pendings: list[tuple[str, str | None]] = []
+
+    def poll(self, view: Any) -> Any:
+        from hil.controller.fsm import Event, State
+
+        self.pendings.append((view.state.value, view.pending))
+        if not self.started:
+            self.started = True
+            return Event.START_REQUESTED
+        if view.state is State.FAULT and self.resumed_at is None and view.t_s > 4.0:
+            self.resumed_at = view.t_s
+            return Event.RESUME_REQUESTED
+        if (self.resumed_at is not None and view.pending is not None and not self.confirmed
+                and view.t_s > self.resumed_at + self.hold_s):
+            self.confirmed = True
+            return Event.CONFIRM_REQUESTED
+        return None
+
+    def finished(self, view: Any) -> bool:
+        from hil.controller.fsm import State
+
+        return view.state is State.APPROACH and self.confirmed
+
+
+def test_recovery_does_not_skip_the_pending_approach_confirmation(tmp_path: Path) -> None:
+    """Regression: a protective stop while plan_to_approach waits for its confirmation, then RESUME:
+    the robot must not move until the operator has confirmed."""
+    from hil.cli.cmd_run import run_procedure
+
+    setup = _setup(faults=(FaultSpec(kind=FaultKind.PROTECTIVE_STOP, start_s=3.0, duration_s=0.5),))
+    op = _StopWhileAskedOperator(hold_s=0.5)
+    s = run_procedure(CONFIG, setup, PLAN, auto=False, session_dir=tmp_path, max_duration_s=15.0, operator=op)
+    assert s.states == ["idle", "register", "plan", "fault", "approach"]
+    recs = list(read_session_log(s.session_log))
+    i_resume = next(i for i, r in enumerate(recs) if r["event"] == "operator_command"
+                    and r["input"] == "resume_requested")
+    i_confirm = next(i for i, r in enumerate(recs) if r["event"] == "operator_command"
+                     and r["input"] == "confirm_requested")
+    assert i_resume < i_confirm
+    between = recs[i_resume:i_confirm]
+    assert not [r for r in between if r["event"] == "command_sent" and r["command"] != "stop"]
+    assert any(r["event"] == "transition_pending" and r["target"] == "approach" for r in between)
+    first_move = next(r for r in recs[i_confirm:] if r["event"] == "command_sent")
+    assert first_move["command"] == "move_linear"
+    fault_row = next(r for r in s.timeline if r["state"] == "fault")
+    assert "protective_stop" in fault_row["reason"]

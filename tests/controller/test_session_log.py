@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -12,6 +13,7 @@ from hil.clock import ManualClock
 from hil.errors import InputFileError
 from hil.geometry.transform import RigidTransform
 from hil.session import GENESIS_SHA256, SessionLog, SessionLogError, read_session_log, verify_session_log
+from hil.session.log import head_path
 
 
 def _write(path: Path, n: int = 5) -> Path:
@@ -97,9 +99,66 @@ def test_garbage_line_is_reported(tmp_path: Path) -> None:
     with open(p, "a", encoding="utf-8") as fh:
         fh.write("{not json\n")
     rep = verify_session_log(p)
-    assert (rep.ok, rep.first_bad_line, rep.reason) == (False, 8, "not JSON")
+    assert (rep.ok, rep.first_bad_line) == (False, 8)
+    assert rep.reason.startswith("not JSON (")
     with pytest.raises(InputFileError, match="line 8: not JSON"):
         list(read_session_log(p))
+
+
+@pytest.mark.parametrize(("bad", "why"), [(b"\xfb\xff{}\n", "not UTF-8"),
+                                          (b"[" * 100_000 + b"\n", "nested too deeply"),
+                                          (b"1" * 5000 + b"\n", "unusable JSON")])
+def test_hostile_lines_are_reported_with_the_line(tmp_path: Path, bad: bytes, why: str) -> None:
+    p = _write(tmp_path / "s.jsonl")
+    with open(p, "ab") as fh:
+        fh.write(bad)
+    rep = verify_session_log(p)
+    assert (rep.ok, rep.first_bad_line) == (False, 8)
+    assert why in rep.reason
+    with pytest.raises(InputFileError, match=f"line 8: .*{why}"):
+        list(read_session_log(p))
+
+
+def test_close_publishes_the_chain_head(tmp_path: Path) -> None:
+    p = tmp_path / "s.jsonl"
+    with SessionLog(p, ManualClock()) as log:
+        log.write("x", a=1)
+    side = json.loads(head_path(p).read_text())
+    last = p.read_bytes().split(b"\n")[-2]
+    assert side == {"format": "hil-session-head", "session_id": log.session_id, "records": 3,
+                    "head_sha256": hashlib.sha256(last).hexdigest()}
+    assert log.head_sha256 == side["head_sha256"]
+    rep = verify_session_log(p)
+    assert (rep.ok, rep.closed, rep.head) == (True, True, "matched")
+    assert verify_session_log(p, expected_head_sha256="0" * 64).ok is False
+
+
+def test_an_edited_last_line_breaks_the_published_head(tmp_path: Path) -> None:
+    p = _write(tmp_path / "s.jsonl")
+    head = verify_session_log(p)
+    assert head.head == "matched"
+    p.write_bytes(p.read_bytes().replace(b'"session_closed"', b'"session_closed","extra":1'))
+    rep = verify_session_log(p)
+    assert (rep.ok, rep.first_bad_line, rep.head) == (False, 7, "mismatch")
+    assert "published chain head" in rep.reason
+
+
+def test_a_cut_off_end_with_a_published_head_says_how_many_records_are_missing(tmp_path: Path) -> None:
+    p = _write(tmp_path / "s.jsonl")
+    lines = _lines(p)[:-2]
+    p.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    rep = verify_session_log(p)
+    assert (rep.ok, rep.closed, rep.head) == (True, False, "mismatch")
+    assert "names 7 records, 5 found" in rep.reason
+
+
+@pytest.mark.parametrize("text", ["garbage", '{"format": "hil-session-head"}'])
+def test_an_unusable_sidecar_fails_verification(tmp_path: Path, text: str) -> None:
+    p = _write(tmp_path / "s.jsonl")
+    head_path(p).write_text(text)
+    rep = verify_session_log(p)
+    assert (rep.ok, rep.head) == (False, "mismatch")
+    assert "sidecar s.jsonl.head unusable" in rep.reason
 
 
 def test_reserved_keys_and_writes_after_close_are_refused(tmp_path: Path) -> None:

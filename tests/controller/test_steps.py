@@ -332,3 +332,15 @@ def test_default_procedure_config_is_consistent() -> None:
         ProcedureConfig.model_validate({"lock": {"tolerance_mm": 3.0, "drift_alarm_mm": 2.0}})
     with pytest.raises(ValueError, match="Extra inputs"):
         ProcedureConfig.model_validate({"bogus": 1})
+
+
+@pytest.mark.parametrize(("doc", "where"), [
+    ({"max_duration_s": float("inf")}, "max_duration_s"),
+    ({"gate": {"timeout_s": float("inf")}}, "gate.timeout_s"),
+    ({"compensation": {"max_correction_mm": float("nan")}}, "compensation.max_correction_mm"),
+])
+def test_infinite_or_nan_procedure_values_are_refused(doc: dict[str, Any], where: str) -> None:
+    """``max_duration_s = inf`` would never end a run; NaN compares false with every bound."""
+    with pytest.raises(ValueError, match="finite number") as ei:
+        ProcedureConfig.model_validate(doc)
+    assert where in str(ei.value)

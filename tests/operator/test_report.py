@@ -128,7 +128,7 @@ def test_tampered_log_reports_broken_line_and_exit_1(
     # the line after the changed one no longer links to it
     assert out["chain"] == {"valid": False, "records": n + 1, "first_bad_line": n + 2,
                             "reason": "hash chain broken (a line was changed, inserted or removed)",
-                            "closed": False, "session_id": out["chain"]["session_id"]}
+                            "closed": False, "session_id": out["chain"]["session_id"], "head": "absent"}
     page = (tmp_path / "r" / "report.html").read_text()
     assert f"broken at line {n + 2}" in page
     assert 'data-valid="false"' in page
@@ -142,6 +142,7 @@ def test_cli_valid_log_json_and_progress(tmp_path: Path, capsys: pytest.CaptureF
     assert code == 0
     assert out["report"] == str(tmp_path / "s_report" / "report.html")
     assert out["chain"]["valid"] is True
+    assert out["chain"]["head"] == "matched"  # the writer published the chain head on close
     assert out["numbers"]["fre_mm"] == FRE_MM
     assert out["plots"] == dict.fromkeys(PLOT_KEYS, "ok")
     assert "hil report: plot 5/5: speed" in cap.err
