@@ -1,9 +1,16 @@
 """The procedure plan: CT fiducials, skin entry and target, all in the image (CT) frame, mm.
 
-File format (``configs/plans/*.json``)::
+Two ways to write a plan:
+
+1. The project's own JSON (``configs/plans/*.json``)::
 
     {"format": "hil-plan", "version": 1, "frame": "image", "units": "mm",
      "fiducials_mm": [[x, y, z], ...], "entry_mm": [x, y, z], "target_mm": [x, y, z]}
+
+2. A labelled point list, as planning software writes it: a 3D Slicer markups file
+   (``.mrk.json``, ``.fcsv``) or a CSV/JSON point file read by :func:`hil.io.read_points`, with one
+   point labelled ``entry`` and one labelled ``target`` (case-insensitive); every other point is
+   a CT fiducial, in file order. Slicer files are read in LPS (the DICOM patient frame of the CT).
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ from numpy.typing import NDArray
 
 from hil.errors import GeometryError, InputFileError
 from hil.geometry.transform import as_points
+from hil.io.points import PointSet, read_points
 
 FloatArray = NDArray[np.float64]
 
@@ -83,13 +91,62 @@ def plan_from_dict(doc: Any, source: str = "<memory>") -> ProcedurePlan:
         raise InputFileError(source, str(exc)) from None
 
 
+def plan_from_points(points: PointSet, source: str) -> ProcedurePlan:
+    """A plan from labelled points: ``entry`` and ``target`` by label, the rest fiducials.
+
+    Raises:
+        InputFileError: no (or more than one) point labelled entry / target, < 3 fiducials.
+    """
+    roles: dict[str, list[int]] = {"entry": [], "target": []}
+    fiducial_rows: list[int] = []
+    for i, label in enumerate(points.labels):
+        key = label.strip().lower()
+        if key in roles:
+            roles[key].append(i)
+        else:
+            fiducial_rows.append(i)
+    for role, rows in roles.items():
+        if len(rows) != 1:
+            found = "none" if not rows else f"{len(rows)} (points {', '.join(str(r + 1) for r in rows)})"
+            raise InputFileError(
+                source, f"a plan needs exactly one point labelled {role!r}; found {found}"
+            )
+    if len(fiducial_rows) < 3:
+        raise InputFileError(
+            source, f"a plan needs >= 3 fiducials besides entry and target; found {len(fiducial_rows)}"
+        )
+    pts = points.points_mm
+    try:
+        return ProcedurePlan(
+            pts[fiducial_rows], pts[roles["entry"][0]], pts[roles["target"][0]], source
+        )
+    except GeometryError as exc:
+        raise InputFileError(source, str(exc)) from None
+
+
+def _is_hil_plan_json(path: Path, text: str) -> bool:
+    if path.name.lower().endswith(".mrk.json") or path.suffix.lower() != ".json":
+        return False
+    return any(key in text for key in ('"hil-plan"', '"fiducials_mm"', '"format"'))
+
+
 def load_plan(path: str | Path) -> ProcedurePlan:
-    """Read a plan file.
+    """Read a plan file: the project's ``hil-plan`` JSON, or labelled points (module doc).
 
     Raises:
         InputFileError: unreadable, not JSON (also hostile JSON: nested too deeply, huge
             integer literals), or invalid (naming the field).
     """
+    p = Path(path)
+    if p.suffix.lower() in (".fcsv", ".csv") or p.name.lower().endswith(".mrk.json"):
+        return plan_from_points(read_points(p), str(path))
+    if p.suffix.lower() == ".json" and p.is_file():
+        try:
+            head = p.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise InputFileError(str(path), f"cannot read plan: {exc}") from None
+        if not _is_hil_plan_json(p, head):
+            return plan_from_points(read_points(p), str(path))
     try:
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
