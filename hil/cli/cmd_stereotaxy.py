@@ -30,7 +30,14 @@ from typing import Any
 import numpy as np
 
 from hil.errors import DegenerateConfigurationError, GeometryError, InputFileError
-from hil.geometry.stereotaxy import error_box_mm, load_frame, load_spots, register_single_slice
+from hil.geometry.stereotaxy import (
+    error_box_mm,
+    load_frame,
+    load_spots,
+    register_single_slice,
+    robot_from_image_via_frame,
+)
+from hil.geometry.transform import RigidTransform
 from hil.log import get_logger
 
 _log = get_logger(__name__)
@@ -102,7 +109,26 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--spot-error-px", type=_nonneg, default=0.25, metavar="PX", help="spot error for the --target box"
     )
+    p.add_argument(
+        "--robot-tcp-pose", type=_pose6, metavar="X,Y,Z,RX,RY,RZ",
+        help="robot TCP pose when the slice was taken (mm, rotation vector in rad): also print "
+        "T_robot_from_image, the image->robot registration through the frame the robot carries",
+    )
+    p.add_argument(
+        "--tcp-from-frame", type=_pose6, metavar="X,Y,Z,RX,RY,RZ",
+        help="the frame's mounting on the tool, T_tcp_from_frame (mm, rad; default: identity)",
+    )
     p.set_defaults(func=run)
+
+
+def _pose6(text: str) -> tuple[float, ...]:
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected six numbers X,Y,Z,RX,RY,RZ, got {text!r}") from None
+    if len(vals) != 6 or not all(math.isfinite(v) for v in vals):
+        raise argparse.ArgumentTypeError(f"expected six finite numbers X,Y,Z,RX,RY,RZ, got {text!r}")
+    return vals
 
 
 def _r(x: float) -> float | None:
@@ -193,6 +219,14 @@ def run(args: argparse.Namespace) -> int:
         out["target_scanner_mm"] = _rl(T.apply(np.asarray(args.target, dtype=np.float64)))
         out["target_error_box_mm"] = _rl(box)
         out["spot_error_px"] = _r(args.spot_error_px)
+    if args.tcp_from_frame is not None and args.robot_tcp_pose is None:
+        raise InputFileError(args.spots, "--tcp-from-frame needs --robot-tcp-pose")
+    if args.robot_tcp_pose is not None:
+        T_robot_from_tcp = RigidTransform.from_rotvec(args.robot_tcp_pose[3:], args.robot_tcp_pose[:3])
+        mount = args.tcp_from_frame or (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        T_tcp_from_frame = RigidTransform.from_rotvec(mount[3:], mount[:3])
+        T_robot_from_image = robot_from_image_via_frame(T, T_robot_from_tcp, T_tcp_from_frame)
+        out["T_robot_from_image"] = T_robot_from_image.as_matrix().tolist()
     _log.info("stereotaxy_registered", n_spots=len(rods), rms_mm=res.rms_mm, method=res.method)
     print(json.dumps(out, indent=2))
     return 0

@@ -430,6 +430,25 @@ def register_single_slice(
 
 
 # ---------------------------------------------------------------------- prediction and error box
+
+def robot_from_image_via_frame(
+    T_scanner_from_frame: RigidTransform,
+    T_robot_from_tcp: RigidTransform,
+    T_tcp_from_frame: RigidTransform,
+) -> RigidTransform:
+    """Image -> robot registration through a rod frame the robot carries during the scan.
+
+    The CT-Bot route of seed 004 (section IV and its introduction): the robot holds the
+    stereotactic frame in the scanner, one slice gives ``T_scanner_from_frame``
+    (:func:`register_single_slice`), the robot's own kinematics give the tool pose
+    ``T_robot_from_tcp`` at scan time, and the frame's mounting on the tool is
+    ``T_tcp_from_frame`` (a mechanical calibration). The image (CT) frame is the scanner frame, so
+    ``T_robot_from_image = T_robot_from_tcp @ T_tcp_from_frame @ T_frame_from_scanner`` — no skin
+    markers and no camera in the chain. All mm.
+    """
+    return T_robot_from_tcp @ T_tcp_from_frame @ T_scanner_from_frame.inverse()
+
+
 @dataclass(frozen=True)
 class PredictedSpot:
     """Where a rod crosses a slice (pixels) and whether that point is on the physical rod (eq 34)."""

@@ -21,6 +21,7 @@ from hil.geometry.stereotaxy import (
     load_spots,
     predict_spots,
     register_single_slice,
+    robot_from_image_via_frame,
 )
 from hil.geometry.transform import RigidTransform
 
@@ -371,3 +372,37 @@ def _assert_same_json(a: object, b: object, where: str) -> None:
         assert abs(a - b) <= 1e-9 * max(1.0, abs(b)), (where, a, b)
     else:
         assert a == b, where
+
+
+def test_robot_from_image_through_the_carried_frame(capsys: pytest.CaptureFixture[str]) -> None:
+    """The CT-Bot route: a frame point lands where the robot's kinematics put it."""
+    truth_doc = json.loads((EXAMPLE / "truth.json").read_text())
+    truth = RigidTransform.from_matrix(truth_doc["T_scanner_from_frame"])
+    pose = (250.0, -120.0, 310.0, 0.3, -2.9, 0.4)
+    mount = (5.0, -3.0, 42.0, 0.0, 0.0, 1.5707963267948966)
+    code = main([
+        "stereotaxy", str(EXAMPLE / "spots.json"), "--frame", str(EXAMPLE / "frame.json"), "--refine",
+        "--robot-tcp-pose", ",".join(map(str, pose)), "--tcp-from-frame", ",".join(map(str, mount)),
+    ])
+    assert code == 0
+    T_robot_from_image = RigidTransform.from_matrix(json.loads(capsys.readouterr().out)["T_robot_from_image"])
+    T_robot_from_frame = RigidTransform.from_rotvec(pose[3:], pose[:3]) @ RigidTransform.from_rotvec(
+        mount[3:], mount[:3]
+    )
+    for p_frame in ([0.0, 0.0, 0.0], [40.0, 40.0, 40.0], [0.0, -118.29, 0.0]):
+        p_image = truth.apply(np.asarray(p_frame))
+        p_robot = T_robot_from_frame.apply(np.asarray(p_frame))
+        err = np.linalg.norm(T_robot_from_image.apply(p_image) - p_robot)
+        assert err < 0.5, (p_frame, err)  # the example's 0.25 px spot noise; exact data is checked below
+    exact = robot_from_image_via_frame(truth, RigidTransform.from_rotvec(pose[3:], pose[:3]),
+                                       RigidTransform.from_rotvec(mount[3:], mount[:3]))
+    assert (exact @ truth).is_close(T_robot_from_frame, atol_mm=1e-9, atol_rad=1e-12)
+
+
+def test_tcp_from_frame_without_robot_pose_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    code = main([
+        "stereotaxy", str(EXAMPLE / "spots.json"), "--frame", str(EXAMPLE / "frame.json"),
+        "--tcp-from-frame", "0,0,0,0,0,0",
+    ])
+    assert code == 2
+    assert "--tcp-from-frame needs --robot-tcp-pose" in capsys.readouterr().err
