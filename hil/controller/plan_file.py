@@ -124,12 +124,6 @@ def plan_from_points(points: PointSet, source: str) -> ProcedurePlan:
         raise InputFileError(source, str(exc)) from None
 
 
-def _is_hil_plan_json(path: Path, text: str) -> bool:
-    if path.name.lower().endswith(".mrk.json") or path.suffix.lower() != ".json":
-        return False
-    return any(key in text for key in ('"hil-plan"', '"fiducials_mm"', '"format"'))
-
-
 def load_plan(path: str | Path) -> ProcedurePlan:
     """Read a plan file: the project's ``hil-plan`` JSON, or labelled points (module doc).
 
@@ -140,15 +134,8 @@ def load_plan(path: str | Path) -> ProcedurePlan:
     p = Path(path)
     if p.suffix.lower() in (".fcsv", ".csv") or p.name.lower().endswith(".mrk.json"):
         return plan_from_points(read_points(p), str(path))
-    if p.suffix.lower() == ".json" and p.is_file():
-        try:
-            head = p.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise InputFileError(str(path), f"cannot read plan: {exc}") from None
-        if not _is_hil_plan_json(p, head):
-            return plan_from_points(read_points(p), str(path))
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputFileError(str(path), f"cannot read plan: {exc}") from None
     try:
@@ -159,4 +146,8 @@ def load_plan(path: str | Path) -> ProcedurePlan:
         raise InputFileError(str(path), f"unusable JSON: {exc}") from None
     except RecursionError:
         raise InputFileError(str(path), "unusable JSON: nested too deeply") from None
+    if isinstance(doc, dict) and not ({"format", "fiducials_mm"} & doc.keys()):
+        return plan_from_points(read_points(p), str(path))  # {"points": [...]} with labels
+    if isinstance(doc, list):
+        return plan_from_points(read_points(p), str(path))  # a labelled point list
     return plan_from_dict(doc, str(path))

@@ -73,3 +73,14 @@ def test_a_hil_plan_json_without_format_still_says_so(tmp_path: Path) -> None:
     f.write_text('{"fiducials_mm": [[0,0,0],[1,0,0],[0,1,0]], "entry_mm": [0,0,0], "target_mm": [0,0,9]}')
     with pytest.raises(InputFileError, match="format: expected 'hil-plan'"):
         load_plan(f)
+
+
+def test_labelled_json_point_list_is_a_plan(tmp_path: Path) -> None:
+    f = tmp_path / "plan.json"
+    pts = [{"label": "a", "x": 0, "y": 0, "z": 0}, {"label": "b", "x": 50, "y": 0, "z": 0},
+           {"label": "c", "x": 0, "y": 60, "z": 0}, {"label": "entry", "x": 1, "y": 2, "z": 0},
+           {"label": "target", "x": 1, "y": 2, "z": -80}]
+    f.write_text(json.dumps({"points": pts}))
+    plan = load_plan(f)
+    assert plan.fiducials_mm.shape == (3, 3)
+    np.testing.assert_array_equal(plan.target_mm, [1, 2, -80])
