@@ -20,7 +20,7 @@ from hil.config.build import Devices, clock_for
 from hil.config.setup import SetupConfig
 from hil.console.operator import ConsoleOperator
 from hil.console.runner import ControllerRunner
-from hil.controller.perception import StereoMarkerLocator
+from hil.controller.perception import StereoMarkerLocator, StereoNeedleChecker
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.controller.planning import RigGeometry
 from hil.controller.procedure import Controller
@@ -168,6 +168,8 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
         session=session, operator=operator,
         coach=world if isinstance(world, BreathHoldCoach) else None,
         truth=world if isinstance(world, GroundTruth) else None,
+        needle_check=None if (nc := setup.procedure.lock.needle_check) is None
+        else StereoNeedleChecker(_calibration(setup, devices.camera), nc.radius_mm),
     )
     runner = ControllerRunner(ctl, operator, pace=isinstance(clk, ManualClock) and not fast, igtl=igtl,
                               session_log=str(session.path))
