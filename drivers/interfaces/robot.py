@@ -193,6 +193,8 @@ class Robot(Device):
         s = self._state_now()
         if s.safety is not SafetyStatus.NORMAL:
             raise SafetyStopError(self.name, f"arm is in {s.safety}; motion refused")
+        if s.mode is RobotMode.STOPPED:
+            raise SafetyStopError(self.name, "arm program is not running (mode stopped); motion refused")
 
     # ------------------------------------------------------------ driver implementation
     @property

@@ -17,15 +17,16 @@ from .runner import RunResult, RunSpec, run_one
 Progress = Callable[[str], None]
 
 
-def _worker(spec_dict: dict[str, Any], result_path: str) -> None:
+def _worker(spec_dict: dict[str, Any], result_path: str, run: Callable[[Any], RunResult] = run_one,
+            spec_type: type[Any] = RunSpec) -> None:
     """Child process: run one spec, write its result as JSON (a crash of the runner itself is
     written as a failed result with the traceback)."""
     from hil.log import configure_logging
 
     configure_logging(level="error")  # children stay quiet (stderr); the parent reports progress
-    spec = RunSpec(**spec_dict)
+    spec = spec_type(**spec_dict)
     try:
-        out = run_one(spec).to_dict()
+        out = run(spec).to_dict()
     except BaseException as exc:  # noqa: BLE001 - any escape is a campaign finding, not a crash of ours
         out = RunResult(
             spec.run_id,
@@ -42,9 +43,12 @@ def _worker(spec_dict: dict[str, Any], result_path: str) -> None:
 
 
 def run_parallel(
-    specs: list[RunSpec], *, jobs: int, timeout_s: float, work_dir: Path, progress: Progress | None = None
+    specs: list[Any], *, jobs: int, timeout_s: float, work_dir: Path, progress: Progress | None = None,
+    run: Callable[[Any], RunResult] = run_one,
 ) -> list[dict[str, Any]]:
     """Run ``specs`` on ``jobs`` processes; returns their result dicts in the order of ``specs``.
+    ``run`` (a module-level function, it crosses to the spawned process) runs one spec
+    (a dataclass with ``run_id``, ``scenario``, ``kind``, ``state``, ``seed``).
 
     Blocking; at most ``timeout_s`` wall seconds per run.
     """
@@ -52,14 +56,16 @@ def run_parallel(
     ctx = mp.get_context("spawn")
     work_dir.mkdir(parents=True, exist_ok=True)
     pending = list(enumerate(specs))
-    running: dict[int, tuple[Any, float, Path, RunSpec]] = {}
+    running: dict[int, tuple[Any, float, Path, Any]] = {}
     results: dict[int, dict[str, Any]] = {}
     while pending or running:
         while pending and len(running) < max(1, jobs):
             i, spec = pending.pop(0)
             path = work_dir / f"{spec.run_id}.result.json"
             path.unlink(missing_ok=True)
-            proc = ctx.Process(target=_worker, args=(asdict(spec), str(path)), name=spec.run_id, daemon=True)
+            proc = ctx.Process(
+                target=_worker, args=(asdict(spec), str(path), run, type(spec)), name=spec.run_id, daemon=True
+            )
             proc.start()
             running[i] = (proc, time.monotonic(), path, spec)
         for i, (proc, t0, path, spec) in list(running.items()):

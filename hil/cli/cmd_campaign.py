@@ -8,6 +8,12 @@ or with ``--json`` one object (``runs``, ``passed``, ``failed``, ``worst_safe_la
 ``failing`` with replay commands, ``results``). Stderr: progress. Files: ``DIR/campaign.json``,
 ``DIR/campaign.html`` and the session logs of failing runs in ``DIR/logs``. Exit code 0 when
 every run passed, 1 otherwise.
+
+``--transport``: the transport tier instead (:mod:`hil.campaign.transport`): faults sent through
+the emulators' fault channels to the REAL drivers (``ur_rtde`` on ``tools/ursim``, ``fob`` on
+``tools/trackersim``), serially and in real time; SCENARIOS are transport scenario names
+(``rtde_protective_stop@compensate``, ``serial_*``, ...); files ``DIR/transport.json`` and
+``DIR/transport.html``.
 """
 
 from __future__ import annotations
@@ -57,7 +63,11 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--config", help="simulated setup TOML (default: the embedded configs/sim.toml)")
     p.add_argument("--plan", help="plan JSON (default: plans/<config name>_plan.json next to the config)")
     p.add_argument("--keep-logs", action="store_true", help="keep the session logs of passing runs too")
-    p.add_argument("--timeout", type=float, default=300.0, help="wall-time bound of one run, s (default 300)")
+    p.add_argument("--timeout", type=float, default=None,
+                   help="wall-time bound of one run, s (default 300; 150 with --transport)")
+    p.add_argument("--transport", action="store_true",
+                   help="run the transport tier: faults through the emulators to the real drivers, "
+                        "serially in real time (SCENARIOS: transport scenario names; --jobs ignored)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.set_defaults(func=run)
 
@@ -68,7 +78,6 @@ def run(args: argparse.Namespace) -> int:
     from hil.campaign.scenarios import select
     from hil.config import default_setup_path
 
-    scenarios = select(list(args.scenarios))
     if args.seed_list:
         seeds = sorted(set(args.seed_list))
     else:
@@ -79,11 +88,17 @@ def run(args: argparse.Namespace) -> int:
         raise InputFileError("--seed", f"must be >= 0, got {min(seeds)}")
     if args.jobs < 1:
         raise InputFileError("--jobs", f"must be >= 1, got {args.jobs}")
-    config = Path(args.config) if args.config else default_setup_path()
+    if args.timeout is not None and args.timeout <= 0:
+        raise InputFileError("--timeout", f"must be > 0, got {args.timeout}")
     out = Path(args.out)
 
     def progress(msg: str) -> None:
         print(f"hil campaign: {msg}", file=sys.stderr, flush=True)
+
+    if args.transport:
+        return _run_transport(args, seeds, out, progress)
+    scenarios = select(list(args.scenarios))
+    config = Path(args.config) if args.config else default_setup_path()
 
     progress(f"{len(scenarios)} scenario(s) x {len(seeds)} seed(s) on {config}")
     summary = run_campaign(
@@ -94,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         jobs=args.jobs,
         out_dir=out,
         keep_logs=args.keep_logs,
-        timeout_s=args.timeout,
+        timeout_s=args.timeout if args.timeout is not None else 300.0,
         progress=progress,
     )
     if args.json:
@@ -111,4 +126,36 @@ def run(args: argparse.Namespace) -> int:
                 f"     replay: {f['replay']}\n"
             )
         sys.stdout.write(f"wrote {out / 'campaign.json'} and {out / 'campaign.html'}\n")
+    return 0 if summary["failed"] == 0 else 1
+
+
+def _run_transport(args: argparse.Namespace, seeds: list[int], out: Path, progress: Any) -> int:
+    from hil.campaign.transport import (
+        TRANSPORT_TIMEOUT_S,
+        run_transport_campaign,
+        select_transport,
+        transport_table,
+    )
+
+    if args.config or args.plan:
+        raise InputFileError("--config/--plan", "do not apply to --transport (each run writes its own setup)")
+    scenarios = select_transport(list(args.scenarios))
+    progress(f"transport tier: {len(scenarios)} scenario(s) x {len(seeds)} seed(s), serial, real time")
+    summary = run_transport_campaign(
+        scenarios, seeds, out_dir=out, keep_logs=args.keep_logs,
+        timeout_s=args.timeout if args.timeout is not None else TRANSPORT_TIMEOUT_S, progress=progress)
+    if args.json:
+        sys.stdout.write(json.dumps(summary, default=str) + "\n")
+    else:
+        sys.stdout.write(transport_table(summary["results"]))
+        sys.stdout.write(
+            f"{summary['runs']} runs: {summary['passed']} passed, {summary['failed']} failed; "
+            f"worst safe-state latency {summary['worst_safe_latency_ms']} ms\n"
+        )
+        for f in summary["failing"]:
+            sys.stdout.write(
+                f"FAIL {f['scenario']} seed {f['seed']}: {'; '.join(f['reasons'])}\n"
+                f"     replay: {f['replay']}\n"
+            )
+        sys.stdout.write(f"wrote {out / 'transport.json'} and {out / 'transport.html'}\n")
     return 0 if summary["failed"] == 0 else 1

@@ -80,6 +80,8 @@ NeedleAxisChecker = Callable[[StereoFrame, FloatArray, FloatArray, FloatArray, F
 _TRACK_TOL_MM = 6.0
 _STILL_WINDOW_S = 0.3
 _STILL_MM = 0.25
+# States in which the arm must be able to execute commands (or hold under control).
+_ROBOT_COMMANDED_STATES = frozenset({State.APPROACH, State.GATE, State.COMPENSATE, State.LOCK, State.RETRACT})
 _ARRIVED_MM = 0.5
 _APPROACH_MEASURE_FRAMES = 5
 
@@ -550,6 +552,12 @@ class Controller:
         st = self.last_state
         if st is not None and st.safety is not SafetyStatus.NORMAL and self.state is not State.FAULT:
             self.fault(f"robot: {st.safety.value}")
+            return
+        if st is not None and st.mode is RobotMode.STOPPED and self.state in _ROBOT_COMMANDED_STATES:
+            # Safety normal but the arm's program is not running (a UR script stopped by its RTDE
+            # watchdog, by the pendant, ...): it cannot execute or correct anything, so the
+            # procedure must not wait on it. recover() (operator `recover`) restarts the program.
+            self.fault(f"robot: program not running in {self.state.value} (mode stopped)")
             return
         frame = self.last_frame
         if frame is None:

@@ -16,7 +16,7 @@ import pytest
 
 from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
 from drivers.interfaces.errors import DisconnectedError, SafetyStopError
-from drivers.interfaces.robot import MotionLimits, Robot, RobotState, SafetyStatus
+from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
 from hil.clock import Clock, ManualClock
 from hil.controller.config import ProcedureConfig
 from hil.controller.fsm import Event, State
@@ -379,3 +379,47 @@ def test_the_servo_stream_keeps_the_robot_rate_when_each_command_takes_time(tmp_
     assert on_period >= 30
     assert on_period >= 3 * int(np.sum(other < 100_000_000))
     assert np.all(other > 8_000_000)
+
+
+# ---------------------------------------------------------------------- a stopped robot program
+class ProgramStopsInCompensate(SlowServo):
+    """Forwards to the setup's robot; after ``after`` servo commands the arm's program stops
+    (safety still normal, mode STOPPED), as a UR script does when its RTDE watchdog expires."""
+
+    def __init__(self, inner: Robot, clock: Clock, after: int) -> None:
+        super().__init__(inner, clock, 0.0)
+        self.after = after
+        self.servo_after_stop = 0
+
+    def _servo(self, T: RigidTransform, period_s: float) -> None:
+        if len(self.servo_t_ns) >= self.after:
+            self.servo_after_stop += 1
+        super()._servo(T, period_s)
+
+    def _state_now(self) -> RobotState:
+        st = self.inner.state_now()
+        if len(self.servo_t_ns) >= self.after:
+            return RobotState(st.T_robot_from_tcp, st.q_rad, RobotMode.STOPPED, st.safety, st.t_ns, 0.0)
+        return st
+
+
+@pytest.mark.slow
+def test_a_robot_program_that_stops_while_commanded_is_a_fault(tmp_path: Path) -> None:
+    """Safety normal but the program not running: the controller must fault at once instead of
+    waiting on an arm that can no longer execute anything (found by the transport campaign)."""
+    from hil.cli.cmd_run import run_procedure
+    from hil.config import load_setup
+
+    clock = ManualClock(10**9)
+    wrapped: list[ProgramStopsInCompensate] = []
+
+    def stops(robot: Robot) -> Robot:
+        wrapped.append(ProgramStopsInCompensate(robot, clock, after=20))
+        return wrapped[0]
+
+    setup = load_setup("configs/sim.toml")
+    s = run_procedure(Path("configs/sim.toml"), setup, PLAN, auto=True, session_dir=tmp_path,
+                      max_duration_s=30.0, clock=clock, robot_wrapper=stops)
+    assert s.final_state == "fault"
+    assert any("not running" in f and "mode stopped" in f for f in s.faults), s.faults
+    assert wrapped[0].servo_after_stop == 0  # the Robot base class refuses motion to a stopped program

@@ -1,0 +1,434 @@
+"""The transport tier of the campaign: faults that live in a transport, on the REAL drivers against
+their emulators (docs/campaign.md, "Transport tier").
+
+Each run starts its emulator as a subprocess (the UR emulator on a private loopback address, the
+Flock of Birds emulator on a pty), writes a mixed setup to the run's directory (simulated camera
+and world; the real ``ur_rtde`` robot driver and/or the real ``fob`` tracker driver on the
+emulator), and runs the procedure in real time, bounded. The fault is **state-triggered**: the
+operator sends it through the emulator's fault channel ``delay_s`` after the controller entered
+the target state (and holds the ``compensate_to_lock`` confirmation until the fault is over, so a
+fault aimed at COMPENSATE lands there however fast the machine is). The run is judged with the
+same criteria as the simulator tier (:func:`hil.campaign.runner.judge`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from hil.clock import Clock, MonotonicClock
+from hil.config import build_devices, load_setup
+from hil.config.faults import FAULT_DEVICE, FaultKind
+from hil.controller.fsm import Event
+from hil.controller.plan_file import load_plan
+from hil.controller.procedure import OperatorView
+from hil.errors import HilError
+from hil.session.log import SessionLog, file_sha256
+
+from .emulators import ROOT, EmulatorError, start_trackersim, start_ursim, trackersim_command, ursim_command
+from .operator import CampaignOperator
+from .pool import Progress, run_parallel
+from .recorder import Recording, RecordingRobot
+from .report import render_html, summarise
+from .runner import RECOVER_SETTLE_S, RunResult, RunSpec, _latency_bound_ms, judge
+from .scenarios import ScenarioSelectionError
+
+Emulator = Literal["ursim", "trackersim"]
+
+#: Watchdog ages for the real-time runs (ms / s): a loaded shared 2-core machine pauses the
+#: simulated camera and the emulators for a few 100 ms; the faults under test are detected from
+#: the robot's safety status, the link state and the tracker driver's own errors.
+REAL_TIME_WATCHDOGS: dict[str, float] = {
+    "camera_frame_max_age_ms": 1500.0,
+    "tracker_max_age_ms": 1000.0,
+    "robot_state_max_age_ms": 1000.0,
+}
+#: Procedure time bound of one transport run (s); clean runs take ~15-30 s.
+TRANSPORT_MAX_DURATION_S = 60.0
+#: Wall-time bound of one transport run, emulator start excluded (s).
+TRANSPORT_TIMEOUT_S = 150.0
+CONFIRM = ("plan_to_approach", "compensate_to_lock", "lock_to_done")
+
+
+@dataclass(frozen=True)
+class TransportScenario:
+    """A fault sent through an emulator's fault channel.
+
+    ``kind`` is the symptom the controller sees (its profile gives the latency bound); ``inject``
+    and ``clear`` are the fault-channel lines sent at onset and at the end of the window (None:
+    the emulator ends it by itself).
+    """
+
+    name: str
+    emulator: Emulator
+    kind: FaultKind
+    state: str
+    inject: str
+    clear: str | None
+    duration_s: float
+    delay_s: float
+    base: str  # setup the mixed setup is written from, relative to configs/
+
+    @property
+    def device(self) -> str:
+        return FAULT_DEVICE[self.kind]
+
+
+TRANSPORT_SCENARIOS: tuple[TransportScenario, ...] = (
+    TransportScenario("rtde_protective_stop@compensate", "ursim", FaultKind.PROTECTIVE_STOP, "compensate",
+                      "protective_stop", None, 0.5, 1.5, "sim_ursim.toml"),
+    TransportScenario("rtde_protective_stop@approach", "ursim", FaultKind.PROTECTIVE_STOP, "approach",
+                      "protective_stop", None, 0.5, 0.3, "sim_ursim.toml"),
+    TransportScenario("rtde_drop_connection@compensate", "ursim", FaultKind.ROBOT_DISCONNECT, "compensate",
+                      "drop_connection 1.0", None, 1.0, 1.5, "sim_ursim.toml"),
+    TransportScenario("serial_garbage@compensate", "trackersim", FaultKind.CORRUPT_RECORD, "compensate",
+                      "fault garbage,p=1", "clear garbage", 0.6, 1.5, "sim.toml"),
+    TransportScenario("serial_silence@compensate", "trackersim", FaultKind.TRACKER_TIMEOUT, "compensate",
+                      "fault silence,seconds=1.0", None, 1.0, 1.5, "sim.toml"),
+)
+BY_NAME = {s.name: s for s in TRANSPORT_SCENARIOS}
+
+
+def select_transport(patterns: list[str]) -> list[TransportScenario]:
+    """Transport scenarios matching any pattern (shell wildcards; a pattern without ``@`` is a name
+    prefix: ``serial`` = every serial scenario). No pattern: all of them.
+
+    Raises:
+        ScenarioSelectionError: a pattern matches nothing (names the choices).
+    """
+    import fnmatch
+
+    if not patterns:
+        return list(TRANSPORT_SCENARIOS)
+    chosen: list[TransportScenario] = []
+    for pat in patterns:
+        full = pat if "@" in pat else f"{pat}*@*"
+        hit = [s for s in TRANSPORT_SCENARIOS if fnmatch.fnmatchcase(s.name, full)]
+        if not hit:
+            raise ScenarioSelectionError(
+                f"transport scenario {pat!r} matches nothing (choices: {', '.join(BY_NAME)})")
+        chosen += [s for s in hit if s not in chosen]
+    return chosen
+
+
+# ---------------------------------------------------------------------- the mixed setup
+def _set_key(text: str, key: str, value: str) -> str:
+    text, n = re.subn(rf"^{key} = .*$", f"{key} = {value}", text, count=1, flags=re.MULTILINE)
+    if n != 1:
+        raise HilError(f"transport setup: key {key!r} not found in the base setup")
+    return text
+
+
+def write_setup(sc: TransportScenario, out: Path, *, seed: int, ursim_host: str | None = None,
+                tracker_port: str | None = None) -> Path:
+    """Write the mixed setup of one run to ``out/setup.toml`` (from ``configs/<sc.base>``)."""
+    base = ROOT / "configs" / sc.base
+    text = base.read_text()
+    text = re.sub(r'^stereo = "(.*)"$', lambda m: f'stereo = "{(base.parent / m.group(1)).resolve()}"',
+                  text, count=1, flags=re.MULTILINE)
+    text = _set_key(text, "real_time", "true")
+    text = _set_key(text, "seed", str(seed))
+    text = _set_key(text, "max_duration_s", str(TRANSPORT_MAX_DURATION_S))
+    for key, value in REAL_TIME_WATCHDOGS.items():
+        text = _set_key(text, key, str(value))
+    text = text.replace("[procedure]\n", "[procedure]\nconfirm = [" + ", ".join(f'"{c}"' for c in CONFIRM)
+                        + "]\n", 1)
+    if ursim_host is not None:
+        text = text.replace('host = "127.0.0.1"', f'host = "{ursim_host}"', 1)
+    if tracker_port is not None:
+        start = text.index("[tracker]\n")
+        end = text.index("[calibration]\n")
+        fob = (f'[tracker]\ndriver = "fob"\nport = "{tracker_port}"\nbaud_rate = 115200\n'
+               "sensors = { reference = 0 }   # the emulator's standalone bird\n\n")
+        text = text[:start] + fob + text[end:]
+    path = out / "setup.toml"
+    head = f"# transport campaign run: {sc.name}, seed {seed} (written by hil campaign --transport)\n"
+    path.write_text(head + text)
+    return path
+
+
+# ---------------------------------------------------------------------- the operator
+class TransportOperator(CampaignOperator):
+    """The campaign operator plus a state trigger: ``delay_s`` after the controller first entered
+    ``target``, it calls ``inject`` (sends the fault through the emulator) and records the onset on
+    ``clock``; at the end of the window it calls ``clear``. It holds ``compensate_to_lock`` until
+    the fault is over and the recovery time has come. Operator commands are recorded in seconds
+    since ``t0_ns`` (the session log's start), the time base :func:`judge` uses."""
+
+    def __init__(self, target: str, delay_s: float, duration_s: float, clock: Clock, t0_ns: int,
+                 inject: Callable[[], object], clear: Callable[[], object] | None) -> None:
+        super().__init__(recover_after_s=math.inf, max_recoveries=2)
+        self.target, self.delay_s, self.duration_s = target, delay_s, duration_s
+        self.clock, self.t0_ns = clock, t0_ns
+        self._inject, self._clear = inject, clear
+        self.entered_s: float | None = None
+        self.fired_view_s: float | None = None
+        self.onset_s: float | None = None  # since t0_ns
+        self.cleared = False
+        self.inject_error: str | None = None
+
+    def _since_t0(self) -> float:
+        return (self.clock.now_ns() - self.t0_ns) * 1e-9
+
+    def _send(self, view: OperatorView, ev: Event) -> Event:
+        self._last, self._last_state = ev, view.state
+        self.commands.append((round(self._since_t0(), 4), ev.value))
+        return ev
+
+    def poll(self, view: OperatorView) -> Event | None:
+        if self.fired_view_s is None:
+            if self.entered_s is None and view.state.value == self.target:
+                self.entered_s = view.t_s
+            if self.entered_s is not None and view.t_s >= self.entered_s + self.delay_s:
+                self.onset_s = self._since_t0()
+                self.fired_view_s = view.t_s
+                self.recover_after_s = view.t_s + self.duration_s + RECOVER_SETTLE_S
+                try:
+                    self._inject()
+                except EmulatorError as exc:
+                    self.inject_error = str(exc)
+        elif not self.cleared and view.t_s >= self.fired_view_s + self.duration_s:
+            self.cleared = True
+            if self._clear is not None:
+                try:
+                    self._clear()
+                except EmulatorError as exc:
+                    self.inject_error = str(exc)
+        if view.pending == "compensate_to_lock" and (self.fired_view_s is None
+                                                     or view.t_s < self.recover_after_s):
+            return None  # keep compensating until the fault has come and gone
+        return super().poll(view)
+
+
+# ---------------------------------------------------------------------- one run
+@dataclass(frozen=True)
+class TransportSpec:
+    """One transport run (picklable: it crosses to the run's process)."""
+
+    run_id: str
+    scenario: str
+    seed: int
+    setup: str
+    plan: str
+    log_dir: str
+    ursim_host: str | None = None
+    tracker_control: str | None = None
+    max_duration_s: float = TRANSPORT_MAX_DURATION_S
+
+    # the pool reports these for a hang / a dead process
+    @property
+    def kind(self) -> str:
+        return BY_NAME[self.scenario].kind.value
+
+    @property
+    def state(self) -> str:
+        return BY_NAME[self.scenario].state
+
+
+def run_transport_one(spec: TransportSpec) -> RunResult:
+    """Run and judge one transport run (in the run's process; the emulator already runs)."""
+    from hil.cli.cmd_run import build_controller, wrap_robot
+
+    t_wall = time.perf_counter()
+    sc = BY_NAME[spec.scenario]
+    setup = load_setup(spec.setup)
+    plan = load_plan(Path(spec.plan))
+    clock = MonotonicClock()
+    limits = setup.safety.motion_limits()
+    log_path = Path(spec.log_dir) / f"{spec.run_id}.jsonl"
+    log_path.unlink(missing_ok=True)
+    host, control = spec.ursim_host, spec.tracker_control
+
+    def send(line: str) -> object:
+        if sc.emulator == "ursim":
+            assert host is not None
+            return ursim_command(host, line)
+        assert control is not None
+        return trackersim_command(Path(control), line)
+
+    clear_line = sc.clear
+    t0_ns = clock.now_ns()
+    session = SessionLog(log_path, clock, {
+        "setup": spec.setup, "config_sha256": file_sha256(spec.setup), "campaign_run": spec.run_id,
+        "scenario": sc.name, "tier": "transport", "seed": spec.seed, "fault_kind": sc.kind.value,
+        "fault_transport": sc.inject, "fault_state": sc.state, "fault_delay_s": sc.delay_s,
+        "fault_duration_s": sc.duration_s,
+    })
+    operator = TransportOperator(sc.state, sc.delay_s, sc.duration_s, clock, t0_ns,
+                                 inject=lambda: send(sc.inject),
+                                 clear=None if clear_line is None else (lambda: send(clear_line)))
+    result = RunResult(spec.run_id, sc.name, sc.kind.value, sc.state, spec.seed, passed=False,
+                       session_log=str(log_path))
+    closed: dict[str, Any] = {}
+    devices = None
+    frame_rate = 15.0
+    try:
+        devices = wrap_robot(build_devices(setup, clock), lambda robot: RecordingRobot(robot, limits, clock))
+        devices.open_all()
+        frame_rate = devices.camera.frame_rate_hz
+        ctl = build_controller(setup, plan, devices, clock=clock, session=session, operator=operator)
+        summary = ctl.run(spec.max_duration_s)
+        result.final_state = summary.final_state
+        result.lock_error_mm = summary.lock_error_mm
+        result.duration_s = round(summary.duration_s, 4)
+        closed = {"final_state": summary.final_state}
+    except Exception as exc:  # noqa: BLE001 - a controller or driver crash is a finding
+        result.error = "".join(traceback.format_exception(exc))[-4000:]
+        closed = {"final_state": "crashed", "error": f"{type(exc).__name__}: {exc}"}
+    finally:
+        if devices is not None:
+            devices.close_all()
+        session.close(**closed)
+    recorder = devices.robot if devices is not None else None
+    assert recorder is None or isinstance(recorder, RecordingRobot)
+    result.latency_bound_ms = _latency_bound_ms(setup, sc.device, frame_rate)
+    onset = operator.onset_s
+    run_spec = RunSpec(spec.run_id, spec.setup, spec.plan, spec.seed, kind=sc.kind.value, state=sc.state,
+                       start_s=onset if onset is not None else 1e9, duration_s=sc.duration_s)
+    out = judge(run_spec, result, recorder.recording if recorder else Recording(), log_path, operator)
+    if onset is None:
+        out.onset_s = None
+        out.reasons[:] = [r for r in out.reasons if "before the fault" not in r]
+        out.reasons.append(f"the run never stayed {sc.delay_s} s in {sc.state}: fault not sent")
+        out.passed = False
+    if operator.inject_error is not None:
+        out.reasons.append(f"fault channel: {operator.inject_error}")
+        out.passed = False
+    _stopped_after_link_back(out, recorder.recording if recorder else Recording(), log_path, operator)
+    out.wall_s = round(time.perf_counter() - t_wall, 3)
+    return out
+
+
+def _stopped_after_link_back(out: RunResult, rec: Any, log_path: Path, operator: TransportOperator) -> None:
+    """A dropped RTDE link gives no robot states until ``recover()`` rebuilds the clients, so the
+    robot cannot be *seen* stopped before recovery: accept the first state read after the
+    recovery command instead (before any motion command), when it shows the arm at rest."""
+    from .runner import STOPPED_MM_S
+
+    if out.kind != FaultKind.ROBOT_DISCONNECT.value:
+        return
+    missing = [r for r in out.reasons if r.startswith("robot not seen stopped")]
+    if not missing or out.safe_state is None or out.state_windows_s is None:
+        return
+    first = json.loads(log_path.read_text().splitlines()[0])
+    t0 = int(first["t_ns"])
+    t_safe = next((t for t, s in _entered(log_path, t0) if s == out.safe_state and
+                   out.onset_s is not None and t >= out.onset_s), None)
+    if t_safe is None:
+        return
+    t_rec = next((t for t, _c in operator.commands if t >= t_safe), None)
+    if t_rec is None:
+        return
+    first_cmd = next(((c.t_ns - t0) * 1e-9 for c in rec.commands if (c.t_ns - t0) * 1e-9 >= t_rec), math.inf)
+    states = [s for s in rec.states if t_rec <= (s.t_ns - t0) * 1e-9 <= first_cmd]
+    if states and states[0].speed_mm_s < STOPPED_MM_S:
+        out.reasons[:] = [r for r in out.reasons if r not in missing]
+        out.stop_latency_ms = round(((states[0].t_ns - t0) * 1e-9 - t_safe) * 1e3, 3)
+        out.passed = not out.reasons
+
+
+def _entered(log_path: Path, t0: int) -> list[tuple[float, str]]:
+    out = []
+    for line in log_path.read_text().splitlines():
+        r = json.loads(line)
+        if r.get("event") == "state_entered":
+            out.append(((int(r["t_ns"]) - t0) * 1e-9, str(r.get("state"))))
+    return out
+
+
+# ---------------------------------------------------------------------- the campaign
+def run_transport_campaign(
+    scenarios: list[TransportScenario], seeds: list[int], *, out_dir: Path, keep_logs: bool = False,
+    timeout_s: float = TRANSPORT_TIMEOUT_S, progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Run every scenario x seed serially (one emulator each, real time); write
+    ``transport.json`` and ``transport.html`` in ``out_dir``; return the summary (the simulator
+    tier's shape, :func:`hil.campaign.report.summarise`). Blocking: ~20-40 s per run."""
+    say = progress or (lambda _m: None)
+    logs = out_dir / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    results: list[dict[str, Any]] = []
+    for seed in seeds:
+        for sc in scenarios:
+            run_id = f"{sc.name}_s{seed}"
+            run_dir = logs / run_id
+            run_dir.mkdir(parents=True, exist_ok=True)
+            try:
+                if sc.emulator == "ursim":
+                    ursim = start_ursim(run_dir)
+                    stop: Callable[[], None] = ursim.stop
+                    setup = write_setup(sc, run_dir, seed=seed, ursim_host=ursim.host)
+                    spec = TransportSpec(run_id, sc.name, seed, str(setup), str(_plan(sc)), str(logs),
+                                         ursim_host=ursim.host)
+                else:
+                    tracker = start_trackersim(run_dir, seed=seed)
+                    stop = tracker.stop
+                    setup = write_setup(sc, run_dir, seed=seed, tracker_port=tracker.port)
+                    spec = TransportSpec(run_id, sc.name, seed, str(setup), str(_plan(sc)), str(logs),
+                                         tracker_control=str(tracker.control_path))
+            except EmulatorError as exc:
+                say(f"{run_id}: FAIL emulator did not start ({exc})")
+                results.append(RunResult(run_id, sc.name, sc.kind.value, sc.state, seed, passed=False,
+                                         outcome="crashed", reasons=[f"emulator: {exc}"]).to_dict())
+                continue
+            try:
+                results += run_parallel([spec], jobs=1, timeout_s=timeout_s, work_dir=logs, progress=say,
+                                        run=run_transport_one)
+            finally:
+                stop()
+    summary = summarise(results, config="(transport tier)")
+    summary["tier"] = "transport"
+    for f in summary["failing"]:
+        f["replay"] = f"hil campaign --transport {f['scenario']} --seed {f['seed']}"
+    if not keep_logs:
+        failing = {f"{r['run_id']}" for r in results if not r.get("passed")}
+        for p in sorted(logs.iterdir()):
+            stem = p.name.removesuffix(".jsonl").removesuffix(".jsonl.head")
+            if stem in failing:
+                continue
+            if p.is_dir():
+                for q in p.iterdir():
+                    q.unlink()
+                p.rmdir()
+            else:
+                p.unlink()
+        if not any(logs.iterdir()):
+            logs.rmdir()
+    (out_dir / "transport.json").write_text(json.dumps(summary, indent=1, default=str) + "\n")
+    (out_dir / "transport.html").write_text(render_html(summary))
+    return summary
+
+
+def transport_table(results: list[dict[str, Any]]) -> str:
+    """One line per transport scenario: runs, pass/fail, state at onset, worst safe-state latency
+    and its bound."""
+    rows: list[list[str]] = [["scenario", "runs", "verdict", "hit", "safe state", "worst latency", "bound"]]
+    for sc in TRANSPORT_SCENARIOS:
+        mine = [r for r in results if r.get("scenario") == sc.name]
+        if not mine:
+            continue
+        failed = sum(1 for r in mine if not r.get("passed"))
+        lat = [r["safe_latency_ms"] for r in mine if isinstance(r.get("safe_latency_ms"), int | float)]
+        bound = next((r["latency_bound_ms"] for r in mine if r.get("latency_bound_ms") is not None), None)
+        rows.append([
+            sc.name, str(len(mine)), "pass" if failed == 0 else f"FAIL {failed}/{len(mine)}",
+            ",".join(sorted({str(r.get("state_at_onset")) for r in mine})),
+            ",".join(sorted({str(r.get("safe_state")) for r in mine})),
+            "-" if not lat else f"{max(lat):.0f} ms", "-" if bound is None else f"{bound:.0f} ms",
+        ])
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    return "".join("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() + "\n"
+                   for row in rows)
+
+
+def _plan(sc: TransportScenario) -> Path:
+    return ROOT / "configs" / "plans" / f"{Path(sc.base).stem}_plan.json"
+
+

@@ -1,0 +1,164 @@
+"""A small fixed transport campaign, end to end: faults sent through the emulators' fault channels
+to the REAL drivers, in real time (docs/campaign.md, "Transport tier").
+
+Two runs, serial, ~35 s in all: an RTDE protective stop while compensating (``ur_rtde`` on
+``tools/ursim``, a subprocess on a private loopback address) and serial silence while compensating
+(``fob`` on ``tools/trackersim``, a subprocess on a pty). Plus the pieces that need no emulator.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from hil.campaign.recorder import CommandRecord, Recording, StateSample
+from hil.campaign.runner import RunResult
+from hil.campaign.scenarios import ScenarioSelectionError
+from hil.campaign.transport import (
+    TRANSPORT_SCENARIOS,
+    TransportOperator,
+    _stopped_after_link_back,
+    run_transport_campaign,
+    select_transport,
+    transport_table,
+    write_setup,
+)
+from hil.clock import ManualClock
+from hil.config import load_setup
+from hil.controller.fsm import Event, State
+from hil.controller.procedure import OperatorView
+
+SCENARIOS = ["rtde_protective_stop@compensate", "serial_silence@compensate"]
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
+    out = tmp_path_factory.mktemp("transport")
+    summary = run_transport_campaign(select_transport(SCENARIOS), [1], out_dir=out, timeout_s=100.0)
+    return summary, out
+
+
+@pytest.mark.emulator
+@pytest.mark.slow
+def test_transport_runs_pass_every_criterion(campaign: tuple[dict[str, Any], Path]) -> None:
+    summary, out = campaign
+    assert summary["failing"] == []
+    assert (summary["runs"], summary["passed"], summary["failed"]) == (2, 2, 0)
+    assert summary["limit_violations"] == 0
+    runs = {r["scenario"]: r for r in summary["results"]}
+    for name in SCENARIOS:
+        r = runs[name]
+        assert r["state_at_onset"] == "compensate", r
+        assert r["outcome"] == "safe_state", r
+        assert r["safe_state"] == "fault", r
+        assert 0.0 <= r["safe_latency_ms"] <= r["latency_bound_ms"], r
+        assert r["stop_latency_ms"] is not None, r
+        assert r["recovered_to_lock"] is True, r
+        assert r["final_state"] == "done", r
+        assert r["log_ok"] is True, r
+        assert r["commands"] > 0, r
+    assert json.loads((out / "transport.json").read_text())["runs"] == 2
+    assert "rtde_protective_stop@compensate" in (out / "transport.html").read_text()
+    assert not (out / "logs").exists()  # passing runs keep no logs, emulators are gone
+
+
+@pytest.mark.emulator
+@pytest.mark.slow
+def test_the_table_names_every_scenario(campaign: tuple[dict[str, Any], Path]) -> None:
+    summary, _ = campaign
+    text = transport_table(summary["results"])
+    lines = text.splitlines()
+    assert lines[0].split()[:3] == ["scenario", "runs", "verdict"]
+    assert [ln.split()[:3] for ln in lines[1:]] == [[n, "1", "pass"] for n in SCENARIOS]
+
+
+def test_selection() -> None:
+    assert [s.name for s in select_transport(["serial"])] == [
+        "serial_garbage@compensate", "serial_silence@compensate"]
+    assert [s.name for s in select_transport(["rtde_*@approach"])] == ["rtde_protective_stop@approach"]
+    assert select_transport([]) == list(TRANSPORT_SCENARIOS)
+    with pytest.raises(ScenarioSelectionError, match="matches nothing"):
+        select_transport(["camera_loss"])
+
+
+def test_written_setups_point_the_real_drivers_at_the_emulators(tmp_path: Path) -> None:
+    rtde = select_transport(["rtde_drop_connection@compensate"])[0]
+    path = write_setup(rtde, tmp_path, seed=3, ursim_host="127.123.4.5")
+    setup = load_setup(path)
+    raw = tomllib.loads(path.read_text())
+    assert raw["robot"]["driver"] == "ur_rtde"
+    assert raw["robot"]["host"] == "127.123.4.5"
+    assert raw["camera"]["driver"] == "sim"
+    assert setup.simulation.real_time is True
+    assert setup.simulation.seed == 3
+    assert raw["procedure"]["confirm"] == ["plan_to_approach", "compensate_to_lock", "lock_to_done"]
+    serial = select_transport(["serial_garbage"])[0]
+    (tmp_path / "b").mkdir()
+    raw = tomllib.loads(write_setup(serial, tmp_path / "b", seed=1, tracker_port="/dev/pts/77").read_text())
+    assert raw["tracker"] == {"driver": "fob", "port": "/dev/pts/77", "baud_rate": 115200,
+                              "sensors": {"reference": 0}}
+    assert raw["robot"]["driver"] == "sim"
+    assert raw["safety"]["tracker_max_age_ms"] == 1000.0
+
+
+def _view(state: State, t_s: float, pending: str | None = None) -> OperatorView:
+    return OperatorView(state=state, pending=pending, last_reason="", t_s=t_s, started=True)
+
+
+def test_operator_fires_inside_the_state_and_holds_lock_until_recovered() -> None:
+    clock = ManualClock(10_000_000_000)
+    sent: list[str] = []
+    op = TransportOperator("compensate", 1.5, 0.5, clock, 9_000_000_000,
+                           inject=lambda: sent.append("fault"), clear=lambda: sent.append("clear"))
+    assert op.poll(_view(State.IDLE, 0.0)) is Event.START_REQUESTED
+    assert op.poll(_view(State.COMPENSATE, 5.0)) is None
+    assert op.poll(_view(State.COMPENSATE, 6.4, pending="compensate_to_lock")) is None  # held
+    assert sent == []
+    op.poll(_view(State.COMPENSATE, 6.5, pending="compensate_to_lock"))
+    assert sent == ["fault"]
+    assert op.onset_s == pytest.approx(1.0)  # clock time since the log's start
+    assert op.poll(_view(State.FAULT, 6.9)) is None
+    assert sent == ["fault"]
+    assert op.poll(_view(State.FAULT, 7.0)) is None  # window over: cleared, still settling
+    assert sent == ["fault", "clear"]
+    assert op.poll(_view(State.FAULT, 7.5)) is Event.RESUME_REQUESTED
+    assert op.poll(_view(State.COMPENSATE, 9.0, pending="compensate_to_lock")) is Event.CONFIRM_REQUESTED
+    assert sent == ["fault", "clear"]
+
+
+def _link_back_case(tmp_path: Path, first_speed_mm_s: float, kind: str = "robot_disconnect") -> RunResult:
+    t0 = 5_000_000_000
+    log = tmp_path / "run.jsonl"
+    log.write_text("".join(json.dumps(r) + "\n" for r in [
+        {"t_ns": t0, "event": "session_started"},
+        {"t_ns": t0 + 1_100_000_000, "event": "state_entered", "state": "fault"},
+    ]))
+    op = TransportOperator("compensate", 1.0, 1.0, ManualClock(t0), t0, inject=lambda: None, clear=None)
+    op.commands.append((2.5, "resume_requested"))
+    rec = Recording(
+        commands=[CommandRecord(t0 + 2_700_000_000, "move_linear", (0.0, 0.0, 0.0), 5.0, 20.0, ())],
+        states=[StateSample(t0 + 2_600_000_000, first_speed_mm_s, "running", "normal")])
+    out = RunResult("r", "rtde_drop_connection@compensate", kind, "compensate", 1, passed=False,
+                    reasons=["robot not seen stopped (< 1.0 mm/s) in fault before recovery"],
+                    onset_s=1.0, safe_state="fault")
+    _stopped_after_link_back(out, rec, log, op)
+    return out
+
+
+def test_dropped_link_accepts_the_arm_at_rest_when_the_link_is_back(tmp_path: Path) -> None:
+    out = _link_back_case(tmp_path, 0.2)
+    assert out.reasons == []
+    assert out.passed is True
+    assert out.stop_latency_ms == pytest.approx(1500.0)
+
+
+@pytest.mark.parametrize(("speed", "kind"), [(30.0, "robot_disconnect"), (0.2, "protective_stop")])
+def test_dropped_link_rule_keeps_the_failure(tmp_path: Path, speed: float, kind: str) -> None:
+    """Moving when the link is back, or a kind whose states never stopped coming: still a failure."""
+    out = _link_back_case(tmp_path, speed, kind)
+    assert out.passed is False
+    assert out.reasons == ["robot not seen stopped (< 1.0 mm/s) in fault before recovery"]
