@@ -1,8 +1,9 @@
 """Reproducers of defects the fuzz suite found in other areas' parsers (one test each).
 
-Each is ``xfail(strict=True)`` with the exception it raises today: when the owner fixes the
-parser the test XPASSes, which fails the run under ``strict`` -- then delete the marker and the
-test stays as the regression test. The reason string names the owner and the one-line fix.
+Every defect found so far is fixed, so each test here is now a plain regression test. A newly
+found defect goes in as ``xfail(strict=True)`` with the exception it raises and a reason naming
+the owner and the fix (see ``_json_params``); when the owner fixes it the test XPASSes, which
+fails the run under ``strict``, and the marker is deleted.
 """
 
 from __future__ import annotations
