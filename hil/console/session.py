@@ -12,24 +12,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from hil.cli.cmd_run import build_controller
 from hil.clock import Clock, ManualClock
 from hil.config import build_devices, default_setup_path, load_setup
 from hil.config.build import Devices, clock_for
 from hil.config.setup import SetupConfig
 from hil.console.operator import ConsoleOperator
 from hil.console.runner import ControllerRunner
-from hil.controller.perception import StereoMarkerLocator, StereoNeedleChecker
 from hil.controller.plan_file import ProcedurePlan, load_plan
-from hil.controller.planning import RigGeometry
 from hil.controller.procedure import Controller
-from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.errors import InputFileError
-from hil.geometry.transform import RigidTransform
 from hil.igtl.config import IgtlConfig
 from hil.session.log import SessionLog, file_sha256
-from hil.vision.camera_model import StereoCalibration, load_calibration
 
 
 @dataclass
@@ -64,20 +58,6 @@ class ConsoleSession:
                 "session_log_sha256": self.session.head_sha256,  # the chain head (also <log>.head)
                 "faults": list(self.ctl.faults), "frames": self.ctl.frames,
                 "error": self.runner.error or None}
-
-
-def _rig(setup: SetupConfig) -> RigGeometry:
-    tcp_cfg = getattr(setup.robot, "T_flange_from_tcp", None)
-    T_flange_from_tcp = tcp_cfg.as_transform() if tcp_cfg is not None else RigidTransform.identity()
-    return RigGeometry(setup.frames.T_flange_from_guide.as_transform(),
-                       np.asarray(setup.frames.flange_markers_mm, dtype=np.float64), T_flange_from_tcp)
-
-
-def _calibration(setup: SetupConfig, camera: object) -> StereoCalibration:
-    if setup.calibration.stereo is not None:
-        return load_calibration(setup.calibration.stereo)
-    cal = getattr(camera, "calibration", None)
-    return cal if isinstance(cal, StereoCalibration) else StereoCalibration.synthetic()
 
 
 def resolve_plan_path(config_path: Path, plan: str | Path | None) -> Path:
@@ -156,21 +136,9 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
         if igtl is not None:
             igtl.close()
         raise
-    sf = setup.safety
     operator = ConsoleOperator()
-    ctl = Controller(
-        camera=devices.camera, robot=devices.robot, tracker=devices.tracker, clock=clk,
-        locate=StereoMarkerLocator(_calibration(setup, devices.camera)), plan=the_plan, rig=_rig(setup),
-        procedure=setup.procedure, limits=sf.motion_limits(),
-        watchdog_ages_s={"camera": sf.camera_frame_max_age_ms / 1e3,
-                         "robot": sf.robot_state_max_age_ms / 1e3,
-                         "tracker": sf.tracker_max_age_ms / 1e3},
-        session=session, operator=operator,
-        coach=world if isinstance(world, BreathHoldCoach) else None,
-        truth=world if isinstance(world, GroundTruth) else None,
-        needle_check=None if (nc := setup.procedure.lock.needle_check) is None
-        else StereoNeedleChecker(_calibration(setup, devices.camera), nc.radius_mm),
-    )
+    # The very controller `hil run` builds (locator, rig, limits, watchdogs, needle check, tracker use).
+    ctl = build_controller(setup, the_plan, devices, clock=clk, session=session, operator=operator)
     runner = ControllerRunner(ctl, operator, pace=isinstance(clk, ManualClock) and not fast, igtl=igtl,
                               session_log=str(session.path))
     runner.start()
