@@ -13,7 +13,9 @@ With ``render_needle`` the needle carried by the guide is drawn into both images
 ``needle_radius_mm`` from the guide origin (the needle tip, resting in the guide) back along the
 guide's -z over ``needle_length_mm``, at the left exposure time. The guide is mounted on the flange
 at ``T_flange_from_needle_guide`` when given (the *true* mounting, to simulate a guide that differs
-from what the controller believes), else at the setup's ``[frames] T_flange_from_guide``.
+from what the controller believes), else at the setup's ``[frames] T_flange_from_guide``. With
+``needle_bead_count`` >= 1 the needle also carries bright bead markers (seed 004 §II-A) at
+``needle_bead_offset_mm + i * needle_bead_spacing_mm`` from the tip.
 """
 
 from __future__ import annotations
@@ -61,6 +63,10 @@ class SimCameraConfig(BaseModel):
                                     description="rendered needle length, from the guide tip back along -z")
     T_flange_from_needle_guide: TransformConfig | None = Field(
         None, description="true guide mounting of the rendered needle (default [frames] T_flange_from_guide)")
+    needle_bead_count: int = Field(0, ge=0, le=10, description="bright bead markers on the needle (0: none)")
+    needle_bead_spacing_mm: float = Field(30.0, gt=0, description="distance between neighbouring beads")
+    needle_bead_offset_mm: float = Field(20.0, ge=0, description="first bead's distance from the tip")
+    needle_bead_radius_mm: float = Field(2.5, gt=0, le=10, description="radius of the rendered beads")
 
 
 class SimStereoCamera(StereoCamera):
@@ -178,8 +184,14 @@ class SimStereoCamera(StereoCamera):
             return None
         T_og = T_of @ self.T_flange_from_guide
         tip = T_og.t
-        return Instrument3D(tip, tip - self.cfg.needle_length_mm * T_og.R[:, 2],
-                            radius_mm=self.cfg.needle_radius_mm)
+        c = self.cfg
+        if c.needle_bead_count > 0:
+            return Instrument3D.needle_with_beads(
+                tip, -T_og.R[:, 2], c.needle_length_mm, radius_mm=c.needle_radius_mm,
+                marker_positions_mm=[c.needle_bead_offset_mm + i * c.needle_bead_spacing_mm
+                                     for i in range(c.needle_bead_count)],
+                bead_radius_mm=c.needle_bead_radius_mm)
+        return Instrument3D(tip, tip - c.needle_length_mm * T_og.R[:, 2], radius_mm=c.needle_radius_mm)
 
     def _with_needle(self, pair: RenderedPair, t_ns: int, k: int) -> RenderedPair:
         if not self.cfg.render_needle:

@@ -25,7 +25,7 @@ from hil.clock import Clock, ManualClock, MonotonicClock
 from hil.config import Devices, build_devices, default_setup_path, load_setup
 from hil.config.setup import SetupConfig
 from hil.controller.fsm import Event, State
-from hil.controller.perception import StereoMarkerLocator, StereoNeedleChecker
+from hil.controller.perception import CollinearNeedleChecker, StereoMarkerLocator, StereoNeedleChecker
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.controller.planning import RigGeometry
 from hil.controller.procedure import AutoOperator, Controller, Operator, OperatorView, RunSummary
@@ -150,10 +150,17 @@ def _calibration(setup: SetupConfig, camera: object) -> StereoCalibration:
     return StereoCalibration.synthetic()
 
 
-def _needle_checker(setup: SetupConfig, camera: object) -> StereoNeedleChecker | None:
-    """The seed-004 needle-axis check when ``[procedure.lock.needle_check]`` is set, else None."""
+def _needle_checker(setup: SetupConfig,
+                    camera: object) -> StereoNeedleChecker | CollinearNeedleChecker | None:
+    """The seed-004 needle-axis check when ``[procedure.lock.needle_check]`` is set, else None:
+    contour lines (``method = "cylinder"``) or collinear beads (``method = "collinear"``)."""
     nc = setup.procedure.lock.needle_check
-    return None if nc is None else StereoNeedleChecker(_calibration(setup, camera), nc.radius_mm)
+    if nc is None:
+        return None
+    if nc.method == "collinear":
+        return CollinearNeedleChecker(_calibration(setup, camera), nc.bead_positions_mm(),
+                                      nc.max_mono_stereo_deg)
+    return StereoNeedleChecker(_calibration(setup, camera), nc.radius_mm)
 
 
 #: Takes the robot driver the setup built (CONFIGURED, not opened) and returns the robot the

@@ -6,16 +6,56 @@ table. All models are pydantic v2, ``extra="forbid"``, frozen; field names carry
 
 from __future__ import annotations
 
-from typing import Literal
+from pathlib import Path
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationInfo, model_validator
 
 #: infinities and NaN are refused everywhere (``max_duration_s = inf`` would never end a run)
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
+def _resolve_path(value: Path, info: ValidationInfo) -> Path:
+    """As :data:`hil.config.types.ConfigPath` (not importable here: hil.config imports this module):
+    relative paths are resolved against the validation context's ``config_dir``."""
+    value = value.expanduser()
+    ctx: Any = info.context
+    if not value.is_absolute() and isinstance(ctx, dict) and ctx.get("config_dir") is not None:
+        value = Path(ctx["config_dir"]) / value
+    return value
+
+
+_ConfigPath = Annotated[Path, AfterValidator(_resolve_path)]
+#: x, y, z (mm), rx, ry, rz (rotation vector, rad): the robot pose form of `hil stereotaxy --robot-tcp-pose`
+_Pose6 = tuple[float, float, float, float, float, float]
+
+
+class StereotaxyRegistrationConfig(BaseModel):
+    """``[procedure.registration.stereotaxy]``: image -> robot through a rod frame the robot held in
+    the scanner (seed 004 §IV, the CT-Bot route; :func:`hil.geometry.stereotaxy.robot_from_image_via_frame`).
+
+    Files as for ``hil stereotaxy`` (docs/pose004.md); relative paths are resolved against the setup
+    file's directory. The image (plan) frame is the scanner frame of that slice.
+    """
+
+    model_config = _STRICT
+
+    spots: _ConfigPath = Field(description="the slice's spots (hil.ct_slice_spots JSON or rod,u_px,v_px CSV)")
+    frame: _ConfigPath = Field(description="the rod frame (hil.stereotactic_frame JSON)")
+    pixel_mm: tuple[float, float] | None = Field(
+        None, description="slice pixel size (mm); default: the spots file's, else estimated")
+    refine: bool = Field(True, description="add the Levenberg-Marquardt refinement")
+    robot_tcp_at_scan: _Pose6 = Field(
+        description="T_robot_from_tcp while the slice was taken: x, y, z mm, rotation vector rad")
+    tcp_from_frame: _Pose6 = Field(
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0), description="the frame's mounting on the tool (T_tcp_from_frame)")
+    max_residual_mm: float = Field(1.0, gt=0, description="refuse a slice fit with a larger RMS residual")
+
+
 class RegistrationConfig(BaseModel):
-    """REGISTER: image->optical from the skin markers, robot->optical from the flange markers."""
+    """REGISTER: image->optical from the skin markers, robot->optical from the flange markers (or,
+    with ``robot_method = "stereotaxy"``, robot->image from a single CT slice of a rod frame the robot
+    carries, and robot->optical composed with the skin-marker registration)."""
 
     model_config = _STRICT
 
@@ -27,6 +67,16 @@ class RegistrationConfig(BaseModel):
     min_markers: int = Field(4, ge=3, description="fewest identified skin markers accepted")
     hold_request_s: float = Field(3.0, gt=0, description="breath-hold asked for while registering")
     timeout_s: float = Field(30.0, gt=0, description="give up without a still, visible marker set")
+    robot_method: Literal["flange_markers", "stereotaxy"] = Field(
+        "flange_markers", description="how the robot is registered (stereotaxy: needs [..stereotaxy])")
+    stereotaxy: StereotaxyRegistrationConfig | None = Field(
+        None, description="single-slice stereotaxy route: spots, frame, TCP pose (docs/pose004.md §8)")
+
+    @model_validator(mode="after")
+    def _robot_route(self) -> RegistrationConfig:
+        if self.robot_method == "stereotaxy" and self.stereotaxy is None:
+            raise ValueError("robot_method = 'stereotaxy' needs a [procedure.registration.stereotaxy] table")
+        return self
 
 
 class PlanningConfig(BaseModel):
@@ -106,12 +156,23 @@ class NeedleCheckConfig(BaseModel):
     max_offset_mm: float = Field(2.0, gt=0, description="largest accepted axis offset at entry and target")
     required_before_lock: bool = Field(True, description="no LOCK without a passing check")
     alarm_while_locked: bool = Field(True, description="out-of-bounds while locked: alarm + lock.on_drift")
+    method: Literal["cylinder", "collinear"] = Field(
+        "cylinder", description="cylinder: contour lines (§III); collinear: bead markers on the tube (§II-A)")
+    bead_count: int = Field(3, ge=3, le=10, description="collinear: number of beads on the tube")
+    bead_spacing_mm: float = Field(30.0, gt=0, description="collinear: distance between neighbouring beads")
+    bead_offset_mm: float = Field(20.0, ge=0, description="collinear: first bead's distance from the tip")
+    max_mono_stereo_deg: float = Field(
+        10.0, gt=0, description="collinear: largest accepted angle between the monocular and stereo axes")
 
     @model_validator(mode="after")
     def _segment(self) -> NeedleCheckConfig:
         if self.visible_to_mm <= self.visible_from_mm:
             raise ValueError("visible_to_mm must be larger than visible_from_mm")
         return self
+
+    def bead_positions_mm(self) -> tuple[float, ...]:
+        """The beads' axis coordinates from the tip towards the hub (mm)."""
+        return tuple(self.bead_offset_mm + i * self.bead_spacing_mm for i in range(self.bead_count))
 
 
 class LockConfig(BaseModel):

@@ -1,5 +1,5 @@
 """Perception for the controller: stereo frame -> ring-marker centres in the optical frame, and the
-needle-axis check (seed 004 §III) against the plan."""
+needle-axis check (seed 004 §III contour lines, or §II-A collinear beads) against the plan."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.interfaces.camera import StereoFrame
+from hil.vision.beads import BeadAxisMeasurement, measure_bead_axis
 from hil.vision.camera_model import StereoCalibration
 from hil.vision.lines import NeedleAxisMeasurement, measure_needle_axis
 from hil.vision.pipeline import locate_markers
@@ -50,3 +51,27 @@ class StereoNeedleChecker:
                  target_mm: FloatArray) -> NeedleAxisMeasurement:
         return measure_needle_axis(self.calibration, frame.left.image, frame.right.image, start_mm, end_mm,
                                    entry_mm, target_mm, radius_mm=self.radius_mm)
+
+
+class CollinearNeedleChecker:
+    """The seed-004 needle-axis check from collinear bead markers on the guide tube (§II-A, stereo
+    variant checked against the monocular one) as a :data:`hil.controller.procedure.NeedleAxisChecker`:
+    same call and result shape (``path_error``) as :class:`StereoNeedleChecker`; the direction error
+    is oriented (the beads fix which end is the tip).
+
+    ``positions_mm``: the beads' axis coordinates from the tip (>= 3). Pure CPU (a few ms), no
+    blocking. Raises (when called): VisionError (beads not found, monocular/stereo disagreement over
+    ``max_mono_stereo_deg``), DegenerateConfigurationError.
+    """
+
+    def __init__(self, calibration: StereoCalibration, positions_mm: tuple[float, ...],
+                 max_mono_stereo_deg: float = 10.0) -> None:
+        self.calibration = calibration
+        self.positions_mm = positions_mm
+        self.max_mono_stereo_deg = max_mono_stereo_deg
+
+    def __call__(self, frame: StereoFrame, start_mm: FloatArray, end_mm: FloatArray, entry_mm: FloatArray,
+                 target_mm: FloatArray) -> BeadAxisMeasurement:
+        return measure_bead_axis(self.calibration, frame.left.image, frame.right.image, start_mm, end_mm,
+                                 entry_mm, target_mm, self.positions_mm,
+                                 max_mono_stereo_deg=self.max_mono_stereo_deg)

@@ -53,18 +53,19 @@ from hil.controller.registration import (
     identify,
     register_patient,
     register_robot,
+    register_robot_via_stereotaxy,
     track,
 )
 from hil.controller.tracker_use import TrackerUse, entry_disagreement_mm
 from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.errors import HilError
+from hil.geometry.collinear import PathError
 from hil.geometry.registration import register_horn
 from hil.geometry.transform import RigidTransform
 from hil.log import get_logger
 from hil.safety.layer import SafetyLayer, SafetyViolationError
 from hil.safety.watchdog import WatchdogSet
 from hil.session.log import SessionLog
-from hil.vision.lines import NeedleAxisMeasurement
 
 FloatArray = NDArray[np.float64]
 _log = get_logger(__name__)
@@ -75,7 +76,17 @@ MarkerLocator = Callable[[StereoFrame], FloatArray]
 #: optical frame, mm) -> the measured axis and its error against the path. Raises HilError
 #: (VisionError, DegenerateConfigurationError) when the needle cannot be measured.
 NeedleAxisChecker = Callable[[StereoFrame, FloatArray, FloatArray, FloatArray, FloatArray],
-                             NeedleAxisMeasurement]
+                             "NeedleAxisMeasurement"]
+
+
+class NeedleAxisMeasurement(Protocol):
+    """What the procedure needs of a needle-axis measurement (cylinder contours,
+    :class:`hil.vision.lines.NeedleAxisMeasurement`, or collinear beads,
+    :class:`hil.vision.beads.BeadAxisMeasurement`): its error against the path."""
+
+    @property
+    def path_error(self) -> PathError: ...
+
 
 _TRACK_TOL_MM = 6.0
 _STILL_WINDOW_S = 0.3
@@ -907,7 +918,11 @@ class Controller:
             return
         try:
             preg = register_patient(ph.frames, self.plan, self.cfg.registration)
-            rreg = register_robot(ph.flange, ph.poses, self.rig.flange_markers_tcp_mm)
+            st_cfg = self.cfg.registration.stereotaxy
+            if self.cfg.registration.robot_method == "stereotaxy" and st_cfg is not None:
+                rreg = register_robot_via_stereotaxy(st_cfg, preg.T_optical_from_image)
+            else:
+                rreg = register_robot(ph.flange, ph.poses, self.rig.flange_markers_tcp_mm)
         except RegistrationFailedError as exc:
             self.session.write("registration_failed", reason=exc.reason)
             self.fire(Event.REGISTRATION_FAILED, exc.reason)
@@ -925,6 +940,7 @@ class Controller:
                            markers=preg.markers_used, frames=preg.frames,
                            T_optical_from_image=preg.T_optical_from_image,
                            robot_fre_mm=rreg.fre_rms_mm, T_robot_from_optical=rreg.T_robot_from_optical,
+                           robot_method=rreg.method, robot_residual_mm=rreg.fre_rms_mm,
                            reference_optical_mm=preg.reference_optical_mm,
                            residuals_mm=np.linalg.norm(preg.T_optical_from_image.apply(self.plan.fiducials_mm)
                                                        - preg.reference_optical_mm, axis=1))

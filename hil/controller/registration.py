@@ -21,11 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from hil.controller.config import RegistrationConfig
+from hil.controller.config import RegistrationConfig, StereotaxyRegistrationConfig
 from hil.controller.plan_file import ProcedurePlan
 from hil.errors import GeometryError, HilError
 from hil.geometry.matching import match_markers
 from hil.geometry.registration import register_horn
+from hil.geometry.stereotaxy import load_frame, load_spots, register_single_slice, robot_from_image_via_frame
 from hil.geometry.transform import RigidTransform
 from hil.geometry.tre import expected_tre_mm
 
@@ -144,17 +145,19 @@ def register_patient(frames_identified: Sequence[FloatArray], plan: ProcedurePla
 
 @dataclass(frozen=True)
 class RobotRegistration:
-    """Robot -> optical registration from the flange markers.
+    """Robot -> optical registration.
 
     Attributes:
         T_robot_from_optical: the registration.
-        fre_rms_mm: RMS residual of the flange markers.
-        pairs: marker observations used.
+        fre_rms_mm: RMS residual of the flange markers (stereotaxy: of the slice's spots to their rods).
+        pairs: marker observations (stereotaxy: spots) used.
+        method: "flange_markers" or "stereotaxy".
     """
 
     T_robot_from_optical: RigidTransform
     fre_rms_mm: float
     pairs: int
+    method: str = "flange_markers"
 
 
 def register_robot(flange_optical: Sequence[FloatArray], T_robot_from_tcp: Sequence[RigidTransform],
@@ -182,3 +185,35 @@ def register_robot(flange_optical: Sequence[FloatArray], T_robot_from_tcp: Seque
     except GeometryError as exc:
         raise RegistrationFailedError(f"flange markers do not fix a transform: {exc}") from None
     return RobotRegistration(reg.T_fixed_from_moving, reg.fre_rms_mm, int(sum(len(o) for o in opt)))
+
+
+def register_robot_via_stereotaxy(cfg: StereotaxyRegistrationConfig,
+                                  T_optical_from_image: RigidTransform) -> RobotRegistration:
+    """Robot -> optical through the rod frame the robot carried in the scanner (seed 004 §IV, the
+    CT-Bot route): ``T_robot_from_image`` from one slice's spots
+    (:func:`hil.geometry.stereotaxy.register_single_slice`,
+    :func:`hil.geometry.stereotaxy.robot_from_image_via_frame`), then
+    ``T_robot_from_optical = T_robot_from_image @ T_image_from_optical`` with the skin-marker
+    registration. Reads the two files (blocking, small).
+
+    Raises:
+        RegistrationFailedError: a file is unreadable or invalid, a spot names an unknown rod, the
+            slice does not fix the pose, or the RMS residual exceeds ``cfg.max_residual_mm``.
+    """
+    try:
+        frame = load_frame(cfg.frame)
+        spots = load_spots(cfg.spots)
+        rods = [frame.rod(rid) for rid in spots.rod_ids]
+        pixel = cfg.pixel_mm if cfg.pixel_mm is not None else spots.pixel_mm
+        res = register_single_slice(rods, spots.uv_px, pixel, slice_z_mm=spots.slice_z_mm, refine=cfg.refine)
+    except HilError as exc:
+        raise RegistrationFailedError(f"stereotaxy: {exc}") from None
+    if res.rms_mm > cfg.max_residual_mm:
+        raise RegistrationFailedError(
+            f"stereotaxy residual {res.rms_mm:.3f} mm RMS exceeds {cfg.max_residual_mm} mm")
+    tcp, mount = cfg.robot_tcp_at_scan, cfg.tcp_from_frame
+    T_robot_from_image = robot_from_image_via_frame(
+        res.T_scanner_from_frame, RigidTransform.from_rotvec(tcp[3:], tcp[:3]),
+        RigidTransform.from_rotvec(mount[3:], mount[:3]))
+    return RobotRegistration(T_robot_from_image @ T_optical_from_image.inverse(), res.rms_mm, len(rods),
+                             "stereotaxy")

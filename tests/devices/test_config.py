@@ -26,8 +26,8 @@ def _write(tmp_path: Path, text: str) -> Path:
 
 def test_the_shipped_configs_are_the_expected_ones() -> None:
     assert [p.name for p in SHIPPED] == [
-        "sim.toml", "sim_faults.toml", "sim_needle.toml", "sim_ursim.toml", "ur3_aravis_aurora.toml",
-        "ur3_aravis_fob.toml", "ur3_v4l2.toml"]
+        "sim.toml", "sim_faults.toml", "sim_needle.toml", "sim_needle_collinear.toml", "sim_ursim.toml",
+        "ur3_aravis_aurora.toml", "ur3_aravis_fob.toml", "ur3_v4l2.toml"]
 
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
