@@ -372,6 +372,12 @@ class UrRtdeRobot(Robot):
                 _log.warning("robot_safety_stop_during_move", device=self.name, safety=str(safety))
                 raise SafetyStopError(self.name, f"moveL interrupted: arm is in {safety}")
             if not running:
+                # The two reads above come from RTDE packets that may differ: a protective stop
+                # stops the script too, so read the safety bits again before naming the cause.
+                safety = safety_from_bits(int(self._rcv.getSafetyStatusBits()))
+                if safety is not SafetyStatus.NORMAL:
+                    _log.warning("robot_safety_stop_during_move", device=self.name, safety=str(safety))
+                    raise SafetyStopError(self.name, f"moveL interrupted: arm is in {safety}")
                 raise DeviceFaultError(self.name, "moveL interrupted: the control script stopped")
             if done:
                 self._wait_next_state()

@@ -167,7 +167,14 @@ async def _fault_shown_and_recovered(tmp_path: Path) -> None:
         assert "way out: fault: r recover" in banner
         assert app.query_one("#banner", Static).has_class("shown")
         assert "protective_stop" in v.faults[0]
-        await pilot.press("r")
+        # An operator presses r again while the arm is still in its protective stop (recover()
+        # is refused until the stop clears); bounded: at most 10 presses, 1 s apart.
+        for _ in range(10):
+            await pilot.press("r")
+            await pilot.pause(1.0)
+            latest = app.session.runner.latest()
+            if latest is not None and latest.state != "fault":
+                break
         v = await wait_view(pilot, app, lambda v: v.state in ("gate", "compensate", "lock"), "recovered")
         assert not app.query_one("#banner", Static).has_class("shown")
         summary = await quit_app(pilot, app)
@@ -175,7 +182,8 @@ async def _fault_shown_and_recovered(tmp_path: Path) -> None:
     tr = _transitions(log)
     assert tr[:3] == ["start", "register_to_plan", "plan_to_approach"]
     i_fault = tr.index("fault")
-    assert tr[i_fault + 1] == "recover"
+    assert tr[i_fault + 1] in ("recover", "fault")  # a refused recover() faults again, then recovers
+    assert "recover" in tr[i_fault + 1:]
     assert "approach_to_gate" in tr[i_fault + 2:]
     # quitting while the procedure was under way aborted it: robot stopped, safe stop
     assert summary["final_state"] == "safe_stop"
