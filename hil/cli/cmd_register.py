@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from hil.cli.argtypes import xyz_mm
 from hil.errors import DegenerateConfigurationError, GeometryError, InputFileError
 from hil.geometry.affine4 import affine_frame, register_affine4
 from hil.geometry.registration import check_point_configuration, register
@@ -35,17 +36,6 @@ from hil.io.points import read_points
 from hil.log import get_logger
 
 _log = get_logger(__name__)
-
-
-def _target(text: str) -> tuple[float, float, float]:
-    parts = text.split(",")
-    try:
-        vals = tuple(float(p) for p in parts)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected X,Y,Z in mm, got {text!r}") from None
-    if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
-        raise argparse.ArgumentTypeError(f"expected three finite numbers X,Y,Z, got {text!r}")
-    return vals[0], vals[1], vals[2]
 
 
 def _fle(text: str) -> float:
@@ -71,7 +61,7 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("fixed", metavar="FIXED", help="point file in the frame to map into")
     p.add_argument("moving", metavar="MOVING", help="the same points in the frame to map from")
-    p.add_argument("--target", type=_target, metavar="X,Y,Z", help="a point in MOVING's frame to map, mm")
+    p.add_argument("--target", type=xyz_mm, metavar="X,Y,Z", help="a point in MOVING's frame to map, mm")
     p.add_argument("--method", choices=["horn", "svd", "affine4"], default="horn", help="default: horn")
     p.add_argument("--fle", type=_fle, metavar="MM", help="RMS fiducial localisation error, mm")
     p.set_defaults(func=run)

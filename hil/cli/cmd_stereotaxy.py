@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from hil.cli.argtypes import xyz_mm
 from hil.errors import DegenerateConfigurationError, GeometryError, InputFileError
 from hil.geometry.stereotaxy import (
     error_box_mm,
@@ -52,17 +53,6 @@ def _pair(text: str) -> tuple[float, float]:
     if len(vals) != 2 or not all(math.isfinite(v) and v > 0 for v in vals):
         raise argparse.ArgumentTypeError(f"expected two positive numbers SX,SY, got {text!r}")
     return vals[0], vals[1]
-
-
-def _triple(text: str) -> tuple[float, float, float]:
-    parts = text.split(",")
-    try:
-        vals = tuple(float(p) for p in parts)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected X,Y,Z in mm, got {text!r}") from None
-    if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
-        raise argparse.ArgumentTypeError(f"expected three finite numbers X,Y,Z, got {text!r}")
-    return vals[0], vals[1], vals[2]
 
 
 def _finite(text: str) -> float:
@@ -104,7 +94,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--refine", action="store_true", help="add the Levenberg-Marquardt (Newton) refinement")
     p.add_argument("--bounds-margin-mm", type=_nonneg, default=1.0, metavar="MM", help="rod-bounds tolerance")
     p.add_argument(
-        "--target", type=_triple, metavar="X,Y,Z", help="a frame point to map into the scanner, mm"
+        "--target", type=xyz_mm, metavar="X,Y,Z", help="a frame point to map into the scanner, mm"
     )
     p.add_argument(
         "--spot-error-px", type=_nonneg, default=0.25, metavar="PX", help="spot error for the --target box"
