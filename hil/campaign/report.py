@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import html
 from collections import defaultdict
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from hil.config.faults import FaultKind
@@ -51,13 +52,28 @@ def summarise(results: list[dict[str, Any]], *, config: str) -> dict[str, Any]:
     }
 
 
-def _cells(results: list[dict[str, Any]]) -> dict[tuple[str, str], tuple[int, int, float | None]]:
-    """(kind, state) -> (runs, failed, worst latency ms)."""
+RowOf = Callable[[dict[str, Any]], str]
+
+
+def kind_of(result: dict[str, Any]) -> str:
+    """The simulator tier's table row: the fault kind."""
+    return str(result["kind"])
+
+
+def family_of(result: dict[str, Any]) -> str:
+    """The transport tier's table row: the fault family (the scenario name before ``@``)."""
+    return str(result["scenario"]).partition("@")[0]
+
+
+def _cells(results: list[dict[str, Any]], row_of: RowOf = kind_of,
+           ) -> dict[tuple[str, str], tuple[int, int, float | None]]:
+    """(row, state) -> (runs, failed, worst latency ms); rows are fault kinds unless ``row_of``
+    says otherwise."""
     acc: dict[tuple[str, str], list[Any]] = defaultdict(lambda: [0, 0, None])
     for r in results:
         if not r.get("kind"):
             continue
-        c = acc[(r["kind"], r["state"])]
+        c = acc[(row_of(r), r["state"])]
         c[0] += 1
         c[1] += 0 if r.get("passed") else 1
         lat = r.get("safe_latency_ms")
@@ -71,18 +87,26 @@ def _cell_text(cell: tuple[int, int, float | None] | None) -> str:
         return "-"
     runs, failed, lat = cell
     verdict = "pass" if failed == 0 else f"FAIL {failed}/{runs}"
-    return verdict + ("" if lat is None else f" {lat:.0f}ms")
+    return verdict + ("" if lat is None else f" {round(lat)}ms")  # an int: never "-0ms"
 
 
-def table(results: list[dict[str, Any]]) -> str:
-    """Scenario (fault kind) x state: pass/fail and the worst safe-state latency."""
-    cells = _cells(results)
-    kinds = [k.value for k in FaultKind if any(key[0] == k.value for key in cells)]
+def _rows(cells: dict[tuple[str, str], Any], order: Sequence[str] | None) -> list[str]:
+    names = [k.value for k in FaultKind] if order is None else list(order)
+    return [k for k in names if any(key[0] == k for key in cells)]
+
+
+def table(results: list[dict[str, Any]], *, row_of: RowOf = kind_of,
+          order: Sequence[str] | None = None) -> str:
+    """Fault (kind, or ``row_of`` of a result, in ``order``) x state: pass/fail and the worst
+    safe-state latency."""
+    cells = _cells(results, row_of)
+    kinds = _rows(cells, order)
     states = [s for s in TARGET_STATES if any(key[1] == s for key in cells)]
     w0 = max([len("fault \\ state"), *(len(k) for k in kinds)])
     cols = [max(len(s), *(len(_cell_text(cells.get((k, s)))) for k in kinds)) for s in states]
     lines = [
         "  ".join(["fault \\ state".ljust(w0), *(s.ljust(w) for s, w in zip(states, cols, strict=True))])
+        .rstrip()
     ]
     for k in kinds:
         lines.append(
@@ -91,15 +115,18 @@ def table(results: list[dict[str, Any]]) -> str:
                     k.ljust(w0),
                     *(_cell_text(cells.get((k, s))).ljust(w) for s, w in zip(states, cols, strict=True)),
                 ]
-            )
+            ).rstrip()
         )
     return "\n".join(lines) + "\n"
 
 
-def render_html(summary: dict[str, Any]) -> str:
+def render_html(summary: dict[str, Any], *, row_of: RowOf = kind_of, order: Sequence[str] | None = None,
+                title: str = "Fault-injection campaign") -> str:
+    """The summary as one HTML page: the fault x state table (rows as in :func:`table`), the
+    failing runs with their replay commands, every run."""
     results = summary["results"]
-    cells = _cells(results)
-    kinds = [k.value for k in FaultKind if any(key[0] == k.value for key in cells)]
+    cells = _cells(results, row_of)
+    kinds = _rows(cells, order)
     states = [s for s in TARGET_STATES if any(key[1] == s for key in cells)]
     e = html.escape
 
@@ -126,10 +153,10 @@ def render_html(summary: dict[str, Any]) -> str:
         f"safe-state latency {summary['worst_safe_latency_ms']} ms; config {e(summary['config'])}</p>"
     )
     return (
-        "<!doctype html><html><head><meta charset='utf-8'><title>hil campaign</title>"
+        f"<!doctype html><html><head><meta charset='utf-8'><title>{e(title)}</title>"
         "<style>body{font-family:sans-serif}td,th{border:1px solid #999;padding:2px 6px}"
         "table{border-collapse:collapse;margin-bottom:1em}</style></head><body>"
-        f"<h1>Fault-injection campaign</h1>{head}"
+        f"<h1>{e(title)}</h1>{head}"
         f"<h2>Fault x state</h2><table><tr><th>fault \\ state</th>"
         f"{''.join(f'<th>{e(s)}</th>' for s in states)}</tr>{rows}</table>"
         f"<h2>Failing runs</h2><table><tr><th>scenario</th><th>seed</th><th>reasons</th><th>replay</th></tr>"

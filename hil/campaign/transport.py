@@ -6,8 +6,8 @@ Flock of Birds emulator on a pty), writes a mixed setup to the run's directory (
 and world; the real ``ur_rtde`` robot driver and/or the real ``fob`` tracker driver on the
 emulator), and runs the procedure in real time, bounded. The fault is **state-triggered**: the
 operator sends it through the emulator's fault channel ``delay_s`` after the controller entered
-the target state (and holds the ``compensate_to_lock`` confirmation until the fault is over, so a
-fault aimed at COMPENSATE lands there however fast the machine is). The run is judged with the
+the target state (and, from then on, holds any pending confirmation until the fault is over, so a
+fault aimed at COMPENSATE or LOCK lands there however fast the machine is). The run is judged with the
 same criteria as the simulator tier (:func:`hil.campaign.runner.judge`).
 """
 
@@ -36,9 +36,9 @@ from .emulators import ROOT, EmulatorError, start_trackersim, start_ursim, track
 from .operator import CampaignOperator
 from .pool import Progress, run_parallel
 from .recorder import Recording, RecordingRobot
-from .report import render_html, summarise
+from .report import family_of, render_html, summarise, table
 from .runner import RECOVER_SETTLE_S, RunResult, RunSpec, _latency_bound_ms, judge
-from .scenarios import ScenarioSelectionError
+from .scenarios import TARGET_STATES, ScenarioSelectionError
 
 Emulator = Literal["ursim", "trackersim"]
 
@@ -58,13 +58,28 @@ CONFIRM = ("plan_to_approach", "compensate_to_lock", "lock_to_done")
 
 
 @dataclass(frozen=True)
-class TransportScenario:
-    """A fault sent through an emulator's fault channel.
+class TransportFault:
+    """A fault family sent through an emulator's fault channel (one row of the transport matrix).
 
-    ``kind`` is the symptom the controller sees (its profile gives the latency bound); ``inject``
-    and ``clear`` are the fault-channel lines sent at onset and at the end of the window (None:
-    the emulator ends it by itself).
+    ``kind`` is the symptom the controller sees (its profile gives the latency bound and how it
+    becomes detectable); ``inject`` and ``clear`` are the fault-channel lines sent at onset and at
+    the end of the window (None: the emulator ends it by itself, or nothing needs ending).
     """
+
+    family: str
+    emulator: Emulator
+    kind: FaultKind
+    inject: str
+    clear: str | None
+    duration_s: float
+    base: str  # setup the mixed setup is written from, relative to configs/
+    what: str  # one line for the docs and the table legend
+
+
+@dataclass(frozen=True)
+class TransportScenario:
+    """A transport fault aimed at a workflow state: ``<family>@<state>``, sent ``delay_s`` after
+    the controller first entered ``state``."""
 
     name: str
     emulator: Emulator
@@ -80,25 +95,62 @@ class TransportScenario:
     def device(self) -> str:
         return FAULT_DEVICE[self.kind]
 
+    @property
+    def family(self) -> str:
+        return self.name.partition("@")[0]
 
-TRANSPORT_SCENARIOS: tuple[TransportScenario, ...] = (
-    TransportScenario("rtde_protective_stop@compensate", "ursim", FaultKind.PROTECTIVE_STOP, "compensate",
-                      "protective_stop", None, 0.5, 1.5, "sim_ursim.toml"),
-    TransportScenario("rtde_protective_stop@approach", "ursim", FaultKind.PROTECTIVE_STOP, "approach",
-                      "protective_stop", None, 0.5, 0.3, "sim_ursim.toml"),
-    TransportScenario("rtde_drop_connection@compensate", "ursim", FaultKind.ROBOT_DISCONNECT, "compensate",
-                      "drop_connection 1.0", None, 1.0, 1.5, "sim_ursim.toml"),
-    TransportScenario("serial_garbage@compensate", "trackersim", FaultKind.CORRUPT_RECORD, "compensate",
-                      "fault garbage,p=1", "clear garbage", 0.6, 1.5, "sim.toml"),
-    TransportScenario("serial_silence@compensate", "trackersim", FaultKind.TRACKER_TIMEOUT, "compensate",
-                      "fault silence,seconds=1.0", None, 1.0, 1.5, "sim.toml"),
+
+#: Every fault the emulators' fault channels can play (docs/ursim.md, docs/trackers.md), as the
+#: symptom kind the controller sees. RTDE faults go to ``tools/ursim`` and the ``ur_rtde`` driver,
+#: serial faults to ``tools/trackersim`` (Flock of Birds on a pty) and the ``fob`` driver.
+TRANSPORT_FAULTS: tuple[TransportFault, ...] = (
+    TransportFault("rtde_protective_stop", "ursim", FaultKind.PROTECTIVE_STOP, "protective_stop", None, 0.5,
+                   "sim_ursim.toml", "the controller raises a protective stop (cleared by recover())"),
+    TransportFault("rtde_estop", "ursim", FaultKind.PROTECTIVE_STOP, "estop", "release", 1.0,
+                   "sim_ursim.toml", "emergency stop pressed, released after the window"),
+    TransportFault("rtde_drop_connection", "ursim", FaultKind.ROBOT_DISCONNECT, "drop_connection 1.0", None,
+                   1.0, "sim_ursim.toml", "every RTDE/dashboard connection dropped, ports closed for 1 s"),
+    TransportFault("rtde_pause_stream", "ursim", FaultKind.ROBOT_DISCONNECT, "pause_stream 1.5", None, 1.5,
+                   "sim_ursim.toml", "the RTDE output stream goes silent for 1.5 s (link up, no data)"),
+    TransportFault("rtde_stop_program", "ursim", FaultKind.MOTION_REJECTED, "stop_program", None, 0.5,
+                   "sim_ursim.toml", "the control script stops (as from the pendant)"),
+    TransportFault("rtde_slow_responses", "ursim", FaultKind.MOTION_LAG, "slow_responses 200",
+                   "slow_responses 0", 1.5, "sim_ursim.toml", "every reply and command 200 ms late"),
+    TransportFault("rtde_stall", "ursim", FaultKind.MOTION_LAG, "stall on", "stall off", 1.5,
+                   "sim_ursim.toml", "the arm stops following its targets (drive stall)"),
+    TransportFault("serial_garbage", "trackersim", FaultKind.CORRUPT_RECORD, "fault garbage,p=1",
+                   "clear garbage", 0.6, "sim.toml", "random bytes inserted into every record"),
+    TransportFault("serial_truncate", "trackersim", FaultKind.CORRUPT_RECORD, "fault truncate,p=1",
+                   "clear truncate", 0.6, "sim.toml", "the tail of every record dropped"),
+    TransportFault("serial_lost_phase", "trackersim", FaultKind.CORRUPT_RECORD, "fault lost_phase,p=1",
+                   "clear lost_phase", 0.6, "sim.toml", "the phasing bit of every record cleared"),
+    TransportFault("serial_wrong_baud", "trackersim", FaultKind.CORRUPT_RECORD,
+                   "fault wrong_baud,baud=9600", "clear wrong_baud", 0.6, "sim.toml",
+                   "the bird switches to 9600 baud (host stays at 115200)"),
+    TransportFault("serial_silence", "trackersim", FaultKind.TRACKER_TIMEOUT, "fault silence,seconds=1.0",
+                   None, 1.0, "sim.toml", "the bird sends nothing for 1 s"),
+)
+
+#: Workflow states the transport matrix aims at (the simulator tier's), and how long after
+#: entering each the fault is sent (s): early enough that the state has not ended on a fast run
+#: (the operator holds the state's outgoing confirmation, where it has one, until recovery is due).
+TRANSPORT_STATES: tuple[str, ...] = TARGET_STATES
+TRANSPORT_DELAY_S: dict[str, float] = {"register": 0.2, "approach": 0.3, "gate": 0.2, "compensate": 1.5,
+                                       "lock": 0.5}
+
+FAMILIES: tuple[str, ...] = tuple(f.family for f in TRANSPORT_FAULTS)
+TRANSPORT_SCENARIOS: tuple[TransportScenario, ...] = tuple(
+    TransportScenario(f"{f.family}@{state}", f.emulator, f.kind, state, f.inject, f.clear, f.duration_s,
+                      TRANSPORT_DELAY_S[state], f.base)
+    for f in TRANSPORT_FAULTS for state in TRANSPORT_STATES
 )
 BY_NAME = {s.name: s for s in TRANSPORT_SCENARIOS}
 
 
 def select_transport(patterns: list[str]) -> list[TransportScenario]:
     """Transport scenarios matching any pattern (shell wildcards; a pattern without ``@`` is a name
-    prefix: ``serial`` = every serial scenario). No pattern: all of them.
+    prefix: ``serial`` = every serial scenario in every state; ``@lock`` = every family in LOCK).
+    No pattern: the whole matrix (every family x every state).
 
     Raises:
         ScenarioSelectionError: a pattern matches nothing (names the choices).
@@ -109,11 +161,12 @@ def select_transport(patterns: list[str]) -> list[TransportScenario]:
         return list(TRANSPORT_SCENARIOS)
     chosen: list[TransportScenario] = []
     for pat in patterns:
-        full = pat if "@" in pat else f"{pat}*@*"
+        full = f"*{pat}" if pat.startswith("@") else pat if "@" in pat else f"{pat}*@*"
         hit = [s for s in TRANSPORT_SCENARIOS if fnmatch.fnmatchcase(s.name, full)]
         if not hit:
             raise ScenarioSelectionError(
-                f"transport scenario {pat!r} matches nothing (choices: {', '.join(BY_NAME)})")
+                f"transport scenario {pat!r} matches nothing (FAMILY@STATE; families: "
+                f"{', '.join(f.family for f in TRANSPORT_FAULTS)}; states: {', '.join(TRANSPORT_STATES)})")
         chosen += [s for s in hit if s not in chosen]
     return chosen
 
@@ -158,9 +211,11 @@ def write_setup(sc: TransportScenario, out: Path, *, seed: int, ursim_host: str 
 class TransportOperator(CampaignOperator):
     """The campaign operator plus a state trigger: ``delay_s`` after the controller first entered
     ``target``, it calls ``inject`` (sends the fault through the emulator) and records the onset on
-    ``clock``; at the end of the window it calls ``clear``. It holds ``compensate_to_lock`` until
-    the fault is over and the recovery time has come. Operator commands are recorded in seconds
-    since ``t0_ns`` (the session log's start), the time base :func:`judge` uses."""
+    ``clock``; at the end of the window it calls ``clear``. Once the target state was entered it
+    holds every pending confirmation (``compensate_to_lock``, ``lock_to_done``, ...) until the fault
+    is over and the recovery time has come, so the procedure cannot leave the target state early.
+    Operator commands are recorded in seconds since ``t0_ns`` (the session log's start), the time
+    base :func:`judge` uses."""
 
     def __init__(self, target: str, delay_s: float, duration_s: float, clock: Clock, t0_ns: int,
                  inject: Callable[[], object], clear: Callable[[], object] | None) -> None:
@@ -201,9 +256,9 @@ class TransportOperator(CampaignOperator):
                     self._clear()
                 except EmulatorError as exc:
                     self.inject_error = str(exc)
-        if view.pending == "compensate_to_lock" and (self.fired_view_s is None
-                                                     or view.t_s < self.recover_after_s):
-            return None  # keep compensating until the fault has come and gone
+        if view.pending is not None and self.entered_s is not None and (
+                self.fired_view_s is None or view.t_s < self.recover_after_s):
+            return None  # stay in the target state until the fault has come and gone
         return super().poll(view)
 
 
@@ -344,88 +399,103 @@ def _entered(log_path: Path, t0: int) -> list[tuple[float, str]]:
 
 
 # ---------------------------------------------------------------------- the campaign
+@dataclass
+class _Prepared:
+    spec: TransportSpec
+    stop: Callable[[], None]
+
+
+def _prepare(sc: TransportScenario, seed: int, logs: Path) -> _Prepared:
+    """Start the run's emulator and write its mixed setup. Raises EmulatorError."""
+    run_id = f"{sc.name}_s{seed}"
+    run_dir = logs / run_id
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if sc.emulator == "ursim":
+        ursim = start_ursim(run_dir)
+        setup = write_setup(sc, run_dir, seed=seed, ursim_host=ursim.host)
+        return _Prepared(TransportSpec(run_id, sc.name, seed, str(setup), str(_plan(sc)), str(logs),
+                                       ursim_host=ursim.host), ursim.stop)
+    tracker = start_trackersim(run_dir, seed=seed)
+    setup = write_setup(sc, run_dir, seed=seed, tracker_port=tracker.port)
+    return _Prepared(TransportSpec(run_id, sc.name, seed, str(setup), str(_plan(sc)), str(logs),
+                                   tracker_control=str(tracker.control_path)), tracker.stop)
+
+
 def run_transport_campaign(
     scenarios: list[TransportScenario], seeds: list[int], *, out_dir: Path, keep_logs: bool = False,
-    timeout_s: float = TRANSPORT_TIMEOUT_S, progress: Progress | None = None,
+    timeout_s: float = TRANSPORT_TIMEOUT_S, jobs: int = 1, progress: Progress | None = None,
 ) -> dict[str, Any]:
-    """Run every scenario x seed serially (one emulator each, real time); write
+    """Run every scenario x seed, ``jobs`` at a time (each run with its own emulator: the UR
+    emulator on its own loopback address, the tracker emulator on its own pty; real time, so
+    more than one job on a small machine loads the runs - 1 is the default); write
     ``transport.json`` and ``transport.html`` in ``out_dir``; return the summary (the simulator
-    tier's shape, :func:`hil.campaign.report.summarise`). Blocking: ~20-40 s per run."""
+    tier's shape, :func:`hil.campaign.report.summarise`). Blocking: ~15-30 s per run."""
+    if jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
     say = progress or (lambda _m: None)
     logs = out_dir / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     results: list[dict[str, Any]] = []
-    for seed in seeds:
-        for sc in scenarios:
-            run_id = f"{sc.name}_s{seed}"
-            run_dir = logs / run_id
-            run_dir.mkdir(parents=True, exist_ok=True)
-            try:
-                if sc.emulator == "ursim":
-                    ursim = start_ursim(run_dir)
-                    stop: Callable[[], None] = ursim.stop
-                    setup = write_setup(sc, run_dir, seed=seed, ursim_host=ursim.host)
-                    spec = TransportSpec(run_id, sc.name, seed, str(setup), str(_plan(sc)), str(logs),
-                                         ursim_host=ursim.host)
-                else:
-                    tracker = start_trackersim(run_dir, seed=seed)
-                    stop = tracker.stop
-                    setup = write_setup(sc, run_dir, seed=seed, tracker_port=tracker.port)
-                    spec = TransportSpec(run_id, sc.name, seed, str(setup), str(_plan(sc)), str(logs),
-                                         tracker_control=str(tracker.control_path))
-            except EmulatorError as exc:
-                say(f"{run_id}: FAIL emulator did not start ({exc})")
-                results.append(RunResult(run_id, sc.name, sc.kind.value, sc.state, seed, passed=False,
-                                         outcome="crashed", reasons=[f"emulator: {exc}"]).to_dict())
-                continue
-            try:
-                results += run_parallel([spec], jobs=1, timeout_s=timeout_s, work_dir=logs, progress=say,
-                                        run=run_transport_one)
-            finally:
-                stop()
+    todo = [(sc, seed) for seed in seeds for sc in scenarios]
+    for first in range(0, len(todo), jobs):
+        batch: list[_Prepared] = []
+        try:
+            for sc, seed in todo[first:first + jobs]:
+                try:
+                    batch.append(_prepare(sc, seed, logs))
+                except EmulatorError as exc:
+                    run_id = f"{sc.name}_s{seed}"
+                    say(f"{run_id}: FAIL emulator did not start ({exc})")
+                    results.append(RunResult(run_id, sc.name, sc.kind.value, sc.state, seed, passed=False,
+                                             outcome="crashed", reasons=[f"emulator: {exc}"]).to_dict())
+            if batch:
+                results += run_parallel([b.spec for b in batch], jobs=len(batch), timeout_s=timeout_s,
+                                        work_dir=logs, progress=say, run=run_transport_one)
+        finally:
+            for b in batch:
+                b.stop()
+        say(f"transport: {len(results)}/{len(todo)} runs done, "
+            f"{sum(1 for r in results if not r.get('passed'))} failed")
     summary = summarise(results, config="(transport tier)")
     summary["tier"] = "transport"
     for f in summary["failing"]:
         f["replay"] = f"hil campaign --transport {f['scenario']} --seed {f['seed']}"
     if not keep_logs:
-        failing = {f"{r['run_id']}" for r in results if not r.get("passed")}
-        for p in sorted(logs.iterdir()):
-            stem = p.name.removesuffix(".jsonl").removesuffix(".jsonl.head")
-            if stem in failing:
-                continue
-            if p.is_dir():
-                for q in p.iterdir():
-                    q.unlink()
-                p.rmdir()
-            else:
-                p.unlink()
-        if not any(logs.iterdir()):
-            logs.rmdir()
+        _drop_passing_logs(logs, {f"{r['run_id']}" for r in results if not r.get("passed")})
     (out_dir / "transport.json").write_text(json.dumps(summary, indent=1, default=str) + "\n")
-    (out_dir / "transport.html").write_text(render_html(summary))
+    (out_dir / "transport.html").write_text(render_html(summary, row_of=family_of, order=FAMILIES,
+                                                        title="Transport fault campaign"))
     return summary
 
 
-def transport_table(results: list[dict[str, Any]]) -> str:
-    """One line per transport scenario: runs, pass/fail, state at onset, worst safe-state latency
-    and its bound."""
-    rows: list[list[str]] = [["scenario", "runs", "verdict", "hit", "safe state", "worst latency", "bound"]]
-    for sc in TRANSPORT_SCENARIOS:
-        mine = [r for r in results if r.get("scenario") == sc.name]
-        if not mine:
+def _drop_passing_logs(logs: Path, failing: set[str]) -> None:
+    """Delete the logs and run directories of passing runs (and ``logs`` when it ends empty)."""
+    for p in sorted(logs.iterdir()):
+        stem = p.name.removesuffix(".jsonl").removesuffix(".jsonl.head")
+        if stem in failing:
             continue
-        failed = sum(1 for r in mine if not r.get("passed"))
-        lat = [r["safe_latency_ms"] for r in mine if isinstance(r.get("safe_latency_ms"), int | float)]
-        bound = next((r["latency_bound_ms"] for r in mine if r.get("latency_bound_ms") is not None), None)
-        rows.append([
-            sc.name, str(len(mine)), "pass" if failed == 0 else f"FAIL {failed}/{len(mine)}",
-            ",".join(sorted({str(r.get("state_at_onset")) for r in mine})),
-            ",".join(sorted({str(r.get("safe_state")) for r in mine})),
-            "-" if not lat else f"{max(lat):.0f} ms", "-" if bound is None else f"{bound:.0f} ms",
-        ])
-    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
-    return "".join("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip() + "\n"
-                   for row in rows)
+        if p.is_dir():
+            for q in p.iterdir():
+                q.unlink()
+            p.rmdir()
+        else:
+            p.unlink()
+    if not any(logs.iterdir()):
+        logs.rmdir()
+
+
+def transport_table(results: list[dict[str, Any]]) -> str:
+    """Fault family x state: ``pass`` / ``FAIL k/n`` and the worst safe-state latency (``-`` where
+    the matrix has no run), then a line with the latency bounds per device."""
+    text = table(results, row_of=family_of, order=FAMILIES)
+    bounds: dict[str, float] = {}
+    for r in results:
+        b = r.get("latency_bound_ms")
+        if isinstance(b, int | float) and r.get("kind"):
+            bounds.setdefault(FAULT_DEVICE[FaultKind(r["kind"])], float(b))
+    if bounds:
+        text += "bounds: " + ", ".join(f"{d} {b:.0f} ms" for d, b in sorted(bounds.items())) + "\n"
+    return text
 
 
 def _plan(sc: TransportScenario) -> Path:

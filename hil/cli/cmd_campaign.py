@@ -11,8 +11,9 @@ every run passed, 1 otherwise.
 
 ``--transport``: the transport tier instead (:mod:`hil.campaign.transport`): faults sent through
 the emulators' fault channels to the REAL drivers (``ur_rtde`` on ``tools/ursim``, ``fob`` on
-``tools/trackersim``), serially and in real time; SCENARIOS are transport scenario names
-(``rtde_protective_stop@compensate``, ``serial_*``, ...); files ``DIR/transport.json`` and
+``tools/trackersim``), in real time (``--jobs`` 1 by default); SCENARIOS are transport scenario
+names FAMILY@STATE (``rtde_protective_stop@compensate``, ``serial``, ``@lock``, ...; none = every
+family x every state); stdout: the family x state table; files ``DIR/transport.json`` and
 ``DIR/transport.html``.
 """
 
@@ -56,8 +57,9 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--jobs",
         type=int,
-        default=max(1, min(os.cpu_count() or 1, 4)),
-        help="parallel processes (default: CPU count, at most 4)",
+        default=None,
+        help="parallel processes (default: CPU count, at most 4; with --transport 1, as each run is "
+             "real time)",
     )
     p.add_argument("--out", default="campaign", help="output directory (default: ./campaign)")
     p.add_argument("--config", help="simulated setup TOML (default: the embedded configs/sim.toml)")
@@ -67,7 +69,7 @@ def add_parser(sub: Any) -> None:
                    help="wall-time bound of one run, s (default 300; 150 with --transport)")
     p.add_argument("--transport", action="store_true",
                    help="run the transport tier: faults through the emulators to the real drivers, "
-                        "serially in real time (SCENARIOS: transport scenario names; --jobs ignored)")
+                        "in real time (SCENARIOS: FAMILY@STATE transport scenario names)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.set_defaults(func=run)
 
@@ -86,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
         seeds = list(range(1, args.seeds + 1))
     if any(s < 0 for s in seeds):
         raise InputFileError("--seed", f"must be >= 0, got {min(seeds)}")
+    if args.jobs is None:
+        args.jobs = 1 if args.transport else max(1, min(os.cpu_count() or 1, 4))
     if args.jobs < 1:
         raise InputFileError("--jobs", f"must be >= 1, got {args.jobs}")
     if args.timeout is not None and args.timeout <= 0:
@@ -140,9 +144,10 @@ def _run_transport(args: argparse.Namespace, seeds: list[int], out: Path, progre
     if args.config or args.plan:
         raise InputFileError("--config/--plan", "do not apply to --transport (each run writes its own setup)")
     scenarios = select_transport(list(args.scenarios))
-    progress(f"transport tier: {len(scenarios)} scenario(s) x {len(seeds)} seed(s), serial, real time")
+    progress(f"transport tier: {len(scenarios)} scenario(s) x {len(seeds)} seed(s), {args.jobs} at a time, "
+             "real time")
     summary = run_transport_campaign(
-        scenarios, seeds, out_dir=out, keep_logs=args.keep_logs,
+        scenarios, seeds, out_dir=out, keep_logs=args.keep_logs, jobs=args.jobs,
         timeout_s=args.timeout if args.timeout is not None else TRANSPORT_TIMEOUT_S, progress=progress)
     if args.json:
         sys.stdout.write(json.dumps(summary, default=str) + "\n")

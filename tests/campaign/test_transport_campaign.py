@@ -19,6 +19,9 @@ from hil.campaign.recorder import CommandRecord, Recording, StateSample
 from hil.campaign.runner import RunResult
 from hil.campaign.scenarios import ScenarioSelectionError
 from hil.campaign.transport import (
+    BY_NAME,
+    FAMILIES,
+    TRANSPORT_FAULTS,
     TRANSPORT_SCENARIOS,
     TransportOperator,
     _stopped_after_link_back,
@@ -29,6 +32,7 @@ from hil.campaign.transport import (
 )
 from hil.clock import ManualClock
 from hil.config import load_setup
+from hil.config.faults import FaultKind
 from hil.controller.fsm import Event, State
 from hil.controller.procedure import OperatorView
 
@@ -70,19 +74,54 @@ def test_transport_runs_pass_every_criterion(campaign: tuple[dict[str, Any], Pat
 @pytest.mark.slow
 def test_the_table_names_every_scenario(campaign: tuple[dict[str, Any], Path]) -> None:
     summary, _ = campaign
-    text = transport_table(summary["results"])
-    lines = text.splitlines()
-    assert lines[0].split()[:3] == ["scenario", "runs", "verdict"]
-    assert [ln.split()[:3] for ln in lines[1:]] == [[n, "1", "pass"] for n in SCENARIOS]
+    lines = transport_table(summary["results"]).splitlines()
+    assert lines[0].split() == ["fault", "\\", "state", "compensate"]
+    assert [ln.split()[:2] for ln in lines[1:3]] == [["rtde_protective_stop", "pass"],
+                                                     ["serial_silence", "pass"]]
+    assert lines[3].startswith("bounds: robot ")
+
+
+def test_the_matrix_is_every_family_in_every_state() -> None:
+    names = [s.name for s in TRANSPORT_SCENARIOS]
+    assert len(names) == len(set(names)) == len(TRANSPORT_FAULTS) * 5
+    assert FAMILIES == ("rtde_protective_stop", "rtde_estop", "rtde_drop_connection", "rtde_pause_stream",
+                        "rtde_stop_program", "rtde_slow_responses", "rtde_stall", "serial_garbage",
+                        "serial_truncate", "serial_lost_phase", "serial_wrong_baud", "serial_silence")
+    assert {s.state for s in TRANSPORT_SCENARIOS} == {"register", "approach", "gate", "compensate", "lock"}
+    lock = BY_NAME["rtde_estop@lock"]
+    assert (lock.emulator, lock.kind, lock.inject, lock.clear, lock.delay_s) == (
+        "ursim", FaultKind.PROTECTIVE_STOP, "estop", "release", 0.5)
+    assert lock.family == "rtde_estop"
+    assert BY_NAME["serial_silence@compensate"].delay_s == 1.5
 
 
 def test_selection() -> None:
-    assert [s.name for s in select_transport(["serial"])] == [
-        "serial_garbage@compensate", "serial_silence@compensate"]
-    assert [s.name for s in select_transport(["rtde_*@approach"])] == ["rtde_protective_stop@approach"]
+    assert [s.name for s in select_transport(["serial_silence"])] == [
+        f"serial_silence@{st}" for st in ("register", "approach", "gate", "compensate", "lock")]
+    assert [s.name for s in select_transport(["rtde_*@approach"])] == [
+        f"{f}@approach" for f in FAMILIES if f.startswith("rtde_")]
+    assert [s.name for s in select_transport(["@lock"])] == [f"{f}@lock" for f in FAMILIES]
+    both = [s.name for s in select_transport(["serial_garbage@gate", "serial_garbage"])]
+    assert both[0] == "serial_garbage@gate"  # in the order asked, without repeats
+    assert len(both) == len(set(both)) == 5
     assert select_transport([]) == list(TRANSPORT_SCENARIOS)
-    with pytest.raises(ScenarioSelectionError, match="matches nothing"):
+    with pytest.raises(ScenarioSelectionError, match=r"matches nothing.*families: rtde_protective_stop"):
         select_transport(["camera_loss"])
+
+
+def test_the_table_is_family_by_state() -> None:
+    def res(scenario: str, passed: bool, lat: float | None) -> dict[str, Any]:
+        sc = BY_NAME[scenario]
+        return {"scenario": scenario, "kind": sc.kind.value, "state": sc.state, "passed": passed,
+                "safe_latency_ms": lat, "latency_bound_ms": 1133.3}
+
+    text = transport_table([res("rtde_estop@lock", True, 41.0), res("rtde_estop@gate", False, 900.0),
+                            res("rtde_estop@gate", True, 60.0), res("serial_silence@lock", True, 540.4)])
+    lines = text.splitlines()
+    assert lines[0].split() == ["fault", "\\", "state", "gate", "lock"]
+    assert lines[1].split() == ["rtde_estop", "FAIL", "1/2", "900ms", "pass", "41ms"]
+    assert lines[2].split() == ["serial_silence", "-", "pass", "540ms"]
+    assert lines[3] == "bounds: robot 1133 ms, tracker 1133 ms"
 
 
 def test_written_setups_point_the_real_drivers_at_the_emulators(tmp_path: Path) -> None:
@@ -128,6 +167,23 @@ def test_operator_fires_inside_the_state_and_holds_lock_until_recovered() -> Non
     assert op.poll(_view(State.FAULT, 7.5)) is Event.RESUME_REQUESTED
     assert op.poll(_view(State.COMPENSATE, 9.0, pending="compensate_to_lock")) is Event.CONFIRM_REQUESTED
     assert sent == ["fault", "clear"]
+
+
+def test_operator_aimed_at_lock_confirms_until_lock_then_holds_lock_to_done() -> None:
+    clock = ManualClock(10_000_000_000)
+    sent: list[str] = []
+    op = TransportOperator("lock", 0.5, 1.0, clock, 9_000_000_000, inject=lambda: sent.append("fault"),
+                           clear=None)
+    assert op.poll(_view(State.IDLE, 0.0)) is Event.START_REQUESTED
+    # before LOCK every confirmation is given, so the procedure reaches the target state
+    assert op.poll(_view(State.PLAN, 1.0, pending="plan_to_approach")) is Event.CONFIRM_REQUESTED
+    assert op.poll(_view(State.COMPENSATE, 4.0, pending="compensate_to_lock")) is Event.CONFIRM_REQUESTED
+    assert op.poll(_view(State.LOCK, 5.0)) is None
+    assert op.poll(_view(State.LOCK, 5.2, pending="lock_to_done")) is None  # held: fault not sent yet
+    assert op.poll(_view(State.LOCK, 5.5, pending="lock_to_done")) is None  # sent now, still held
+    assert sent == ["fault"]
+    assert op.poll(_view(State.LOCK, 6.9, pending="lock_to_done")) is None  # window + settle not over
+    assert op.poll(_view(State.LOCK, 7.0, pending="lock_to_done")) is Event.CONFIRM_REQUESTED  # tolerated
 
 
 def _link_back_case(tmp_path: Path, first_speed_mm_s: float, kind: str = "robot_disconnect") -> RunResult:
