@@ -435,34 +435,44 @@ class Controller:
             self._stop_robot(self._stop_owed[0])
 
     def _robot_ready_for(self, cmd: Event) -> bool:
-        """Before an accepted RESET or START: when the robot reports a protective stop, try
+        """Before an accepted RESET or START: when the robot needs recovering - a protective stop,
+        a stopped program with normal safety (an e-stop released, a script stopped by its
+        watchdog or the pendant), or a state that cannot be read (a dropped link) - try
         ``robot.recover()`` (``robot_recover_attempted`` with the outcome). START is refused
         (``start_refused`` with the reason; returns False) while the robot is still not in normal
-        safety status or its state cannot be read; RESET always proceeds (IDLE stops the robot).
-        Never raises."""
+        safety status with its program running, or its state cannot be read; RESET always
+        proceeds (IDLE stops the robot). Never raises."""
         if cmd not in (Event.START_REQUESTED, Event.RESET_REQUESTED) or not self.fsm.accepts(cmd):
             return True
         why = ""
         try:
-            st = self.robot.state_now()
-            if st.safety is SafetyStatus.PROTECTIVE_STOP:
-                error = ""
-                try:
-                    self.robot.recover()
-                except DriverError as exc:
-                    error = str(exc)
-                st = self.robot.state_now()
-                ok = st.safety is SafetyStatus.NORMAL
-                self.session.write("robot_recover_attempted", input=cmd, ok=ok, safety=st.safety, error=error)
-                (_log.info if ok else _log.warning)("robot_recover_attempted", input=cmd.value, ok=ok,
-                                                    error=error)
-                if not ok:
-                    why = f"robot still in {st.safety.value} after recover()"
-                    why += f": {error}" if error else ""
-            elif st.safety is not SafetyStatus.NORMAL:
-                why = f"robot in {st.safety.value}"
+            st: RobotState | None = self.robot.state_now()
+            read_error = ""
         except DriverError as exc:
-            why = f"robot state unavailable: {exc}"
+            st, read_error = None, str(exc)
+        if st is None or st.safety is SafetyStatus.PROTECTIVE_STOP or (
+                st.safety is SafetyStatus.NORMAL and st.mode is RobotMode.STOPPED):
+            error = ""
+            try:
+                self.robot.recover()
+            except DriverError as exc:
+                error = str(exc)
+            try:
+                st = self.robot.state_now()
+            except DriverError as exc:
+                st, error = None, error or str(exc)
+            ok = st is not None and st.safety is SafetyStatus.NORMAL and st.mode is not RobotMode.STOPPED
+            self.session.write("robot_recover_attempted", input=cmd, ok=ok,
+                               safety=None if st is None else st.safety,
+                               mode=None if st is None else st.mode, error=error, state_error=read_error)
+            (_log.info if ok else _log.warning)("robot_recover_attempted", input=cmd.value, ok=ok,
+                                                error=error)
+            if not ok:
+                why = ("robot state unavailable after recover()" if st is None
+                       else f"robot still {st.safety.value} / {st.mode.value} after recover()")
+                why += f": {error}" if error else ""
+        elif st.safety is not SafetyStatus.NORMAL:
+            why = f"robot in {st.safety.value}"
         if not why or cmd is Event.RESET_REQUESTED:
             return True
         self._last_reason = why

@@ -74,13 +74,17 @@ class FakeCamera(StereoCamera):
 
 
 class FlakyRobot(FakeRobot):
-    """A fake robot whose link can drop (every call raises DisconnectedError) and that can be in a
-    protective stop which ``recover`` clears only when ``clearable``."""
+    """A fake robot whose link can drop (every call raises DisconnectedError; ``recover`` brings it
+    back when ``reconnects``), that can be in a protective stop which ``recover`` clears only when
+    ``clearable``, and whose program can be stopped (``program_running``; mode STOPPED, as a UR
+    reports a stopped script or any safety stop) until ``recover`` restarts it."""
 
     def __init__(self, clock: ManualClock) -> None:
         super().__init__(clock, MotionLimits())
         self.connected = True
+        self.reconnects = False
         self.clearable = True
+        self.program_running = True
         self.recover_calls = 0
 
     def _link(self) -> None:
@@ -93,14 +97,20 @@ class FlakyRobot(FakeRobot):
 
     def _state_now(self) -> RobotState:
         self._link()
-        return super()._state_now()
+        st = super()._state_now()
+        if self.program_running and st.safety is SafetyStatus.NORMAL:
+            return st
+        return RobotState(st.T_robot_from_tcp, st.q_rad, RobotMode.STOPPED, st.safety, st.t_ns)
 
     def recover(self) -> None:
         self.recover_calls += 1
+        if self.reconnects:
+            self.connected = True
         self._link()
         if not self.clearable:
             raise SafetyStopError(self.name, "protective stop cannot be cleared yet")
         self.safety_status = SafetyStatus.NORMAL
+        self.program_running = True
 
 
 class Scripted:
@@ -219,8 +229,53 @@ def test_start_is_refused_while_the_robot_stays_in_protective_stop(tmp_path: Pat
     ev = _events(log)
     refused = [r for r in ev if r["event"] == "start_refused"]
     assert len(refused) == 1
-    assert refused[0]["reason"] == ("robot still in protective_stop after recover(): "
+    assert refused[0]["reason"] == ("robot still protective_stop / stopped after recover(): "
                                     "robot: protective stop cannot be cleared yet")
+
+
+def test_start_after_a_stopped_program_restarts_it(tmp_path: Path) -> None:
+    # an e-stop released, or the script stopped by its watchdog: safety normal, program stopped
+    clock = ManualClock(10**9)
+    robot = FlakyRobot(clock)
+    robot.program_running = False
+    ctl, log = _controller(tmp_path, clock, robot, Scripted([Event.START_REQUESTED]))
+    ctl.tick()
+    assert robot.recover_calls == 1
+    assert ctl.state is State.REGISTER
+    rec = [r for r in _events(log) if r["event"] == "robot_recover_attempted"]
+    assert [(r["ok"], r["mode"], r["safety"]) for r in rec] == [(True, "idle", "normal")]
+
+
+def test_reset_and_start_after_a_dropped_link_reconnect_first(tmp_path: Path) -> None:
+    clock = ManualClock(10**9)
+    robot = FlakyRobot(clock)
+    ctl, log = _controller(tmp_path, clock, robot,
+                           Scripted([None, None, Event.RESET_REQUESTED, Event.START_REQUESTED]))
+    ctl.tick()
+    robot.connected = False
+    ctl.tick()
+    assert ctl.state is State.FAULT
+    robot.reconnects = True  # the network is back: recover() rebuilds the link
+    ctl.tick()
+    assert (ctl.state, robot.recover_calls) == (State.IDLE, 1)
+    ctl.tick()
+    assert ctl.state is State.REGISTER
+    rec = [r for r in _events(log) if r["event"] == "robot_recover_attempted"]
+    assert [(r["input"], r["ok"]) for r in rec] == [("reset_requested", True)]
+    assert "RTDE connection lost (test)" in str(rec[0]["state_error"])
+
+
+def test_start_is_refused_while_the_link_stays_down(tmp_path: Path) -> None:
+    clock = ManualClock(10**9)
+    robot = FlakyRobot(clock)
+    robot.connected = False
+    ctl, log = _controller(tmp_path, clock, robot, Scripted([Event.START_REQUESTED]))
+    ctl.tick()
+    assert robot.recover_calls == 1
+    assert ctl.state is not State.REGISTER
+    refused = [r for r in _events(log) if r["event"] == "start_refused"]
+    assert refused[0]["reason"] == ("robot state unavailable after recover(): "
+                                    "robot: RTDE connection lost (test)")
 
 
 def test_start_with_a_normal_robot_does_not_call_recover(tmp_path: Path) -> None:
