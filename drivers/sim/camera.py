@@ -167,7 +167,11 @@ class SimStereoCamera(StereoCamera):
             self.last_truth_right = skewed.truth
         self.frames_rendered += 1
         done_ns = self.clock.now_ns()
-        self._render_lead_ns = min(max(done_ns - t_render_ns, round(0.9 * self._render_lead_ns)),
+        # peak-hold, halving per frame: a lead above one period makes the camera skip pairs (it
+        # delivers one per lead), so a single slow render (the first, cold caches, or a load spike)
+        # must not hold the frame rate down for long -- it is back to the measured render time
+        # within ~3 frames (a 0.9 decay took ~12: the first 2 s of a real-time run at 4-5 Hz)
+        self._render_lead_ns = min(max(done_ns - t_render_ns, self._render_lead_ns // 2),
                                    _MAX_RENDER_LEAD_NS)
         if done_ns < ready_ns:
             self.clock.sleep((ready_ns - done_ns) * 1e-9)  # never before the camera would deliver it
