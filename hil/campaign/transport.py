@@ -148,8 +148,9 @@ BY_NAME = {s.name: s for s in TRANSPORT_SCENARIOS}
 
 
 def select_transport(patterns: list[str]) -> list[TransportScenario]:
-    """Transport scenarios matching any pattern (shell wildcards; a pattern without ``@`` is a name
-    prefix: ``serial`` = every serial scenario in every state; ``@lock`` = every family in LOCK).
+    """Transport scenarios matching any pattern ``FAMILY[@STATE]`` (shell wildcards; FAMILY may be
+    any prefix of a family name: ``serial`` = every serial family in every state, ``rtde@register``
+    = every RTDE family in REGISTER, ``@lock`` = every family in LOCK).
     No pattern: the whole matrix (every family x every state).
 
     Raises:
@@ -161,7 +162,10 @@ def select_transport(patterns: list[str]) -> list[TransportScenario]:
         return list(TRANSPORT_SCENARIOS)
     chosen: list[TransportScenario] = []
     for pat in patterns:
-        full = f"*{pat}" if pat.startswith("@") else pat if "@" in pat else f"{pat}*@*"
+        family, _, state = pat.partition("@")
+        if not any(c in family for c in "*?["):
+            family += "*"  # a family name or any prefix of one (``rtde``, ``serial_g``)
+        full = f"{family}@{state or '*'}"
         hit = [s for s in TRANSPORT_SCENARIOS if fnmatch.fnmatchcase(s.name, full)]
         if not hit:
             raise ScenarioSelectionError(

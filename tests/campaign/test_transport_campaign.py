@@ -101,6 +101,9 @@ def test_selection() -> None:
     assert [s.name for s in select_transport(["rtde_*@approach"])] == [
         f"{f}@approach" for f in FAMILIES if f.startswith("rtde_")]
     assert [s.name for s in select_transport(["@lock"])] == [f"{f}@lock" for f in FAMILIES]
+    assert [s.name for s in select_transport(["rtde@register"])] == [
+        f"{f}@register" for f in FAMILIES if f.startswith("rtde_")]
+    assert [s.name for s in select_transport(["rtde_estop@lock"])] == ["rtde_estop@lock"]
     both = [s.name for s in select_transport(["serial_garbage@gate", "serial_garbage"])]
     assert both[0] == "serial_garbage@gate"  # in the order asked, without repeats
     assert len(both) == len(set(both)) == 5
