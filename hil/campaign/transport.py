@@ -385,7 +385,8 @@ def _stopped_after_link_back(out: RunResult, rec: Any, log_path: Path, operator:
     t_rec = next((t for t, _c in operator.commands if t >= t_safe), None)
     if t_rec is None:
         return
-    first_cmd = next(((c.t_ns - t0) * 1e-9 for c in rec.commands if (c.t_ns - t0) * 1e-9 >= t_rec), math.inf)
+    first_cmd = next(((c.t_ns - t0) * 1e-9 for c in rec.commands
+                      if c.kind != "stop" and (c.t_ns - t0) * 1e-9 >= t_rec), math.inf)  # a motion command
     states = [s for s in rec.states if t_rec <= (s.t_ns - t0) * 1e-9 <= first_cmd]
     if states and states[0].speed_mm_s < STOPPED_MM_S:
         out.reasons[:] = [r for r in out.reasons if r not in missing]

@@ -189,7 +189,8 @@ def test_operator_aimed_at_lock_confirms_until_lock_then_holds_lock_to_done() ->
     assert op.poll(_view(State.LOCK, 7.0, pending="lock_to_done")) is Event.CONFIRM_REQUESTED  # tolerated
 
 
-def _link_back_case(tmp_path: Path, first_speed_mm_s: float, kind: str = "robot_disconnect") -> RunResult:
+def _link_back_case(tmp_path: Path, first_speed_mm_s: float, kind: str = "robot_disconnect",
+                    stop_retry_s: float | None = None) -> RunResult:
     t0 = 5_000_000_000
     log = tmp_path / "run.jsonl"
     log.write_text("".join(json.dumps(r) + "\n" for r in [
@@ -199,7 +200,9 @@ def _link_back_case(tmp_path: Path, first_speed_mm_s: float, kind: str = "robot_
     op = TransportOperator("compensate", 1.0, 1.0, ManualClock(t0), t0, inject=lambda: None, clear=None)
     op.commands.append((2.5, "resume_requested"))
     rec = Recording(
-        commands=[CommandRecord(t0 + 2_700_000_000, "move_linear", (0.0, 0.0, 0.0), 5.0, 20.0, ())],
+        commands=([] if stop_retry_s is None else
+                  [CommandRecord(t0 + round(stop_retry_s * 1e9), "stop", None, None, 500.0, ())])
+        + [CommandRecord(t0 + 2_700_000_000, "move_linear", (0.0, 0.0, 0.0), 5.0, 20.0, ())],
         states=[StateSample(t0 + 2_600_000_000, first_speed_mm_s, "running", "normal")])
     out = RunResult("r", "rtde_drop_connection@compensate", kind, "compensate", 1, passed=False,
                     reasons=["robot not seen stopped (< 1.0 mm/s) in fault before recovery"],
@@ -212,6 +215,14 @@ def test_dropped_link_accepts_the_arm_at_rest_when_the_link_is_back(tmp_path: Pa
     out = _link_back_case(tmp_path, 0.2)
     assert out.reasons == []
     assert out.passed is True
+    assert out.stop_latency_ms == pytest.approx(1500.0)
+
+
+def test_a_stop_retried_while_the_link_is_down_is_not_a_motion_command(tmp_path: Path) -> None:
+    # the controller re-sends its undelivered stop every tick (2.55 s, after the operator's first
+    # command at 2.5 s): the first state read after the recovery (2.6 s) still counts
+    out = _link_back_case(tmp_path, 0.2, stop_retry_s=2.55)
+    assert out.passed is True, out.reasons
     assert out.stop_latency_ms == pytest.approx(1500.0)
 
 
