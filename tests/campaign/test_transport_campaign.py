@@ -1,9 +1,11 @@
 """A small fixed transport campaign, end to end: faults sent through the emulators' fault channels
 to the REAL drivers, in real time (docs/campaign.md, "Transport tier").
 
-Two runs, serial, ~35 s in all: an RTDE protective stop while compensating (``ur_rtde`` on
-``tools/ursim``, a subprocess on a private loopback address) and serial silence while compensating
-(``fob`` on ``tools/trackersim``, a subprocess on a pty). Plus the pieces that need no emulator.
+Four runs, serial, ~80 s in all: an RTDE protective stop while compensating (``ur_rtde`` on
+``tools/ursim``, a subprocess on a private loopback address), serial silence while compensating
+(``fob`` on ``tools/trackersim``, a subprocess on a pty), and two REGISTER faults whose only
+recovery is reset and start again (an e-stop pressed and released; a 1 s network outage) - the
+sweep found both stuck in FAULT once. Plus the pieces that need no emulator.
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ from hil.config.faults import FaultKind
 from hil.controller.fsm import Event, State
 from hil.controller.procedure import OperatorView
 
-SCENARIOS = ["rtde_protective_stop@compensate", "serial_silence@compensate"]
+SCENARIOS = ["rtde_protective_stop@compensate", "serial_silence@compensate", "rtde_estop@register",
+             "rtde_drop_connection@register"]
 
 
 @pytest.fixture(scope="module")
@@ -51,12 +54,12 @@ def campaign(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], 
 def test_transport_runs_pass_every_criterion(campaign: tuple[dict[str, Any], Path]) -> None:
     summary, out = campaign
     assert summary["failing"] == []
-    assert (summary["runs"], summary["passed"], summary["failed"]) == (2, 2, 0)
+    assert (summary["runs"], summary["passed"], summary["failed"]) == (4, 4, 0)
     assert summary["limit_violations"] == 0
     runs = {r["scenario"]: r for r in summary["results"]}
     for name in SCENARIOS:
         r = runs[name]
-        assert r["state_at_onset"] == "compensate", r
+        assert r["state_at_onset"] == name.partition("@")[2], r
         assert r["outcome"] == "safe_state", r
         assert r["safe_state"] == "fault", r
         assert 0.0 <= r["safe_latency_ms"] <= r["latency_bound_ms"], r
@@ -65,7 +68,7 @@ def test_transport_runs_pass_every_criterion(campaign: tuple[dict[str, Any], Pat
         assert r["final_state"] == "done", r
         assert r["log_ok"] is True, r
         assert r["commands"] > 0, r
-    assert json.loads((out / "transport.json").read_text())["runs"] == 2
+    assert json.loads((out / "transport.json").read_text())["runs"] == 4
     assert "rtde_protective_stop@compensate" in (out / "transport.html").read_text()
     assert not (out / "logs").exists()  # passing runs keep no logs, emulators are gone
 
@@ -75,10 +78,12 @@ def test_transport_runs_pass_every_criterion(campaign: tuple[dict[str, Any], Pat
 def test_the_table_names_every_scenario(campaign: tuple[dict[str, Any], Path]) -> None:
     summary, _ = campaign
     lines = transport_table(summary["results"]).splitlines()
-    assert lines[0].split() == ["fault", "\\", "state", "compensate"]
-    assert [ln.split()[:2] for ln in lines[1:3]] == [["rtde_protective_stop", "pass"],
-                                                     ["serial_silence", "pass"]]
-    assert lines[3].startswith("bounds: robot ")
+    assert lines[0].split() == ["fault", "\\", "state", "register", "compensate"]
+    cells = [ln.split()[:3] for ln in lines[1:5]]
+    assert cells[0] == ["rtde_protective_stop", "-", "pass"]
+    assert [c[:2] for c in cells[1:3]] == [["rtde_estop", "pass"], ["rtde_drop_connection", "pass"]]
+    assert cells[3][:3] == ["serial_silence", "-", "pass"]
+    assert lines[5].startswith("bounds: robot ")
 
 
 def test_the_matrix_is_every_family_in_every_state() -> None:
