@@ -137,8 +137,12 @@ class SimStereoCamera(StereoCamera):
         # pick the newest pair that is due once rendered, start rendering ``lead`` before it is due,
         # and hand it over when due -- so a frame is ``latency_ms`` old on delivery, as the camera
         # model says, however slow rendering is on a loaded machine. The exposure may lie up to
-        # ``lead`` ahead of the clock: the world is a function of time and the robot's commanded
-        # motion, which cannot change while its only commander waits here for the frame.
+        # ``lead`` minus ``latency_ms`` ahead of the clock (about zero once the lead has settled
+        # to the render time): the world is a function of time and of the robot's commands known
+        # when the render starts. Without the controller's prefetch thread its only commander waits
+        # here, so nothing changes; with it (real time) a servo command sent during the render
+        # that changes the motion before the exposure is not in the image -- at most the
+        # command's change of velocity times that small lead.
         lead = min(self._render_lead_ns, round(timeout_s * 1e9))
         newest = math.floor((now + lead - self._latency_ns - self._t0_ns) / self._period_ns)
         k = max(newest, self._last_k + 1)

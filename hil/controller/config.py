@@ -253,6 +253,9 @@ class ProcedureConfig(BaseModel):
     tracking: TrackingConfig = TrackingConfig()
     confirm: tuple[Confirmation, ...] = ("plan_to_approach", "lock_to_done")
     max_duration_s: float = Field(300.0, gt=0, description="abort the whole procedure after this")
+    camera_prefetch: bool = Field(
+        True, description="on the wall clock only (real time): grab and locate the next stereo pair in a "
+        "background thread so the servo stream continues meanwhile; never with the simulated clock")
 
     @model_validator(mode="after")
     def _consistent(self) -> ProcedureConfig:

@@ -8,6 +8,11 @@ a breath-hold request). Every motion command goes through :class:`hil.safety.Saf
 Any exception from a device, the safety layer or a step becomes FAULT_DETECTED with the reason
 and the robot is stopped.
 
+Real time (the wall clock, ``procedure.camera_prefetch``): the grab and the marker location run
+in a prefetch thread (:mod:`hil.controller.prefetch`) and the tick takes its result; COMPENSATE
+keeps streaming servo commands until the next result is ready. Everything else, every command
+included, stays on the control thread. With a manual clock (simulation) nothing of this is used.
+
 Latency budget, per compensation command, on the controller clock: frame exposure
 (``Frame.t_ns``) -> markers detected -> registration (rigid change) updated -> command sent.
 
@@ -18,11 +23,12 @@ rate limiter from the actual pose at rest, with a speed ramp; no stored target i
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -33,7 +39,7 @@ from drivers.interfaces.camera import StereoCamera, StereoFrame
 from drivers.interfaces.errors import DriverError
 from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
 from drivers.interfaces.tracker import PoseTracker, TrackerSample
-from hil.clock import Clock
+from hil.clock import Clock, MonotonicClock
 from hil.controller.compensation import (
     MotionFilter,
     RateLimiter,
@@ -46,6 +52,7 @@ from hil.controller.fsm import HALT_STATES, Event, FireResult, Fsm, State
 from hil.controller.gate import BreathHoldGate, rms_deviation_mm
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, PlanRefusedError, RigGeometry, plan_guide
+from hil.controller.prefetch import FramePrefetcher, Prefetched, realtime_switch_interval
 from hil.controller.registration import (
     PatientRegistration,
     RegistrationFailedError,
@@ -343,6 +350,10 @@ class Controller:
         self._stop_owed: tuple[str, int] | None = None   # (reason, attempts) of an undelivered stop
         self.servo_deadlines_missed = 0   # servo-stream slots skipped because a command was late
         self._primed = False   # the camera pipeline's first (late) pair has been consumed
+        # real time only (run() on the wall clock): grab + locate in a background thread
+        self._prefetch: FramePrefetcher | None = None
+        self._prefetched: Prefetched | None = None   # the result the current tick perceives
+        self.frames_overwritten = 0   # prefetched pairs replaced before a tick took them (latest wins)
         # measurements for the summary
         self.timeline: list[dict[str, Any]] = []
         self.latency_ms: list[float] = []
@@ -486,15 +497,44 @@ class Controller:
         limit = self.cfg.max_duration_s if max_duration_s is None else max_duration_s
         self.prime()
         self.watchdogs.arm(self.clock.now_ns())
-        while not self.operator.finished(self.view()):
-            if self.t_s() > limit:
-                self.session.write("run_time_exceeded", limit_s=limit, state=self.state)
-                if self.state not in HALT_STATES:
-                    self.fire(Event.ABORT_REQUESTED, f"procedure exceeded {limit} s")
-                    self._notify_observers()  # the abort happened outside a tick: show it
-                break
-            self.tick()
+        with self._camera_prefetch():
+            while not self.operator.finished(self.view()):
+                if self.t_s() > limit:
+                    self.session.write("run_time_exceeded", limit_s=limit, state=self.state)
+                    if self.state not in HALT_STATES:
+                        self.fire(Event.ABORT_REQUESTED, f"procedure exceeded {limit} s")
+                        self._notify_observers()  # the abort happened outside a tick: show it
+                    break
+                self.tick()
         return self.summary()
+
+    def _grab_timeout_s(self) -> float:
+        return max(4 * self.frame_period_s, 0.2)
+
+    @contextlib.contextmanager
+    def _camera_prefetch(self) -> Iterator[None]:
+        """For :meth:`run`: on the wall clock (MonotonicClock) with ``procedure.camera_prefetch``,
+        grab and locate the next pair in a :class:`~hil.controller.prefetch.FramePrefetcher` thread
+        (so COMPENSATE keeps streaming meanwhile) with the GIL switch interval lowered
+        (:func:`~hil.controller.prefetch.realtime_switch_interval`); otherwise (a manual clock: a
+        deterministic simulation) nothing changes. The worker is stopped and joined when the block
+        ends, however it ends, before the caller can close the camera; ``frame_prefetch_stopped``
+        records its counts."""
+        if not (self.cfg.camera_prefetch and isinstance(self.clock, MonotonicClock)):
+            yield
+            return
+        pf = FramePrefetcher(self.camera, self.locate, self._grab_timeout_s())
+        self._prefetch = pf
+        try:
+            with realtime_switch_interval():
+                pf.start()
+                yield
+        finally:
+            self._prefetch = None
+            self._prefetched = None
+            pf.stop()
+            self.frames_overwritten += pf.overwritten
+            self.session.write("frame_prefetch_stopped", pairs=pf.produced, overwritten=pf.overwritten)
 
     def prime(self, timeout_s: float = 2.0) -> None:
         """Grab and discard one stereo pair, once, before the first tick judges any (:meth:`run`
@@ -598,7 +638,15 @@ class Controller:
         self._step(frame)
 
     def _read_devices(self) -> None:
-        frame = self.camera.grab(timeout_s=max(4 * self.frame_period_s, 0.2))
+        """The next stereo pair (blocking up to the grab timeout: from the camera, or the pair the
+        prefetcher has ready), the robot state and the tracker's latest samples. Raises the
+        devices' DriverError (DeviceTimeoutError naming the camera when no pair arrives)."""
+        self._prefetched = None
+        if self._prefetch is not None:
+            got = self._prefetch.take(self._grab_timeout_s())
+            self._prefetched, frame = got, got.frame
+        else:
+            frame = self.camera.grab(timeout_s=self._grab_timeout_s())
         now = self.clock.now_ns()
         self.frames += 1
         self.last_frame = frame
@@ -616,8 +664,16 @@ class Controller:
 
     def _perceive(self, frame: StereoFrame) -> None:
         """Locate markers; identify skin markers (against the reference once registered, else
-        the CT layout) and flange markers (against their layout)."""
-        pts = np.asarray(self.locate(frame), dtype=np.float64).reshape(-1, 3)
+        the CT layout) and flange markers (against their layout). A prefetched pair comes with its
+        marker centres (or the error ``locate`` raised on it, raised here)."""
+        got = self._prefetched
+        if got is not None and got.frame is frame:
+            if got.error is not None:
+                raise got.error
+            located = got.points_mm if got.points_mm is not None else np.zeros((0, 3))
+        else:
+            located = self.locate(frame)
+        pts = np.asarray(located, dtype=np.float64).reshape(-1, 3)
         tol = self.cfg.registration.match_tolerance_mm
         if self.patient_reg is not None:
             ref = self.patient_reg.reference_optical_mm
@@ -1067,11 +1123,24 @@ class Controller:
             # stream at the robot's rate until the next frame is due, on the predicted motion
             # on absolute deadlines one servo period apart from the frame's command: the work per
             # command does not stretch the period; a slot missed by more than a period is skipped
-            next_ready_ns = now + round(self.frame_period_s * 1e9)
             timer = DeadlineTimer(self.clock, servo_dt)
             timer.start(t_send)
             half_ns = timer.period_ns // 2
-            while max(timer.next_ns(), self.clock.now_ns()) + half_ns <= next_ready_ns:
+            pf = self._prefetch
+            if pf is None:  # the next grab blocks this thread: stop half a period before it is due
+                next_ready_ns = now + round(self.frame_period_s * 1e9)
+
+                def more() -> bool:
+                    return max(timer.next_ns(), self.clock.now_ns()) + half_ns <= next_ready_ns
+            else:  # real time: stream until the prefetcher has the next pair (or an error) ready;
+                # capped, and never on a frame the camera watchdog would call stale, so the tick
+                # judges a missing or late pair as it would without the prefetcher
+                cap_ns = min(now + round((2 * self.frame_period_s + self._grab_timeout_s()) * 1e9),
+                             frame.left.t_ns + round(self.watchdogs["camera"].max_age_s * 1e9))
+
+                def more() -> bool:
+                    return not pf.ready() and max(timer.next_ns(), self.clock.now_ns()) <= cap_ns
+            while more():
                 skipped = timer.wait()
                 if skipped:
                     self.servo_deadlines_missed += 1

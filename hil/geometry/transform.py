@@ -44,9 +44,25 @@ def as_points(points: ArrayLike, name: str = "points") -> FloatArray:
     return arr
 
 
+def _clearly_rotation(R: FloatArray) -> bool:
+    """Fast path of :func:`_check_rotation` (R is 3x3): True when ``R^T R`` is within half the
+    tolerance of I and ``det R`` is near +1, in plain float arithmetic (several times faster than
+    the numpy checks on a 3x3; every servo command builds a few dozen transforms). False means
+    "not sure" (including NaN/inf): the numpy checks decide and raise."""
+    rows: list[list[float]] = R.tolist()
+    (a, b, c), (d, e, f), (g, h, i) = rows
+    tol = 0.5 * _ORTHO_TOL
+    return bool(abs(a * a + d * d + g * g - 1.0) <= tol and abs(b * b + e * e + h * h - 1.0) <= tol
+            and abs(c * c + f * f + i * i - 1.0) <= tol and abs(a * b + d * e + g * h) <= tol
+            and abs(a * c + d * f + g * i) <= tol and abs(b * c + e * f + h * i) <= tol
+            and a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) > 0.5)
+
+
 def _check_rotation(R: FloatArray) -> None:
     if R.shape != (3, 3):
         raise GeometryError(f"rotation must be 3x3, got {R.shape}")
+    if _clearly_rotation(R):
+        return
     if not np.all(np.isfinite(R)):
         raise GeometryError("rotation contains NaN or infinite values")
     if not np.allclose(R.T @ R, np.eye(3), atol=_ORTHO_TOL) or np.linalg.det(R) < 0:

@@ -6,14 +6,23 @@ Definitions (all on the monotonic wall clock):
 
 - *servo interval*: time between two consecutive servo commands reaching the robot driver while
   in COMPENSATE; nominal ``T = 1 / rate``.
-- *jitter*: ``|interval - T|`` of the intervals inside one frame's stream (between frames the
-  loop grabs and processes the next frame: those gaps are counted as missed deadlines instead).
+- *jitter*: ``|interval - T|`` of the intervals of at most ``2 T`` (longer ones are counted as
+  missed deadlines instead). On the wall clock the next pair is grabbed and located in the
+  controller's prefetch thread (hil/controller/prefetch.py), so the stream goes on across frames.
 - *missed deadline*: an interval longer than ``2 T`` (at least one servo period passed without a
   command); ``longest_gap_ms`` is the worst.
 - *stream deadlines missed*: the controller's count of servo commands of a frame's stream that
   were late by more than a period (the stream keeps absolute deadlines and skips those slots).
 - *frame-to-command latency*: exposure time of a stereo frame -> the first servo command computed
   from it (the controller's own measurement).
+- *frame boundaries*: servo intervals during which a control tick started (the operator is
+  polled once per tick, before the tick takes the next pair); *frame-boundary misses*: those
+  longer than ``2 T``; ``frame_boundary_ms``: their p50/p99/max. A controller that stops the
+  stream to grab and process a pair misses about one per frame; one that streams on while the
+  pair is prefetched only when the tick's own work is longer than two periods.
+- *compensation frames*: stereo pairs the controller processed in COMPENSATE (each restarts the
+  stream on a new estimate); *frames overwritten*: pairs the prefetcher replaced by a newer one
+  before the control thread took them.
 - *memory growth*: resident set size (``/proc/self/statm``) at the end minus after the warm-up
   (the first quarter of the compensation time, at most 30 s), and its least-squares slope.
 """
@@ -22,6 +31,7 @@ from __future__ import annotations
 
 import os
 import time
+from array import array
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -79,6 +89,12 @@ class SoakResult:
     #: the controller's own count: stream commands late by more than a period (slots skipped)
     stream_deadlines_missed: int = 0
     frame_to_command_ms: dict[str, float | None] = field(default_factory=dict)
+    frame_boundaries: int = 0
+    frame_boundary_missed: int = 0
+    #: p50/p99/max of the frame-boundary intervals, ms
+    frame_boundary_ms: dict[str, float | None] = field(default_factory=dict)
+    compensation_frames: int = 0
+    frames_overwritten: int = 0
     rss_mb: dict[str, float | None] = field(default_factory=dict)
     final_state: str = ""
     states: list[str] = field(default_factory=list)
@@ -104,8 +120,11 @@ class SoakOperator:
         self._started = False
         self._last_halt_t: float | None = None
         self._tried_resume = False
+        #: monotonic time of every poll, ns: one per control tick, before it takes the next pair
+        self.tick_ns: array[int] = array("q")
 
     def poll(self, view: OperatorView) -> Event | None:
+        self.tick_ns.append(time.monotonic_ns())
         now = time.monotonic()
         if view.state is State.COMPENSATE and self.t_comp is None:
             self.t_comp = now
@@ -256,12 +275,22 @@ def analyse(
     res.limit_violations = len(recorder.recording.violations_reached())
     if operator.t_comp is not None:
         res.compensate_s = round(time.monotonic() - operator.t_comp, 3)
+    t_ns = np.asarray(servo_ns, dtype=np.int64)
     iv: np.ndarray[Any, np.dtype[np.float64]] = (
-        np.diff(np.asarray(servo_ns, dtype=np.float64)) * 1e-6 if len(servo_ns) > 1 else np.zeros(0)
+        np.diff(t_ns).astype(np.float64) * 1e-6 if len(servo_ns) > 1 else np.zeros(0)
     )
     # intervals longer than a few frames are pauses between compensation phases, not deadlines
     frame_ms = 1e3 * ctl.frame_period_s
-    iv = iv[iv < 4 * frame_ms]
+    keep = iv < 4 * frame_ms
+    ticks = np.asarray(operator.tick_ns, dtype=np.int64)
+    if iv.size:
+        spans_tick = (np.searchsorted(ticks, t_ns[1:], side="right")
+                      - np.searchsorted(ticks, t_ns[:-1], side="right")) > 0
+        boundary = spans_tick[keep]
+        res.frame_boundaries = int(boundary.sum())
+        res.frame_boundary_missed = int((boundary & (iv[keep] > 2 * T_ms)).sum())
+        res.frame_boundary_ms = _stats([float(x) for x in iv[keep][boundary]])
+    iv = iv[keep]
     res.intervals = int(iv.size)
     inside = iv[iv <= 2 * T_ms]
     res.period_ms = _stats([float(x) for x in inside])
@@ -272,6 +301,8 @@ def analyse(
     res.longest_gap_ms = round(float(iv.max()), 3) if iv.size else None
     res.stream_deadlines_missed = ctl.servo_deadlines_missed
     res.frame_to_command_ms = _stats([float(x) for x in ctl.latency_ms])
+    res.compensation_frames = len(ctl.latency_ms)
+    res.frames_overwritten = ctl.frames_overwritten
     if rss:
         t0 = operator.t_comp or rss[0][0]
         warm = t0 + min(30.0, 0.25 * minutes * 60.0)
