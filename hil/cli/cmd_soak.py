@@ -68,6 +68,11 @@ def run(args: argparse.Namespace) -> int:
             f"missed deadlines     {res.missed_deadlines} of {res.intervals} intervals "
             f"({100 * res.missed_fraction:.2f} %), longest gap {res.longest_gap_ms} ms\n"
         )
+        out.write(
+            f"frame boundaries     {res.frame_boundary_missed} of {res.frame_boundaries} over two periods, "
+            f"interval p50/p99/max {_fmt(res.frame_boundary_ms)} ms; {res.compensation_frames} frames "
+            f"in compensation, {res.frames_overwritten} overwritten\n"
+        )
         out.write(f"frame->command       {_fmt(res.frame_to_command_ms)} ms (p50/p99/max)\n")
         r = res.rss_mb
         out.write(
