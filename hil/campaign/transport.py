@@ -357,6 +357,10 @@ def run_transport_one(spec: TransportSpec) -> RunResult:
         out.reasons[:] = [r for r in out.reasons if "before the fault" not in r]
         out.reasons.append(f"the run never stayed {sc.delay_s} s in {sc.state}: fault not sent")
         out.passed = False
+    elif out.state_at_onset != sc.state:  # the matrix cell was not tested: the state ended first
+        out.reasons.append(f"fault sent in {out.state_at_onset}, not in {sc.state} "
+                           f"(left it within {sc.delay_s} s)")
+        out.passed = False
     if operator.inject_error is not None:
         out.reasons.append(f"fault channel: {operator.inject_error}")
         out.passed = False
