@@ -5,9 +5,10 @@ Run: ``tools/bench loop [--seconds S] [--rate 125|500] [--json]``
 
 Printed: servo period p50/p99/max and its jitter against the robot's period (8 ms CB3 / 2 ms
 e-Series), missed deadlines (intervals > 2 periods; on the wall clock the next stereo pair is
-grabbed and located in the controller's prefetch thread while the stream goes on), the longest gap, frame-to-command latency (exposure -> first servo
-command from that frame) against the camera frame period, and RSS growth. Wall-clock figures:
-they depend on the machine and on its load (this is a shared 2-core machine).
+grabbed and located in the controller's prefetch thread while the stream goes on), the longest
+gap, frame-to-command latency (exposure -> first servo command from that frame) against the
+camera frame period, and RSS growth. Wall-clock figures: they depend on the machine and on its
+load (this is a shared 2-core machine).
 Definitions: hil/soak/soak.py and docs/benchmarks.md.
 """
 
