@@ -19,6 +19,16 @@ clock, ns). ``Frame.t_ns`` is the host reception time of the frame's first packe
 (``arv_buffer_get_system_timestamp``, wall clock) moved onto the controller clock by subtracting
 the frame's age at the moment it is handed over.
 
+Reconnection: a camera that stops answering (control channel lost, a trigger write failing, or
+no pair for ``_TIMEOUTS_BEFORE_LOST`` grabs in a row) makes ``grab()`` raise
+:class:`DisconnectedError` and starts a background reconnection: the old cameras are released and
+both are opened again by their ids every ``_RECONNECT_RETRY_S`` until they answer (a GigE camera
+that was power-cycled or restarted comes back with no stream destination and no controller, so
+the old objects can never stream again). Meanwhile ``grab()`` waits up to its timeout for the
+reconnection and raises :class:`DisconnectedError` (``reconnecting``) while it is not done; once
+it is, the new cameras are swapped in (``aravis_reconnected``) and grabbing goes on. Only
+``close()`` gives up.
+
 Teardown: ``close()`` stops acquisition and drops the streams before the cameras; without that the
 process can abort at exit (environment.md, Aravis).
 """
@@ -44,6 +54,10 @@ log = get_logger(__name__)
 
 #: Longest single blocking pop, s, so a lost control channel is noticed between pops.
 _POP_SLICE_S = 0.05
+#: Pause between two reconnection attempts, s.
+_RECONNECT_RETRY_S = 0.5
+#: Grabs in a row without a pair after which the stream counts as lost (reconnect).
+_TIMEOUTS_BEFORE_LOST = 3
 
 
 class AravisUnavailableError(DriverError):
@@ -95,6 +109,19 @@ class _Side:
     key_offset: int | None = None  # trigger id (or 1) of this side's first frame
 
 
+@dataclass
+class _Reconnect:
+    """A background reconnection: ``sides`` is set (then ``ready``) when both cameras are open."""
+
+    reason: str
+    stop: threading.Event = field(default_factory=threading.Event)
+    ready: threading.Event = field(default_factory=threading.Event)
+    sides: dict[Side, _Side] | None = None
+    attempts: int = 0
+    error: str = ""
+    thread: threading.Thread | None = None
+
+
 class AravisStereoCamera(StereoCamera):
     """Two Aravis cameras as one :class:`StereoCamera`.
 
@@ -123,6 +150,9 @@ class AravisStereoCamera(StereoCamera):
         self._lost = threading.Event()
         self._lost_reason = ""
         self._trigger_id = 0
+        self._timeouts = 0  # grabs in a row that timed out
+        self._reconnect: _Reconnect | None = None
+        self.reconnections = 0
         self._aravis: ModuleType | None = None
         self._glib: Any = None
 
@@ -145,9 +175,10 @@ class AravisStereoCamera(StereoCamera):
 
     @property
     def stats(self) -> dict[str, int]:
-        """Counters: frames received and failed buffers per side, frames dropped unpaired,
-        frame-id offset re-learnings (hardware trigger)."""
-        out = {"dropped_unpaired": self._pairer.dropped, "realigned": self._pairer.realigned}
+        """Counters: frames received and failed buffers per side (since the last reconnection),
+        frames dropped unpaired, frame-id offset re-learnings (hardware trigger), reconnections."""
+        out = {"dropped_unpaired": self._pairer.dropped, "realigned": self._pairer.realigned,
+               "reconnections": self.reconnections}
         for s in self._sides.values():
             out[f"{s.side}_frames"] = s.frames
             out[f"{s.side}_failed_buffers"] = s.failed_buffers
@@ -228,12 +259,17 @@ class AravisStereoCamera(StereoCamera):
             raise DisconnectedError(self.name, f"{s.side} camera {s.device_id!r}: acquisition did not "
                                                f"start: {exc.message}") from exc
 
-    def _on_control_lost(self, _device: Any, side: str, device_id: str) -> None:
-        # Called from Aravis' heartbeat thread.
-        self._lost_reason = f"{side} camera {device_id!r}: control channel lost (no heartbeat answer)"
+    def _on_control_lost(self, device: Any, side: str, device_id: str) -> None:
+        # Called from Aravis' heartbeat thread. A device already handed to a reconnection (its
+        # handler disconnected while this emission waited for the GIL) or not in use yet is not
+        # the current camera: ignored.
         state = self._sides.get(side)  # type: ignore[call-overload]
-        if state is not None:
-            state.dead = True
+        camera = None if state is None else state.camera
+        if camera is None or camera.get_device() != device:
+            log.info("aravis_control_lost_ignored", device=self.name, side=side, why="not the camera in use")
+            return
+        self._lost_reason = f"{side} camera {device_id!r}: control channel lost (no heartbeat answer)"
+        state.dead = True
         self._lost.set()
 
     def _close(self) -> None:
@@ -242,31 +278,111 @@ class AravisStereoCamera(StereoCamera):
         log.info("aravis_stereo_closed", device=self.name, **stats)
 
     def _teardown(self) -> None:
-        """Stop acquisition, then drop streams before cameras (avoids the abort at exit)."""
+        """Stop a reconnection in progress, stop acquisition, then drop streams before cameras
+        (avoids the abort at exit)."""
+        job, self._reconnect = self._reconnect, None
+        if job is not None:
+            job.stop.set()
+            if job.thread is not None:
+                job.thread.join()
+            if job.sides is not None:
+                self._release(list(job.sides.values()))
+        sides = list(self._sides.values())
+        self._sides.clear()
+        self._release(sides)
+
+    def _release(self, sides: list[_Side], *, dead_in_background: bool = True) -> None:
+        """Stop acquisition on the live ``sides``, disconnect their handlers, drop streams before
+        cameras. Cameras that stopped answering are dropped on a background thread unless
+        ``dead_in_background`` is False (the caller is a background thread itself)."""
         glib_error: type[BaseException] = self._glib.Error if self._glib is not None else RuntimeError
-        for s in self._sides.values():
-            if s.dead:
+        for s in sides:
+            if s.dead or s.camera is None:
                 continue
             try:
                 s.camera.stop_acquisition()
             except glib_error as exc:
                 log.warning("aravis_stop_failed", device=self.name, side=s.side, error=str(exc))
-        for s in self._sides.values():
-            if s.lost_handler is not None:
+        for s in sides:
+            if s.lost_handler is not None and s.camera is not None:
                 s.camera.get_device().disconnect(s.lost_handler)
                 s.lost_handler = None
-        dead = [(s.stream, s.camera) for s in self._sides.values() if s.dead]
-        for s in self._sides.values():
+        dead = [(s.stream, s.camera) for s in sides if s.dead]
+        for s in sides:
             s.stream = None
-        for s in self._sides.values():
+        for s in sides:
             s.camera = None
-        self._sides.clear()
-        if dead:
+        if dead and dead_in_background:
             # Finalising an unreachable GigE device waits for GVCP write timeouts (~10 s: stream
             # channel close, leave control). Do it off the caller's thread; the thread is not a
             # daemon, so the interpreter still finishes it before exiting (no abort at exit).
             threading.Thread(target=_release_later, args=(dead,), name="aravis-teardown").start()
-            dead = []
+        elif dead:
+            _release_later(dead)
+        dead = []
+
+    # -- reconnection -----------------------------------------------------------------------
+    def _start_reconnect(self, reason: str) -> None:
+        """Hand the current cameras to a background thread that releases them and opens both
+        cameras again (every ``_RECONNECT_RETRY_S`` until they answer or ``close()``)."""
+        old = list(self._sides.values())
+        self._sides = {}
+        for s in old:  # no more control-lost callbacks from the old devices
+            if s.lost_handler is not None and s.camera is not None:
+                s.camera.get_device().disconnect(s.lost_handler)
+                s.lost_handler = None
+        self._lost.clear()
+        job = _Reconnect(reason)
+        # A daemon: it retries until close() stops it, and must not keep a process that forgot
+        # close() alive forever.
+        job.thread = threading.Thread(target=self._reconnect_loop, args=(old, job), name="aravis-reconnect",
+                                      daemon=True)
+        self._reconnect = job
+        log.warning("aravis_reconnecting", device=self.name, reason=reason)
+        job.thread.start()
+
+    def _reconnect_loop(self, old: list[_Side], job: _Reconnect) -> None:
+        # Background thread: the grab thread does not touch Aravis while the job runs.
+        self._release(old, dead_in_background=False)  # before taking control again
+        wanted: tuple[tuple[Side, str], ...] = (("left", self.config.left_device_id),
+                                                ("right", self.config.right_device_id))
+        while not job.stop.is_set():
+            job.attempts += 1
+            sides: dict[Side, _Side] = {}
+            try:
+                for side, device_id in wanted:
+                    sides[side] = self._open_one(side, device_id)
+                for st in sides.values():
+                    self._start(st)
+            except DriverError as exc:
+                job.error = exc.message
+                for st in sides.values():
+                    st.dead = True  # it may not answer: never block on it here
+                self._release(list(sides.values()), dead_in_background=False)
+                job.stop.wait(_RECONNECT_RETRY_S)
+                continue
+            job.sides = sides
+            job.ready.set()
+            return
+
+    def _finish_reconnect(self, timeout_s: float) -> None:
+        """In ``grab()``: wait up to ``timeout_s`` for a reconnection in progress; swap the new
+        cameras in, or raise DisconnectedError while it is not done."""
+        job = self._reconnect
+        if job is None:
+            return
+        if not job.ready.wait(max(timeout_s, 0.0)) or job.sides is None:
+            detail = f" (attempt {job.attempts}: {job.error})" if job.error else ""
+            raise DisconnectedError(self.name, f"{job.reason}; reconnecting{detail}")
+        if job.thread is not None:
+            job.thread.join()
+        self._reconnect = None
+        self._sides = job.sides
+        self._pairer = StereoPairer(self._rule, round(1e9 / self.config.frame_rate_hz))
+        self._timeouts = 0
+        self.reconnections += 1
+        log.info("aravis_reconnected", device=self.name, attempts=job.attempts, reason=job.reason,
+                 reconnections=self.reconnections)
 
     # -- acquisition ------------------------------------------------------------------------
     def grab(self, timeout_s: float) -> StereoFrame:
@@ -275,11 +391,25 @@ class AravisStereoCamera(StereoCamera):
         Raises:
             LifecycleError: not active.
             DeviceTimeoutError: no pair within ``timeout_s`` (says which side had no frame).
-            DisconnectedError: a camera's control channel was lost or a trigger failed.
+            DisconnectedError: a camera's control channel was lost or a trigger failed (a
+                reconnection starts), or a reconnection is still in progress.
         """
         self.require_active("grab")
-        self._check_lost()
         deadline = time.monotonic() + timeout_s
+        self._finish_reconnect(timeout_s)
+        self._check_lost()
+        try:
+            pair = self._grab(deadline, timeout_s)
+        except DeviceTimeoutError as exc:
+            self._timeouts += 1
+            if self._timeouts >= _TIMEOUTS_BEFORE_LOST:
+                self._lost_reason = f"stream lost: {exc.message} ({self._timeouts} grabs in a row)"
+                self._lost.set()  # the next grab reconnects
+            raise
+        self._timeouts = 0
+        return pair
+
+    def _grab(self, deadline: float, timeout_s: float) -> StereoFrame:
         min_key: int | None = None
         if self.config.trigger == "software":
             self._trigger_id += 1
@@ -289,8 +419,9 @@ class AravisStereoCamera(StereoCamera):
                     s.camera.software_trigger()
                 except self._glib.Error as exc:
                     s.dead = True
-                    raise DisconnectedError(self.name, f"{s.side} camera {s.device_id!r}: software trigger "
-                                                       f"failed: {exc.message}") from exc
+                    reason = f"{s.side} camera {s.device_id!r}: software trigger failed: {exc.message}"
+                    self._start_reconnect(reason)
+                    raise DisconnectedError(self.name, reason) from exc
         while True:
             for s in self._sides.values():
                 self._drain(s)
@@ -314,8 +445,11 @@ class AravisStereoCamera(StereoCamera):
         return f"no stereo pair within {timeout_s:g} s{trig}: no frame from {what}"
 
     def _check_lost(self) -> None:
+        """Raise DisconnectedError (and start reconnecting) when a camera was lost."""
         if self._lost.is_set():
-            raise DisconnectedError(self.name, self._lost_reason)
+            reason = self._lost_reason
+            self._start_reconnect(reason)
+            raise DisconnectedError(self.name, reason)
 
     def _drain(self, s: _Side) -> None:
         while True:

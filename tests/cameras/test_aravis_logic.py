@@ -277,12 +277,54 @@ def test_lost_control_channel_is_disconnected_error(stub_aravis: type[StubAravis
     cam = make(stub_aravis, left, right)
     cam.open()
     cam.grab(1.0)
+    del stub_aravis.cameras["R"]  # gone for good: the reconnection keeps failing
     right.device.lose_control()
     with pytest.raises(DisconnectedError, match="right camera 'R': control channel lost"):
         cam.grab(1.0)
+    reconnecting = r"control channel lost \(no heartbeat answer\); reconnecting \(attempt \d+: .*'R' not"
+    with pytest.raises(DisconnectedError, match=reconnecting):
+        cam.grab(0.2)
     cam.close()
     assert "stop_acquisition()" in left.calls
     assert "stop_acquisition()" not in right.calls  # a dead camera is not talked to
+
+
+def test_cameras_that_come_back_are_reconnected(stub_aravis: type[StubAravis]) -> None:
+    """A restarted GigE camera has no stream destination and no controller: the driver releases
+    the old objects and opens the cameras again; grabbing goes on with the new ones."""
+    left, right = StubCamera(one_per_trigger(1)), StubCamera(one_per_trigger(1))
+    cam = make(stub_aravis, left, right)
+    cam.open()
+    cam.grab(1.0)
+    new_left, new_right = StubCamera(one_per_trigger(7, value0=10)), StubCamera(one_per_trigger(9, value0=20))
+    stub_aravis.cameras = {"L": new_left, "R": new_right}
+    left.device.lose_control()
+    with pytest.raises(DisconnectedError, match="left camera 'L': control channel lost"):
+        cam.grab(1.0)
+    pair = cam.grab(5.0)  # waits for the reconnection, then grabs from the new cameras
+    assert (int(pair.left.image[0, 0]), int(pair.right.image[0, 0])) == (11, 21)
+    assert (pair.left.seq, pair.right.seq) == (0, 0)
+    assert cam.grab(1.0).left.seq == 1
+    assert cam.stats["reconnections"] == 1
+    assert "stop_acquisition()" in right.calls  # the live old camera was stopped before reopening
+    assert "start_acquisition()" in new_left.calls
+    cam.close()
+    assert "stop_acquisition()" in new_left.calls
+
+
+def test_grabs_timing_out_in_a_row_count_as_a_lost_stream(stub_aravis: type[StubAravis]) -> None:
+    silent = StubCamera(lambda k: [])
+    cam = make(stub_aravis, StubCamera(one_per_trigger(1)), silent)
+    cam.open()
+    for _ in range(3):
+        with pytest.raises(DeviceTimeoutError):
+            cam.grab(0.01)
+    stub_aravis.cameras = {"L": StubCamera(one_per_trigger(1)), "R": StubCamera(one_per_trigger(1, value0=5))}
+    lost = r"stream lost: .*no frame from right camera 'R' \(3 grabs in a row\)"
+    with pytest.raises(DisconnectedError, match=lost):
+        cam.grab(1.0)
+    assert int(cam.grab(5.0).right.image[0, 0]) == 6
+    cam.close()
 
 
 def test_failing_trigger_write_is_disconnected_error(stub_aravis: type[StubAravis]) -> None:
