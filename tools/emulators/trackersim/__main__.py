@@ -26,6 +26,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from emulators.control import serve_control_lines
 from emulators.trackersim.aurora_device import AuroraDevice
 from emulators.trackersim.device import EmulatedDevice
 from emulators.trackersim.faults import Faults, parse_fault
@@ -120,30 +121,11 @@ def status(device: EmulatedDevice) -> dict[str, Any]:
 
 
 def serve_control(device: EmulatedDevice, path: Path, stop: threading.Event) -> socket.socket:
-    with contextlib.suppress(FileNotFoundError):
-        path.unlink()
-    srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    srv.bind(str(path))
-    srv.listen(4)
-    srv.settimeout(0.2)
+    def answer(line: str) -> str:
+        with device.lock:
+            return control_command(device, line)
 
-    def loop() -> None:
-        while not stop.is_set():
-            try:
-                conn, _ = srv.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            with conn, conn.makefile("rw", encoding="utf-8", newline="\n") as f:
-                for line in f:
-                    with device.lock:
-                        answer = control_command(device, line)
-                    f.write(answer + "\n")
-                    f.flush()
-
-    threading.Thread(target=loop, name="trackersim-control", daemon=True).start()
-    return srv
+    return serve_control_lines(path, answer, stop, name="trackersim-control")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
