@@ -5,7 +5,10 @@ clients of their fault channels (line protocols; no driver import: the core stay
   random loopback address 127.x.y.z (Linux routes all of 127/8 to lo), so the fixed UR ports never
   collide with another emulator;
 - ``tools/emulators/trackersim`` (Flock of Birds) on a pseudo-terminal, with its control interface
-  on a Unix socket.
+  on a Unix socket;
+- ``tools/emulators/fakegv`` (two fake GigE Vision cameras serving a shared-memory frame block) on
+  127.0.0.1 and 127.0.0.2, with its control interface on a Unix socket; started INSIDE the run's
+  private network namespace (:mod:`hil.campaign.gige`), dying with the process that started it.
 
 Starting blocks (bounded, ~1-3 s); :class:`EmulatorError` when an emulator does not come up.
 """
@@ -13,15 +16,20 @@ Starting blocks (bounded, ~1-3 s); :class:`EmulatorError` when an emulator does 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import json
 import os
 import random
 import select
+import signal
 import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from hil.errors import HilError
 
@@ -92,19 +100,70 @@ def ursim_command(host: str, line: str) -> str:
         return line_command(sock, line)
 
 
-def trackersim_command(control_path: Path, line: str) -> str:
-    """One command on the tracker emulator's control socket; the reply line.
+def unix_command(what: str, control_path: Path, line: str) -> str:
+    """One command line on an emulator's Unix-socket control interface; the reply line.
 
     Raises:
-        EmulatorError: unreachable, no reply, or an ``error`` reply.
+        EmulatorError: unreachable (naming ``what``), no reply, or an ``error`` reply.
     """
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
         sock.settimeout(3.0)
         try:
             sock.connect(str(control_path))
         except OSError as exc:
-            raise EmulatorError(f"trackersim control {control_path}: {exc}") from exc
+            raise EmulatorError(f"{what} control {control_path}: {exc}") from exc
         return line_command(sock, line)
+
+
+def trackersim_command(control_path: Path, line: str) -> str:
+    """One command on the tracker emulator's control socket; the reply line.
+
+    Raises:
+        EmulatorError: unreachable, no reply, or an ``error`` reply.
+    """
+    return unix_command("trackersim", control_path, line)
+
+
+def fakegv_command(control_path: Path, line: str) -> str:
+    """One command on the fake GigE cameras' control socket (``stream_loss 1.0``, ``status``);
+    the reply line.
+
+    Raises:
+        EmulatorError: unreachable, no reply, or an ``error`` reply.
+    """
+    return unix_command("fakegv", control_path, line)
+
+
+def _control_socket_path(what: str) -> Path:
+    # a short path: Unix socket paths are limited to ~100 bytes
+    return Path("/tmp") / f"hil-{what}-{os.getpid()}-{random.randint(0, 1 << 30)}.sock"
+
+
+def _spawn(args: list[str], log_path: Path, *, die_with_parent: bool = False
+           ) -> tuple[subprocess.Popen[bytes], str]:
+    """Start ``python -m <args>`` (stderr to ``log_path``); return it and its first stdout line
+    (empty when none came within ``START_TIMEOUT_S``)."""
+    with log_path.open("wb") as log:
+        proc = subprocess.Popen([sys.executable, "-m", *args], env=_env(), stdout=subprocess.PIPE, stderr=log,
+                                cwd=ROOT, preexec_fn=_die_with_parent if die_with_parent else None)
+    assert proc.stdout is not None
+    ready, _, _ = select.select([proc.stdout], [], [], START_TIMEOUT_S)
+    return proc, proc.stdout.readline().decode(errors="replace").strip() if ready else ""
+
+
+def _await_control(what: str, proc: subprocess.Popen[bytes], command: Callable[[str], str],
+                   stop: Callable[[], None]) -> None:
+    """Wait (bounded) until the control interface answers ``status``; else stop and raise."""
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while True:
+        try:
+            command("status")
+            return
+        except EmulatorError:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                stop()
+                raise EmulatorError(f"{what} control interface did not answer") from None
+            time.sleep(0.05)
 
 
 def free_loopback_address() -> str:
@@ -188,28 +247,69 @@ def start_trackersim(log_dir: Path, *, seed: int = 0) -> TrackerSim:
     """Start ``python -m emulators.trackersim --protocol fob`` (a standalone bird, static poses) on
     a pty; wait (bounded) for the device path on its first stdout line and its control socket."""
     log_path = log_dir / "trackersim.log"
-    # a short path: Unix socket paths are limited to ~100 bytes
-    control = Path("/tmp") / f"hil-trackersim-{os.getpid()}-{random.randint(0, 1 << 30)}.sock"
-    with log_path.open("wb") as log:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "emulators.trackersim", "--protocol", "fob", "--motion", "static",
-             "--seed", str(seed), "--control", str(control)],
-            env=_env(), stdout=subprocess.PIPE, stderr=log, cwd=ROOT)
-    assert proc.stdout is not None
-    ready, _, _ = select.select([proc.stdout], [], [], START_TIMEOUT_S)
-    line = proc.stdout.readline().decode(errors="replace").strip() if ready else ""
+    control = _control_socket_path("trackersim")
+    proc, line = _spawn(["emulators.trackersim", "--protocol", "fob", "--motion", "static",
+                         "--seed", str(seed), "--control", str(control)], log_path)
     if not line.startswith("/dev/"):
         _stop(proc)
         raise EmulatorError(f"trackersim did not print its device path: {line!r} "
                             f"{log_path.read_text(errors='replace')[-2000:]}")
     sim = TrackerSim(line, control, proc, log_path)
-    deadline = time.monotonic() + START_TIMEOUT_S
-    while True:
-        try:
-            sim.command("status")
-            return sim
-        except EmulatorError:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                sim.stop()
-                raise EmulatorError("trackersim control interface did not answer") from None
-            time.sleep(0.05)
+    _await_control("trackersim", proc, sim.command, sim.stop)
+    return sim
+
+
+def _die_with_parent() -> None:
+    """preexec_fn: the child gets SIGKILL when the process that started it dies (PR_SET_PDEATHSIG)."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+
+
+@dataclass
+class FakeGv:
+    """Running fake GigE Vision cameras: ``cameras`` as printed on the first stdout line
+    (``side``, ``address``, ``serial``, ``device_id``)."""
+
+    cameras: list[dict[str, Any]]
+    control_path: Path
+    proc: subprocess.Popen[bytes]
+    log_path: Path
+
+    def command(self, line: str) -> str:
+        """One control-interface command (``stream_loss 1.0``, ``status``, ``help``)."""
+        return fakegv_command(self.control_path, line)
+
+    def status(self) -> dict[str, Any]:
+        """The emulator's ``status`` object (running, frames filled/served, stream losses)."""
+        reply = self.command("status")
+        out: dict[str, Any] = json.loads(reply.removeprefix("ok").strip())
+        return out
+
+    def stop(self) -> None:
+        _stop(self.proc)
+        with contextlib.suppress(FileNotFoundError):
+            self.control_path.unlink()
+
+
+def start_fakegv(log_dir: Path, shm_name: str, *, left: str = "127.0.0.1",
+                 right: str = "127.0.0.2") -> FakeGv:
+    """Start ``python -m emulators.fakegv --shm NAME --right-address RIGHT --control PATH`` (it dies
+    with this process); wait (bounded) for its first stdout line and its control socket.
+    Both addresses must be on a local interface (a private network namespace for 127.0.0.2).
+
+    Raises:
+        EmulatorError: it exited or did not answer within ``START_TIMEOUT_S``.
+    """
+    log_path = log_dir / "fakegv.log"
+    control = _control_socket_path("fakegv")
+    proc, line = _spawn(["emulators.fakegv", "--shm", shm_name, "--address", left, "--right-address", right,
+                         "--control", str(control)], log_path, die_with_parent=True)
+    try:
+        cameras = json.loads(line)["cameras"]
+    except (ValueError, KeyError, TypeError):
+        _stop(proc)
+        raise EmulatorError(f"fakegv did not name its cameras: {line!r} "
+                            f"{log_path.read_text(errors='replace')[-2000:]}") from None
+    sim = FakeGv(cameras, control, proc, log_path)
+    _await_control("fakegv", proc, sim.command, sim.stop)
+    return sim

@@ -13,19 +13,22 @@ same criteria as the simulator tier (:func:`hil.campaign.runner.judge`).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import re
 import time
 import traceback
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 from hil.clock import Clock, MonotonicClock
-from hil.config import build_devices, load_setup
+from hil.config import Devices, build_devices, load_setup
 from hil.config.faults import FAULT_DEVICE, FaultKind
+from hil.config.setup import SetupConfig
 from hil.controller.fsm import Event
 from hil.controller.plan_file import load_plan
 from hil.controller.procedure import OperatorView
@@ -40,7 +43,7 @@ from .report import family_of, render_html, summarise, table
 from .runner import RECOVER_SETTLE_S, RunResult, RunSpec, _latency_bound_ms, judge
 from .scenarios import TARGET_STATES, ScenarioSelectionError
 
-Emulator = Literal["ursim", "trackersim"]
+Emulator = Literal["ursim", "trackersim", "fakegv"]
 
 #: Watchdog ages for the real-time runs (ms / s): a loaded shared 2-core machine pauses the
 #: simulated camera and the emulators for a few 100 ms; the faults under test are detected from
@@ -102,7 +105,9 @@ class TransportScenario:
 
 #: Every fault the emulators' fault channels can play (docs/ursim.md, docs/trackers.md), as the
 #: symptom kind the controller sees. RTDE faults go to ``tools/ursim`` and the ``ur_rtde`` driver,
-#: serial faults to ``tools/trackersim`` (Flock of Birds on a pty) and the ``fob`` driver.
+#: serial faults to ``tools/trackersim`` (Flock of Birds on a pty) and the ``fob`` driver, camera
+#: faults to ``tools/fakegv`` (two fake GigE cameras serving the simulated world) and the ``aravis``
+#: driver, inside the run's own network namespace (:mod:`hil.campaign.gige`).
 TRANSPORT_FAULTS: tuple[TransportFault, ...] = (
     TransportFault("rtde_protective_stop", "ursim", FaultKind.PROTECTIVE_STOP, "protective_stop", None, 0.5,
                    "sim_ursim.toml", "the controller raises a protective stop (cleared by recover())"),
@@ -129,6 +134,8 @@ TRANSPORT_FAULTS: tuple[TransportFault, ...] = (
                    "the bird switches to 9600 baud (host stays at 115200)"),
     TransportFault("serial_silence", "trackersim", FaultKind.TRACKER_TIMEOUT, "fault silence,seconds=1.0",
                    None, 1.0, "sim.toml", "the bird sends nothing for 1 s"),
+    TransportFault("camera_stream_loss", "fakegv", FaultKind.FRAME_DROP, "stream_loss 1.0", None, 1.0,
+                   "sim.toml", "both GigE cameras silent (GVCP, GVSP), back on the same addresses after 1 s"),
 )
 
 #: Workflow states the transport matrix aims at (the simulator tier's), and how long after
@@ -292,7 +299,37 @@ class TransportSpec:
 
 
 def run_transport_one(spec: TransportSpec) -> RunResult:
-    """Run and judge one transport run (in the run's process; the emulator already runs)."""
+    """Run and judge one transport run (in the run's process; the emulator already runs, except for
+    the camera runs, which start theirs inside the run: :func:`hil.campaign.gige.run_gige_one`)."""
+    sc = BY_NAME[spec.scenario]
+    if sc.emulator == "fakegv":
+        from .gige import run_gige_one
+
+        return run_gige_one(spec)
+    host, control = spec.ursim_host, spec.tracker_control
+
+    def send(line: str) -> object:
+        if sc.emulator == "ursim":
+            assert host is not None
+            return ursim_command(host, line)
+        assert control is not None
+        return trackersim_command(Path(control), line)
+
+    return run_judged(spec, send)
+
+
+#: ``(setup, devices, clock) -> context``: what a run needs around its devices (entered before they
+#: are opened, left after they are closed), e.g. emulators started inside the run's process.
+Around = Callable[[SetupConfig, Devices, Clock], AbstractContextManager[None]]
+
+
+def run_judged(spec: TransportSpec, send: Callable[[str], object], *,
+               operator_type: type[TransportOperator] = TransportOperator,
+               around: Around | None = None) -> RunResult:
+    """Run and judge one transport run in this process: the setup's devices (the robot behind a
+    :class:`RecordingRobot`), ``around`` (if any) around them, the controller with a
+    state-triggered ``operator_type`` that sends the fault lines with ``send``. Never raises for a
+    controller, driver or emulator problem (it fails the run)."""
     from hil.cli.cmd_run import build_controller, wrap_robot
 
     t_wall = time.perf_counter()
@@ -303,15 +340,6 @@ def run_transport_one(spec: TransportSpec) -> RunResult:
     limits = setup.safety.motion_limits()
     log_path = Path(spec.log_dir) / f"{spec.run_id}.jsonl"
     log_path.unlink(missing_ok=True)
-    host, control = spec.ursim_host, spec.tracker_control
-
-    def send(line: str) -> object:
-        if sc.emulator == "ursim":
-            assert host is not None
-            return ursim_command(host, line)
-        assert control is not None
-        return trackersim_command(Path(control), line)
-
     clear_line = sc.clear
     t0_ns = clock.now_ns()
     session = SessionLog(log_path, clock, {
@@ -320,9 +348,9 @@ def run_transport_one(spec: TransportSpec) -> RunResult:
         "fault_transport": sc.inject, "fault_state": sc.state, "fault_delay_s": sc.delay_s,
         "fault_duration_s": sc.duration_s,
     })
-    operator = TransportOperator(sc.state, sc.delay_s, sc.duration_s, clock, t0_ns,
-                                 inject=lambda: send(sc.inject),
-                                 clear=None if clear_line is None else (lambda: send(clear_line)))
+    operator = operator_type(sc.state, sc.delay_s, sc.duration_s, clock, t0_ns,
+                             inject=lambda: send(sc.inject),
+                             clear=None if clear_line is None else (lambda: send(clear_line)))
     result = RunResult(spec.run_id, sc.name, sc.kind.value, sc.state, spec.seed, passed=False,
                        session_log=str(log_path))
     closed: dict[str, Any] = {}
@@ -330,20 +358,26 @@ def run_transport_one(spec: TransportSpec) -> RunResult:
     frame_rate = 15.0
     try:
         devices = wrap_robot(build_devices(setup, clock), lambda robot: RecordingRobot(robot, limits, clock))
-        devices.open_all()
-        frame_rate = devices.camera.frame_rate_hz
-        ctl = build_controller(setup, plan, devices, clock=clock, session=session, operator=operator)
-        summary = ctl.run(spec.max_duration_s)
+        with around(setup, devices, clock) if around is not None else contextlib.nullcontext():
+            try:
+                devices.open_all()
+                frame_rate = devices.camera.frame_rate_hz
+                ctl = build_controller(setup, plan, devices, clock=clock, session=session, operator=operator)
+                summary = ctl.run(spec.max_duration_s)
+            finally:
+                devices.close_all()
         result.final_state = summary.final_state
         result.lock_error_mm = summary.lock_error_mm
         result.duration_s = round(summary.duration_s, 4)
         closed = {"final_state": summary.final_state}
+    except EmulatorError as exc:  # an emulator started around the devices did not come up
+        result.reasons.append(f"emulator: {exc}")
+        result.outcome = "crashed"
+        closed = {"final_state": "crashed", "error": f"emulator: {exc}"}
     except Exception as exc:  # noqa: BLE001 - a controller or driver crash is a finding
         result.error = "".join(traceback.format_exception(exc))[-4000:]
         closed = {"final_state": "crashed", "error": f"{type(exc).__name__}: {exc}"}
     finally:
-        if devices is not None:
-            devices.close_all()
         session.close(**closed)
     recorder = devices.robot if devices is not None else None
     assert recorder is None or isinstance(recorder, RecordingRobot)
@@ -419,6 +453,12 @@ def _prepare(sc: TransportScenario, seed: int, logs: Path) -> _Prepared:
     run_id = f"{sc.name}_s{seed}"
     run_dir = logs / run_id
     run_dir.mkdir(parents=True, exist_ok=True)
+    if sc.emulator == "fakegv":  # started by the run itself, inside its network namespace
+        from .gige import write_gige_setup
+
+        setup = write_gige_setup(sc, run_dir, seed=seed)
+        return _Prepared(TransportSpec(run_id, sc.name, seed, str(setup), str(_plan(sc)), str(logs)),
+                         lambda: None)
     if sc.emulator == "ursim":
         ursim = start_ursim(run_dir)
         setup = write_setup(sc, run_dir, seed=seed, ursim_host=ursim.host)
