@@ -36,6 +36,7 @@ from drivers.interfaces.errors import (
 )
 from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
 from drivers.ur_rtde.config import UrRtdeRobotConfig
+from drivers.ur_rtde.stream_age import StreamAge
 from hil.clock import Clock
 from hil.geometry.transform import RigidTransform
 from hil.log import get_logger
@@ -137,8 +138,7 @@ class UrRtdeRobot(Robot):
         self._dash: Any = None
         self._servoing = False
         self._last_servo_ns = 0
-        self._last_ts = -1.0
-        self._last_ts_change_ns = 0
+        self._stream_age = StreamAge()
         self._kicker: threading.Thread | None = None
         self._kicker_stop = threading.Event()
 
@@ -188,8 +188,7 @@ class UrRtdeRobot(Robot):
                 self._teardown()
                 raise
             self._servoing = False
-            self._last_ts = -1.0
-            self._last_ts_change_ns = self.clock.now_ns()
+            self._stream_age.reset()
             if cfg.rtde_watchdog_min_hz > 0 and not self._ctrl.setWatchdog(cfg.rtde_watchdog_min_hz):
                 self._teardown()
                 raise DeviceFaultError(self.name, "the control script refused setWatchdog")
@@ -314,13 +313,10 @@ class UrRtdeRobot(Robot):
         with contextlib.suppress(RuntimeError):
             async_running = bool(ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning())
         now = self.clock.now_ns()
-        if ts != self._last_ts:
-            self._last_ts = ts
-            self._last_ts_change_ns = now
-        elif now - self._last_ts_change_ns > self.cfg.state_max_age_s * 1e9:
+        age_s = self._stream_age.observe(ts, now * 1e-9)
+        if age_s > self.cfg.state_max_age_s:
             raise DeviceTimeoutError(
-                self.name, f"controller timestamp stuck at {ts:.3f} s for "
-                           f"{(now - self._last_ts_change_ns) * 1e-9:.2f} s")
+                self.name, f"controller timestamp stuck at {ts:.3f} s for {age_s:.2f} s")
         T = pose_from_ur(pose, "actual_TCP_pose") @ self.T_flange_from_tcp
         tcp_speed_mm_s = float(np.linalg.norm(np.asarray(speed[:3], dtype=np.float64))) * 1000.0
         safety = safety_from_bits(bits)
