@@ -53,6 +53,8 @@ REAL_TIME_WATCHDOGS: dict[str, float] = {
     "tracker_max_age_ms": 1000.0,
     "robot_state_max_age_ms": 1000.0,
 }
+#: The UR driver's stale-stream limit in the transport runs (s; configs/sim_ursim.toml has 1.0).
+URSIM_STATE_MAX_AGE_S = 0.5
 #: Procedure time bound of one transport run (s); clean runs take ~15-30 s.
 TRANSPORT_MAX_DURATION_S = 60.0
 #: Wall-time bound of one transport run, emulator start excluded (s).
@@ -206,6 +208,9 @@ def write_setup(sc: TransportScenario, out: Path, *, seed: int, ursim_host: str 
                         + "]\n", 1)
     if ursim_host is not None:
         text = text.replace('host = "127.0.0.1"', f'host = "{ursim_host}"', 1)
+        # the driver's own stale-stream limit, under the controller's loosened robot watchdog: a
+        # stalled RTDE stream (rtde_pause_stream) is detected by the driver, well inside the bound
+        text = _set_key(text, "state_max_age_s", str(URSIM_STATE_MAX_AGE_S))
     if tracker_port is not None:
         start = text.index("[tracker]\n")
         end = text.index("[calibration]\n")

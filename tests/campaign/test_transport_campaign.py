@@ -140,6 +140,7 @@ def test_written_setups_point_the_real_drivers_at_the_emulators(tmp_path: Path) 
     raw = tomllib.loads(path.read_text())
     assert raw["robot"]["driver"] == "ur_rtde"
     assert raw["robot"]["host"] == "127.123.4.5"
+    assert raw["robot"]["state_max_age_s"] == 0.5  # under the robot watchdog (1000 ms)
     assert raw["camera"]["driver"] == "sim"
     assert setup.simulation.real_time is True
     assert setup.simulation.seed == 3
