@@ -125,12 +125,30 @@ def test_fakegv_defaults_to_loopback() -> None:
 
 
 # ----------------------------------------------------------------------------- tracker emulator
-def test_trackersim_control_is_a_unix_socket_not_a_network_port() -> None:
+def test_emulator_control_channels_are_unix_sockets_not_network_ports(tmp_path: Path) -> None:
+    """trackersim's and fakegv's control interfaces are served by emulators.control: a Unix
+    socket, reachable only through the file system, never a network port."""
+    import socket
+    import threading
+
+    from emulators.control import serve_control_lines
+    from emulators.fakegv import __main__ as fm
     from emulators.trackersim import __main__ as tm
 
-    src = Path(tm.__file__).read_text()
-    assert "AF_UNIX" in src
-    assert "AF_INET" not in src
+    assert tm.serve_control_lines is serve_control_lines
+    assert fm.serve_control_lines is serve_control_lines
+    stop = threading.Event()
+    srv = serve_control_lines(tmp_path / "ctl", lambda line: "ok " + line.strip(), stop)
+    try:
+        assert srv.family == socket.AF_UNIX
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as c:
+            c.settimeout(5.0)
+            c.connect(str(tmp_path / "ctl"))
+            c.sendall(b"status\n")
+            assert c.recv(100) == b"ok status\n"
+    finally:
+        stop.set()
+        srv.close()
 
 
 # ----------------------------------------------------------------------------- the whole tree
