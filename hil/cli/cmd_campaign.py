@@ -116,10 +116,16 @@ def run(args: argparse.Namespace) -> int:
         timeout_s=args.timeout if args.timeout is not None else 300.0,
         progress=progress,
     )
-    if args.json:
+    return _report(summary, args.json, table(summary["results"]), out, "campaign")
+
+
+def _report(summary: dict[str, Any], as_json: bool, table_text: str, out: Path, stem: str) -> int:
+    """Print the summary (one JSON object, or the table, the counts and the failing runs with
+    their replay commands) and return the exit code: 0 when every run passed, else 1."""
+    if as_json:
         sys.stdout.write(json.dumps(summary, default=str) + "\n")
     else:
-        sys.stdout.write(table(summary["results"]))
+        sys.stdout.write(table_text)
         sys.stdout.write(
             f"{summary['runs']} runs: {summary['passed']} passed, {summary['failed']} failed; "
             f"worst safe-state latency {summary['worst_safe_latency_ms']} ms\n"
@@ -129,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
                 f"FAIL {f['scenario']} seed {f['seed']}: {'; '.join(f['reasons'])}\n"
                 f"     replay: {f['replay']}\n"
             )
-        sys.stdout.write(f"wrote {out / 'campaign.json'} and {out / 'campaign.html'}\n")
+        sys.stdout.write(f"wrote {out / (stem + '.json')} and {out / (stem + '.html')}\n")
     return 0 if summary["failed"] == 0 else 1
 
 
@@ -156,18 +162,4 @@ def _run_transport(args: argparse.Namespace, seeds: list[int], out: Path, progre
     summary = run_transport_campaign(
         scenarios, seeds, out_dir=out, keep_logs=args.keep_logs, jobs=args.jobs,
         timeout_s=args.timeout if args.timeout is not None else TRANSPORT_TIMEOUT_S, progress=progress)
-    if args.json:
-        sys.stdout.write(json.dumps(summary, default=str) + "\n")
-    else:
-        sys.stdout.write(transport_table(summary["results"]))
-        sys.stdout.write(
-            f"{summary['runs']} runs: {summary['passed']} passed, {summary['failed']} failed; "
-            f"worst safe-state latency {summary['worst_safe_latency_ms']} ms\n"
-        )
-        for f in summary["failing"]:
-            sys.stdout.write(
-                f"FAIL {f['scenario']} seed {f['seed']}: {'; '.join(f['reasons'])}\n"
-                f"     replay: {f['replay']}\n"
-            )
-        sys.stdout.write(f"wrote {out / 'transport.json'} and {out / 'transport.html'}\n")
-    return 0 if summary["failed"] == 0 else 1
+    return _report(summary, args.json, transport_table(summary["results"]), out, "transport")
