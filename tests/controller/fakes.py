@@ -1,9 +1,10 @@
-"""A minimal in-memory robot for unit tests of the safety layer (no simulator)."""
+"""A minimal in-memory robot, and a base for stub cameras, for controller unit tests (no simulator)."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from drivers.interfaces.camera import StereoCamera
 from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
 from hil.clock import ManualClock
 from hil.geometry.transform import RigidTransform
@@ -44,3 +45,31 @@ class FakeRobot(Robot):
     def _state_now(self) -> RobotState:
         return RobotState(self.pose, np.zeros(6), RobotMode.IDLE, self.safety_status,
                           self.clock.now_ns() - self.state_delay_ns)
+
+
+class StubCamera(StereoCamera):
+    """A stereo camera with no device behind it (open/close do nothing); subclasses write
+    ``grab``."""
+
+    def __init__(self, frame_rate_hz: float = 30.0, image_size: tuple[int, int] = (8, 8)) -> None:
+        super().__init__("camera")
+        self._frame_rate_hz = frame_rate_hz
+        self._image_size = image_size
+
+    def _open(self) -> None:
+        pass
+
+    def _close(self) -> None:
+        pass
+
+    @property
+    def frame_rate_hz(self) -> float:
+        return self._frame_rate_hz
+
+    @property
+    def exposure_us(self) -> float:
+        return 1000.0
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self._image_size

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
+from drivers.interfaces.camera import Frame, StereoFrame
 from drivers.interfaces.errors import DisconnectedError, SafetyStopError
 from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
 from hil.clock import Clock, ManualClock
@@ -26,41 +26,23 @@ from hil.controller.procedure import Controller, DeadlineTimer, OperatorView
 from hil.geometry.transform import RigidTransform
 from hil.session import SessionLog, read_session_log
 
-from .fakes import FakeRobot
+from .fakes import FakeRobot, StubCamera
 
 PLAN = load_plan("configs/plans/sim_plan.json")
 RIG = RigGeometry(RigidTransform.identity(), np.zeros((3, 3)), RigidTransform.identity())
 FRAME_S = 1 / 30
 
 
-class FakeCamera(StereoCamera):
+class FakeCamera(StubCamera):
     """30 Hz pairs exposed ``age_s`` before the grab; a grab takes a frame period of clock time
     (the first one ``first_render_s`` when given)."""
 
     def __init__(self, clock: ManualClock, first_render_s: float = 0.0, age_s: float = 0.02) -> None:
-        super().__init__("camera")
+        super().__init__(frame_rate_hz=30.0, image_size=(8, 8))
         self.clock = clock
         self.first_render_s = first_render_s
         self.age_ns = round(age_s * 1e9)
         self.seq = 0
-
-    def _open(self) -> None:
-        pass
-
-    def _close(self) -> None:
-        pass
-
-    @property
-    def frame_rate_hz(self) -> float:
-        return 30.0
-
-    @property
-    def exposure_us(self) -> float:
-        return 1000.0
-
-    @property
-    def image_size(self) -> tuple[int, int]:
-        return (8, 8)
 
     def grab(self, timeout_s: float) -> StereoFrame:
         t_exp = self.clock.now_ns() - self.age_ns

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
+from drivers.interfaces.camera import Frame, StereoFrame
 from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, LifecycleError
 from drivers.interfaces.lifecycle import DeviceState
 from drivers.interfaces.robot import MotionLimits
@@ -33,7 +33,7 @@ from hil.errors import VisionError
 from hil.geometry.transform import RigidTransform
 from hil.session import SessionLog, read_session_log
 
-from .fakes import FakeRobot
+from .fakes import FakeRobot, StubCamera
 
 WAIT_S = 10.0   # upper bound on an event wait: only reached when the code under test is broken
 
@@ -43,34 +43,16 @@ def _pair(seq: int) -> StereoFrame:
     return StereoFrame(Frame(img, 1000 * seq, seq), Frame(img, 1000 * seq, seq))
 
 
-class ScriptedCamera(StereoCamera):
+class ScriptedCamera(StubCamera):
     """``grab`` returns (or raises) the next item the test puts in :attr:`script`, blocking until
     there is one; it records every call and signals ``called[n]`` when call ``n`` starts."""
 
     def __init__(self) -> None:
-        super().__init__("camera")
+        super().__init__(frame_rate_hz=15.0, image_size=(4, 4))
         self.script: queue.Queue[StereoFrame | Exception] = queue.Queue()
         self.calls = 0
         self.timeouts: list[float] = []
         self.called = [threading.Event() for _ in range(32)]
-
-    def _open(self) -> None:
-        pass
-
-    def _close(self) -> None:
-        pass
-
-    @property
-    def frame_rate_hz(self) -> float:
-        return 15.0
-
-    @property
-    def exposure_us(self) -> float:
-        return 1000.0
-
-    @property
-    def image_size(self) -> tuple[int, int]:
-        return (4, 4)
 
     def grab(self, timeout_s: float) -> StereoFrame:
         self.require_active("grab")
@@ -250,31 +232,13 @@ def test_realtime_switch_interval_is_set_and_restored() -> None:
 
 
 # ---------------------------------------------------------------------- through the controller, in real time
-class _FailingCamera(StereoCamera):
+class _FailingCamera(StubCamera):
     """30 Hz pairs on the wall clock (a grab waits one frame period), ``ok`` of them, then every
     grab raises ``DisconnectedError``; counts the grabs made after ``close``."""
 
     def __init__(self, clock: MonotonicClock, ok: int) -> None:
-        super().__init__("camera")
+        super().__init__(frame_rate_hz=30.0, image_size=(4, 4))
         self.clock, self.ok, self.seq, self.grabs_after_close = clock, ok, 0, 0
-
-    def _open(self) -> None:
-        pass
-
-    def _close(self) -> None:
-        pass
-
-    @property
-    def frame_rate_hz(self) -> float:
-        return 30.0
-
-    @property
-    def exposure_us(self) -> float:
-        return 1000.0
-
-    @property
-    def image_size(self) -> tuple[int, int]:
-        return (4, 4)
 
     def grab(self, timeout_s: float) -> StereoFrame:
         if self.state is DeviceState.CLOSED:
