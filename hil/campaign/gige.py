@@ -36,7 +36,7 @@ from hil.clock import Clock
 from hil.config import Devices, load_setup
 from hil.config.setup import SetupConfig
 from hil.controller.fsm import Event
-from hil.controller.procedure import OperatorView
+from hil.controller.operator_input import OperatorView
 from hil.log import get_logger
 from hil.vision.camera_model import load_calibration
 from plugins.registry import DriverContext

@@ -6,7 +6,7 @@ to lock after recovery."""
 from __future__ import annotations
 
 from hil.controller.fsm import Event, State
-from hil.controller.procedure import OperatorView
+from hil.controller.operator_input import OperatorView
 
 HALTED = frozenset({State.FAULT, State.SAFE_STOP, State.PAUSED})
 

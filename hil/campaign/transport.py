@@ -30,8 +30,8 @@ from hil.config import Devices, build_devices, load_setup
 from hil.config.faults import FAULT_DEVICE, FaultKind
 from hil.config.setup import SetupConfig
 from hil.controller.fsm import Event
+from hil.controller.operator_input import OperatorView
 from hil.controller.plan_file import load_plan
-from hil.controller.procedure import OperatorView
 from hil.errors import HilError
 from hil.session.log import SessionLog, file_sha256
 

@@ -20,9 +20,12 @@ from textual.widgets import Button, DataTable, Footer, Header, Label, Sparkline,
 
 from hil.console.session import ConsoleSession
 from hil.console.view import WORKFLOW, ConsoleView
-from hil.controller.fsm import TRANSITIONS, Event, Reject, State
+from hil.controller.fsm import Event
+from hil.controller.operator_input import CommandResult
 
 REFRESH_HZ = 10.0
+#: Operator messages kept on screen (the newest last).
+MESSAGES_SHOWN = 3
 
 #: key -> (operator event, button label). The console posts nothing else.
 COMMANDS: dict[str, tuple[Event, str]] = {
@@ -112,6 +115,7 @@ class ConsoleApp(App[dict[str, Any]]):
     CSS = """
     #banner { display: none; height: auto; padding: 0 1; background: $error; color: $text; text-style: bold; }
     #banner.shown { display: block; }
+    #messages { height: auto; padding: 0 1; color: $warning; }
     #workflow { height: auto; padding: 0 1; }
     #main { height: 1fr; }
     #left { width: 44; }
@@ -126,6 +130,9 @@ class ConsoleApp(App[dict[str, Any]]):
     """
     BINDINGS: ClassVar[list[BindingType]] = [
         *[Binding(k, f"command('{k}')", label) for k, (_e, label) in COMMANDS.items()],
+        # y / n outside a prompt: answer the confirmation shown, or be told there is none
+        Binding("y", "answer(True)", "Yes", show=False),
+        Binding("n", "answer(False)", "No", show=False),
         Binding("q", "quit_console", "Quit"),
     ]
 
@@ -136,6 +143,8 @@ class ConsoleApp(App[dict[str, Any]]):
         self._hil_prompted: str | None = None
         self._hil_confirm: ConfirmScreen | None = None
         self._hil_quitting = False
+        #: every verdict shown to the operator, oldest first (the last few are on screen)
+        self.messages: list[str] = []
         self.summary: dict[str, Any] | None = None
         self.sub_title = f"{session.setup.name or session.config_path.name} — plan {session.plan.source}"
 
@@ -144,6 +153,7 @@ class ConsoleApp(App[dict[str, Any]]):
         yield Header()
         yield Static(id="banner")
         yield Static(id="workflow")
+        yield Static(id="messages")
         with Horizontal(id="main"):
             with Vertical(id="left"):
                 yield Static(id="registration", classes="panel")
@@ -170,23 +180,34 @@ class ConsoleApp(App[dict[str, Any]]):
                            ("gate", "Hold-breath gate"), ("timeline", "Timeline")):
             self.query_one(f"#{pid}", Static).border_title = title
         self.query_one("#breathing", Sparkline).border_title = "breathing: deviation from reference"
-        self.set_interval(1.0 / REFRESH_HZ, self.refresh_view)
+        self.refresh_timer = self.set_interval(1.0 / REFRESH_HZ, self.refresh_view)
         self.refresh_view()
 
     # ---------------------------------------------------------------- commands
-    def action_command(self, key: str) -> None:
-        """Post one operator command; say so when the current state will reject it."""
-        if self._hil_quitting:
-            return
-        event, label = COMMANDS[key]
+    def _shown_pending(self) -> str:
+        """The confirmation the operator has on screen ("" when none): what a confirm names."""
+        if self._hil_confirm is not None:
+            return self._hil_confirm.transition_name
         v = self._hil_shown
-        if v is not None:
-            out = TRANSITIONS[(State(v.state), event)]
-            if isinstance(out, Reject) and event is not Event.CONFIRM_REQUESTED:
-                self.notify(f"{label}: not possible in {v.state} — {out.reason}", severity="warning")
-            elif event is Event.CONFIRM_REQUESTED and v.pending is None:
-                self.notify("Confirm: nothing awaits confirmation", severity="warning")
-        self.session.operator.post(event)
+        return "" if v is None or v.pending is None else v.pending
+
+    def action_command(self, key: str, origin: str = "") -> None:
+        """Post one operator command; the controller's verdict is shown when it comes back."""
+        event, _label = COMMANDS[key]
+        confirms = self._shown_pending() if event is Event.CONFIRM_REQUESTED else None
+        self._post(event, origin or f"key {key}", confirms=confirms)
+
+    def action_answer(self, yes: bool) -> None:
+        """y / n with no prompt on screen (pressed before it opened, or after it closed): answer
+        the confirmation shown on the workflow line, if any; the controller decides."""
+        self._post(Event.CONFIRM_REQUESTED, "key y" if yes else "key n", confirms=self._shown_pending(),
+                   decline=not yes)
+
+    def _post(self, event: Event, origin: str, *, confirms: str | None = None,
+              decline: bool = False) -> None:
+        refused = self.session.operator.post(event, origin=origin, confirms=confirms, decline=decline)
+        if refused is not None:
+            self._show_results()
 
     def action_quit_console(self) -> None:
         """End the session: the loop aborts a procedure under way, then everything closes."""
@@ -200,18 +221,44 @@ class ConsoleApp(App[dict[str, Any]]):
         if bid == "cmd-q":
             self.action_quit_console()
         elif bid.startswith("cmd-"):
-            self.action_command(bid[4:])
+            self.action_command(bid[4:], origin=f"button {bid[4:]}")
 
-    def _on_confirm(self, yes: bool | None) -> None:
+    def _on_confirm(self, transition: str, yes: bool | None) -> None:
+        """The prompt for ``transition`` closed: y / n post the answer naming it; None (closed by
+        the console because the confirmation is no longer pending) posts nothing."""
         self._hil_confirm = None
-        if yes:
-            self.session.operator.post(Event.CONFIRM_REQUESTED)
+        if yes is not None:
+            self._post(Event.CONFIRM_REQUESTED, "prompt yes" if yes else "prompt no",
+                       confirms=transition, decline=not yes)
+
+    def _show_results(self) -> None:
+        """Show every verdict that came back (refusals as warnings; accepted ones are visible
+        as the state changes, and are listed too)."""
+        for r in self.session.operator.take_results():
+            self._say(r)
+
+    def _render_messages(self) -> None:
+        """The last verdicts, and how many commands still wait for the controller."""
+        out = Text("\n".join(self.messages[-MESSAGES_SHOWN:]))
+        queued = self.session.operator.pending_commands()
+        if queued:
+            out.append(("\n" if self.messages else "") + f"{queued} command(s) waiting for the controller",
+                       style="bold yellow")
+        self.query_one("#messages", Static).update(out)
+
+    def _say(self, r: CommandResult) -> None:
+        text = r.message()
+        self.messages.append(text)
+        if not r.accepted:
+            self.notify(text, severity="warning")
 
     # ---------------------------------------------------------------- refresh
     def refresh_view(self) -> None:
         """Show the latest snapshot (cheap; never waits on the controller)."""
         runner = self.session.runner
         v = runner.latest()
+        self._show_results()
+        self._render_messages()
         if v is not None and v is not self._hil_shown:
             self._hil_shown = v
             self._render_view(v)
@@ -230,7 +277,8 @@ class ConsoleApp(App[dict[str, Any]]):
         if v.pending != self._hil_prompted and self._hil_confirm is None and not self._hil_quitting:
             self._hil_prompted = v.pending
             self._hil_confirm = ConfirmScreen(v.pending, v.pending_reason)
-            self.push_screen(self._hil_confirm, self._on_confirm)
+            name = v.pending
+            self.push_screen(self._hil_confirm, lambda yes: self._on_confirm(name, yes))
 
     def _render_view(self, v: ConsoleView) -> None:
         # fault banner

@@ -148,6 +148,7 @@ class ControllerRunner:
                 _log.error("stop_failed", reason=str(exc2))
         finally:
             try:
+                ctl.log_refused_inputs()  # keys refused while the console was closing
                 self._publish(ended=True)
             finally:
                 self._done.set()

@@ -47,7 +47,8 @@ class ConsoleSession:
         server and the session log. Returns a summary (final state, session log, faults)."""
         if not self.closed:
             self.closed = True
-            self.runner.stop()
+            if self.runner.stop():
+                self.ctl.log_refused_inputs()  # refused after the loop ended (it owned the log)
             try:
                 self.devices.close_all()
             finally:

@@ -74,6 +74,7 @@ class ConsoleView:
     frames: int
     commands_sent: int
     commands_refused: int
+    operator_commands_decided: int
     session_log: str
     igtl: str
     ended: bool = False
@@ -183,5 +184,6 @@ def build_view(ctl: Controller, *, breathing_mm: Sequence[float], comp_error_mm:
         plan_target_mm=_tuple3(np.asarray(plan.target_mm).reshape(3)),
         frames=ctl.frames, commands_sent=ctl.safety.commands_sent,
         commands_refused=ctl.safety.commands_refused,
+        operator_commands_decided=ctl.operator_commands_decided,
         session_log=session_log, igtl=igtl, ended=ended, error=error,
     )

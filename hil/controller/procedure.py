@@ -50,6 +50,15 @@ from hil.controller.compensation import (
 from hil.controller.config import ProcedureConfig
 from hil.controller.fsm import HALT_STATES, Event, FireResult, Fsm, State
 from hil.controller.gate import BreathHoldGate, rms_deviation_mm
+from hil.controller.operator_input import (
+    AcknowledgingOperator,
+    CommandResult,
+    Operator,
+    OperatorCommand,
+    OperatorView,
+    Outcome,
+    as_command,
+)
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, PlanRefusedError, RigGeometry, plan_guide
 from hil.controller.prefetch import FramePrefetcher, Prefetched, realtime_switch_interval
@@ -102,55 +111,6 @@ _STILL_MM = 0.25
 _ROBOT_COMMANDED_STATES = frozenset({State.APPROACH, State.GATE, State.COMPENSATE, State.LOCK, State.RETRACT})
 _ARRIVED_MM = 0.5
 _APPROACH_MEASURE_FRAMES = 5
-
-
-@dataclass(frozen=True)
-class OperatorView:
-    """What an operator sees each tick."""
-
-    state: State
-    pending: str | None
-    last_reason: str
-    t_s: float
-    started: bool
-
-
-class Operator(Protocol):
-    """Operator input: one command (an ``*_REQUESTED`` event) or None per tick."""
-
-    def poll(self, view: OperatorView) -> Event | None: ...
-
-    def finished(self, view: OperatorView) -> bool:
-        """True when the run should end (nothing more will be asked)."""
-        ...
-
-
-class AutoOperator:
-    """``--auto``: starts, confirms every pending transition, re-registers after an
-    out-of-bounds pause (at most ``max_reregistrations`` times); ends the run in DONE, FAULT,
-    SAFE_STOP, a failed start (back in IDLE), or a pause it will not resolve."""
-
-    def __init__(self, max_reregistrations: int = 1) -> None:
-        self.reregs_left = max_reregistrations
-        self._started = False
-
-    def poll(self, view: OperatorView) -> Event | None:
-        if not self._started and view.state is State.IDLE:
-            self._started = True
-            return Event.START_REQUESTED
-        if view.pending is not None:
-            return Event.CONFIRM_REQUESTED
-        if view.state is State.PAUSED and self.reregs_left > 0:
-            self.reregs_left -= 1
-            return Event.START_REQUESTED
-        return None
-
-    def finished(self, view: OperatorView) -> bool:
-        if view.state in HALT_STATES or view.state is State.DONE:
-            return True
-        if view.state is State.IDLE and view.started and self._started:
-            return True
-        return view.state is State.PAUSED and self.reregs_left <= 0
 
 
 @dataclass
@@ -345,6 +305,8 @@ class Controller:
         self._phase = _Phase(self.t0_ns)
         self._last_reason = ""
         self._started = False
+        #: operator commands taken and decided (each has an ``operator_command_result`` record)
+        self.operator_commands_decided = 0
         self._last_cmd_ns: int | None = None
         self._resumed_ns: int | None = None
         self._stop_owed: tuple[str, int] | None = None   # (reason, attempts) of an undelivered stop
@@ -491,6 +453,75 @@ class Controller:
         _log.warning("start_refused", reason=why, state=self.state.value)
         return False
 
+    # ------------------------------------------------------------------ operator input
+    def _handle_operator(self, cmd: OperatorCommand) -> None:
+        """Decide one operator command and record it: ``operator_command`` (what was asked, by
+        whom), the state machine's own records, then ``operator_command_result`` (the verdict,
+        :class:`~hil.controller.operator_input.CommandResult`), which an acknowledging operator is
+        also handed. Never raises for a refused command."""
+        event = cmd.event
+        self.session.write("operator_command", input=event, command_seq=cmd.seq, origin=cmd.origin,
+                           confirms=cmd.confirms, decline=cmd.decline)
+        if event is Event.START_REQUESTED and not cmd.decline:
+            self._started = True
+        state = self.state
+        outcome, reason = self._decide_operator(cmd)
+        self.operator_commands_decided += 1
+        self._record_result(CommandResult(cmd.seq, cmd.origin, event.value, outcome, reason, state.value))
+
+    def _decide_operator(self, cmd: OperatorCommand) -> tuple[Outcome, str]:
+        """The verdict on ``cmd`` (see :mod:`hil.controller.operator_input`): a confirmation
+        must name the transition pending now; a start or reset needs a ready robot; anything
+        else is the state machine's decision."""
+        event = cmd.event
+        if event is Event.CONFIRM_REQUESTED and (cmd.confirms is not None or cmd.decline):
+            p = self.fsm.pending
+            pending = None if p is None else p.goto.name
+            shown = pending if cmd.confirms is None else cmd.confirms
+            if pending is None:
+                return "rejected", "nothing awaits confirmation" + (
+                    f" ({shown} was already decided)" if shown else "")
+            if shown != pending:
+                if not shown:
+                    return "rejected", (f"{pending} awaits confirmation, but no prompt was shown when "
+                                        "this was pressed: read the prompt, then confirm")
+                return "rejected", (f"the prompt answered was {shown}, but {pending} awaits "
+                                    "confirmation now: read the prompt, then confirm")
+            if cmd.decline:
+                return "declined", f"{pending} still awaits confirmation: c confirm, a abort"
+        if not self._robot_ready_for(event):
+            return "rejected", self._last_reason
+        res = self.fire(event, "operator")
+        if res.kind == "transition":
+            return "executed", f"{res.transition_name}: {res.source.value} -> {res.target.value}"
+        if res.kind == "pending":
+            return "pending", f"{res.transition_name} awaits confirmation"
+        if res.kind == "rejected":
+            reason = res.reason
+            if reason == "guard has_plan is false":
+                reason = "no guide plan yet: register first (s)"
+            return "rejected", reason
+        return "executed", res.reason
+
+    def _record_result(self, result: CommandResult) -> None:
+        self.session.write("operator_command_result", command_seq=result.seq, origin=result.origin,
+                           input=result.input, outcome=result.outcome, reason=result.reason,
+                           state=result.state)
+        (_log.info if result.accepted else _log.warning)(
+            "operator_command_result", input=result.input, outcome=result.outcome, reason=result.reason)
+        if isinstance(self.operator, AcknowledgingOperator):
+            self.operator.acknowledge(result)
+
+    def log_refused_inputs(self) -> None:
+        """Write the inputs the operator refused before they reached the controller (a full
+        queue, a closing console). Called by the thread that owns the session log: the tick
+        does it, and the console once its loop has ended."""
+        if isinstance(self.operator, AcknowledgingOperator):
+            for result in self.operator.drain_refused():
+                self.session.write("operator_command_result", command_seq=result.seq, origin=result.origin,
+                                   input=result.input, outcome=result.outcome, reason=result.reason,
+                                   state=result.state)
+
     # ------------------------------------------------------------------ the loop
     def run(self, max_duration_s: float | None = None) -> RunSummary:
         """Tick until the operator says the run is over or the time budget is spent."""
@@ -593,13 +624,10 @@ class Controller:
 
     def _tick(self) -> None:
         self._retry_stop()
-        cmd = self.operator.poll(self.view())
-        if cmd is not None:
-            self.session.write("operator_command", input=cmd)
-            if cmd is Event.START_REQUESTED:
-                self._started = True
-            if self._robot_ready_for(cmd):
-                self.fire(cmd, "operator")
+        self.log_refused_inputs()
+        polled = self.operator.poll(self.view())
+        if polled is not None:
+            self._handle_operator(as_command(polled))
         try:
             self._read_devices()
         except DriverError as exc:

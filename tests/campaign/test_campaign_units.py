@@ -18,7 +18,7 @@ from hil.cli import main
 from hil.clock import ManualClock
 from hil.config.faults import FaultKind
 from hil.controller.fsm import Event, State
-from hil.controller.procedure import OperatorView
+from hil.controller.operator_input import OperatorView
 from hil.geometry.transform import RigidTransform
 
 

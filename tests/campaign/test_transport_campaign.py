@@ -36,7 +36,7 @@ from hil.clock import ManualClock
 from hil.config import load_setup
 from hil.config.faults import FaultKind
 from hil.controller.fsm import Event, State
-from hil.controller.procedure import OperatorView
+from hil.controller.operator_input import OperatorView
 
 SCENARIOS = ["rtde_protective_stop@compensate", "serial_silence@compensate", "rtde_estop@register",
              "rtde_drop_connection@register"]

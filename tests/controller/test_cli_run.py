@@ -48,7 +48,7 @@ def test_interactive_operator_asks_once_and_maps_answers() -> None:
 
     from hil.cli.cmd_run import InteractiveOperator
     from hil.controller.fsm import Event, State
-    from hil.controller.procedure import OperatorView
+    from hil.controller.operator_input import OperatorView
 
     out = io.StringIO()
     op = InteractiveOperator(io.StringIO("y\nx\ns\nq\n"), out)

@@ -20,9 +20,10 @@ from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState,
 from hil.clock import Clock, ManualClock
 from hil.controller.config import ProcedureConfig
 from hil.controller.fsm import Event, State
+from hil.controller.operator_input import OperatorView
 from hil.controller.plan_file import load_plan
 from hil.controller.planning import RigGeometry
-from hil.controller.procedure import Controller, DeadlineTimer, OperatorView
+from hil.controller.procedure import Controller, DeadlineTimer
 from hil.geometry.transform import RigidTransform
 from hil.session import SessionLog, read_session_log
 

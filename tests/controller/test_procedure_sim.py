@@ -148,7 +148,7 @@ class _PauseOnceOperator:
     """Pauses the first time COMPENSATE is seen, resumes 1 s later; otherwise like --auto."""
 
     def __init__(self) -> None:
-        from hil.controller.procedure import AutoOperator
+        from hil.controller.operator_input import AutoOperator
 
         self.auto = AutoOperator()
         self.paused_at: float | None = None
@@ -213,7 +213,8 @@ def test_an_internal_error_in_a_tick_becomes_a_fault(tmp_path: Path) -> None:
     from hil.cli.cmd_run import _rig
     from hil.clock import ManualClock
     from hil.config import build_devices
-    from hil.controller.procedure import AutoOperator, Controller
+    from hil.controller.operator_input import AutoOperator
+    from hil.controller.procedure import Controller
     from hil.session import SessionLog
 
     setup = _setup()

@@ -93,7 +93,7 @@ def test_reference_sensor_stands_in_for_occluded_skin_markers(tmp_path: Path,
     import hil.cli.cmd_run as cmd_run
     from drivers.sim.world import FLANGE_MARKER_ID_BASE
     from hil.controller.fsm import Event, State
-    from hil.controller.procedure import AutoOperator
+    from hil.controller.operator_input import AutoOperator
 
     captured: dict[str, Any] = {}
     from hil.config import build_devices as real_build

@@ -6,10 +6,12 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any, Protocol
 
 from textual.pilot import Pilot
 
 from hil.console.app import ConsoleApp
+from hil.console.session import ConsoleSession
 from hil.console.view import ConsoleView
 
 REPO = Path(__file__).resolve().parents[2]
@@ -60,3 +62,45 @@ async def quit_app(pilot: Pilot[object], app: ConsoleApp) -> dict[str, object]:
     rv = app.return_value
     assert isinstance(rv, dict)
     return rv
+
+
+async def wait_prompt(pilot: Pilot[object], app: ConsoleApp, transition: str) -> None:
+    """Wait (bounded) until the console shows the confirmation prompt for ``transition``: the
+    screen an operator reads before answering, not merely the controller's snapshot."""
+    from hil.console.app import ConfirmScreen
+
+    loop = asyncio.get_running_loop()
+    end = loop.time() + DEADLINE_S
+    while True:
+        screen = app.screen
+        if isinstance(screen, ConfirmScreen) and screen.transition_name == transition:
+            await pilot.pause()
+            return
+        v = app.session.runner.latest()
+        if v is not None and v.error:
+            raise AssertionError(f"controller loop failed while waiting for prompt {transition}: {v.error}")
+        if loop.time() > end:
+            raise AssertionError(f"prompt {transition} not shown within {DEADLINE_S} s; screen "
+                                 f"{type(screen).__name__}; last state "
+                                 f"{None if v is None else (v.state, v.pending, v.last_reason)}")
+        await pilot.pause(0.05)
+
+
+async def wait_message(pilot: Pilot[object], app: ConsoleApp, cond: Callable[[str], bool],
+                       what: str) -> str:
+    """Wait (bounded) until a verdict shown to the operator satisfies ``cond``; returns it."""
+    loop = asyncio.get_running_loop()
+    end = loop.time() + DEADLINE_S
+    while True:
+        for m in app.messages:
+            if cond(m):
+                return m
+        if loop.time() > end:
+            raise AssertionError(f"no message {what} within {DEADLINE_S} s; shown: {app.messages}")
+        await pilot.pause(0.05)
+
+
+class SessionOpener(Protocol):
+    """``open_console_session`` whose sessions the ``open_session`` fixture closes afterwards."""
+
+    def __call__(self, config: str | Path | None, **kwargs: Any) -> ConsoleSession: ...

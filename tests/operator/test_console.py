@@ -15,12 +15,20 @@ from textual.widgets import DataTable, Static
 
 from hil.console.app import ConfirmScreen, ConsoleApp
 from hil.console.operator import ConsoleOperator
-from hil.console.session import ConsoleSession, open_console_session
+from hil.console.session import ConsoleSession
 from hil.controller.fsm import Event
 from hil.errors import HilError
 from hil.report import build_report
 from hil.session.log import read_session_log, verify_session_log
-from tests.operator.console_helpers import SIM_PLAN, quit_app, wait_view, write_setup
+from tests.operator.console_helpers import (
+    SIM_PLAN,
+    SessionOpener,
+    quit_app,
+    wait_message,
+    wait_prompt,
+    wait_view,
+    write_setup,
+)
 
 SIZE = (170, 50)
 
@@ -43,61 +51,68 @@ def test_operator_queue_takes_only_operator_commands() -> None:
         op.post(Event.GATE_OPENED)
     with pytest.raises(HilError, match="registered is not an operator command"):
         op.post(Event.REGISTERED)
-    op.post(Event.START_REQUESTED)
-    op.post(Event.ABORT_REQUESTED)
+    assert op.post(Event.START_REQUESTED, origin="key s") is None
+    assert op.post(Event.ABORT_REQUESTED) is None
     assert op.pending_commands() == 2
     view = None
-    assert op.poll(view) is Event.START_REQUESTED  # type: ignore[arg-type]
-    assert op.poll(view) is Event.ABORT_REQUESTED  # type: ignore[arg-type]
+    first, second = op.poll(view), op.poll(view)  # type: ignore[arg-type]
+    assert first is not None
+    assert first.event is Event.START_REQUESTED
+    assert (first.seq, first.origin) == (1, "key s")
+    assert second is not None
+    assert second.event is Event.ABORT_REQUESTED
+    assert second.seq == 2
     assert op.poll(view) is None  # type: ignore[arg-type]
     assert not op.finished(view)  # type: ignore[arg-type]
     op.request_quit()
     assert op.finished(view)  # type: ignore[arg-type]
 
 
-def test_full_procedure_by_key_presses(tmp_path: Path) -> None:
-    asyncio.run(_full_procedure_by_key_presses(tmp_path))
+def test_full_procedure_by_key_presses(tmp_path: Path, open_session: SessionOpener) -> None:
+    asyncio.run(_full_procedure_by_key_presses(tmp_path, open_session))
 
 
-async def _full_procedure_by_key_presses(tmp_path: Path) -> None:
+async def _full_procedure_by_key_presses(tmp_path: Path, open_session: SessionOpener) -> None:
     setup = write_setup(tmp_path)
-    session = open_console_session(setup, plan=SIM_PLAN, session_dir=tmp_path / "sessions", fast=False,
-                                   igtl_port=0)
+    session = open_session(setup, plan=SIM_PLAN, session_dir=tmp_path / "sessions", fast=False,
+                           igtl_port=0)
     assert session.igtl is not None
     host, port = session.igtl.address
     assert host == "127.0.0.1"
     client = pyigtl.OpenIGTLinkClient(host=host, port=port)
-    app = ConsoleApp(session)
-    prompts: list[str] = []
-    async with app.run_test(size=SIZE) as pilot:
-        await wait_view(pilot, app, lambda v: session.igtl.clients == 1, "OpenIGTLink client connected")
-        v = await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
-        assert "press s to start" in _text(app, "#workflow")
-        await pilot.press("s")
-        for expected in ("plan_to_approach", "lock_to_done"):  # the sim config's confirmations
-            v = await wait_view(pilot, app, lambda v: v.pending is not None, f"prompt {expected}")
-            assert v.pending == expected
-            await pilot.pause()
-            assert isinstance(app.screen, ConfirmScreen)
-            assert app.screen.transition_name == expected
-            prompts.append(expected)
-            if expected == "lock_to_done":
-                # everything on screen while locked
-                assert "lock" in _text(app, "#workflow")
-                assert f"{session.ctl.patient_reg.fre_rms_mm:.3f} mm" in _text(app, "#registration")  # type: ignore[union-attr]
-                table = app.query_one("#markers", DataTable)
-                assert table.row_count == 6 + 4  # skin markers of the plan + flange markers
-                assert "OPEN" in _text(app, "#gate")
-                app.save_screenshot(filename="console_lock.svg", path=str(tmp_path))
-                _check_igtl_stream(client, session)
-            await pilot.press("y")
-            await wait_view(pilot, app, lambda v, e=expected: v.pending != e, f"{expected} confirmed")
-        v = await wait_view(pilot, app, lambda v: v.state == "done", "done")
-        assert v.faults == ()
-        assert v.fre_mm is not None
-        assert len(v.breathing_mm) > 10
-        summary = await quit_app(pilot, app)
-    client.stop()
+    try:
+        app = ConsoleApp(session)
+        prompts: list[str] = []
+        async with app.run_test(size=SIZE) as pilot:
+            await wait_view(pilot, app, lambda v: session.igtl.clients == 1, "OpenIGTLink client connected")
+            v = await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
+            assert "press s to start" in _text(app, "#workflow")
+            await pilot.press("s")
+            for expected in ("plan_to_approach", "lock_to_done"):  # the sim config's confirmations
+                await wait_prompt(pilot, app, expected)
+                v = session.runner.latest()
+                assert v is not None
+                assert v.pending == expected
+                assert isinstance(app.screen, ConfirmScreen)
+                prompts.append(expected)
+                if expected == "lock_to_done":
+                    # everything on screen while locked
+                    assert "lock" in _text(app, "#workflow")
+                    assert f"{session.ctl.patient_reg.fre_rms_mm:.3f} mm" in _text(app, "#registration")  # type: ignore[union-attr]
+                    table = app.query_one("#markers", DataTable)
+                    assert table.row_count == 6 + 4  # skin markers of the plan + flange markers
+                    assert "OPEN" in _text(app, "#gate")
+                    app.save_screenshot(filename="console_lock.svg", path=str(tmp_path))
+                    _check_igtl_stream(client, session)
+                await pilot.press("y")
+                await wait_view(pilot, app, lambda v, e=expected: v.pending != e, f"{expected} confirmed")
+            v = await wait_view(pilot, app, lambda v: v.state == "done", "done")
+            assert v.faults == ()
+            assert v.fre_mm is not None
+            assert len(v.breathing_mm) > 10
+            summary = await quit_app(pilot, app)
+    finally:
+        client.stop()
     assert prompts == ["plan_to_approach", "lock_to_done"]
     assert summary["final_state"] == "done"
     log = Path(str(summary["session_log"]))
@@ -108,6 +123,9 @@ async def _full_procedure_by_key_presses(tmp_path: Path) -> None:
                                  "gate_to_compensate", "compensate_to_lock", "lock_to_done"]
     cmds = [r["input"] for r in _events(log) if r["event"] == "operator_command"]
     assert cmds == ["start_requested", "confirm_requested", "confirm_requested"]
+    results = [(r["input"], r["outcome"]) for r in _events(log) if r["event"] == "operator_command_result"]
+    assert results == [("start_requested", "executed"), ("confirm_requested", "executed"),
+                       ("confirm_requested", "executed")]
     assert (tmp_path / "console_lock.svg").stat().st_size > 10_000
     # the recorded session makes a full report
     rep = build_report(log, tmp_path / "report")
@@ -119,8 +137,8 @@ async def _full_procedure_by_key_presses(tmp_path: Path) -> None:
                                                       "residuals": True, "speed": True}
 
 
-def test_fault_shown_and_recovered(tmp_path: Path) -> None:
-    asyncio.run(_fault_shown_and_recovered(tmp_path))
+def test_fault_shown_and_recovered(tmp_path: Path, open_session: SessionOpener) -> None:
+    asyncio.run(_fault_shown_and_recovered(tmp_path, open_session))
 
 
 def _check_igtl_stream(client: pyigtl.OpenIGTLinkClient, session: ConsoleSession) -> None:
@@ -149,15 +167,15 @@ def _check_igtl_stream(client: pyigtl.OpenIGTLinkClient, session: ConsoleSession
     np.testing.assert_allclose(np.asarray(pts.positions, dtype=float), [entry, target], atol=1e-4)
 
 
-async def _fault_shown_and_recovered(tmp_path: Path) -> None:
+async def _fault_shown_and_recovered(tmp_path: Path, open_session: SessionOpener) -> None:
     # a protective stop of the arm after the plan was confirmed (approach or gate)
     setup = write_setup(tmp_path, '\n[[faults]]\nkind = "protective_stop"\nstart_s = 5.0\nduration_s = 0.2\n')
-    session = open_console_session(setup, plan=SIM_PLAN, session_dir=tmp_path / "sessions", fast=False)
+    session = open_session(setup, plan=SIM_PLAN, session_dir=tmp_path / "sessions", fast=False)
     app = ConsoleApp(session)
     async with app.run_test(size=SIZE) as pilot:
         await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
         await pilot.press("s")
-        await wait_view(pilot, app, lambda v: v.pending == "plan_to_approach", "plan prompt")
+        await wait_prompt(pilot, app, "plan_to_approach")
         await pilot.press("y")
         v = await wait_view(pilot, app, lambda v: v.state == "fault", "fault")
         await pilot.pause()
@@ -167,14 +185,14 @@ async def _fault_shown_and_recovered(tmp_path: Path) -> None:
         assert "way out: fault: r recover" in banner
         assert app.query_one("#banner", Static).has_class("shown")
         assert "protective_stop" in v.faults[0]
-        # An operator presses r again while the arm is still in its protective stop (recover()
-        # is refused until the stop clears); bounded: at most 10 presses, 1 s apart.
-        for _ in range(10):
+        # The operator presses r at once. While the injected stop holds (to t = 5.2 s) recover()
+        # is refused and the arm faults again - visibly; once its window has passed, r recovers.
+        decided = v.operator_commands_decided
+        await pilot.press("r")
+        v = await wait_view(pilot, app, lambda v: v.operator_commands_decided > decided, "r decided")
+        if v.state == "fault":
+            await wait_view(pilot, app, lambda v: v.t_s > 5.2, "the stop's window over")
             await pilot.press("r")
-            await pilot.pause(1.0)
-            latest = app.session.runner.latest()
-            if latest is not None and latest.state != "fault":
-                break
         v = await wait_view(pilot, app, lambda v: v.state in ("gate", "compensate", "lock"), "recovered")
         assert not app.query_one("#banner", Static).has_class("shown")
         summary = await quit_app(pilot, app)
@@ -191,21 +209,22 @@ async def _fault_shown_and_recovered(tmp_path: Path) -> None:
     assert verify_session_log(log).ok
 
 
-def test_abort_and_rejected_command(tmp_path: Path) -> None:
-    asyncio.run(_abort_and_rejected_command(tmp_path))
+def test_abort_and_rejected_command(tmp_path: Path, open_session: SessionOpener) -> None:
+    asyncio.run(_abort_and_rejected_command(tmp_path, open_session))
 
 
-async def _abort_and_rejected_command(tmp_path: Path) -> None:
+async def _abort_and_rejected_command(tmp_path: Path, open_session: SessionOpener) -> None:
     # a slow approach (~14 s of motion, paced to the wall clock): the test samples the controller's
     # snapshots from the UI loop, which on a loaded machine can miss the default ~1.6 s approach
     setup = write_setup(tmp_path, "\n[procedure.approach]\nspeed_mm_s = 5.0\n")
-    session = open_console_session(setup, plan=SIM_PLAN, session_dir=tmp_path / "sessions", fast=False)
+    session = open_session(setup, plan=SIM_PLAN, session_dir=tmp_path / "sessions", fast=False)
     app = ConsoleApp(session)
     async with app.run_test(size=SIZE) as pilot:
         await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
-        await pilot.press("p")  # nothing to pause: rejected by the state machine, nothing happens
+        await pilot.press("p")  # nothing to pause: rejected by the state machine, and said so
+        await wait_message(pilot, app, lambda m: m.startswith("pause: rejected"), "pause rejected")
         await pilot.press("s")
-        await wait_view(pilot, app, lambda v: v.pending == "plan_to_approach", "plan prompt")
+        await wait_prompt(pilot, app, "plan_to_approach")
         await pilot.press("y")
         await wait_view(pilot, app, lambda v: v.state == "approach" and (v.robot_speed_mm_s or 0) > 1.0,
                         "robot moving")
@@ -242,14 +261,14 @@ def test_cli_bad_config_and_plan_are_one_line_errors(
     assert "nope.json: cannot read plan" in capsys.readouterr().err
 
 
-def test_ui_stays_responsive_while_the_loop_is_blocked(tmp_path: Path) -> None:
-    asyncio.run(_ui_stays_responsive(tmp_path))
+def test_ui_stays_responsive_while_the_loop_is_blocked(tmp_path: Path, open_session: SessionOpener) -> None:
+    asyncio.run(_ui_stays_responsive(tmp_path, open_session))
 
 
-async def _ui_stays_responsive(tmp_path: Path) -> None:
+async def _ui_stays_responsive(tmp_path: Path, open_session: SessionOpener) -> None:
     """A controller tick stuck in a device call (here: held on an event) must not freeze the UI:
     keys are still taken and queued, and applied once the loop moves again."""
-    session = open_console_session(write_setup(tmp_path), plan=SIM_PLAN, session_dir=tmp_path / "s")
+    session = open_session(write_setup(tmp_path), plan=SIM_PLAN, session_dir=tmp_path / "s")
     hold, held = threading.Event(), threading.Event()
     release = threading.Event()
     real_tick = session.ctl.tick
@@ -262,17 +281,96 @@ async def _ui_stays_responsive(tmp_path: Path) -> None:
 
     session.ctl.tick = tick  # type: ignore[method-assign]
     app = ConsoleApp(session)
+    try:
+        async with app.run_test(size=SIZE) as pilot:
+            await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
+            hold.set()
+            await wait_view(pilot, app, lambda v: held.is_set(), "loop held inside a tick")
+            await pilot.press("s")  # returns although the loop is stuck
+            await pilot.press("p")  # pressed while the start is not yet applied
+            assert session.operator.pending_commands() == 2
+            await pilot.pause(0.2)  # two UI refreshes
+            assert "2 command(s) waiting for the controller" in _text(app, "#messages")
+            v = session.runner.latest()
+            assert v is not None
+            assert v.state == "idle"  # nothing applied while the loop is stuck
+            release.set()
+            await wait_view(pilot, app, lambda v: v.operator_commands_decided == 2, "both decided")
+            # in order: the start, then the pause judged in the state the start led to
+            await wait_message(pilot, app, lambda m: m.startswith("pause:"), "pause verdict")
+            assert app.messages[:2] == [
+                "start: executed — start: idle -> register",
+                "pause: rejected — nothing is moving or waiting to move here"]
+            summary = await quit_app(pilot, app)
+    finally:
+        release.set()
+    assert summary["final_state"] == "safe_stop"
+
+
+def test_a_full_queue_and_a_closing_console_refuse_commands_and_say_why() -> None:
+    from hil.console.operator import MAX_QUEUED
+
+    op = ConsoleOperator()
+    for _ in range(MAX_QUEUED):
+        assert op.post(Event.PAUSE_REQUESTED, origin="key p") is None
+    refused = op.post(Event.ABORT_REQUESTED, origin="key a")
+    assert refused is not None
+    assert refused.outcome == "refused"
+    assert refused.input == "abort_requested"
+    assert refused.reason == f"{MAX_QUEUED} commands already wait for the controller (it is not ticking)"
+    assert op.pending_commands() == MAX_QUEUED  # the newest is refused, no queued one is dropped
+    op.request_quit()
+    closing = op.post(Event.START_REQUESTED, origin="key s")
+    assert closing is not None
+    assert closing.reason == "the console is closing (the procedure is being aborted)"
+    assert [r.seq for r in op.drain_refused()] == [MAX_QUEUED + 1, MAX_QUEUED + 2]
+    assert op.drain_refused() == []  # handed over once, for the session log
+    assert [r.message() for r in op.take_results()] == [
+        f"abort: refused — {refused.reason}", f"start: refused — {closing.reason}"]
+
+
+def test_early_repeated_and_declined_confirmations(tmp_path: Path, open_session: SessionOpener) -> None:
+    asyncio.run(_early_repeated_and_declined_confirmations(tmp_path, open_session))
+
+
+async def _early_repeated_and_declined_confirmations(tmp_path: Path, open_session: SessionOpener) -> None:
+    """y pressed before the prompt is on screen is refused and said (it never confirms a motion
+    the operator did not see); n declines and keeps the confirmation pending; y on the prompt
+    confirms; y pressed again confirms nothing more. Each verdict is on screen and in the log."""
+    session = open_session(write_setup(tmp_path), plan=SIM_PLAN, session_dir=tmp_path / "s")
+    app = ConsoleApp(session)
     async with app.run_test(size=SIZE) as pilot:
         await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
-        hold.set()
-        await wait_view(pilot, app, lambda v: held.is_set(), "loop held inside a tick")
-        await pilot.press("s")  # returns although the loop is stuck
-        await pilot.press("p")
-        assert session.operator.pending_commands() == 2
-        v = session.runner.latest()
-        assert v is not None
-        assert v.state == "idle"  # nothing applied while the loop is stuck
-        release.set()
-        await wait_view(pilot, app, lambda v: v.state == "register", "start applied after release")
+        app.refresh_timer.pause()  # the screen keeps showing IDLE: no prompt can open
+        await pilot.press("s")
+        await wait_view(pilot, app, lambda v: v.pending == "plan_to_approach", "plan pending (controller)")
+        assert not isinstance(app.screen, ConfirmScreen)
+        await pilot.press("y")  # early: the operator has not seen the prompt
+        await wait_view(pilot, app, lambda v: v.operator_commands_decided == 2, "early y decided")
+        app.refresh_timer.resume()
+        early = await wait_message(pilot, app, lambda m: m.startswith("confirm: rejected"), "early y")
+        assert "no prompt was shown when this was pressed" in early
+        assert early in _text(app, "#messages")
+        await wait_prompt(pilot, app, "plan_to_approach")  # still pending: nothing was confirmed
+        await pilot.press("n")
+        await wait_message(pilot, app, lambda m: m.startswith("confirm: declined"), "declined")
+        v = await wait_view(pilot, app, lambda v: v.operator_commands_decided == 3, "n decided")
+        assert v.state == "plan"
+        assert v.pending == "plan_to_approach"
+        assert not isinstance(app.screen, ConfirmScreen)  # the prompt was answered
+        await pilot.press("y")  # the confirmation shown on the workflow line
+        await pilot.press("y")  # repeated
+        v = await wait_view(pilot, app, lambda v: v.operator_commands_decided == 5, "both y decided")
+        assert v.state not in ("idle", "register", "plan", "fault")
+        # the second y named plan_to_approach if the screen had not refreshed yet, else nothing
+        again = await wait_message(pilot, app, lambda m: m.startswith("confirm: rejected — nothing"),
+                                   "repeated y")
+        assert again in ("confirm: rejected — nothing awaits confirmation",
+                         "confirm: rejected — nothing awaits confirmation "
+                         "(plan_to_approach was already decided)")
         summary = await quit_app(pilot, app)
-    assert summary["final_state"] == "safe_stop"
+    log = Path(str(summary["session_log"]))
+    results = [(r["origin"], r["outcome"]) for r in _events(log) if r["event"] == "operator_command_result"]
+    assert results[:5] == [("key s", "executed"), ("key y", "rejected"), ("prompt no", "declined"),
+                           ("key y", "executed"), ("key y", "rejected")]
+    assert _transitions(log)[:3] == ["start", "register_to_plan", "plan_to_approach"]

@@ -13,7 +13,7 @@ from pydantic import ValidationError
 
 from hil.clock import ManualClock
 from hil.controller.fsm import State
-from hil.controller.procedure import OperatorView
+from hil.controller.operator_input import OperatorView
 from hil.geometry.transform import RigidTransform
 from hil.igtl import IgtlConfig, IgtlSnapshot, guide_in_image, snapshot_from_controller
 from hil.igtl.server import IgtlError, IgtlServer
