@@ -24,12 +24,13 @@ from drivers.interfaces.robot import Robot
 from hil.clock import Clock, ManualClock, MonotonicClock
 from hil.config import Devices, build_devices, default_setup_path, load_setup
 from hil.config.setup import SetupConfig
+from hil.controller.controller import Controller
 from hil.controller.fsm import Event, State
+from hil.controller.metrics import RunSummary
 from hil.controller.operator_input import AutoOperator, Operator, OperatorView
 from hil.controller.perception import CollinearNeedleChecker, StereoMarkerLocator, StereoNeedleChecker
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.controller.planning import RigGeometry
-from hil.controller.procedure import Controller, RunSummary
 from hil.controller.tracker_use import TrackerUse
 from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.errors import HilError, InputFileError

@@ -24,7 +24,7 @@ from hil.controller.gate import rms_deviation_mm
 from hil.log import get_logger
 
 if TYPE_CHECKING:
-    from hil.controller.procedure import Controller
+    from hil.controller.controller import Controller
     from hil.igtl.server import IgtlServer
 
 _log = get_logger(__name__)

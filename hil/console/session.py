@@ -19,8 +19,8 @@ from hil.config.build import Devices, clock_for
 from hil.config.setup import SetupConfig
 from hil.console.operator import ConsoleOperator
 from hil.console.runner import ControllerRunner
+from hil.controller.controller import Controller
 from hil.controller.plan_file import ProcedurePlan, load_plan
-from hil.controller.procedure import Controller
 from hil.errors import InputFileError
 from hil.igtl.config import IgtlConfig
 from hil.session.log import SessionLog, file_sha256

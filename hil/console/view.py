@@ -15,7 +15,7 @@ from hil.controller.fsm import State
 from hil.controller.gate import rms_deviation_mm
 
 if TYPE_CHECKING:
-    from hil.controller.procedure import Controller
+    from hil.controller.controller import Controller
 
 #: States shown on the workflow line, in procedure order.
 WORKFLOW: tuple[State, ...] = (State.IDLE, State.REGISTER, State.PLAN, State.APPROACH, State.GATE,

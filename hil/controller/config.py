@@ -67,6 +67,10 @@ class RegistrationConfig(BaseModel):
     min_markers: int = Field(4, ge=3, description="fewest identified skin markers accepted")
     hold_request_s: float = Field(3.0, gt=0, description="breath-hold asked for while registering")
     timeout_s: float = Field(30.0, gt=0, description="give up without a still, visible marker set")
+    still_window_s: float = Field(0.3, gt=0, le=5.0, description="the marker centroid must stay still "
+                                  "this long before frames are averaged")
+    still_mm: float = Field(0.25, gt=0, description="largest centroid excursion (mm) over the window "
+                            "that still counts as still")
     robot_method: Literal["flange_markers", "stereotaxy"] = Field(
         "flange_markers", description="how the robot is registered (stereotaxy: needs [..stereotaxy])")
     stereotaxy: StereotaxyRegistrationConfig | None = Field(
@@ -101,6 +105,11 @@ class ApproachConfig(BaseModel):
     max_corrections: int = Field(5, ge=0, description="closed-loop correction moves before giving up")
     correction_gain: float = Field(1.0, gt=0, le=1.0)
     timeout_s: float = Field(60.0, gt=0)
+    arrived_mm: float = Field(0.5, gt=0, description="the robot-reported TCP within this of the move's "
+                              "target counts as arrived (then the optical check starts)")
+    arrived_speed_mm_s: float = Field(0.5, gt=0, description="and slower than this (mm/s)")
+    measure_frames: int = Field(5, ge=1, le=100, description="pairs averaged for each optical check of "
+                                "the stand-off pose")
 
 
 class GateConfig(BaseModel):
@@ -185,6 +194,9 @@ class LockConfig(BaseModel):
     on_drift: Literal["alarm", "retract", "compensate"] = "retract"
     retract_mm: float = Field(40.0, gt=0, description="back-off distance along the guide axis")
     retract_speed_mm_s: float = Field(30.0, gt=0)
+    retract_timeout_s: float = Field(30.0, gt=0, description="RETRACT not finished within this: FAULT")
+    retract_arrived_mm: float = Field(1.0, gt=0, description="the retract move counts as finished with "
+                                      "the robot stopped within this of its target")
     hold_s: float = Field(2.0, ge=0, description="stay locked this long before DONE (0: until operator)")
     needle_check: NeedleCheckConfig | None = Field(
         None, description="optical needle-axis check before LOCK and while locked (None: off)")

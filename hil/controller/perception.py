@@ -17,7 +17,7 @@ FloatArray = NDArray[np.float64]
 
 class StereoMarkerLocator:
     """The real vision pipeline (detect, pair, triangulate; seed 001 sections 3.3-4) as a
-    :data:`hil.controller.procedure.MarkerLocator`. Identification is left to the controller
+    :data:`hil.controller.pipeline.MarkerLocator`. Identification is left to the controller
     (it knows the reference state and the flange layout).
 
     Raises (when called):
@@ -35,7 +35,7 @@ class StereoMarkerLocator:
 
 class StereoNeedleChecker:
     """The seed-004 needle-axis check (§III, two views) as a
-    :data:`hil.controller.procedure.NeedleAxisChecker`: the needle's two contour lines in each view,
+    :data:`hil.controller.needle.NeedleAxisChecker`: the needle's two contour lines in each view,
     searched around the expected segment ``start_mm -> end_mm`` (optical frame, mm), the axis from
     the two views' planes, and its error against the path ``entry_mm -> target_mm`` (optical frame).
 
@@ -55,7 +55,7 @@ class StereoNeedleChecker:
 
 class CollinearNeedleChecker:
     """The seed-004 needle-axis check from collinear bead markers on the guide tube (§II-A, stereo
-    variant checked against the monocular one) as a :data:`hil.controller.procedure.NeedleAxisChecker`:
+    variant checked against the monocular one) as a :data:`hil.controller.needle.NeedleAxisChecker`:
     same call and result shape (``path_error``) as :class:`StereoNeedleChecker`; the direction error
     is oriented (the beads fix which end is the tip).
 

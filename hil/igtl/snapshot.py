@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from hil.geometry.transform import RigidTransform
 
 if TYPE_CHECKING:
-    from hil.controller.procedure import Controller
+    from hil.controller.controller import Controller
 
 FloatArray = NDArray[np.float64]
 
@@ -61,7 +61,7 @@ def guide_in_image(ctrl: Controller) -> RigidTransform | None:
 
 
 def snapshot_from_controller(ctrl: Controller) -> IgtlSnapshot:
-    """Build the snapshot from a :class:`hil.controller.procedure.Controller` (read-only; call it
+    """Build the snapshot from a :class:`hil.controller.controller.Controller` (read-only; call it
     in the controller's thread, between ticks)."""
     tf: dict[str, FloatArray] = {}
     g = guide_in_image(ctrl)

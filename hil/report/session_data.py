@@ -8,7 +8,7 @@ line. Unknown events and fields are ignored (the log grows; old reports keep wor
 
 Time axis: seconds since the first record's ``t_ns`` (the controller's monotonic clock).
 
-Events read (names as the controller writes them, :mod:`hil.controller.procedure`):
+Events read (names as the controller writes them, :mod:`hil.controller.events`):
 ``state_entered`` (state), ``fault_detected`` (reason), ``registration_done`` (fre_mm,
 tre_expected_mm, robot_fre_mm, markers, reference_optical_mm, optional residuals_mm),
 ``gate_measured`` (deviation_rms_mm, open), ``compensation_step`` and ``lock_measured``

@@ -43,10 +43,10 @@ from hil.campaign.recorder import RecordingRobot
 from hil.clock import MonotonicClock
 from hil.config import build_devices, load_setup
 from hil.config.setup import SetupConfig
+from hil.controller.controller import Controller
 from hil.controller.fsm import Event, State
 from hil.controller.operator_input import OperatorView
 from hil.controller.plan_file import load_plan
-from hil.controller.procedure import Controller
 from hil.errors import InputFileError
 from hil.session.log import SessionLog
 

@@ -19,11 +19,12 @@ from drivers.interfaces.errors import DisconnectedError, SafetyStopError
 from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
 from hil.clock import Clock, ManualClock
 from hil.controller.config import ProcedureConfig
+from hil.controller.controller import Controller
+from hil.controller.deadline import DeadlineTimer
 from hil.controller.fsm import Event, State
 from hil.controller.operator_input import OperatorView
 from hil.controller.plan_file import load_plan
 from hil.controller.planning import RigGeometry
-from hil.controller.procedure import Controller, DeadlineTimer
 from hil.geometry.transform import RigidTransform
 from hil.session import SessionLog, read_session_log
 

@@ -8,8 +8,8 @@ from typing import Any
 import pytest
 
 from hil.config import load_setup
+from hil.controller.controller import Controller
 from hil.controller.plan_file import load_plan
-from hil.controller.procedure import Controller
 from hil.session import read_session_log
 
 CONFIG = Path("configs/sim.toml")

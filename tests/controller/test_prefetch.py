@@ -24,12 +24,12 @@ from drivers.interfaces.lifecycle import DeviceState
 from drivers.interfaces.robot import MotionLimits
 from hil.clock import MonotonicClock
 from hil.controller.config import ProcedureConfig
+from hil.controller.controller import Controller
 from hil.controller.fsm import Event
 from hil.controller.operator_input import OperatorView
 from hil.controller.plan_file import load_plan
 from hil.controller.planning import RigGeometry
 from hil.controller.prefetch import FramePrefetcher, Prefetched, realtime_switch_interval
-from hil.controller.procedure import Controller
 from hil.errors import VisionError
 from hil.geometry.transform import RigidTransform
 from hil.session import SessionLog, read_session_log

@@ -14,8 +14,8 @@ from hil.config import load_setup
 from hil.config.faults import FaultKind, FaultSpec
 from hil.config.setup import SetupConfig
 from hil.config.simulation import DriftConfig, ShiftConfig
+from hil.controller.metrics import RunSummary
 from hil.controller.plan_file import load_plan
-from hil.controller.procedure import RunSummary
 from hil.session import read_session_log, verify_session_log
 
 CONFIG = Path("configs/sim.toml")
@@ -213,8 +213,8 @@ def test_an_internal_error_in_a_tick_becomes_a_fault(tmp_path: Path) -> None:
     from hil.cli.cmd_run import _rig
     from hil.clock import ManualClock
     from hil.config import build_devices
+    from hil.controller.controller import Controller
     from hil.controller.operator_input import AutoOperator
-    from hil.controller.procedure import Controller
     from hil.session import SessionLog
 
     setup = _setup()

@@ -29,9 +29,9 @@ from hil.cli.cmd_run import run_procedure
 from hil.clock import MonotonicClock
 from hil.config import load_setup
 from hil.controller.fsm import Event, State
+from hil.controller.metrics import RunSummary
 from hil.controller.operator_input import OperatorView
 from hil.controller.plan_file import load_plan
-from hil.controller.procedure import RunSummary
 from hil.errors import ConfigError
 from tests.ur_rtde.conftest import Ursim, start_ursim, wait_for
 

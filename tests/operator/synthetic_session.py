@@ -1,5 +1,5 @@
 """A synthetic session log written with the real SessionLog writer and the controller's event
-names (hil/controller/procedure.py, hil/safety/layer.py), with known values."""
+names (hil/controller/events.py, hil/safety/layer.py), with known values."""
 
 from __future__ import annotations
 

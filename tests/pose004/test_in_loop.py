@@ -18,8 +18,8 @@ from hil.config import load_setup
 from hil.config.setup import SetupConfig
 from hil.config.types import TransformConfig
 from hil.controller.config import NeedleCheckConfig, ProcedureConfig
+from hil.controller.metrics import RunSummary
 from hil.controller.plan_file import load_plan
-from hil.controller.procedure import RunSummary
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "configs" / "sim_needle.toml"

@@ -19,9 +19,9 @@ from hil.config import load_setup
 from hil.config.setup import SetupConfig
 from hil.config.types import TransformConfig
 from hil.controller.config import NeedleCheckConfig, ProcedureConfig
+from hil.controller.metrics import RunSummary
 from hil.controller.perception import CollinearNeedleChecker, StereoNeedleChecker
 from hil.controller.plan_file import load_plan
-from hil.controller.procedure import RunSummary
 from hil.errors import VisionError
 from hil.geometry.collinear import direction_error_deg
 from hil.vision.beads import detect_beads, measure_bead_axis, order_along

@@ -17,8 +17,8 @@ from hil.cli.cmd_run import run_procedure
 from hil.config import load_setup
 from hil.config.setup import SetupConfig
 from hil.controller.config import ProcedureConfig, RegistrationConfig
+from hil.controller.metrics import RunSummary
 from hil.controller.plan_file import load_plan
-from hil.controller.procedure import RunSummary
 from hil.geometry.stereotaxy import Rod, StereotacticFrame, predict_spots
 from hil.geometry.transform import RigidTransform
 

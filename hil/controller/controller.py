@@ -1,0 +1,200 @@
+"""The Controller: one tick per stereo pair, on an injected clock, through interfaces only.
+
+A tick (docs/architecture.md draws it): the owed stop is retried and the operator's command is
+decided -> the devices are read (:mod:`~hil.controller.pipeline`) -> the supervisor checks the
+watchdogs and the robot (:mod:`~hil.controller.supervisor`) -> perception identifies and tracks
+the markers into the estimate (:mod:`~hil.controller.markers`) -> the current phase steps
+(:mod:`~hil.controller.phases`) -> its commands are executed through the safety layer and its
+events are processed by the state machine, in order. Entering a state runs its phase's entry
+action the same way. Events are queued and processed one after the other, never fired from
+inside another event's processing. Any device, safety or step error becomes FAULT_DETECTED with
+the reason, and the robot is stopped.
+
+Resumption (after pause, protective stop, reconnect or fault recovery) always starts from the
+pose the robot reports *now*: APPROACH issues a fresh move from there; COMPENSATE restarts its
+rate limiter from the actual pose at rest, with a speed ramp; no stored target is replayed.
+"""
+
+from __future__ import annotations
+
+import time
+
+from drivers.interfaces.errors import DriverError
+from hil.controller import events as ev
+from hil.controller.commands import Command, Hold, MoveLinear, Stop, Track
+from hil.controller.fsm import HALT_STATES, RECOVERY, Event, FireResult, State
+from hil.controller.inputs import TickInputs
+from hil.controller.metrics import RunSummary
+from hil.controller.operator_input import as_command
+from hil.controller.parts import ControllerParts
+from hil.controller.phases.halt import HaltPhase
+from hil.errors import HilError
+from hil.log import get_logger
+from hil.safety.layer import SafetyViolationError
+
+_log = get_logger(__name__)
+
+
+class Controller(ControllerParts):
+    """The procedure controller. Construction (devices, estimate, phases, supervisor) is
+    :class:`~hil.controller.parts.ControllerParts`'s; this class runs the tick and the events."""
+
+    # ------------------------------------------------------------------ events
+    def fire(self, event: Event, reason: str = "") -> FireResult:
+        """Queue an event and process the queue (module doc). Returns the result of ``event``."""
+        self._queue.append((event, reason))
+        first = self._drain()
+        assert first is not None
+        return first
+
+    def fault(self, reason: str) -> None:
+        """Record a fault, enter FAULT (or stay there) and stop the robot. A fault repeating while
+        already in FAULT is recorded once."""
+        state = self.state
+        if not self.supervisor.record_fault(reason, state):
+            return
+        self._queue.append((Event.FAULT_DETECTED, reason))
+        self._drain()
+        if state is State.FAULT:
+            self.supervisor.stop_robot("fault: " + reason)
+
+    def _drain(self) -> FireResult | None:
+        """Process queued events in order (not re-entrantly: an event queued while processing
+        is processed after the current one). Returns the first event's result."""
+        if self._processing:
+            return None
+        self._processing = True
+        first: FireResult | None = None
+        try:
+            while self._queue:
+                event, reason = self._queue.popleft()
+                guards = {"has_plan": self.est.guide_plan is not None}
+                res = self.fsm.fire(event, reason=reason, guards=guards)
+                first = first or res
+                if res.changed:
+                    self._last_reason = reason or res.transition_name
+                    confirmed = event is Event.CONFIRM_REQUESTED
+                    self.timeline.append({"t_s": round(self.t_s(), 4), "state": res.target.value,
+                                          "event": res.event.value, "confirmed": confirmed,
+                                          "reason": res.reason if confirmed else reason})
+                    self._enter(res)
+        finally:
+            self._processing = False
+        return first
+
+    def _enter(self, res: FireResult) -> None:
+        now = self.clock.now_ns()
+        resumed = res.transition_name in RECOVERY
+        if resumed:
+            self.est.resumed_ns = now
+        self.supervisor.supersede_stop()  # the new state's entry action commands the robot itself
+        s = res.target
+        self.session.write(ev.STATE_ENTERED, state=s, reason=res.reason, transition=res.transition_name)
+        phase = self.phases[s]
+        self._phase = phase
+        try:
+            out = phase.enter_with_reason(now, res.transition_name, resumed, res.reason) \
+                if isinstance(phase, HaltPhase) else phase.enter(now, res.transition_name, resumed)
+            for cmd in out.commands:
+                self.execute(cmd)
+            self._queue.extend(out.events)
+        except (DriverError, SafetyViolationError) as exc:
+            if s is not State.FAULT:
+                self.fault(f"entering {s.value}: {exc}")
+        if s is State.LOCK and self.metrics.lock_time_s is None:
+            self.metrics.lock_time_s = self.t_s()
+
+    def execute(self, cmd: Command) -> None:
+        """Run one command through the safety layer (a stop through the supervisor, which owes
+        an undelivered one). Raises the safety layer's or the driver's error."""
+        if isinstance(cmd, MoveLinear):
+            self.safety.move_linear(cmd.target, cmd.speed_mm_s, cmd.accel_mm_s2)
+        elif isinstance(cmd, Track):
+            self.safety.servo(cmd.setpoint, cmd.dt_s)
+        elif isinstance(cmd, Stop):
+            self.supervisor.stop_robot(cmd.reason)
+        else:
+            assert isinstance(cmd, Hold)
+
+    # ------------------------------------------------------------------ the loop
+    def run(self, max_duration_s: float | None = None) -> RunSummary:
+        """Tick until the operator says the run is over or the time budget is spent."""
+        limit = self.cfg.max_duration_s if max_duration_s is None else max_duration_s
+        self.prime()
+        self.watchdogs.arm(self.clock.now_ns())
+        with self.pipeline.prefetching(self.cfg.camera_prefetch):
+            while not self.operator.finished(self.view()):
+                if self.t_s() > limit:
+                    self.session.write(ev.RUN_TIME_EXCEEDED, limit_s=limit, state=self.state)
+                    if self.state not in HALT_STATES:
+                        self.fire(Event.ABORT_REQUESTED, f"procedure exceeded {limit} s")
+                        self._notify_observers()  # the abort happened outside a tick: show it
+                    break
+                self.tick()
+        return self.summary()
+
+    def prime(self, timeout_s: float = 2.0) -> None:
+        """Consume the camera pipeline's first (late) pair, once (see
+        :meth:`~hil.controller.pipeline.DevicePipeline.prime`)."""
+        self.pipeline.prime(timeout_s)
+
+    def tick(self) -> None:
+        """One control cycle (see module doc). Never raises: every device, safety or internal
+        error becomes FAULT_DETECTED with the reason (the robot is stopped)."""
+        self.prime()  # once (run() already did)
+        t_start_wall = time.perf_counter_ns()  # profiling only, never used for control
+        try:
+            self._tick()
+        except (DriverError, SafetyViolationError) as exc:
+            self.fault(str(exc))
+        except HilError as exc:  # a step could not compute (geometry, config): stop safely
+            self.fault(f"{type(exc).__name__}: {exc}")
+        except Exception as exc:  # noqa: BLE001 - the tick boundary: an unexpected error must stop the robot
+            _log.exception("tick_failed", state=self.state.value)
+            self.fault(f"internal error: {type(exc).__name__}: {exc}")
+        self.metrics.processing_ms.append((time.perf_counter_ns() - t_start_wall) * 1e-6)
+        self.truth_meter.after_tick(self.state, self._phase.elapsed_s())
+        self._notify_observers()
+
+    def _tick(self) -> None:
+        self.supervisor.retry_stop()
+        self.log_refused_inputs()
+        polled = self.operator.poll(self.view())
+        command = None if polled is None else as_command(polled)
+        if command is not None:
+            self._handle_operator(command)
+        try:
+            st = self.pipeline.read(self.est)
+        except DriverError as exc:
+            self.clock.sleep(self.frame_period_s)  # time moves on even when a device is gone
+            self.fault(f"{exc.device}: {exc.message}")
+            return
+        self.fire(Event.ROBOT_STATE_RECEIVED)
+        if self.est.tracker_samples:
+            self.fire(Event.TRACKER_SAMPLE_RECEIVED)
+        reason = self.supervisor.check(self.clock.now_ns(), st, self.state)
+        if reason is not None:
+            self.fault(reason)
+            return
+        frame = self.est.last_frame
+        if frame is None:
+            return
+        points = self.pipeline.located(frame)
+        self.markers.update(self.est, points, frame.left.t_ns,
+                            lambda: self.roles.reference_sensor(self.est, self.state))
+        self.metrics.on_frame(self.est, self.state, self.cfg.gate.tolerance_mm)
+        self.metrics.detect_ms.append((self.clock.now_ns() - frame.left.t_ns) * 1e-6)
+        self._log_frame(frame, st)
+        self.fire(Event.FRAME_RECEIVED)
+        inputs = TickInputs(self.clock.now_ns(), command, frame, points, st, self.est.tracker_samples)
+        out = self.phases[self.state].step(inputs) if self.state in self.STEPPED else None
+        if out is not None:
+            for cmd in out.commands:
+                self.execute(cmd)
+            self._queue.extend(out.events)
+            self._drain()
+
+    #: States whose phase steps each pair (the halts only wait for the operator).
+    STEPPED = frozenset({State.REGISTER, State.PLAN, State.APPROACH, State.GATE, State.COMPENSATE,
+                         State.LOCK, State.RETRACT})
+

@@ -1,0 +1,184 @@
+"""The procedure's estimate: the single owner of the mutable state the phases share, and of the
+frame-chain maths over it.
+
+What it holds (frames in the names; mm, radians):
+- the registrations (image -> optical, optical -> robot) and the planned guide pose;
+- the closed-loop bias ``T_bias`` (robot frame, seed 001 §2.3) and the entry-centred frame
+  ``T_center`` the motion filter works in;
+- the live marker sets (skin: CT fiducial order, flange: layout order; NaN rows = not seen), the
+  measured rigid change of the patient and its filter;
+- the latest robot states (for interpolation at frame time), stereo pair and tracker samples.
+
+Phases read and update it; observers never see it (they get a
+:class:`~hil.controller.snapshot.ControllerSnapshot`). Nothing here blocks or touches a device.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import deque
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.interfaces.camera import StereoFrame
+from drivers.interfaces.robot import RobotState
+from drivers.interfaces.tracker import TrackerSample
+from hil.controller.compensation import MotionFilter, interpolate_pose
+from hil.controller.config import ProcedureConfig
+from hil.controller.gate import BreathHoldGate, rms_deviation_mm
+from hil.controller.plan_file import ProcedurePlan
+from hil.controller.planning import GuidePlan, RigGeometry
+from hil.controller.registration import PatientRegistration, RobotRegistration
+from hil.geometry.registration import register_horn
+from hil.geometry.transform import RigidTransform
+
+FloatArray = NDArray[np.float64]
+#: Robot states kept for interpolation at a frame's exposure time.
+STATE_HISTORY = 8
+
+
+def count_seen(markers: FloatArray | None) -> int:
+    """Markers with a position (finite rows)."""
+    return 0 if markers is None else int(np.all(np.isfinite(markers), axis=1).sum())
+
+
+def mean_transform(ts: list[RigidTransform]) -> RigidTransform:
+    """Mean of nearby rigid transforms (translation mean; rotation by rotation-vector mean about
+    the first)."""
+    base = ts[0]
+    rv = np.mean([(base.inverse() @ T).as_rotvec() for T in ts], axis=0)
+    R = base.R @ RigidTransform.from_rotvec(rv).R
+    return RigidTransform(R, np.mean([T.t for T in ts], axis=0))
+
+
+class Estimate:
+    """The procedure state (module doc). ``plan`` and ``rig`` are fixed for the procedure."""
+
+    def __init__(self, plan: ProcedurePlan, rig: RigGeometry, cfg: ProcedureConfig) -> None:
+        self.plan, self.rig = plan, rig
+        self.patient_reg: PatientRegistration | None = None
+        self.robot_reg: RobotRegistration | None = None
+        self.guide_plan: GuidePlan | None = None
+        self.T_bias = RigidTransform.identity()   # robot-frame closed-loop correction (seed 001 2.3)
+        # the change is filtered and bounded about the planned entry point (optical frame): its
+        # translation is then the entry's displacement, not a lever-arm artefact of the camera origin
+        self.T_center = RigidTransform.identity()
+        self.gate: BreathHoldGate | None = None
+        self.filter = MotionFilter(cfg.compensation.filter_alpha, cfg.compensation.filter_beta)
+        self.live_mm: FloatArray | None = None      # skin markers, reference order
+        self.flange_mm: FloatArray | None = None    # flange markers, layout order
+        self.T_change_meas: RigidTransform | None = None
+        self.last_frame: StereoFrame | None = None
+        self.last_state: RobotState | None = None
+        self.state_history: deque[RobotState] = deque(maxlen=STATE_HISTORY)
+        self.tracker_samples: dict[str, TrackerSample] = {}
+        #: when the last resume / recovery re-entered the forward path (the servo speed ramp)
+        self.resumed_ns: int | None = None
+
+    # ------------------------------------------------------------------ updates
+    def restart_registration(self) -> None:
+        """Entering REGISTER: forget the patient registration, live markers, filter and bias."""
+        self.patient_reg = None
+        self.live_mm = None
+        self.filter.reset()
+        self.T_bias = RigidTransform.identity()
+
+    def accept_registration(self, preg: PatientRegistration, rreg: RobotRegistration) -> None:
+        """A new registration: the live set starts at the reference, the gate is rebuilt."""
+        self.patient_reg, self.robot_reg = preg, rreg
+        self.T_center = RigidTransform.from_translation(preg.T_optical_from_image.apply(self.plan.entry_mm))
+        self.gate = None
+        self.live_mm = preg.reference_optical_mm.copy()
+        self.filter.reset()
+
+    def record_robot_state(self, st: RobotState) -> None:
+        self.last_state = st
+        self.state_history.append(st)
+
+    # ------------------------------------------------------------------ frame chain
+    def robot_pose_at(self, t_ns: int) -> RigidTransform | None:
+        """The robot's reported TCP pose at ``t_ns`` (robot frame), interpolated in the recent
+        state history (clamped to its ends); None before any state."""
+        hist = list(self.state_history)
+        if not hist:
+            return None
+        if t_ns <= hist[0].t_ns:
+            return hist[0].T_robot_from_tcp
+        for a, b in itertools.pairwise(hist):
+            if a.t_ns <= t_ns <= b.t_ns:
+                f = (t_ns - a.t_ns) / max(b.t_ns - a.t_ns, 1)
+                return interpolate_pose(a.T_robot_from_tcp, b.T_robot_from_tcp, f)
+        return hist[-1].T_robot_from_tcp
+
+    def T_optical_from_tcp_measured(self) -> RigidTransform | None:
+        """The TCP pose measured by the camera from the flange markers (optical frame), from at
+        least three seen markers (Horn's method, seed 000); None otherwise."""
+        fl = self.flange_mm
+        if fl is None:
+            return None
+        ok = np.all(np.isfinite(fl), axis=1)
+        if int(ok.sum()) < 3:
+            return None
+        return register_horn(fl[ok], self.rig.flange_markers_tcp_mm[ok]).T_fixed_from_moving
+
+    def local(self, T_change: RigidTransform) -> RigidTransform:
+        """The change expressed about the planned entry point (translation = its displacement)."""
+        return self.T_center.inverse() @ T_change @ self.T_center
+
+    def global_(self, T_local: RigidTransform) -> RigidTransform:
+        """Inverse of :meth:`local`: an entry-centred change back in the optical frame."""
+        return self.T_center @ T_local @ self.T_center.inverse()
+
+    def T_optical_from_tcp_planned(self) -> RigidTransform:
+        """Where the plan puts the TCP, in the optical frame (needs both registrations' robot side
+        and the guide plan)."""
+        assert self.robot_reg is not None
+        assert self.guide_plan is not None
+        return self.robot_reg.T_robot_from_optical.inverse() @ self.guide_plan.T_robot_from_tcp
+
+    def bias_measurement(self, frame: StereoFrame) -> RigidTransform | None:
+        """``D = E @ O^-1`` (seed 001 §2.3): the robot-frame correction that maps where the camera
+        sees the TCP (O, through the registration) onto where the robot says it is (E), at the
+        frame's exposure time. None without flange markers, robot states or registration."""
+        O_opt = self.T_optical_from_tcp_measured()
+        E = self.robot_pose_at(frame.left.t_ns)
+        if O_opt is None or E is None or self.robot_reg is None:
+            return None
+        return E @ (self.robot_reg.T_robot_from_optical @ O_opt).inverse()
+
+    def guide_error_optical_mm(self) -> float | None:
+        """Distance between the camera-measured guide and where the guide should be for the
+        patient as seen in the same frame (optical frame, mm; no registration in the loop). None
+        before registration/plan or without markers."""
+        O_opt = self.T_optical_from_tcp_measured()
+        if O_opt is None or self.T_change_meas is None or self.guide_plan is None or self.robot_reg is None:
+            return None
+        desired = self.T_change_meas @ self.T_optical_from_tcp_planned() @ self.rig.T_tcp_from_guide
+        measured = O_opt @ self.rig.T_tcp_from_guide
+        return float(np.linalg.norm(measured.t - desired.t))
+
+    def desired_tcp_robot(self, T_change: RigidTransform) -> RigidTransform:
+        """The TCP pose (robot frame) that keeps the guide on the plan for the optical-frame
+        patient change ``T_change``, with the closed-loop bias."""
+        assert self.robot_reg is not None
+        T_robot_from_optical = self.robot_reg.T_robot_from_optical
+        return self.T_bias @ T_robot_from_optical @ T_change @ self.T_optical_from_tcp_planned()
+
+    def gate_deviation_mm(self) -> float:
+        """RMS deviation of the live skin markers from the reference (mm); inf before
+        registration or without live markers."""
+        if self.patient_reg is None or self.live_mm is None:
+            return math.inf
+        return rms_deviation_mm(self.patient_reg.reference_optical_mm, self.live_mm)[0]
+
+    def path_optical_now(self) -> tuple[FloatArray, FloatArray] | None:
+        """The planned entry and target where they are now (optical frame, mm): the registration
+        moved by the patient's current rigid change. None before registration."""
+        if self.patient_reg is None:
+            return None
+        T = self.patient_reg.T_optical_from_image
+        if self.T_change_meas is not None:
+            T = self.T_change_meas @ T
+        return T.apply(self.plan.entry_mm).reshape(3), T.apply(self.plan.target_mm).reshape(3)

@@ -1,0 +1,72 @@
+"""Identification and tracking of the skin and flange markers in each stereo pair.
+
+Input: the marker centres the locator triangulated (optical frame, mm, any order). Output, in the
+:class:`~hil.controller.estimate.Estimate`: the skin markers in CT-fiducial order (against the
+registered reference once there is one, else against the plan's fiducial layout) and the flange
+markers in layout order; NaN rows are markers not seen this pair. Once registered, the measured
+rigid change of the patient (optical frame) is computed and fed to the motion filter.
+
+Tracking first (each predicted marker takes the nearest point within ``TRACK_TOLERANCE_MM``); a
+full identification against the layout when fewer than three markers are tracked.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hil.controller.compensation import rigid_change
+from hil.controller.estimate import Estimate, count_seen
+from hil.controller.registration import identify, track
+
+FloatArray = NDArray[np.float64]
+#: Frame-to-frame tracking gate (mm): a marker moves far less than this between pairs.
+TRACK_TOLERANCE_MM = 6.0
+
+
+class MarkerTracker:
+    """Updates the estimate's marker sets from one pair's points.
+
+    Args:
+        match_tolerance_mm: identification tolerance against a layout (``registration``).
+    """
+
+    def __init__(self, match_tolerance_mm: float) -> None:
+        self.match_tolerance_mm = match_tolerance_mm
+
+    def update(self, est: Estimate, points_mm: FloatArray, exposure_t_ns: int,
+               reference_hook: Callable[[], None] | None = None) -> None:
+        """Identify/track ``points_mm`` (M, 3) into ``est``. ``reference_hook`` runs after the
+        patient change is measured and before it is filtered (the reference sensor may stand in
+        for it). Never raises for missing markers: they are NaN rows."""
+        pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        tol = self.match_tolerance_mm
+        if est.patient_reg is not None:
+            ref = est.patient_reg.reference_optical_mm
+            prev = est.live_mm
+            predicted = ref if prev is None else np.where(np.isfinite(prev), prev, ref)
+            live = track(pts, predicted, TRACK_TOLERANCE_MM)
+            if count_seen(live) < 3:
+                found = identify(pts, np.nan_to_num(ref), tol)
+                live = found if found is not None else live
+            est.live_mm = live
+            reg = rigid_change(ref, live)
+            est.T_change_meas = None if reg is None else reg.T_fixed_from_moving
+            if reference_hook is not None:
+                reference_hook()
+            if est.T_change_meas is not None:
+                est.filter.update(est.local(est.T_change_meas), exposure_t_ns)
+        else:
+            est.live_mm = identify(pts, est.plan.fiducials_mm, tol)
+        layout = est.rig.flange_markers_tcp_mm
+        if est.flange_mm is not None and count_seen(est.flange_mm) >= 3:
+            fl = track(pts, est.flange_mm, TRACK_TOLERANCE_MM)
+            if count_seen(fl) < 3:
+                fl2 = identify(pts, layout, tol)
+                fl = fl2 if fl2 is not None else fl
+        else:
+            fl2 = identify(pts, layout, tol)
+            fl = fl2 if fl2 is not None else np.full(layout.shape, np.nan)
+        est.flange_mm = fl

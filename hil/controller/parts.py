@@ -1,0 +1,371 @@
+"""The controller's parts and everything that is not the tick: construction (estimate, phases,
+supervisor, pipeline, meters), the operator's commands and their verdicts, read-only accessors
+for observers and tests, and the run summary. :class:`~hil.controller.controller.Controller`
+adds the tick and the event processing."""
+
+from __future__ import annotations
+
+import abc
+import collections
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, cast
+
+import numpy as np
+
+from drivers.interfaces.camera import StereoCamera, StereoFrame
+from drivers.interfaces.robot import MotionLimits, Robot, RobotState
+from drivers.interfaces.tracker import PoseTracker
+from hil.clock import Clock
+from hil.controller import events as ev
+from hil.controller.commands import Command
+from hil.controller.config import ProcedureConfig
+from hil.controller.estimate import Estimate, FloatArray, count_seen
+from hil.controller.fsm import Event, FireResult, Fsm, State
+from hil.controller.markers import MarkerTracker
+from hil.controller.metrics import RunMetrics, RunSummary, TruthMeter, percentile
+from hil.controller.needle import NeedleAxisChecker, NeedleCheck
+from hil.controller.operator_input import (
+    AcknowledgingOperator,
+    CommandResult,
+    Operator,
+    OperatorCommand,
+    OperatorView,
+    Outcome,
+)
+from hil.controller.phases.approach import ApproachPhase
+from hil.controller.phases.base import Phase, PhaseContext, ServoTiming
+from hil.controller.phases.compensate import CompensatePhase
+from hil.controller.phases.gate import GatePhase
+from hil.controller.phases.halt import HaltPhase
+from hil.controller.phases.lock import LockPhase
+from hil.controller.phases.plan import PlanPhase
+from hil.controller.phases.register import RegisterPhase
+from hil.controller.phases.retract import RetractPhase
+from hil.controller.pipeline import DevicePipeline, MarkerLocator
+from hil.controller.plan_file import ProcedurePlan
+from hil.controller.planning import GuidePlan, RigGeometry
+from hil.controller.registration import PatientRegistration, RobotRegistration
+from hil.controller.supervisor import Supervisor
+from hil.controller.tracker_roles import TrackerRoles
+from hil.controller.tracker_use import TrackerUse
+from hil.controller.truth import BreathHoldCoach, GroundTruth
+from hil.geometry.transform import RigidTransform
+from hil.log import get_logger
+from hil.safety.layer import SafetyLayer
+from hil.safety.watchdog import WatchdogSet
+from hil.session.log import SessionLog
+
+if TYPE_CHECKING:
+    from hil.controller.controller import Controller
+
+_log = get_logger(__name__)
+
+
+class ControllerParts(abc.ABC):
+    """Builds the controller's parts.
+
+    Args:
+        camera, robot, tracker: ACTIVE devices (tracker optional; it is watched, not used to steer).
+        clock: the controller clock (the devices' clock).
+        locate: perception, stereo frame -> marker centres in the optical frame.
+        plan: the procedure plan (image frame).
+        rig: end-effector geometry (guide frame, flange markers, TCP).
+        procedure: tolerances and policies.
+        limits: the safety layer's motion limits.
+        watchdog_ages_s: ``{"camera": s, "robot": s, "tracker": s}``.
+        session: the session log (every event, transition, command, measurement, fault).
+        observers: called with the controller at the end of every tick (display, OpenIGTLink);
+            read-only, in the controller's thread; their exceptions are logged
+            (``observer_failed``) and never stop the control loop.
+        tracker_use: the magnetic tracker's part (``[procedure.tracking]``); None: not used.
+        operator: operator input.
+        coach: asks the patient for breath-holds (the simulated world, or None on a rig).
+        truth: ground truth for error measurement (simulation only).
+        needle_check: the optical needle-axis check (seed 004); None: never made.
+    """
+
+    def __init__(
+        self, *, camera: StereoCamera, robot: Robot, tracker: PoseTracker | None, clock: Clock,
+        locate: MarkerLocator, plan: ProcedurePlan, rig: RigGeometry, procedure: ProcedureConfig,
+        limits: MotionLimits, watchdog_ages_s: dict[str, float], session: SessionLog,
+        operator: Operator, coach: BreathHoldCoach | None = None, truth: GroundTruth | None = None,
+        needle_check: NeedleAxisChecker | None = None,
+        observers: Sequence[Callable[[Controller], None]] = (),
+        tracker_use: TrackerUse | None = None,
+    ) -> None:
+        self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
+        self.locate, self.plan, self.rig, self.cfg = locate, plan, rig, procedure
+        self.session, self.operator, self.coach, self.truth = session, operator, coach, truth
+        self.observers = tuple(observers)
+        self._observer_errors: dict[int, str] = {}
+        self.tracker_use = tracker_use if tracker is not None else None
+        self.fsm = Fsm(procedure.confirm, listener=self._on_fire)
+        self.safety = SafetyLayer(robot, limits, clock,
+                                  robot_state_max_age_s=watchdog_ages_s.get("robot", 0.05),
+                                  log=lambda name, f: session.write(name, **f))
+        ages = {k: v for k, v in watchdog_ages_s.items() if k != "tracker" or tracker is not None}
+        self.watchdogs = WatchdogSet(ages)
+        self.frame_period_s = 1.0 / camera.frame_rate_hz
+        self.t0_ns = clock.now_ns()
+        self.est = Estimate(plan, rig, procedure)
+        self.metrics = RunMetrics()
+        self.pipeline = DevicePipeline(camera, robot, tracker, clock, locate, self.watchdogs, session,
+                                       self.metrics)
+        self.supervisor = Supervisor(robot, self.safety, self.watchdogs, session)
+        self.markers = MarkerTracker(procedure.registration.match_tolerance_mm)
+        self.roles = TrackerRoles(self.tracker_use, session)
+        self.needle = NeedleCheck(procedure.lock.needle_check, needle_check, session)
+        self.needle_check = needle_check
+        self.truth_meter = TruthMeter(truth, robot, self.est, session)
+        self.ctx = PhaseContext(
+            cfg=procedure, est=self.est, clock=clock, session=session, safety=self.safety, robot=robot,
+            roles=self.roles, needle=self.needle, coach=coach, frame_period_s=self.frame_period_s,
+            pending=self._pending_name, execute=self.execute, servo_timing=self._servo_timing)
+        forward: list[Phase] = [cls(self.ctx) for cls in (RegisterPhase, PlanPhase, ApproachPhase, GatePhase,
+                                                          CompensatePhase, LockPhase, RetractPhase)]
+        self.phases: dict[State, Phase] = {p.state: p for p in forward}
+        for s in HaltPhase.HALTS:
+            self.phases[s] = HaltPhase(self.ctx, s)
+        self._phase: Phase = self.phases[State.IDLE]
+        self._phase.entered_ns = self.t0_ns
+        self._queue: collections.deque[tuple[Event, str]] = collections.deque()
+        self._processing = False
+        self._last_reason = ""
+        self._started = False
+        #: operator commands taken and decided (each has an ``operator_command_result`` record)
+        self.operator_commands_decided = 0
+        self.timeline: list[dict[str, Any]] = [
+            {"t_s": 0.0, "state": State.IDLE.value, "event": None, "reason": "initial"}]
+
+    # the tick's side (Controller)
+    @abc.abstractmethod
+    def execute(self, cmd: Command) -> None:
+        """Run one command through the safety layer."""
+
+    @abc.abstractmethod
+    def fire(self, event: Event, reason: str = "") -> FireResult:
+        """Queue an event and process the queue."""
+
+    # ------------------------------------------------------------------ helpers
+    def t_s(self, t_ns: int | None = None) -> float:
+        return ((self.clock.now_ns() if t_ns is None else t_ns) - self.t0_ns) * 1e-9
+
+    @property
+    def state(self) -> State:
+        return self.fsm.state
+
+    @property
+    def sub_state(self) -> str | None:
+        """The current phase's sub-state (None when it has none)."""
+        sub = self._phase.sub_state
+        return None if sub is None else str(sub.value)
+
+    def _pending_name(self) -> str | None:
+        p = self.fsm.pending
+        return None if p is None else p.goto.name
+
+    def view(self) -> OperatorView:
+        return OperatorView(self.state, self._pending_name(), self._last_reason, self.t_s(), self._started)
+
+    def _servo_timing(self) -> ServoTiming:
+        ready = self.pipeline.next_pair_ready
+        return ServoTiming(None if self.pipeline.prefetch is None else (lambda: bool(ready())),
+                           self.pipeline.grab_timeout_s(), self.watchdogs["camera"].max_age_s)
+
+    def _on_fire(self, r: FireResult) -> None:
+        if r.kind == "stay" and r.event.value.endswith("_received"):
+            return  # data events are summarised by the measurement records
+        self.session.write(ev.FIRE_RECORD[r.kind], source=r.source, target=r.target, input=r.event,
+                           reason=r.reason, transition=r.transition_name)
+        if r.kind == "rejected":
+            _log.info("transition_rejected", source=r.source.value, input=r.event.value, reason=r.reason)
+        elif r.kind == "transition":
+            _log.info("transition_applied", source=r.source.value, target=r.target.value,
+                      input=r.event.value, reason=r.reason)
+
+    def _log_frame(self, frame: StereoFrame, st: RobotState) -> None:
+        est = self.est
+        self.session.write(ev.FRAME_MEASURED, frame_seq=frame.left.seq, exposure_t_ns=frame.left.t_ns,
+                           skin_markers=count_seen(est.live_mm), flange_markers=count_seen(est.flange_mm),
+                           gate_deviation_mm=est.gate_deviation_mm(), robot_tcp_mm=st.T_robot_from_tcp.t,
+                           tcp_speed_mm_s=st.tcp_speed_mm_s, live_mm=est.live_mm)
+
+    def _notify_observers(self) -> None:
+        """Call every observer with the controller, after the tick (whatever it did). An
+        observer's exception is logged (``observer_failed``) and never reaches the control loop."""
+        for i, obs in enumerate(self.observers):
+            try:
+                obs(cast("Controller", self))
+            except Exception as exc:  # noqa: BLE001 - an observer (display, stream) must not stop control
+                name, error = getattr(obs, "__name__", repr(obs)), f"{type(exc).__name__}: {exc}"
+                _log.warning(ev.OBSERVER_FAILED, observer=name, error=error)
+                if self._observer_errors.get(i) != error:  # once per distinct error, not every tick
+                    self._observer_errors[i] = error
+                    self.session.write(ev.OBSERVER_FAILED, observer=name, error=error)
+
+    # ------------------------------------------------------------------ operator input
+    def _handle_operator(self, cmd: OperatorCommand) -> None:
+        """Decide one operator command and record it: ``operator_command`` (what was asked, by
+        whom), the state machine's own records, then ``operator_command_result`` (the verdict),
+        which an acknowledging operator is also handed. Never raises for a refused command."""
+        event = cmd.event
+        self.session.write(ev.OPERATOR_COMMAND, input=event, command_seq=cmd.seq, origin=cmd.origin,
+                           confirms=cmd.confirms, decline=cmd.decline)
+        if event is Event.START_REQUESTED and not cmd.decline:
+            self._started = True
+        state = self.state
+        outcome, reason = self._decide_operator(cmd)
+        self.operator_commands_decided += 1
+        self._record_result(CommandResult(cmd.seq, cmd.origin, event.value, outcome, reason, state.value))
+
+    def _decide_operator(self, cmd: OperatorCommand) -> tuple[Outcome, str]:
+        """The verdict on ``cmd`` (see :mod:`hil.controller.operator_input`): a confirmation
+        must name the transition pending now; a start or reset needs a ready robot; anything
+        else is the state machine's decision."""
+        event = cmd.event
+        if event is Event.CONFIRM_REQUESTED and (cmd.confirms is not None or cmd.decline):
+            pending = self._pending_name()
+            shown = pending if cmd.confirms is None else cmd.confirms
+            if pending is None:
+                return "rejected", "nothing awaits confirmation" + (
+                    f" ({shown} was already decided)" if shown else "")
+            if shown != pending:
+                if not shown:
+                    return "rejected", (f"{pending} awaits confirmation, but no prompt was shown when "
+                                        "this was pressed: read the prompt, then confirm")
+                return "rejected", (f"the prompt answered was {shown}, but {pending} awaits "
+                                    "confirmation now: read the prompt, then confirm")
+            if cmd.decline:
+                return "declined", f"{pending} still awaits confirmation: c confirm, a abort"
+        if event in (Event.START_REQUESTED, Event.RESET_REQUESTED) and self.fsm.accepts(event):
+            why = self.supervisor.robot_ready_for(event, self.state)
+            if why:
+                self._last_reason = why
+                return "rejected", why
+        res = self.fire(event, "operator")
+        if res.kind == "transition":
+            return "executed", f"{res.transition_name}: {res.source.value} -> {res.target.value}"
+        if res.kind == "pending":
+            return "pending", f"{res.transition_name} awaits confirmation"
+        if res.kind == "rejected":
+            reason = res.reason
+            if reason == "guard has_plan is false":
+                reason = "no guide plan yet: register first (s)"
+            return "rejected", reason
+        return "executed", res.reason
+
+    def _record_result(self, result: CommandResult) -> None:
+        self._write_result(result)
+        (_log.info if result.accepted else _log.warning)(
+            ev.OPERATOR_COMMAND_RESULT, input=result.input, outcome=result.outcome, reason=result.reason)
+        if isinstance(self.operator, AcknowledgingOperator):
+            self.operator.acknowledge(result)
+
+    def _write_result(self, result: CommandResult) -> None:
+        self.session.write(ev.OPERATOR_COMMAND_RESULT, command_seq=result.seq, origin=result.origin,
+                           input=result.input, outcome=result.outcome, reason=result.reason,
+                           state=result.state)
+
+    def log_refused_inputs(self) -> None:
+        """Write the inputs the operator refused before they reached the controller (a full
+        queue, a closing console). Called by the thread that owns the session log: the tick
+        does it, and the console once its loop has ended."""
+        if isinstance(self.operator, AcknowledgingOperator):
+            for result in self.operator.drain_refused():
+                self._write_result(result)
+
+    # ------------------------------------------------------------------ read-only accessors
+    @property
+    def patient_reg(self) -> PatientRegistration | None:
+        return self.est.patient_reg
+
+    @property
+    def robot_reg(self) -> RobotRegistration | None:
+        return self.est.robot_reg
+
+    @property
+    def guide_plan(self) -> GuidePlan | None:
+        return self.est.guide_plan
+
+    @property
+    def T_bias(self) -> RigidTransform:
+        return self.est.T_bias
+
+    @property
+    def live_mm(self) -> FloatArray | None:
+        return self.est.live_mm
+
+    @property
+    def flange_mm(self) -> FloatArray | None:
+        return self.est.flange_mm
+
+    @property
+    def T_change_meas(self) -> RigidTransform | None:
+        return self.est.T_change_meas
+
+    @property
+    def last_state(self) -> RobotState | None:
+        return self.est.last_state
+
+    @property
+    def faults(self) -> list[str]:
+        return self.supervisor.faults
+
+    @property
+    def frames(self) -> int:
+        return self.metrics.frames
+
+    @property
+    def frames_overwritten(self) -> int:
+        return self.metrics.frames_overwritten
+
+    @property
+    def latency_ms(self) -> list[float]:
+        return self.ctx.latency_ms
+
+    @property
+    def servo_deadlines_missed(self) -> int:
+        return self.ctx.servo_deadlines_missed
+
+    @property
+    def comp_errors_mm(self) -> list[float]:
+        return self.truth_meter.comp_errors_mm
+
+    @property
+    def lock_errors(self) -> list[tuple[float, float]]:
+        return self.truth_meter.lock_errors
+
+    def guide_error_optical_mm(self) -> float | None:
+        """The camera-measured guide error against the patient as seen in the latest pair, mm."""
+        return self.est.guide_error_optical_mm()
+
+    # ------------------------------------------------------------------ summary
+    def summary(self) -> RunSummary:
+        states: list[str] = []
+        for row in self.timeline:
+            if not states or states[-1] != row["state"]:
+                states.append(row["state"])
+        tm, m, est = self.truth_meter, self.metrics, self.est
+        lock = tm.lock_errors[0] if tm.lock_errors else None  # at the moment of locking
+        comp = tm.comp_errors_mm
+        lat = list(self.ctx.latency_ms)
+        return RunSummary(
+            final_state=self.state.value, states=states, timeline=self.timeline,
+            fre_mm=None if est.patient_reg is None else est.patient_reg.fre_rms_mm,
+            tre_expected_mm=None if est.patient_reg is None else est.patient_reg.tre_expected_mm,
+            robot_fre_mm=None if est.robot_reg is None else est.robot_reg.fre_rms_mm,
+            lock_error_mm=None if lock is None else lock[0],
+            lock_error_max_mm=max(e[0] for e in tm.lock_errors) if tm.lock_errors else None,
+            lock_direction_error_deg=None if lock is None else lock[1],
+            comp_error_rms_mm=float(np.sqrt(np.mean(np.square(comp)))) if comp else None,
+            comp_error_p95_mm=percentile(comp, 95), comp_error_max_mm=max(comp) if comp else None,
+            latency_ms={"p50": percentile(lat, 50), "p95": percentile(lat, 95)},
+            processing_ms={"p50": percentile(m.processing_ms, 50), "p95": percentile(m.processing_ms, 95)},
+            gate_open_fraction=m.gate_open_fraction, time_to_lock_s=m.lock_time_s, duration_s=self.t_s(),
+            frames=m.frames, commands_sent=self.safety.commands_sent,
+            commands_refused=self.safety.commands_refused, faults=list(self.faults),
+            session_log=str(self.session.path), comp_errors_mm=list(comp),
+            comp_error_age_s=list(tm.comp_error_age_s), needle_direction_error_deg=self.needle.summary_deg(),
+            tracked_needle=self.roles.tracked_needle,
+        )
+

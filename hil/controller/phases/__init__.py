@@ -1,0 +1,1 @@
+"""The procedure's phases, one module each (see :mod:`hil.controller.phases.base`)."""

@@ -1,0 +1,42 @@
+"""GATE: hold position and wait for the hold-breath gate to open (the live skin markers back
+within tolerance of the reference for the dwell time, seed 002)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from hil.controller import events as ev
+from hil.controller.commands import Stop
+from hil.controller.fsm import Event, State
+from hil.controller.gate import BreathHoldGate
+from hil.controller.phases.base import Phase, PhaseResult
+
+if TYPE_CHECKING:
+    from hil.controller.inputs import TickInputs
+
+
+class GatePhase(Phase):
+    state = State.GATE
+
+    def on_enter(self, transition: str) -> PhaseResult:
+        est, cfg = self.ctx.est, self.ctx.cfg
+        assert est.patient_reg is not None
+        if est.gate is None:
+            est.gate = BreathHoldGate(cfg.gate, est.patient_reg.reference_optical_mm)
+        est.gate.restart(self.entered_ns)
+        out = PhaseResult().command(Stop("gate: hold position while waiting for the breath-hold"))
+        self.request_hold("gate", cfg.gate.hold_request_s)
+        return out
+
+    def step(self, inputs: TickInputs) -> PhaseResult:
+        est, out = self.ctx.est, PhaseResult()
+        assert est.gate is not None
+        status = est.gate.update(est.live_mm, inputs.frame.left.t_ns)
+        self.ctx.session.write(ev.GATE_MEASURED, deviation_rms_mm=status.deviation_rms_mm,
+                               markers=status.markers, dwell_s=status.dwell_s, open=status.open)
+        if status.open:
+            return out.fire(Event.GATE_OPENED, status.justification)
+        if status.timed_out:
+            self.ctx.session.write(ev.GATE_TIMED_OUT, message=status.justification)
+            return out.fire(Event.TIMED_OUT, status.justification)
+        return out

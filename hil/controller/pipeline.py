@@ -1,0 +1,139 @@
+"""The camera side of a tick: priming the pipeline, the real-time prefetcher, and reading the
+devices (the stereo pair, the robot state, the tracker's latest samples) into the estimate.
+
+Blocking: :meth:`DevicePipeline.read` blocks up to the grab timeout for the next pair (from the
+camera, or the pair the prefetcher has ready). Errors: the devices' DriverError (a
+DeviceTimeoutError naming the camera when no pair arrives).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+
+import numpy as np
+
+from drivers.interfaces.camera import StereoCamera, StereoFrame
+from drivers.interfaces.errors import DriverError
+from drivers.interfaces.robot import Robot, RobotState
+from drivers.interfaces.tracker import PoseTracker
+from hil.clock import Clock, MonotonicClock
+from hil.controller import events as ev
+from hil.controller.estimate import Estimate, FloatArray
+from hil.controller.metrics import RunMetrics
+from hil.controller.prefetch import FramePrefetcher, Prefetched, realtime_switch_interval
+from hil.log import get_logger
+from hil.safety.watchdog import WatchdogSet
+from hil.session.log import SessionLog
+
+_log = get_logger(__name__)
+
+#: Stereo frame -> triangulated marker centres (M, 3), optical frame, mm (any order).
+MarkerLocator = Callable[[StereoFrame], FloatArray]
+
+
+class DevicePipeline:
+    """Reads the devices for the controller (module doc). ``locate``: stereo pair -> marker
+    centres (optical frame, mm)."""
+
+    def __init__(self, camera: StereoCamera, robot: Robot, tracker: PoseTracker | None, clock: Clock,
+                 locate: MarkerLocator, watchdogs: WatchdogSet, session: SessionLog,
+                 metrics: RunMetrics) -> None:
+        self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
+        self.locate = locate
+        self.watchdogs, self.session, self.metrics = watchdogs, session, metrics
+        self.frame_period_s = 1.0 / camera.frame_rate_hz
+        self.primed = False   # the camera pipeline's first (late) pair has been consumed
+        self.prefetch: FramePrefetcher | None = None
+        self.prefetched: Prefetched | None = None   # the result the current tick perceives
+
+    def grab_timeout_s(self) -> float:
+        return max(4 * self.frame_period_s, 0.2)
+
+    def prime(self, timeout_s: float = 2.0) -> None:
+        """Grab and discard one stereo pair, once, before the first tick judges any.
+
+        A camera's first buffer or a simulator's first render is late (caches, buffers): it is
+        consumed here, so the first pair the controller judges is a fresh one and the watchdogs
+        stay strict for every pair. Logs ``pipeline_primed`` (the discarded pair's age) or
+        ``pipeline_prime_failed`` (then the camera watchdog reports the missing data). Blocks up to
+        ``timeout_s`` plus the grab's own work; never raises for a device error.
+        """
+        if self.primed:
+            return
+        self.primed = True
+        t_ns = self.clock.now_ns()
+        try:
+            frame = self.camera.grab(timeout_s=max(timeout_s, 4 * self.frame_period_s))
+        except DriverError as exc:
+            self.session.write(ev.PIPELINE_PRIME_FAILED, reason=str(exc))
+            _log.warning(ev.PIPELINE_PRIME_FAILED, reason=str(exc))
+            return
+        now = self.clock.now_ns()
+        self.session.write(ev.PIPELINE_PRIMED, frame_seq=frame.left.seq,
+                           first_frame_age_s=(now - frame.left.t_ns) * 1e-9, took_s=(now - t_ns) * 1e-9)
+
+    @contextlib.contextmanager
+    def prefetching(self, enabled: bool) -> Iterator[None]:
+        """On the wall clock (MonotonicClock) with ``enabled`` (``procedure.camera_prefetch``):
+        grab and locate the next pair in a :class:`~hil.controller.prefetch.FramePrefetcher` thread
+        (so COMPENSATE keeps streaming meanwhile) with the GIL switch interval lowered; otherwise
+        (a manual clock: a deterministic simulation) nothing changes. The worker is stopped and
+        joined when the block ends, however it ends, before the caller can close the camera;
+        ``frame_prefetch_stopped`` records its counts."""
+        if not (enabled and isinstance(self.clock, MonotonicClock)):
+            yield
+            return
+        pf = FramePrefetcher(self.camera, self.locate, self.grab_timeout_s())
+        self.prefetch = pf
+        try:
+            with realtime_switch_interval():
+                pf.start()
+                yield
+        finally:
+            self.prefetch = None
+            self.prefetched = None
+            pf.stop()
+            self.metrics.frames_overwritten += pf.overwritten
+            self.session.write(ev.FRAME_PREFETCH_STOPPED, pairs=pf.produced, overwritten=pf.overwritten)
+
+    def read(self, est: Estimate) -> RobotState:
+        """The next pair, the robot state and the tracker samples into ``est`` (module doc);
+        feeds the watchdogs. Returns the robot state."""
+        self.prefetched = None
+        if self.prefetch is not None:
+            got = self.prefetch.take(self.grab_timeout_s())
+            self.prefetched, frame = got, got.frame
+        else:
+            frame = self.camera.grab(timeout_s=self.grab_timeout_s())
+        now = self.clock.now_ns()
+        self.metrics.frames += 1
+        est.last_frame = frame
+        self.watchdogs["camera"].feed(frame.left.t_ns, now)
+        st = self.robot.state_now()
+        est.record_robot_state(st)
+        self.watchdogs["robot"].feed(st.t_ns, now)
+        if self.tracker is not None:
+            samples = self.tracker.latest()
+            est.tracker_samples = samples
+            fresh = [s.t_ns for s in samples.values() if not s.missing]
+            if fresh:
+                self.watchdogs["tracker"].feed(max(fresh), now)
+        return st
+
+    def located(self, frame: StereoFrame) -> FloatArray:
+        """The marker centres of ``frame``: the prefetcher's (or the error ``locate`` raised on
+        it, raised here), else located now."""
+        got = self.prefetched
+        if got is not None and got.frame is frame:
+            if got.error is not None:
+                raise got.error
+            located = got.points_mm if got.points_mm is not None else np.zeros((0, 3))
+        else:
+            located = self.locate(frame)
+        return np.asarray(located, dtype=np.float64).reshape(-1, 3)
+
+    def next_pair_ready(self) -> bool | None:
+        """None without a prefetcher, else whether it has the next pair (or error) ready."""
+        pf = self.prefetch
+        return None if pf is None else pf.ready()
