@@ -2,7 +2,8 @@
 
 Simulated drivers are imported directly. The real drivers (written in their own packages) are
 picked up from :data:`REAL_DRIVERS`, a table of dotted paths: each driver package exposes a
-``config`` module holding the driver's pydantic model and its factory ``(config, ctx) -> Device``.
+``plugin`` module holding the driver's pydantic model (imported from the package's ``config``
+module, a leaf) and its factory ``(config, ctx) -> Device``.
 A driver whose module or attributes cannot be imported is registered as *unavailable* with the
 reason, so ``hil drivers`` shows it and a setup naming it fails with that reason.
 """
@@ -28,17 +29,17 @@ class RealDriver(NamedTuple):
 
 
 REAL_DRIVERS: tuple[RealDriver, ...] = (
-    RealDriver("robot", "ur_rtde", "drivers.ur_rtde.config", "UrRtdeConfig", "factory",
+    RealDriver("robot", "ur_rtde", "drivers.ur_rtde.plugin", "UrRtdeConfig", "factory",
                "Universal Robots UR3 / UR3e over RTDE (ur-rtde)"),
-    RealDriver("tracker", "fob", "drivers.tracker_serial.config", "FlockOfBirdsConfig",
-               "flock_of_birds_factory", "Ascension Flock of Birds magnetic tracker over a serial port"),
-    RealDriver("tracker", "aurora", "drivers.tracker_serial.config", "AuroraConfig",
+    RealDriver("tracker", "fob", "drivers.tracker_serial.plugin", "FlockOfBirdsConfig",
+               "fob_factory", "Ascension Flock of Birds magnetic tracker over a serial port"),
+    RealDriver("tracker", "aurora", "drivers.tracker_serial.plugin", "AuroraConfig",
                "aurora_factory", "NDI Aurora electromagnetic tracker over a serial port"),
-    RealDriver("camera", "aravis", "drivers.camera.config", "AravisCameraConfig",
+    RealDriver("camera", "aravis", "drivers.camera.plugin", "AravisCameraConfig",
                "aravis_factory", "two GigE Vision / USB3 Vision cameras through Aravis"),
-    RealDriver("camera", "v4l2", "drivers.camera.config", "V4l2CameraConfig",
+    RealDriver("camera", "v4l2", "drivers.camera.plugin", "V4l2CameraConfig",
                "v4l2_factory", "two V4L2 (UVC) cameras through OpenCV"),
-    RealDriver("camera", "replay", "drivers.camera.config", "ReplayCameraConfig",
+    RealDriver("camera", "replay", "drivers.camera.plugin", "ReplayCameraConfig",
                "replay_factory", "replay of a recorded stereo session"),
 )
 

@@ -32,6 +32,9 @@ COMM_BAUD_CODES: dict[int, str] = {
     1228739: "7", 230400: "A",
 }
 BAUD_FROM_CODE: dict[str, int] = {v: k for k, v in COMM_BAUD_CODES.items()}
+#: Every rate the API can switch to (ascending); a session always starts at 9600 after a reset.
+BAUD_RATES: tuple[int, ...] = tuple(sorted(COMM_BAUD_CODES))
+RESET_BAUD = 9600
 
 ERROR_TEXT: dict[int, str] = {
     0x01: "invalid command", 0x02: "command too long", 0x03: "command too short",

@@ -33,6 +33,12 @@ from hil.geometry.transform import FloatArray, RigidTransform, matrix_to_quatern
 MM_PER_INCH = 25.4
 PHASE_BIT = 0x80
 
+#: The RS-232 rates the Bird's baud dip switches 1-2-3 select (FOB-MAN p.29); the host must match.
+BAUD_RATES: tuple[int, ...] = (2400, 4800, 9600, 19200, 38400, 57600, 115200)
+#: How the model id (EXAMINE VALUE 15: 10 ASCII bytes, space-padded) of each Ascension unit starts
+#: (FOB-MAN p.109-110 parameter table).
+MODEL_IDS: tuple[str, ...] = ("6DFOB", "6DERC", "6DBOF", "PCBIRD", "SPACEPAD", "MOTIONSTAR", "WIRELESS")
+
 # --- command bytes (FOB-MAN ch.7) ---------------------------------------------------------------
 CMD_POINT = 0x42  # 'B'
 CMD_STREAM = 0x40  # '@'

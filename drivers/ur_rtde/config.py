@@ -1,4 +1,7 @@
-"""Config and factory of the UR3 / UR3e driver over RTDE (``[robot] driver = "ur_rtde"``).
+"""Config of the UR3 / UR3e driver over RTDE (``[robot] driver = "ur_rtde"``).
+
+A leaf of its package: it imports no driver module; the factory lives in
+:mod:`drivers.ur_rtde.plugin`.
 
 Example::
 
@@ -24,12 +27,10 @@ Servo parameters (``servo_lookahead_time_s``, ``servo_gain``), chosen deliberate
 
 from __future__ import annotations
 
-from typing import Literal, Protocol
+from typing import Literal
 
 from pydantic import BaseModel, Field, model_validator
 
-from drivers.interfaces.robot import MotionLimits, Robot
-from hil.clock import Clock
 from hil.config.types import STRICT, TransformConfig
 
 CONTROLLER_RATE_HZ = {"cb3": 125.0, "e_series": 500.0}
@@ -97,23 +98,3 @@ class UrRtdeRobotConfig(BaseModel):
 
 #: The name plugins.builtin looks up.
 UrRtdeConfig = UrRtdeRobotConfig
-
-
-class RobotContext(Protocol):
-    """What the factory needs from ``plugins.registry.DriverContext`` (structurally)."""
-
-    @property
-    def role(self) -> str: ...
-
-    @property
-    def clock(self) -> Clock: ...
-
-    @property
-    def limits(self) -> MotionLimits: ...
-
-
-def factory(config: UrRtdeRobotConfig, ctx: RobotContext) -> Robot:
-    """Registered as robot driver ``ur_rtde``: the arm, CONFIGURED (``open()`` connects)."""
-    from drivers.ur_rtde.robot import UrRtdeRobot
-
-    return UrRtdeRobot(ctx.role, ctx.limits, config, ctx.clock)
