@@ -1,4 +1,5 @@
-"""What the built-in plugin registers for the real stereo cameras: the driver factories.
+"""What the built-in plugin registers for the real stereo cameras: the driver factories and the
+``hil probe`` device checks.
 
 The top of the package: it imports the configs (:mod:`drivers.camera.config`, a leaf) and builds
 the devices CONFIGURED (not opened). The driver modules are imported when a device is built, so a
@@ -16,9 +17,10 @@ if TYPE_CHECKING:
     from drivers.camera.aravis import AravisStereoCamera
     from drivers.camera.replay import ReplayStereoCamera
     from drivers.camera.v4l2 import V4l2StereoCamera
+    from hil.probe.registry import ProbeRegistry
 
 __all__ = ["AravisCameraConfig", "ReplayCameraConfig", "V4l2CameraConfig", "aravis_factory",
-           "replay_factory", "v4l2_factory"]
+           "register_probes", "replay_factory", "v4l2_factory"]
 
 
 def aravis_factory(config: AravisCameraConfig, ctx: DriverContext) -> AravisStereoCamera:
@@ -44,3 +46,13 @@ def replay_factory(config: ReplayCameraConfig, ctx: DriverContext) -> ReplaySter
     if not path.is_absolute():
         path = ctx.config_dir / path
     return ReplayStereoCamera(ctx.role, path, ctx.clock, speed=config.speed, loop=config.loop)
+
+
+def register_probes(registry: ProbeRegistry) -> None:
+    """The ``hil probe`` device checks of the three cameras (called by the built-in plugin's
+    ``hil_register_probes``): are the devices (or the recording) there?"""
+    from drivers.camera.probe import probe_aravis, probe_replay, probe_v4l2
+
+    registry.add("camera", "aravis", probe_aravis)
+    registry.add("camera", "v4l2", probe_v4l2)
+    registry.add("camera", "replay", probe_replay)

@@ -102,6 +102,11 @@ CHANGE_DATA_BYTES: dict[int, int] = {
 
 BUTTON_VALUES: frozenset[int] = frozenset({0x00, 0x10, 0x30, 0x70})
 
+#: Bits of a flock system status byte (EXAMINE 36, one byte per FBB address; FOB-MAN p.129).
+FLOCK_ACCESSIBLE = 0x80
+FLOCK_RUNNING = 0x40
+FLOCK_HAS_SENSOR = 0x20
+
 
 class FobFormat(Enum):
     """Record formats: (command byte, words per record, status-word format code)."""

@@ -31,9 +31,8 @@ from typing import Literal
 
 from pydantic import BaseModel, Field, model_validator
 
+from drivers.ur_rtde.wire import CONTROLLER_RATE_HZ
 from hil.config.types import STRICT, TransformConfig
-
-CONTROLLER_RATE_HZ = {"cb3": 125.0, "e_series": 500.0}
 
 
 class UrRtdeRobotConfig(BaseModel):
