@@ -2,7 +2,9 @@
 
 Everything here is the wire format of FOB-MAN (Flock of Birds Installation and Operation
 Guide, P/N 910141 Rev B) as summarised in ``reference/device-protocols.md`` section A1; no I/O.
-Both the driver (:mod:`drivers.tracker_serial.fob`) and the emulator (``tools/trackersim``) use it.
+Used by the driver (:mod:`drivers.tracker_serial.fob`) and its probe. The emulator does NOT use
+it: it has its own device-side encoder, and both are checked against the manual's worked example
+(tests/trackers/test_wire_vectors.py).
 
 Wire format (FOB-MAN p.39-41):
     A record is N 16-bit words, each carrying its 14 most significant bits, sent as two bytes,
@@ -312,7 +314,7 @@ def _euler_to_R(az: float, el: float, roll: float) -> FloatArray:
 
 def encode_record(T_tracker_from_sensor: RigidTransform, layout: RecordLayout, *, full_scale_mm: float,
                   button: int = 0, address: int = 0) -> bytes:
-    """The bytes a bird sends for a pose (used by the emulator and the tests).
+    """The bytes a bird sends for a pose (the driver's round-trip tests).
 
     Raises:
         ValueError: a trailer value out of range.
