@@ -57,8 +57,6 @@ class UrRtdeRobotConfig(BaseModel):
         reconnect_attempts, reconnect_backoff_s: how ``recover()`` rebuilds lost interfaces.
         T_flange_from_tcp: the tool (needle guide) offset; the controller's own TCP stays at the
             flange and the driver applies this offset on the host.
-        emulator_control_port: the UR emulator's fault channel on ``host`` (``[[faults]]`` with
-            ``transport`` are sent there, see drivers.faults); None (a real robot) refuses them.
     """
 
     model_config = STRICT
@@ -77,10 +75,6 @@ class UrRtdeRobotConfig(BaseModel):
     reconnect_attempts: int = Field(3, ge=1, le=100)
     reconnect_backoff_s: float = Field(1.0, ge=0, le=60)
     T_flange_from_tcp: TransformConfig = Field(default_factory=TransformConfig.identity)
-    emulator_control_port: int | None = Field(
-        None, ge=1, le=65535,
-        description="tools/ursim only: its fault-control port on host (30200), for transport faults; "
-                    "unset for a real controller")
 
     @model_validator(mode="after")
     def _rate_fits_controller(self) -> UrRtdeRobotConfig:
