@@ -42,7 +42,7 @@ from hil.log import get_logger
 from hil.vision.camera_model import load_calibration
 from plugins.registry import DriverContext
 
-from .emulators import ROOT, EmulatorError, FakeGv, start_fakegv
+from .emulators import CONFIGS_DIR, EmulatorError, FakeGv, start_fakegv
 from .frameshm import FrameBlockError, FrameBlockWriter
 
 _log = get_logger(__name__)
@@ -51,7 +51,7 @@ CLONE_NEWNET = 0x40000000
 LEFT_ADDRESS = "127.0.0.1"
 RIGHT_ADDRESS = "127.0.0.2"
 #: The setup whose ``[camera]`` (simulated) renders the world the fake cameras serve.
-SIM_CAMERA_SETUP = ROOT / "configs" / "sim.toml"
+SIM_CAMERA_SETUP = CONFIGS_DIR / "sim.toml"
 #: Bound on waiting for both fake cameras to be discoverable (s).
 DISCOVERY_TIMEOUT_S = 15.0
 #: GVSP packet size on loopback (bytes; lo's MTU is 64 KiB): ~130 packets per 1920x1080 frame

@@ -36,7 +36,14 @@ from hil.errors import HilError
 from hil.session.log import SessionLog, file_sha256
 
 from . import gige
-from .emulators import ROOT, EmulatorError, start_trackersim, start_ursim, trackersim_command, ursim_command
+from .emulators import (
+    CONFIGS_DIR,
+    EmulatorError,
+    start_trackersim,
+    start_ursim,
+    trackersim_command,
+    ursim_command,
+)
 from .operator import CampaignOperator
 from .pool import Progress, run_parallel
 from .recorder import Recording, RecordingRobot
@@ -196,7 +203,7 @@ def _set_key(text: str, key: str, value: str) -> str:
 def write_setup(sc: TransportScenario, out: Path, *, seed: int, ursim_host: str | None = None,
                 tracker_port: str | None = None) -> Path:
     """Write the mixed setup of one run to ``out/setup.toml`` (from ``configs/<sc.base>``)."""
-    base = ROOT / "configs" / sc.base
+    base = CONFIGS_DIR / sc.base
     text = base.read_text()
     text = re.sub(r'^stereo = "(.*)"$', lambda m: f'stereo = "{(base.parent / m.group(1)).resolve()}"',
                   text, count=1, flags=re.MULTILINE)
@@ -208,7 +215,7 @@ def write_setup(sc: TransportScenario, out: Path, *, seed: int, ursim_host: str 
     text = text.replace("[procedure]\n", "[procedure]\nconfirm = [" + ", ".join(f'"{c}"' for c in CONFIRM)
                         + "]\n", 1)
     if ursim_host is not None:
-        text = text.replace('host = "127.0.0.1"', f'host = "{ursim_host}"', 1)
+        text = text.replace('host = "127.0.0.1"', f'host = "{ursim_host}"')  # robot and [fault_channel]
         # the driver's own stale-stream limit, under the controller's loosened robot watchdog: a
         # stalled RTDE stream (rtde_pause_stream) is detected by the driver, well inside the bound
         text = _set_key(text, "state_max_age_s", str(URSIM_STATE_MAX_AGE_S))
@@ -596,6 +603,6 @@ def transport_table(results: list[dict[str, Any]]) -> str:
 
 
 def _plan(sc: TransportScenario) -> Path:
-    return ROOT / "configs" / "plans" / f"{Path(sc.base).stem}_plan.json"
+    return CONFIGS_DIR / "plans" / f"{Path(sc.base).stem}_plan.json"
 
 
