@@ -104,7 +104,7 @@ class FlockOfBirdsTracker(SerialPoseTracker):
         if not model.startswith(fp.MODEL_IDS):
             raise ProtocolError(self.name, f"model id {model_raw!r} is not a Bird's; is baud_rate "
                                            f"{cfg.baud_rate} what the dip switches say?")
-        if model.startswith("6DERC"):
+        if model.startswith(fp.MODEL_ID_ERC):
             self._full_scale_mm = fp.position_full_scale_mm(0, extended_range=True)
         rev = self._examine(fp.PARAM_SOFTWARE_REVISION, 2)
         self.info.update(model=model, firmware=f"{rev[0]}.{rev[1]}", baud_rate=str(cfg.baud_rate))

@@ -39,7 +39,8 @@ PHASE_BIT = 0x80
 BAUD_RATES: tuple[int, ...] = (2400, 4800, 9600, 19200, 38400, 57600, 115200)
 #: How the model id (EXAMINE VALUE 15: 10 ASCII bytes, space-padded) of each Ascension unit starts
 #: (FOB-MAN p.109-110 parameter table).
-MODEL_IDS: tuple[str, ...] = ("6DFOB", "6DERC", "6DBOF", "PCBIRD", "SPACEPAD", "MOTIONSTAR", "WIRELESS")
+MODEL_ID_ERC = "6DERC"  # an Extended Range Controller: positions at 144" full scale (A1.5)
+MODEL_IDS: tuple[str, ...] = ("6DFOB", MODEL_ID_ERC, "6DBOF", "PCBIRD", "SPACEPAD", "MOTIONSTAR", "WIRELESS")
 
 # --- command bytes (FOB-MAN ch.7) ---------------------------------------------------------------
 CMD_POINT = 0x42  # 'B'
