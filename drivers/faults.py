@@ -7,10 +7,11 @@ shows up at the interface as the typed error or flag a real failure would give, 
 ``fault_injected`` once when its window opens.
 
 Robot faults with ``transport`` set are not simulated here: :class:`TransportFaults` sends them,
-on a thread, at their scheduled times, to the fault channel of the UR controller emulator the
-``ur_rtde`` driver is connected to (``emulator_control_port``), and the real driver meets them
-over the real protocol. A robot without an emulator fault channel (a real controller) refuses them
-with a ConfigError when the wrapper is built.
+on a thread, at their scheduled times, to the fault channel of the UR controller emulator (the
+setup's ``[fault_channel]``; its client is :class:`hil.campaign.ursim_control.UrsimControl`), and
+the real driver meets them over the real protocol. The driver itself knows nothing of the
+emulator. A setup without a fault channel (a real controller has none) refuses them with a
+ConfigError when the wrapper is built.
 
 The schedule's shape (:class:`hil.config.faults.FaultSpec`) belongs to the core; the wrappers
 live here, outside it.
@@ -40,7 +41,7 @@ from drivers.interfaces.lifecycle import Device
 from drivers.interfaces.robot import Robot, RobotMode, RobotState, SafetyStatus
 from drivers.interfaces.tracker import PoseTracker, TrackerSample
 from hil.clock import Clock
-from hil.config.faults import FaultKind, FaultSpec
+from hil.config.faults import DEFAULT_FAULT_CHANNEL_PORT, FaultChannelConfig, FaultKind, FaultSpec
 from hil.errors import ConfigError
 from hil.geometry.transform import RigidTransform
 from hil.log import get_logger
@@ -251,7 +252,8 @@ class FaultyRobot(_Delegating, Robot):
     """
 
     def __init__(self, inner: Robot, faults: Sequence[FaultSpec], clock: Clock,
-                 channel: FaultChannel | None = None) -> None:
+                 channel: FaultChannel | None = None,
+                 fault_channel: FaultChannelConfig | None = None) -> None:
         super().__init__(inner.name, inner.limits)
         self.inner = inner
         simulated = [f for f in faults if f.transport_command is None]
@@ -260,7 +262,7 @@ class FaultyRobot(_Delegating, Robot):
         self.transport: TransportFaults | None = None
         if sent:
             self.transport = TransportFaults(
-                inner.name, sent, channel if channel is not None else transport_channel(inner), clock)
+                inner.name, sent, channel if channel is not None else transport_channel(fault_channel), clock)
         self._stopped_by_fault = False
         self._link_down = False
         self._servo_queue: deque[tuple[int, RigidTransform, float]] = deque()
@@ -364,7 +366,7 @@ class FaultyRobot(_Delegating, Robot):
 # ---------------------------------------------------------------------- faults through the transport
 class FaultChannel(Protocol):
     """Where transport faults go: one emulator fault-channel command line per call
-    (:class:`drivers.ur_rtde.ursim_control.UrsimControl`). Raises DriverError on failure."""
+    (:class:`hil.campaign.ursim_control.UrsimControl`). Raises DriverError on failure."""
 
     def command(self, line: str) -> str: ...
 
@@ -505,34 +507,33 @@ class TransportFaults:
         self.channel.close()
 
 
-def transport_channel(device: Robot) -> FaultChannel:
-    """The emulator fault channel of a robot driver, for transport faults.
+def transport_channel(config: FaultChannelConfig | None) -> FaultChannel:
+    """The client of the emulator fault channel ``config`` (the setup's ``[fault_channel]``), for
+    transport faults. Connects on its first command.
 
     Raises:
-        ConfigError: the robot is not a ``ur_rtde`` driver with ``emulator_control_port`` set (a
-            real controller has no fault channel: transport faults cannot be injected there).
+        ConfigError: no fault channel configured (a real controller has none: transport faults
+            cannot be injected there).
     """
-    from drivers.ur_rtde.config import UrRtdeRobotConfig
-    from drivers.ur_rtde.ursim_control import UrsimControl
-
-    cfg = getattr(device, "cfg", None)
-    if not isinstance(cfg, UrRtdeRobotConfig):
-        raise ConfigError("setup", [f"faults: transport faults need the ur_rtde robot driver on the UR "
-                                    f"emulator (tools/ursim); the robot is a {type(device).__name__}"])
-    if cfg.emulator_control_port is None:
+    if config is None:
         raise ConfigError("setup", [
-            f"faults: transport faults need the UR emulator's fault channel, and robot.host "
-            f"{cfg.host} has none configured (a real controller cannot be faulted through its "
-            f"transport); for tools/ursim set robot.emulator_control_port = 30200"])
-    return UrsimControl(cfg.host, cfg.emulator_control_port)
+            "faults: transport faults need the UR emulator's fault channel, and the setup has no "
+            "[fault_channel] (a real controller cannot be faulted through its transport); for "
+            f"tools/ursim add [fault_channel] with host = the emulator's address, port = "
+            f"{DEFAULT_FAULT_CHANNEL_PORT}"])
+    from hil.campaign.ursim_control import UrsimControl
+
+    return UrsimControl(config.host, config.port)
 
 
-def wrap_device(device: Device, role: str, faults: Sequence[FaultSpec], clock: Clock) -> Device:
-    """The fault wrapper registered by the built-in plugin.
+def wrap_device(device: Device, role: str, faults: Sequence[FaultSpec], clock: Clock,
+                fault_channel: FaultChannelConfig | None = None) -> Device:
+    """The fault wrapper registered by the built-in plugin; ``fault_channel`` is where transport
+    faults go (the setup's ``[fault_channel]``).
 
     Raises:
         TypeError: ``device`` is not a camera, robot or tracker, or a fault does not fit its kind.
-        ConfigError: transport faults on a robot without an emulator fault channel.
+        ConfigError: transport faults without an emulator fault channel.
     """
     for f in faults:
         if f.device != role:
@@ -540,7 +541,7 @@ def wrap_device(device: Device, role: str, faults: Sequence[FaultSpec], clock: C
     if isinstance(device, StereoCamera):
         return FaultyStereoCamera(device, faults, clock)
     if isinstance(device, Robot):
-        return FaultyRobot(device, faults, clock)
+        return FaultyRobot(device, faults, clock, fault_channel=fault_channel)
     if isinstance(device, PoseTracker):
         return FaultyTracker(device, faults, clock)
     raise TypeError(f"cannot inject faults into {type(device).__name__}")

@@ -1,19 +1,31 @@
-"""The built-in drivers, registered through the same hook as third-party plugins.
+"""The built-in drivers and their ``hil probe`` checks, registered through the same hooks as
+third-party plugins.
 
 Simulated drivers are imported directly. The real drivers (written in their own packages) are
 picked up from :data:`REAL_DRIVERS`, a table of dotted paths: each driver package exposes a
-``config`` module holding the driver's pydantic model and its factory ``(config, ctx) -> Device``.
+``plugin`` module holding the driver's pydantic model (imported from the package's ``config``
+module, a leaf) and its factory ``(config, ctx) -> Device``.
 A driver whose module or attributes cannot be imported is registered as *unavailable* with the
 reason, so ``hil drivers`` shows it and a setup naming it fails with that reason.
+
+The device probes (``hil probe``'s wire-level checks) live in the same driver packages, next to
+the protocol code whose constants they use: each ``plugin`` module of :data:`PROBE_MODULES` has a
+``register_probes(registry)`` that :func:`hil_register_probes` calls.
 """
 
 from __future__ import annotations
 
 import importlib
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
+from hil.log import get_logger
 from plugins.hookspecs import hookimpl
 from plugins.registry import DriverKind, DriverRegistry
+
+if TYPE_CHECKING:
+    from hil.probe.registry import ProbeRegistry
+
+_log = get_logger(__name__)
 
 
 class RealDriver(NamedTuple):
@@ -28,19 +40,24 @@ class RealDriver(NamedTuple):
 
 
 REAL_DRIVERS: tuple[RealDriver, ...] = (
-    RealDriver("robot", "ur_rtde", "drivers.ur_rtde.config", "UrRtdeConfig", "factory",
+    RealDriver("robot", "ur_rtde", "drivers.ur_rtde.plugin", "UrRtdeConfig", "factory",
                "Universal Robots UR3 / UR3e over RTDE (ur-rtde)"),
-    RealDriver("tracker", "fob", "drivers.tracker_serial.config", "FlockOfBirdsConfig",
-               "flock_of_birds_factory", "Ascension Flock of Birds magnetic tracker over a serial port"),
-    RealDriver("tracker", "aurora", "drivers.tracker_serial.config", "AuroraConfig",
+    RealDriver("tracker", "fob", "drivers.tracker_serial.plugin", "FlockOfBirdsConfig",
+               "fob_factory", "Ascension Flock of Birds magnetic tracker over a serial port"),
+    RealDriver("tracker", "aurora", "drivers.tracker_serial.plugin", "AuroraConfig",
                "aurora_factory", "NDI Aurora electromagnetic tracker over a serial port"),
-    RealDriver("camera", "aravis", "drivers.camera.config", "AravisCameraConfig",
+    RealDriver("camera", "aravis", "drivers.camera.plugin", "AravisCameraConfig",
                "aravis_factory", "two GigE Vision / USB3 Vision cameras through Aravis"),
-    RealDriver("camera", "v4l2", "drivers.camera.config", "V4l2CameraConfig",
+    RealDriver("camera", "v4l2", "drivers.camera.plugin", "V4l2CameraConfig",
                "v4l2_factory", "two V4L2 (UVC) cameras through OpenCV"),
-    RealDriver("camera", "replay", "drivers.camera.config", "ReplayCameraConfig",
+    RealDriver("camera", "replay", "drivers.camera.plugin", "ReplayCameraConfig",
                "replay_factory", "replay of a recorded stereo session"),
 )
+
+
+#: Driver packages whose ``plugin`` module registers device probes (``register_probes``).
+PROBE_MODULES: tuple[str, ...] = ("drivers.ur_rtde.plugin", "drivers.tracker_serial.plugin",
+                                  "drivers.camera.plugin")
 
 
 def _register_real(registry: DriverRegistry, spec: RealDriver) -> None:
@@ -77,3 +94,16 @@ def hil_register_drivers(registry: DriverRegistry) -> None:
     registry.set_fault_wrapper(wrap_device)
     for spec in REAL_DRIVERS:
         _register_real(registry, spec)
+
+
+@hookimpl
+def hil_register_probes(registry: ProbeRegistry) -> None:
+    """Register the device probes of the real driver packages. A package that does not import
+    here is skipped (``hil drivers`` already says why its drivers are unavailable)."""
+    for name in PROBE_MODULES:
+        try:
+            module: Any = importlib.import_module(name)
+        except ImportError as exc:
+            _log.debug("probe_module_unavailable", module=name, error=str(exc))
+            continue
+        module.register_probes(registry)

@@ -9,11 +9,14 @@ built-in drivers register through the very same hook (``plugins.builtin``).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import pluggy
 
 from plugins.registry import DriverRegistry
+
+if TYPE_CHECKING:  # not imported at run time: loading the plugin manager must not load the probe
+    from hil.probe.registry import ProbeRegistry
 
 PROJECT_NAME = "hil"
 
@@ -33,4 +36,17 @@ def hil_register_drivers(registry: DriverRegistry) -> None:
     that ``hil drivers`` can say why. The config model must be a pydantic model with
     ``driver: Literal["<name>"]``, ``extra="forbid"``, frozen; the factory returns the device in
     the CONFIGURED state and must not open it.
+    """
+
+
+# ---------------------------------------------------------------- device probes (hil probe)
+@hookspec
+def hil_register_probes(registry: ProbeRegistry) -> None:
+    """Add wire-level device checks for ``hil probe`` with ``registry.add(kind, driver, run)``.
+
+    Called once per probe registry, for every plugin; results are ignored. ``run(checklist,
+    config, ctx)`` adds its steps with ``checklist.step(...)`` and closes what it opened (the
+    contract is in :mod:`hil.probe.registry`; docs/probe.md shows an example). A driver without a
+    probe still gets the driver-level checks (build, open, stream). Wire constants belong to the
+    driver package that registers the probe, next to its protocol code.
     """

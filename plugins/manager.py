@@ -5,13 +5,15 @@ every plugin of the entry-point group ``hil`` (the built-ins are declared there 
 ``builtin = "plugins.builtin"``), falls back to importing ``plugins.builtin`` by name when the
 distribution metadata is missing (running from a source tree that was never installed), then
 runs ``check_pending()`` so that a misspelt hook fails at start-up. The typed facade
-(:meth:`HilPlugins.driver_registry`) is what the rest of the code calls.
+(:meth:`HilPlugins.driver_registry`, :meth:`HilPlugins.probe_registry`) is what the rest of the
+code calls.
 """
 
 from __future__ import annotations
 
 import importlib
 from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
 import pluggy
 
@@ -19,6 +21,9 @@ from hil.errors import HilError
 from hil.log import get_logger
 from plugins import hookspecs
 from plugins.registry import DriverRegistry
+
+if TYPE_CHECKING:
+    from hil.probe.registry import ProbeRegistry
 
 BUILTIN_PLUGIN_NAME = "builtin"
 BUILTIN_PLUGIN_MODULE = "plugins.builtin"  # loaded by name: the core must not import it statically
@@ -88,6 +93,15 @@ class HilPlugins:
         self.manager.hook.hil_register_drivers(registry=registry)
         _log.debug("drivers_registered", count=len(registry.drivers()),
                    unavailable=len(registry.unavailable()))
+        return registry
+
+    def probe_registry(self) -> ProbeRegistry:
+        """A fresh registry of device probes filled by every plugin's ``hil_register_probes``."""
+        from hil.probe.registry import ProbeRegistry
+
+        registry = ProbeRegistry()
+        self.manager.hook.hil_register_probes(registry=registry)
+        _log.debug("probes_registered", count=len(registry.probes()))
         return registry
 
 

@@ -27,8 +27,10 @@ DRIVER_KINDS: tuple[str, ...] = get_args(DriverKind)
 DriverFactory = Callable[[Any, "DriverContext"], Device]
 #: (setup, clock) -> the shared simulated world (an opaque object to the core).
 WorldFactory = Callable[[Any, Clock], object]
-#: (device, role, faults, clock) -> a device with the same interface that injects the faults.
-FaultWrapper = Callable[[Device, str, Sequence[Any], Clock], Device]
+#: (device, role, faults, clock, fault_channel) -> a device with the same interface that injects
+#: the faults; ``fault_channel`` is the setup's ``[fault_channel]`` (or None), where faults with
+#: ``transport`` go.
+FaultWrapper = Callable[[Device, str, Sequence[Any], Clock, Any], Device]
 
 
 class RegistryError(HilError, ValueError):

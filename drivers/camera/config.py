@@ -1,37 +1,16 @@
-"""Config models of the real stereo-camera drivers and their registry factories.
+"""Config models of the real stereo-camera drivers.
 
 Each model is one ``[camera]`` section of a setup file (``driver = "aravis" | "v4l2" | "replay"``).
-The factories build the device CONFIGURED (not opened); the driver modules are imported lazily,
-so a setup without Aravis does not need PyGObject.
+A leaf of its package: it imports no driver module; the factories live in
+:mod:`drivers.camera.plugin`.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, Protocol
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-
-from hil.clock import Clock
-
-if TYPE_CHECKING:
-    from drivers.camera.aravis import AravisStereoCamera
-    from drivers.camera.replay import ReplayStereoCamera
-    from drivers.camera.v4l2 import V4l2StereoCamera
-
-
-class CameraContext(Protocol):
-    """What a camera factory needs of ``plugins.registry.DriverContext``."""
-
-    @property
-    def role(self) -> str: ...
-
-    @property
-    def clock(self) -> Clock: ...
-
-    @property
-    def config_dir(self) -> Path: ...
-
 
 TriggerMode = Literal["software", "hardware", "free_run"]
 PairingRule = Literal["auto", "trigger_id", "frame_id", "device_time", "host_time"]
@@ -150,24 +129,3 @@ class ReplayCameraConfig(BaseModel):
     recording_dir: Path
     speed: float = Field(default=1.0, ge=0.0)
     loop: bool = False
-
-
-def aravis_factory(config: AravisCameraConfig, ctx: CameraContext) -> AravisStereoCamera:
-    from drivers.camera.aravis import AravisStereoCamera
-
-    return AravisStereoCamera(ctx.role, config, ctx.clock)
-
-
-def v4l2_factory(config: V4l2CameraConfig, ctx: CameraContext) -> V4l2StereoCamera:
-    from drivers.camera.v4l2 import V4l2StereoCamera
-
-    return V4l2StereoCamera(ctx.role, config, ctx.clock)
-
-
-def replay_factory(config: ReplayCameraConfig, ctx: CameraContext) -> ReplayStereoCamera:
-    from drivers.camera.replay import ReplayStereoCamera
-
-    path = config.recording_dir
-    if not path.is_absolute():
-        path = ctx.config_dir / path
-    return ReplayStereoCamera(ctx.role, path, ctx.clock, speed=config.speed, loop=config.loop)

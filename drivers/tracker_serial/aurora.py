@@ -48,7 +48,7 @@ class AuroraTracker(SerialPoseTracker):
 
     def __init__(self, config: AuroraConfig, *, name: str = "tracker", clock: Clock | None = None,
                  serial_factory: SerialFactory | None = None) -> None:
-        super().__init__(name, tuple(config.sensors), port=config.port, baud_rate=9600,
+        super().__init__(name, tuple(config.sensors), port=config.port, baud_rate=ap.RESET_BAUD,
                          timeout_s=config.timeout_s, max_consecutive_damaged=config.max_consecutive_damaged,
                          clock=clock, serial_factory=serial_factory)
         self.config = config
@@ -95,7 +95,7 @@ class AuroraTracker(SerialPoseTracker):
 
     def _reset(self) -> None:
         cfg = self.config
-        self.ser.baudrate = 9600
+        self.ser.baudrate = ap.RESET_BAUD
         self._flush_input()
         try:
             self.ser.send_break(cfg.break_duration_s)
@@ -120,7 +120,7 @@ class AuroraTracker(SerialPoseTracker):
         if cfg.reset_on_open:
             self._reset()
         self._expect_okay("INIT:")
-        if cfg.baud_rate != 9600:
+        if cfg.baud_rate != ap.RESET_BAUD:
             self._expect_okay(ap.comm_command(cfg.baud_rate))
             time.sleep(0.1)
             self.ser.baudrate = cfg.baud_rate
@@ -155,11 +155,11 @@ class AuroraTracker(SerialPoseTracker):
             return
         with contextlib.suppress(DeviceTimeoutError, ProtocolError, DeviceFaultError):
             self._expect_okay("TSTOP:")
-        if self.ser.baudrate != 9600:
+        if self.ser.baudrate != ap.RESET_BAUD:
             with contextlib.suppress(DeviceTimeoutError, ProtocolError, DeviceFaultError):
                 self._expect_okay("COMM:00000")
                 time.sleep(0.1)
-            self.ser.baudrate = 9600
+            self.ser.baudrate = ap.RESET_BAUD
 
     # --- reading ------------------------------------------------------------------------------------
     def _poll_once(self) -> ap.TrackingReply:

@@ -2,7 +2,10 @@
 
 The wire format of ``reference/device-protocols.md`` section A2 (NDICAPI ``ndicapi.cxx``,
 ``ndicapi.h``; SAW ``mtsNDISerial.cpp``); no I/O. Used by the driver
-(:mod:`drivers.tracker_serial.aurora`) and the emulator (``tools/trackersim``).
+(:mod:`drivers.tracker_serial.aurora`) and its probe; the encoders (``frame_reply``, ``format_tx``,
+``format_bx``, ``parse_command``) serve the driver's own round-trip tests. The emulator does NOT use
+this module: it has its own device-side encoder, and both are checked against the reference's test
+vectors (tests/trackers/test_wire_vectors.py).
 
 Framing (A2.2): a command is ``NAME:params`` + 4 upper-case hex CRC-16 over everything before
 it + ``\\r`` (or ``NAME params\\r`` without CRC). An ASCII reply is ``text`` + CRC + ``\\r``.
@@ -32,6 +35,9 @@ COMM_BAUD_CODES: dict[int, str] = {
     1228739: "7", 230400: "A",
 }
 BAUD_FROM_CODE: dict[str, int] = {v: k for k, v in COMM_BAUD_CODES.items()}
+#: Every rate the API can switch to (ascending); a session always starts at 9600 after a reset.
+BAUD_RATES: tuple[int, ...] = tuple(sorted(COMM_BAUD_CODES))
+RESET_BAUD = 9600
 
 ERROR_TEXT: dict[int, str] = {
     0x01: "invalid command", 0x02: "command too long", 0x03: "command too short",
@@ -120,7 +126,7 @@ class ParsedCommand:
 
 
 def parse_command(line: bytes) -> ParsedCommand:
-    """Parse one command line (without the ``\\r``), for the emulator.
+    """Parse one command line (without the ``\\r``), as a device would (round-trip tests).
 
     Raises:
         NdiDecodeError: no name, or a ``:`` form shorter than its CRC.
@@ -287,7 +293,7 @@ def _hex(field_text: str, what: str) -> int:
 
 
 def format_tx(reply: TrackingReply) -> str:
-    """Text of a TX:0801 reply (without the CRC and CR) for the emulator."""
+    """Text of a TX:0801 reply (without the CRC and CR), as a device sends it (round-trip tests)."""
     parts = [f"{len(reply.handles):02X}"]
     for h in reply.handles:
         s = f"{h.handle:02X}"
@@ -380,7 +386,7 @@ def bx_header(body_length: int) -> bytes:
 
 
 def format_bx(reply: TrackingReply) -> bytes:
-    """A whole BX:0801 reply (header, body, body CRC) for the emulator."""
+    """A whole BX:0801 reply (header, body, body CRC), as a device sends it (round-trip tests)."""
     body = bytearray([len(reply.handles)])
     for h in reply.handles:
         state = {"valid": _BX_VALID, "missing": _BX_MISSING}.get(h.state, _BX_DISABLED)

@@ -1,4 +1,8 @@
-"""Configs and factories of the serial magnetic-tracker drivers (``[tracker]`` in a setup).
+"""Configs of the serial magnetic-tracker drivers (``[tracker]`` in a setup).
+
+A leaf of its package: it imports the wire facts it validates against (the baud tables of
+:mod:`~drivers.tracker_serial.fob_protocol` and :mod:`~drivers.tracker_serial.aurora_protocol`)
+and no driver module; the factories live in :mod:`drivers.tracker_serial.plugin`.
 
 Flock of Birds::
 
@@ -19,25 +23,12 @@ NDI Aurora::
 
 from __future__ import annotations
 
-from typing import Literal, Protocol
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from drivers.interfaces.tracker import PoseTracker
-from hil.clock import Clock
-
-FOB_BAUD_RATES = (2400, 4800, 9600, 19200, 38400, 57600, 115200)
-AURORA_BAUD_RATES = (9600, 14400, 19200, 38400, 57600, 115200, 230400, 921600, 1228739)
-
-
-class TrackerContext(Protocol):
-    """What a factory needs from ``plugins.registry.DriverContext`` (structurally)."""
-
-    @property
-    def role(self) -> str: ...
-
-    @property
-    def clock(self) -> Clock: ...
+from drivers.tracker_serial.aurora_protocol import BAUD_RATES as AURORA_BAUD_RATES
+from drivers.tracker_serial.fob_protocol import BAUD_RATES as FOB_BAUD_RATES
 
 
 class FlockOfBirdsConfig(BaseModel):
@@ -160,21 +151,6 @@ class AuroraConfig(BaseModel):
         return out
 
 
-def flock_of_birds_factory(config: FlockOfBirdsConfig, ctx: TrackerContext) -> PoseTracker:
-    """Build (not open) a :class:`~drivers.tracker_serial.fob.FlockOfBirdsTracker`."""
-    from drivers.tracker_serial.fob import FlockOfBirdsTracker
-
-    return FlockOfBirdsTracker(config, name=ctx.role, clock=ctx.clock)
-
-
-def aurora_factory(config: AuroraConfig, ctx: TrackerContext) -> PoseTracker:
-    """Build (not open) an :class:`~drivers.tracker_serial.aurora.AuroraTracker`."""
-    from drivers.tracker_serial.aurora import AuroraTracker
-
-    return AuroraTracker(config, name=ctx.role, clock=ctx.clock)
-
-
 #: Aliases with the names of the brief.
 FobTrackerConfig = FlockOfBirdsConfig
 AuroraTrackerConfig = AuroraConfig
-fob_factory = flock_of_birds_factory

@@ -35,7 +35,6 @@ _FORMATS = {
     "position_matrix": fp.FobFormat.POSITION_MATRIX,
     "position_quaternion": fp.FobFormat.POSITION_QUATERNION,
 }
-_MODEL_IDS = ("6DFOB", "6DERC", "6DBOF", "PCBIRD", "SPACEPAD", "MOTIONSTAR", "WIRELESS")
 _BUTTONS = {0x10: "button_left", 0x30: "button_middle", 0x70: "button_right"}
 
 
@@ -102,10 +101,10 @@ class FlockOfBirdsTracker(SerialPoseTracker):
             self._flush_input(quiet_s=0.02)
         model_raw = self._examine(fp.PARAM_MODEL_ID, 10)
         model = model_raw.decode("ascii", errors="replace").strip()
-        if not model.startswith(_MODEL_IDS):
+        if not model.startswith(fp.MODEL_IDS):
             raise ProtocolError(self.name, f"model id {model_raw!r} is not a Bird's; is baud_rate "
                                            f"{cfg.baud_rate} what the dip switches say?")
-        if model.startswith("6DERC"):
+        if model.startswith(fp.MODEL_ID_ERC):
             self._full_scale_mm = fp.position_full_scale_mm(0, extended_range=True)
         rev = self._examine(fp.PARAM_SOFTWARE_REVISION, 2)
         self.info.update(model=model, firmware=f"{rev[0]}.{rev[1]}", baud_rate=str(cfg.baud_rate))

@@ -2,7 +2,9 @@
 
 Everything here is the wire format of FOB-MAN (Flock of Birds Installation and Operation
 Guide, P/N 910141 Rev B) as summarised in ``reference/device-protocols.md`` section A1; no I/O.
-Both the driver (:mod:`drivers.tracker_serial.fob`) and the emulator (``tools/trackersim``) use it.
+Used by the driver (:mod:`drivers.tracker_serial.fob`) and its probe. The emulator does NOT use
+it: it has its own device-side encoder, and both are checked against the manual's worked example
+(tests/trackers/test_wire_vectors.py).
 
 Wire format (FOB-MAN p.39-41):
     A record is N 16-bit words, each carrying its 14 most significant bits, sent as two bytes,
@@ -32,6 +34,13 @@ from hil.geometry.transform import FloatArray, RigidTransform, matrix_to_quatern
 
 MM_PER_INCH = 25.4
 PHASE_BIT = 0x80
+
+#: The RS-232 rates the Bird's baud dip switches 1-2-3 select (FOB-MAN p.29); the host must match.
+BAUD_RATES: tuple[int, ...] = (2400, 4800, 9600, 19200, 38400, 57600, 115200)
+#: How the model id (EXAMINE VALUE 15: 10 ASCII bytes, space-padded) of each Ascension unit starts
+#: (FOB-MAN p.109-110 parameter table).
+MODEL_ID_ERC = "6DERC"  # an Extended Range Controller: positions at 144" full scale (A1.5)
+MODEL_IDS: tuple[str, ...] = ("6DFOB", MODEL_ID_ERC, "6DBOF", "PCBIRD", "SPACEPAD", "MOTIONSTAR", "WIRELESS")
 
 # --- command bytes (FOB-MAN ch.7) ---------------------------------------------------------------
 CMD_POINT = 0x42  # 'B'
@@ -95,6 +104,11 @@ CHANGE_DATA_BYTES: dict[int, int] = {
 }
 
 BUTTON_VALUES: frozenset[int] = frozenset({0x00, 0x10, 0x30, 0x70})
+
+#: Bits of a flock system status byte (EXAMINE 36, one byte per FBB address; FOB-MAN p.129).
+FLOCK_ACCESSIBLE = 0x80
+FLOCK_RUNNING = 0x40
+FLOCK_HAS_SENSOR = 0x20
 
 
 class FobFormat(Enum):
@@ -301,7 +315,7 @@ def _euler_to_R(az: float, el: float, roll: float) -> FloatArray:
 
 def encode_record(T_tracker_from_sensor: RigidTransform, layout: RecordLayout, *, full_scale_mm: float,
                   button: int = 0, address: int = 0) -> bytes:
-    """The bytes a bird sends for a pose (used by the emulator and the tests).
+    """The bytes a bird sends for a pose (the driver's round-trip tests).
 
     Raises:
         ValueError: a trailer value out of range.

@@ -1,4 +1,7 @@
-"""Config and factory of the UR3 / UR3e driver over RTDE (``[robot] driver = "ur_rtde"``).
+"""Config of the UR3 / UR3e driver over RTDE (``[robot] driver = "ur_rtde"``).
+
+A leaf of its package: it imports no driver module; the factory lives in
+:mod:`drivers.ur_rtde.plugin`.
 
 Example::
 
@@ -24,15 +27,12 @@ Servo parameters (``servo_lookahead_time_s``, ``servo_gain``), chosen deliberate
 
 from __future__ import annotations
 
-from typing import Literal, Protocol
+from typing import Literal
 
 from pydantic import BaseModel, Field, model_validator
 
-from drivers.interfaces.robot import MotionLimits, Robot
-from hil.clock import Clock
+from drivers.ur_rtde.wire import CONTROLLER_RATE_HZ
 from hil.config.types import STRICT, TransformConfig
-
-CONTROLLER_RATE_HZ = {"cb3": 125.0, "e_series": 500.0}
 
 
 class UrRtdeRobotConfig(BaseModel):
@@ -57,8 +57,6 @@ class UrRtdeRobotConfig(BaseModel):
         reconnect_attempts, reconnect_backoff_s: how ``recover()`` rebuilds lost interfaces.
         T_flange_from_tcp: the tool (needle guide) offset; the controller's own TCP stays at the
             flange and the driver applies this offset on the host.
-        emulator_control_port: the UR emulator's fault channel on ``host`` (``[[faults]]`` with
-            ``transport`` are sent there, see drivers.faults); None (a real robot) refuses them.
     """
 
     model_config = STRICT
@@ -77,10 +75,6 @@ class UrRtdeRobotConfig(BaseModel):
     reconnect_attempts: int = Field(3, ge=1, le=100)
     reconnect_backoff_s: float = Field(1.0, ge=0, le=60)
     T_flange_from_tcp: TransformConfig = Field(default_factory=TransformConfig.identity)
-    emulator_control_port: int | None = Field(
-        None, ge=1, le=65535,
-        description="tools/ursim only: its fault-control port on host (30200), for transport faults; "
-                    "unset for a real controller")
 
     @model_validator(mode="after")
     def _rate_fits_controller(self) -> UrRtdeRobotConfig:
@@ -97,23 +91,3 @@ class UrRtdeRobotConfig(BaseModel):
 
 #: The name plugins.builtin looks up.
 UrRtdeConfig = UrRtdeRobotConfig
-
-
-class RobotContext(Protocol):
-    """What the factory needs from ``plugins.registry.DriverContext`` (structurally)."""
-
-    @property
-    def role(self) -> str: ...
-
-    @property
-    def clock(self) -> Clock: ...
-
-    @property
-    def limits(self) -> MotionLimits: ...
-
-
-def factory(config: UrRtdeRobotConfig, ctx: RobotContext) -> Robot:
-    """Registered as robot driver ``ur_rtde``: the arm, CONFIGURED (``open()`` connects)."""
-    from drivers.ur_rtde.robot import UrRtdeRobot
-
-    return UrRtdeRobot(ctx.role, ctx.limits, config, ctx.clock)

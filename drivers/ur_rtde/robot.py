@@ -37,6 +37,15 @@ from drivers.interfaces.errors import (
 from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
 from drivers.ur_rtde.config import UrRtdeRobotConfig
 from drivers.ur_rtde.stream_age import StreamAge
+from drivers.ur_rtde.wire import (
+    DASHBOARD_PORT,
+    RTDE_PORT,
+    SCRIPT_PORT,
+    RobotModeCode,
+    RuntimeState,
+    SafetyStatusBit,
+    rate_family,
+)
 from hil.clock import Clock
 from hil.geometry.transform import RigidTransform
 from hil.log import get_logger
@@ -45,21 +54,7 @@ FloatArray = NDArray[np.float64]
 T = TypeVar("T")
 _log = get_logger(__name__)
 
-RTDE_PORT = 30004
-DASHBOARD_PORT = 29999
-SCRIPT_PORT = 30003
-
-# safety_status_bits (ur-rtde SafetyStatus)
-_BIT_PROTECTIVE = 1 << 2
-_BIT_SAFEGUARD = 1 << 4
-_BIT_SYSTEM_ESTOP = 1 << 5
-_BIT_ROBOT_ESTOP = 1 << 6
-_BIT_ESTOP = 1 << 7
-_BIT_VIOLATION = 1 << 8
-_BIT_FAULT = 1 << 9
-_RUNTIME_PLAYING = 2
-_ROBOT_MODE_RUNNING = 7
-_ROBOT_MODE_POWER_OFF = 3
+_Bit = SafetyStatusBit
 
 RECEIVE_VARIABLES = [
     "timestamp", "actual_q", "actual_TCP_pose", "actual_TCP_speed", "robot_mode", "safety_mode",
@@ -89,11 +84,11 @@ def pose_from_ur(pose: Sequence[float], what: str = "pose") -> RigidTransform:
 
 def safety_from_bits(bits: int) -> SafetyStatus:
     """Map RTDE safety_status_bits to the interface's SafetyStatus (e-stop wins over p-stop)."""
-    if bits & (_BIT_ESTOP | _BIT_ROBOT_ESTOP | _BIT_SYSTEM_ESTOP):
+    if bits & (_Bit.EMERGENCY_STOPPED | _Bit.ROBOT_EMERGENCY_STOPPED | _Bit.SYSTEM_EMERGENCY_STOPPED):
         return SafetyStatus.EMERGENCY_STOP
-    if bits & (_BIT_VIOLATION | _BIT_FAULT):
+    if bits & (_Bit.VIOLATION | _Bit.FAULT):
         return SafetyStatus.FAULT
-    if bits & (_BIT_PROTECTIVE | _BIT_SAFEGUARD):
+    if bits & (_Bit.PROTECTIVE_STOPPED | _Bit.SAFEGUARD_STOPPED):
         return SafetyStatus.PROTECTIVE_STOP
     return SafetyStatus.NORMAL
 
@@ -202,7 +197,7 @@ class UrRtdeRobot(Robot):
             major = int(version.strip().split(".")[0])
         except ValueError as exc:
             raise ProtocolError(self.name, f"unreadable PolyScope version {version!r}") from exc
-        found = "cb3" if major <= 3 else "e_series"
+        found = rate_family(major)
         if found != self.cfg.controller:
             raise ProtocolError(
                 self.name,
@@ -275,7 +270,7 @@ class UrRtdeRobot(Robot):
         """Why the control interface returned False: safety stop, stopped program or lost link."""
         self._require_connected()
         bits = int(self._rcv.getSafetyStatusBits())
-        running = int(self._rcv.getRuntimeState()) == _RUNTIME_PLAYING
+        running = int(self._rcv.getRuntimeState()) == RuntimeState.PLAYING
         safety = safety_from_bits(bits)
         if safety is not SafetyStatus.NORMAL:
             return SafetyStopError(self.name, f"{command} aborted: arm is in {safety}")
@@ -320,7 +315,7 @@ class UrRtdeRobot(Robot):
         T = pose_from_ur(pose, "actual_TCP_pose") @ self.T_flange_from_tcp
         tcp_speed_mm_s = float(np.linalg.norm(np.asarray(speed[:3], dtype=np.float64))) * 1000.0
         safety = safety_from_bits(bits)
-        stopped = runtime != _RUNTIME_PLAYING or robot_mode != _ROBOT_MODE_RUNNING
+        stopped = runtime != RuntimeState.PLAYING or robot_mode != RobotModeCode.RUNNING
         if safety is not SafetyStatus.NORMAL or stopped:
             mode = RobotMode.STOPPED
         elif self._servoing and now - self._last_servo_ns < 0.2e9:
@@ -362,7 +357,7 @@ class UrRtdeRobot(Robot):
             st = ctrl.getAsyncOperationProgressEx()
             done = int(st.operationId()) != op0 and not st.isAsyncOperationRunning()
             bits = int(self._rcv.getSafetyStatusBits())
-            running = int(self._rcv.getRuntimeState()) == _RUNTIME_PLAYING
+            running = int(self._rcv.getRuntimeState()) == RuntimeState.PLAYING
             safety = safety_from_bits(bits)
             if safety is not SafetyStatus.NORMAL:
                 _log.warning("robot_safety_stop_during_move", device=self.name, safety=str(safety))
@@ -447,7 +442,7 @@ class UrRtdeRobot(Robot):
         if safety_from_bits(self._rcv_bits()) is SafetyStatus.PROTECTIVE_STOP:
             self._unlock_protective_stop()
         self._require_connected()
-        if int(self._rcv.getRuntimeState()) != _RUNTIME_PLAYING:
+        if int(self._rcv.getRuntimeState()) != RuntimeState.PLAYING:
             self._restart_script()
         _log.info("robot_recovered", device=self.name)
 
@@ -505,12 +500,12 @@ class UrRtdeRobot(Robot):
         self._require_connected()
         rcv = self._rcv
         mode = int(rcv.getRobotMode())
-        if mode == _ROBOT_MODE_RUNNING:
+        if mode == RobotModeCode.RUNNING:
             return
-        if mode <= _ROBOT_MODE_POWER_OFF:
+        if mode <= RobotModeCode.POWER_OFF:
             self._dashboard("power on", lambda d: d.powerOn())
         self._dashboard("brake release", lambda d: d.brakeRelease())
-        self._wait_until("robot mode RUNNING", lambda: int(rcv.getRobotMode()) == _ROBOT_MODE_RUNNING)
+        self._wait_until("robot mode RUNNING", lambda: int(rcv.getRobotMode()) == RobotModeCode.RUNNING)
 
     def _unlock_protective_stop(self) -> None:
         deadline = self.clock.now_ns() + int(self.cfg.ready_timeout_s * 1e9)
@@ -533,7 +528,7 @@ class UrRtdeRobot(Robot):
         if not ok:
             raise DeviceFaultError(self.name, "could not upload the control script")
         rcv = self._rcv
-        self._wait_until("control script running", lambda: int(rcv.getRuntimeState()) == _RUNTIME_PLAYING)
+        self._wait_until("control script running", lambda: int(rcv.getRuntimeState()) == RuntimeState.PLAYING)
         if self.cfg.rtde_watchdog_min_hz > 0:
             hz = self.cfg.rtde_watchdog_min_hz
             if not self._call("setWatchdog", lambda: bool(ctrl.setWatchdog(hz))):

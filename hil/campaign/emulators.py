@@ -11,12 +11,19 @@ clients of their fault channels (line protocols; no driver import: the core stay
   private network namespace (:mod:`hil.campaign.gige`), dying with the process that started it.
 
 Starting blocks (bounded, ~1-3 s); :class:`EmulatorError` when an emulator does not come up.
+
+The emulators are the ``emulators`` package of the source checkout's ``tools/`` directory, run as
+``python -m emulators.<name>`` with that directory on ``PYTHONPATH``. :func:`emulators_dir` finds
+it: ``$HIL_EMULATORS_DIR`` first, then an importable ``emulators`` package, then the ``tools/`` of
+the checkout the ``hil`` package runs from (an editable install); a non-editable install has none
+and gets :class:`EmulatorsMissingError`, one line saying how to point at a checkout.
 """
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
+import importlib.util
 import json
 import os
 import random
@@ -31,10 +38,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import configs
 from hil.errors import HilError
 
-ROOT = Path(__file__).resolve().parents[2]
-TOOLS = ROOT / "tools"
+#: Names the directory that holds the ``emulators`` package (a checkout's ``tools/``).
+ENV_EMULATORS_DIR = "HIL_EMULATORS_DIR"
+#: The setups and plans the campaign writes its runs from (the ``configs`` package data).
+CONFIGS_DIR = Path(configs.__file__).resolve().parent
 START_TIMEOUT_S = 20.0
 URSIM_PORTS = (30004, 30003, 29999, 30200)
 URSIM_CONTROL_PORT = 30200
@@ -44,9 +54,56 @@ class EmulatorError(HilError):
     """An emulator did not start, or its fault channel refused a command."""
 
 
-def _env() -> dict[str, str]:
+class EmulatorsMissingError(EmulatorError):
+    """The emulators package cannot be found here (a non-editable install without a checkout)."""
+
+
+def _holds_emulators(directory: Path) -> bool:
+    return (directory / "emulators" / "__init__.py").is_file()
+
+
+def _checkout_tools() -> Path | None:
+    """``tools/`` of the source checkout the ``hil`` package is loaded from, when it is one (its
+    parent directory holds ``pyproject.toml`` and ``tools/emulators``); None for an installed
+    package."""
+    spec = importlib.util.find_spec("hil")
+    if spec is None or spec.origin is None:
+        return None
+    root = Path(spec.origin).resolve().parent.parent
+    if (root / "pyproject.toml").is_file() and _holds_emulators(root / "tools"):
+        return root / "tools"
+    return None
+
+
+def emulators_dir() -> Path:
+    """The directory holding the ``emulators`` package, to put on the emulators' ``PYTHONPATH``.
+
+    Looked up in order: ``$HIL_EMULATORS_DIR``; the directory of an importable ``emulators``
+    package; the ``tools/`` of the source checkout ``hil`` runs from.
+
+    Raises:
+        EmulatorsMissingError: none holds it (one line: where it looked and what to do).
+    """
+    env = os.environ.get(ENV_EMULATORS_DIR)
+    if env:
+        if not _holds_emulators(Path(env)):
+            raise EmulatorsMissingError(f"{ENV_EMULATORS_DIR}={env} holds no emulators package "
+                                        "(emulators/__init__.py): point it at a checkout's tools/ directory")
+        return Path(env).resolve()
+    spec = importlib.util.find_spec("emulators")
+    if spec is not None and spec.origin is not None and _holds_emulators(Path(spec.origin).parent.parent):
+        return Path(spec.origin).resolve().parent.parent
+    found = _checkout_tools()
+    if found is None:
+        raise EmulatorsMissingError(
+            "the device emulators (the emulators package in tools/ of the source checkout) are not "
+            f"installed with hil: set {ENV_EMULATORS_DIR} to a checkout's tools/ directory")
+    return found
+
+
+def _env(tools: Path) -> dict[str, str]:
     env = dict(os.environ)
-    env["PYTHONPATH"] = str(TOOLS) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env["PYTHONPATH"] = str(tools) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     return env
 
 
@@ -143,9 +200,11 @@ def _spawn(args: list[str], log_path: Path, *, die_with_parent: bool = False
            ) -> tuple[subprocess.Popen[bytes], str]:
     """Start ``python -m <args>`` (stderr to ``log_path``); return it and its first stdout line
     (empty when none came within ``START_TIMEOUT_S``)."""
+    tools = emulators_dir()
     with log_path.open("wb") as log:
-        proc = subprocess.Popen([sys.executable, "-m", *args], env=_env(), stdout=subprocess.PIPE, stderr=log,
-                                cwd=ROOT, preexec_fn=_die_with_parent if die_with_parent else None)
+        proc = subprocess.Popen([sys.executable, "-m", *args], env=_env(tools), stdout=subprocess.PIPE,
+                                stderr=log, cwd=tools,
+                                preexec_fn=_die_with_parent if die_with_parent else None)
     assert proc.stdout is not None
     ready, _, _ = select.select([proc.stdout], [], [], START_TIMEOUT_S)
     return proc, proc.stdout.readline().decode(errors="replace").strip() if ready else ""
@@ -199,14 +258,19 @@ class Ursim:
 
 def start_ursim(log_dir: Path, version: str = "3.15") -> Ursim:
     """Start ``python -m emulators.ursim`` on a free loopback address; wait (bounded) until its
-    RTDE port and fault channel answer."""
+    RTDE port and fault channel answer.
+
+    Raises:
+        EmulatorError: it exited or did not answer in time; EmulatorsMissingError: no emulators.
+    """
+    tools = emulators_dir()
     host = free_loopback_address()
     log_path = log_dir / f"ursim-{host}.log"
     with log_path.open("wb") as log:
         proc = subprocess.Popen(
             [sys.executable, "-m", "emulators.ursim", "--host", host, "--controller-version", version,
              "--verbose"],
-            env=_env(), stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
+            env=_env(tools), stdout=log, stderr=subprocess.STDOUT, cwd=tools)
     sim = Ursim(host, proc, log_path)
     deadline = time.monotonic() + START_TIMEOUT_S
     while True:

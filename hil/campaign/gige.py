@@ -1,4 +1,4 @@
-"""The camera scenario of the transport tier: camera stream loss over GigE Vision.
+"""The rig of the camera scenario of the transport tier: camera stream loss over GigE Vision.
 
 The controller runs the whole procedure with the REAL Aravis driver receiving the SIMULATED world
 over real GVCP/GVSP on loopback (docs/campaign.md, "Camera stream loss over GigE Vision"):
@@ -14,6 +14,10 @@ is built through the driver registry from ``configs/sim.toml``'s ``[camera]`` on
 ``build_devices`` made for the mixed setup (simulated robot and tracker); the core never imports
 a driver. The fault is a real stream loss: ``stream_loss S`` on the fake cameras' control channel
 stops both cameras and starts them again S seconds later on the same addresses.
+
+This module is the rig only (namespace, frame pump, fake cameras, the ``[camera]`` section); the
+camera run itself (:func:`hil.campaign.transport.run_gige_one`) is one of the transport tier's
+runs, so the dependency goes one way: ``transport`` -> ``gige``.
 """
 
 from __future__ import annotations
@@ -21,7 +25,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
-import re
 import shutil
 import subprocess
 import threading
@@ -35,16 +38,12 @@ from drivers.interfaces.errors import DriverError
 from hil.clock import Clock
 from hil.config import Devices, load_setup
 from hil.config.setup import SetupConfig
-from hil.controller.fsm import Event
-from hil.controller.operator_input import OperatorView
 from hil.log import get_logger
 from hil.vision.camera_model import load_calibration
 from plugins.registry import DriverContext
 
-from .emulators import ROOT, EmulatorError, FakeGv, start_fakegv
+from .emulators import CONFIGS_DIR, EmulatorError, FakeGv, start_fakegv
 from .frameshm import FrameBlockError, FrameBlockWriter
-from .runner import RunResult
-from .transport import BY_NAME, TransportOperator, TransportScenario, TransportSpec, run_judged, write_setup
 
 _log = get_logger(__name__)
 
@@ -52,7 +51,7 @@ CLONE_NEWNET = 0x40000000
 LEFT_ADDRESS = "127.0.0.1"
 RIGHT_ADDRESS = "127.0.0.2"
 #: The setup whose ``[camera]`` (simulated) renders the world the fake cameras serve.
-SIM_CAMERA_SETUP = ROOT / "configs" / "sim.toml"
+SIM_CAMERA_SETUP = CONFIGS_DIR / "sim.toml"
 #: Bound on waiting for both fake cameras to be discoverable (s).
 DISCOVERY_TIMEOUT_S = 15.0
 #: GVSP packet size on loopback (bytes; lo's MTU is 64 KiB): ~130 packets per 1920x1080 frame
@@ -255,48 +254,3 @@ def aravis_camera_section(setup: SetupConfig) -> str:
             f'right_device_id = "{RIGHT_ADDRESS}"\nwidth_px = {width}\nheight_px = {height}\n'
             f'frame_rate_hz = {rate_hz}\ntrigger = "software"\npairing = "trigger_id"\n'
             f"packet_size_bytes = {GIGE_PACKET_SIZE_BYTES}\n\n")
-
-
-def write_gige_setup(sc: TransportScenario, out: Path, *, seed: int) -> Path:
-    """Write the camera run's mixed setup to ``out/setup.toml``: ``write_setup``'s real-time
-    transport setup from ``configs/<sc.base>`` (simulated robot, tracker and world) with its
-    ``[camera]`` replaced by :func:`aravis_camera_section`."""
-    path = write_setup(sc, out, seed=seed)
-    text = path.read_text()
-    section = aravis_camera_section(load_setup(path))
-    text, n = re.subn(r"^\[camera\]\n.*?(?=^\[)", lambda _m: section, text, count=1,
-                      flags=re.MULTILINE | re.DOTALL)
-    if n != 1:
-        raise EmulatorError(f"{path}: no [camera] section to replace")
-    path.write_text(text)
-    return path
-
-
-class GigeOperator(TransportOperator):
-    """The transport operator, recovering :data:`GIGE_RECOVER_EXTRA_S` later (see there)."""
-
-    def poll(self, view: OperatorView) -> Event | None:
-        fired = self.fired_view_s is not None
-        ev = super().poll(view)
-        if not fired and self.fired_view_s is not None:
-            self.recover_after_s += GIGE_RECOVER_EXTRA_S
-        return ev
-
-
-# ---------------------------------------------------------------------- one run
-def run_gige_one(spec: TransportSpec) -> RunResult:
-    """Run and judge one camera run (in the run's process, spawned by the pool): enter a private
-    network namespace, then start the simulated camera, its pump and fakegv around the procedure
-    (:func:`gige_rig`). Not runnable here (not root): a failed result whose one reason says why."""
-    sc = BY_NAME[spec.scenario]
-    try:
-        why = why_not_runnable()
-        if why is not None:
-            raise EmulatorError(why)
-        enter_private_netns()
-    except EmulatorError as exc:
-        return RunResult(spec.run_id, sc.name, sc.kind.value, sc.state, spec.seed, passed=False,
-                         outcome="not_runnable", reasons=[f"not runnable here: {exc}"])
-    rig = GigeRig(Path(spec.log_dir) / spec.run_id)
-    return run_judged(spec, rig.send, operator_type=GigeOperator,
-                      around=lambda setup, devices, clock: gige_rig(rig, setup, devices, clock))

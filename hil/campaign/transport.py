@@ -35,7 +35,15 @@ from hil.controller.plan_file import load_plan
 from hil.errors import HilError
 from hil.session.log import SessionLog, file_sha256
 
-from .emulators import ROOT, EmulatorError, start_trackersim, start_ursim, trackersim_command, ursim_command
+from . import gige
+from .emulators import (
+    CONFIGS_DIR,
+    EmulatorError,
+    start_trackersim,
+    start_ursim,
+    trackersim_command,
+    ursim_command,
+)
 from .operator import CampaignOperator
 from .pool import Progress, run_parallel
 from .recorder import Recording, RecordingRobot
@@ -195,7 +203,7 @@ def _set_key(text: str, key: str, value: str) -> str:
 def write_setup(sc: TransportScenario, out: Path, *, seed: int, ursim_host: str | None = None,
                 tracker_port: str | None = None) -> Path:
     """Write the mixed setup of one run to ``out/setup.toml`` (from ``configs/<sc.base>``)."""
-    base = ROOT / "configs" / sc.base
+    base = CONFIGS_DIR / sc.base
     text = base.read_text()
     text = re.sub(r'^stereo = "(.*)"$', lambda m: f'stereo = "{(base.parent / m.group(1)).resolve()}"',
                   text, count=1, flags=re.MULTILINE)
@@ -207,7 +215,7 @@ def write_setup(sc: TransportScenario, out: Path, *, seed: int, ursim_host: str 
     text = text.replace("[procedure]\n", "[procedure]\nconfirm = [" + ", ".join(f'"{c}"' for c in CONFIRM)
                         + "]\n", 1)
     if ursim_host is not None:
-        text = text.replace('host = "127.0.0.1"', f'host = "{ursim_host}"', 1)
+        text = text.replace('host = "127.0.0.1"', f'host = "{ursim_host}"')  # robot and [fault_channel]
         # the driver's own stale-stream limit, under the controller's loosened robot watchdog: a
         # stalled RTDE stream (rtde_pause_stream) is detected by the driver, well inside the bound
         text = _set_key(text, "state_max_age_s", str(URSIM_STATE_MAX_AGE_S))
@@ -220,6 +228,21 @@ def write_setup(sc: TransportScenario, out: Path, *, seed: int, ursim_host: str 
     path = out / "setup.toml"
     head = f"# transport campaign run: {sc.name}, seed {seed} (written by hil campaign --transport)\n"
     path.write_text(head + text)
+    return path
+
+
+def write_gige_setup(sc: TransportScenario, out: Path, *, seed: int) -> Path:
+    """Write the camera run's mixed setup to ``out/setup.toml``: :func:`write_setup`'s real-time
+    transport setup from ``configs/<sc.base>`` (simulated robot, tracker and world) with its
+    ``[camera]`` replaced by :func:`hil.campaign.gige.aravis_camera_section`."""
+    path = write_setup(sc, out, seed=seed)
+    text = path.read_text()
+    section = gige.aravis_camera_section(load_setup(path))
+    text, n = re.subn(r"^\[camera\]\n.*?(?=^\[)", lambda _m: section, text, count=1,
+                      flags=re.MULTILINE | re.DOTALL)
+    if n != 1:
+        raise EmulatorError(f"{path}: no [camera] section to replace")
+    path.write_text(text)
     return path
 
 
@@ -278,6 +301,18 @@ class TransportOperator(CampaignOperator):
         return super().poll(view)
 
 
+class GigeOperator(TransportOperator):
+    """The transport operator, recovering :data:`hil.campaign.gige.GIGE_RECOVER_EXTRA_S` later
+    (see there)."""
+
+    def poll(self, view: OperatorView) -> Event | None:
+        fired = self.fired_view_s is not None
+        ev = super().poll(view)
+        if not fired and self.fired_view_s is not None:
+            self.recover_after_s += gige.GIGE_RECOVER_EXTRA_S
+        return ev
+
+
 # ---------------------------------------------------------------------- one run
 @dataclass(frozen=True)
 class TransportSpec:
@@ -305,11 +340,9 @@ class TransportSpec:
 
 def run_transport_one(spec: TransportSpec) -> RunResult:
     """Run and judge one transport run (in the run's process; the emulator already runs, except for
-    the camera runs, which start theirs inside the run: :func:`hil.campaign.gige.run_gige_one`)."""
+    the camera runs, which start theirs inside the run: :func:`run_gige_one`)."""
     sc = BY_NAME[spec.scenario]
     if sc.emulator == "fakegv":
-        from .gige import run_gige_one
-
         return run_gige_one(spec)
     host, control = spec.ursim_host, spec.tracker_control
 
@@ -408,6 +441,25 @@ def run_judged(spec: TransportSpec, send: Callable[[str], object], *,
     return out
 
 
+def run_gige_one(spec: TransportSpec) -> RunResult:
+    """Run and judge one camera run (in the run's process, spawned by the pool): enter a private
+    network namespace, then start the simulated camera, its pump and fakegv around the procedure
+    (:func:`hil.campaign.gige.gige_rig`). Not runnable here (not root): a failed result whose one
+    reason says why."""
+    sc = BY_NAME[spec.scenario]
+    try:
+        why = gige.why_not_runnable()
+        if why is not None:
+            raise EmulatorError(why)
+        gige.enter_private_netns()
+    except EmulatorError as exc:
+        return RunResult(spec.run_id, sc.name, sc.kind.value, sc.state, spec.seed, passed=False,
+                         outcome="not_runnable", reasons=[f"not runnable here: {exc}"])
+    rig = gige.GigeRig(Path(spec.log_dir) / spec.run_id)
+    return run_judged(spec, rig.send, operator_type=GigeOperator,
+                      around=lambda setup, devices, clock: gige.gige_rig(rig, setup, devices, clock))
+
+
 def _stopped_after_link_back(out: RunResult, rec: Any, log_path: Path, operator: TransportOperator) -> None:
     """A dropped RTDE link gives no robot states until ``recover()`` rebuilds the clients, so the
     robot cannot be *seen* stopped before recovery: accept the first state read after the
@@ -459,8 +511,6 @@ def _prepare(sc: TransportScenario, seed: int, logs: Path) -> _Prepared:
     run_dir = logs / run_id
     run_dir.mkdir(parents=True, exist_ok=True)
     if sc.emulator == "fakegv":  # started by the run itself, inside its network namespace
-        from .gige import write_gige_setup
-
         setup = write_gige_setup(sc, run_dir, seed=seed)
         return _Prepared(TransportSpec(run_id, sc.name, seed, str(setup), str(_plan(sc)), str(logs)),
                          lambda: None)
@@ -553,6 +603,6 @@ def transport_table(results: list[dict[str, Any]]) -> str:
 
 
 def _plan(sc: TransportScenario) -> Path:
-    return ROOT / "configs" / "plans" / f"{Path(sc.base).stem}_plan.json"
+    return CONFIGS_DIR / "plans" / f"{Path(sc.base).stem}_plan.json"
 
 

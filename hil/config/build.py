@@ -127,9 +127,13 @@ def build_devices(
             if role == "robot" and not info.simulated and wrapped and not allow_faults_on_real_robot:
                 raise ConfigError("setup", ["faults: fault injection on a real robot needs "
                                             "allow_faults_on_real_robot"])
+            if role == "robot" and info.simulated and len(wrapped) < len(faults):
+                raise ConfigError("setup", ["faults: transport faults need a robot driver on the UR "
+                                            "emulator (tools/ursim); robot driver "
+                                            f"{info.name!r} is simulated"])
             if registry.fault_wrapper is None:
                 raise ConfigError("setup", ["faults: no plugin provides fault injection"])
-            device = registry.fault_wrapper(device, role, faults, clock)
+            device = registry.fault_wrapper(device, role, faults, clock, setup.fault_channel)
         _log.info("device_built", role=role, driver=info.name, origin=info.origin, faults=len(faults))
         built[role] = device
         if (role == "robot" and not info.simulated and isinstance(world, RobotFollower)

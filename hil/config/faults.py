@@ -5,18 +5,21 @@ Each fault has a kind (which fixes the device it applies to), a time window on t
 clock measured from the moment the device was opened, and the few parameters its kind uses.
 
 Robot faults with ``transport`` set are not simulated in the wrapper: at their scheduled time
-they are sent to the fault-control channel of the UR controller emulator (``tools/ursim``) the
-robot driver talks to, so they reach the real driver over the real protocol (docs/ursim.md). The
-kind stays the symptom the controller sees; ``transport`` names the emulator command that causes it
-(``true``: the kind's first command in :data:`TRANSPORT_COMMANDS`).
+they are sent to the fault-control channel of the UR controller emulator (``tools/ursim``) named by
+the setup's ``[fault_channel]`` (:class:`FaultChannelConfig`), so they reach the real driver over
+the real protocol (docs/ursim.md). The kind stays the symptom the controller sees; ``transport``
+names the emulator command that causes it (``true``: the kind's first command in
+:data:`TRANSPORT_COMMANDS`). A setup without ``[fault_channel]`` (a real controller has none)
+refuses transport faults.
 """
 
 from __future__ import annotations
 
+import ipaddress
 from enum import StrEnum
 from typing import Literal
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
 from hil.config.types import STRICT
 
@@ -68,6 +71,34 @@ TRANSPORT_COMMANDS: dict[FaultKind, tuple[TransportCommand, ...]] = {
     FaultKind.MOTION_REJECTED: ("stop_program",),
     FaultKind.MOTION_LAG: ("slow_responses", "stall"),
 }
+
+#: The UR emulator's default fault-control port (tools/ursim ``--control-port``).
+DEFAULT_FAULT_CHANNEL_PORT = 30200
+
+
+class FaultChannelConfig(BaseModel):
+    """``[fault_channel]``: the UR controller emulator's fault-control channel (``tools/ursim``),
+    where ``[[faults]]`` with ``transport`` are sent. Test rigs only: a real controller has no such
+    channel, so the address must be a loopback one."""
+
+    model_config = STRICT
+
+    host: str = Field("127.0.0.1", min_length=1,
+                      description="the emulator's address (loopback: 127.0.0.0/8, ::1 or localhost)")
+    port: int = Field(DEFAULT_FAULT_CHANNEL_PORT, ge=1, le=65535, description="its fault-control TCP port")
+
+    @field_validator("host")
+    @classmethod
+    def _loopback(cls, v: str) -> str:
+        try:
+            loopback = v == "localhost" or ipaddress.ip_address(v).is_loopback
+        except ValueError:
+            loopback = False
+        if not loopback:
+            raise ValueError(f"{v!r} is not a loopback address: the fault channel is the emulator's, on "
+                             "this machine (a real controller has none)")
+        return v
+
 
 # Parameters each kind accepts (beyond kind, start_s, duration_s).
 _PARAMS: dict[FaultKind, frozenset[str]] = {

@@ -14,7 +14,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from hil.config.faults import FaultSpec
+from hil.config.faults import FaultChannelConfig, FaultSpec
 from hil.config.setup import CalibrationConfig, FramesConfig, SafetyConfig, SetupConfig
 from hil.config.simulation import (
     BreathHoldConfig,
@@ -87,6 +87,7 @@ def config_reference_markdown(registry: DriverRegistry) -> str:
         model_table("[simulation.tremor]", TremorConfig),
         model_table("[[simulation.breath_holds]]", BreathHoldConfig),
         model_table("[[faults]]", FaultSpec),
+        model_table("[fault_channel]", FaultChannelConfig),
     ]
     for d in registry.drivers():
         parts.append(model_table(f'[{d.kind}] driver = "{d.name}" ({d.origin})', d.config_model))

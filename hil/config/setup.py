@@ -12,7 +12,7 @@ from typing import Any
 from pydantic import BaseModel, Field, PrivateAttr, field_validator, model_validator
 
 from drivers.interfaces.robot import MotionLimits
-from hil.config.faults import FaultSpec
+from hil.config.faults import FaultChannelConfig, FaultSpec
 from hil.config.simulation import SimulationConfig
 from hil.config.types import STRICT, ConfigPath, TransformConfig, Vec3
 from hil.controller.config import ProcedureConfig
@@ -107,6 +107,8 @@ class SetupConfig(BaseModel):
     simulation: SimulationConfig = Field(SimulationConfig(), description="the simulated world")
     procedure: ProcedureConfig = Field(ProcedureConfig(), description="controller tolerances and policies")
     faults: tuple[FaultSpec, ...] = Field((), description="scheduled faults ([[faults]] tables)")
+    fault_channel: FaultChannelConfig | None = Field(
+        None, description="the UR emulator's fault channel, for [[faults]] with transport (tools/ursim only)")
     igtl: IgtlConfig = Field(IgtlConfig(), description="OpenIGTLink streaming to 3D Slicer (docs/igtl.md)")
     _config_dir: Path = PrivateAttr(default_factory=Path.cwd)
 

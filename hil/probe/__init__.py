@@ -1,8 +1,12 @@
 """``hil probe``: check each configured device in turn and say in plain words what was found.
 
-:func:`probe_setup` runs every device's checklist (camera, robot, tracker), each step bounded by
+:func:`probe_setup` runs every device's checklist (robot, tracker, camera), each step bounded by
 a timeout and stopping at the device's first failure, and returns a :class:`ProbeReport`.
-Devices are built through the driver registry; the core imports no driver.
+Devices are built through the driver registry; the core imports no driver. The wire-level checks
+of a device (serial port and baud rate, network ports and controller version, device lists) are
+the driver's own probe, registered by its plugin through the ``hil_register_probes`` hook
+(:mod:`hil.probe.registry`); this package runs them and the driver-level checks every driver
+gets, and reports in plain words.
 """
 
 from __future__ import annotations
@@ -10,8 +14,9 @@ from __future__ import annotations
 from hil.config.build import clock_for
 from hil.config.setup import SetupConfig
 from hil.log import get_logger
-from hil.probe.camera import probe_camera
 from hil.probe.context import ProbeContext
+from hil.probe.device import probe_device
+from hil.probe.registry import DeviceProbe, ProbeFunction, ProbeRegistry
 from hil.probe.report import (
     EXIT_CONFIG_ERROR,
     EXIT_DEVICE_FAILED,
@@ -22,9 +27,7 @@ from hil.probe.report import (
     Status,
     render_text,
 )
-from hil.probe.robot import probe_robot
-from hil.probe.runner import Checklist, Finding, Outcome, StepTimeoutError, call_with_timeout
-from hil.probe.tracker import probe_tracker
+from hil.probe.runner import Checklist, Finding, Outcome, StepTimeoutError, WireProblem, call_with_timeout
 from plugins.registry import DriverInfo, DriverRegistry, RegistryError
 
 __all__ = [
@@ -33,12 +36,17 @@ __all__ = [
     "EXIT_OK",
     "Check",
     "Checklist",
+    "DeviceProbe",
     "DeviceReport",
     "Finding",
     "Outcome",
+    "ProbeContext",
+    "ProbeFunction",
+    "ProbeRegistry",
     "ProbeReport",
     "Status",
     "StepTimeoutError",
+    "WireProblem",
     "call_with_timeout",
     "probe_setup",
     "render_text",
@@ -48,12 +56,12 @@ DEFAULT_TIMEOUT_S = 3.0
 DEFAULT_WINDOW_S = 1.0
 
 _log = get_logger(__name__)
-_PROBES = {"camera": probe_camera, "robot": probe_robot, "tracker": probe_tracker}
 
 
 def probe_setup(
     setup: SetupConfig, *, config_name: str = "setup", registry: DriverRegistry | None = None,
-    timeout_s: float = DEFAULT_TIMEOUT_S, window_s: float = DEFAULT_WINDOW_S,
+    probes: ProbeRegistry | None = None, timeout_s: float = DEFAULT_TIMEOUT_S,
+    window_s: float = DEFAULT_WINDOW_S,
 ) -> ProbeReport:
     """Probe every device of ``setup``, one after another (robot, tracker, camera).
 
@@ -65,13 +73,17 @@ def probe_setup(
         setup: a validated setup (:func:`hil.config.load_setup`).
         config_name: how the report names the setup (its path).
         registry: the drivers (default: every installed plugin).
+        probes: the drivers' own device probes (default: every installed plugin's
+            ``hil_register_probes``).
         timeout_s: per-check timeout, s.
         window_s: how long to watch each stream (frames, records, RTDE packages), s.
     """
-    if registry is None:
-        from plugins.manager import default_registry
+    if registry is None or probes is None:
+        from plugins.manager import HilPlugins
 
-        registry = default_registry()
+        plugins = HilPlugins()
+        registry = registry if registry is not None else plugins.driver_registry()
+        probes = probes if probes is not None else plugins.probe_registry()
     sections = setup.device_sections()
     infos: dict[str, DriverInfo] = {}
     report = ProbeReport(config_name, timeout_s)
@@ -97,7 +109,8 @@ def probe_setup(
     for role in ("robot", "tracker", "camera"):
         if role not in infos:
             continue
-        dev = _PROBES[role](ctx, sections[role], infos[role], role)
+        info = infos[role]
+        dev = probe_device(ctx, role, sections[role], info, probes.get(role, info.name))
         _log.info("probe_device_done", role=role, driver=dev.driver, status=dev.status.value)
         report.devices.append(dev)
     return report

@@ -14,15 +14,9 @@ import pytest
 from pydantic import ValidationError
 
 from drivers.camera import pixels
-from drivers.camera.config import (
-    AravisCameraConfig,
-    ReplayCameraConfig,
-    V4l2CameraConfig,
-    aravis_factory,
-    replay_factory,
-    v4l2_factory,
-)
+from drivers.camera.config import AravisCameraConfig, ReplayCameraConfig, V4l2CameraConfig
 from drivers.camera.pairing import PairRule
+from drivers.camera.plugin import aravis_factory, replay_factory, v4l2_factory
 from drivers.interfaces.lifecycle import DeviceState
 from hil.clock import Clock, ManualClock
 

@@ -24,8 +24,15 @@ import pytest
 
 from hil.campaign.emulators import EmulatorError
 from hil.campaign.frameshm import FrameBlockError, FrameBlockReader, FrameBlockWriter, SharedPair
-from hil.campaign.gige import aravis_camera_section, why_not_runnable, write_gige_setup
-from hil.campaign.transport import BY_NAME, TransportSpec, run_transport_campaign, select_transport
+from hil.campaign.gige import aravis_camera_section, why_not_runnable
+from hil.campaign.transport import (
+    BY_NAME,
+    TransportSpec,
+    run_gige_one,
+    run_transport_campaign,
+    select_transport,
+    write_gige_setup,
+)
 from hil.config import load_setup
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -224,7 +231,7 @@ def test_not_root_is_a_typed_one_line_reason(monkeypatch: pytest.MonkeyPatch, tm
     with pytest.raises(EmulatorError, match=f"^{re.escape(why)}$"):
         gige.enter_private_netns()
     spec = TransportSpec("r1", CAMERA_RUN, 1, "unused.toml", "unused.json", str(tmp_path))
-    out = gige.run_gige_one(spec)  # in the run's process: a result, never a traceback
+    out = run_gige_one(spec)  # in the run's process: a result, never a traceback
     assert (out.passed, out.outcome, out.error, out.state) == (False, "not_runnable", None, "compensate")
     assert out.reasons == [f"not runnable here: {why}"]
 

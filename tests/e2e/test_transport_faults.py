@@ -1,24 +1,30 @@
 """The transport part of the fault layer without an emulator: the schedule's ``transport`` field,
 the commands :class:`drivers.faults.TransportFaults` sends and when (ManualClock, polled), and the
-refusal for a robot with no emulator fault channel."""
+refusals: no emulator fault channel, a simulated robot, a fault channel that is not on this
+machine; and the UR driver's config carries nothing for the emulator."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import pytest
 from pydantic import ValidationError
 
+import configs
 from drivers.faults import FaultyRobot, TransportFaults, transport_channel, wrap_device
 from drivers.interfaces.errors import DisconnectedError, SafetyStopError
 from drivers.interfaces.robot import MotionLimits, Robot, RobotState
 from drivers.ur_rtde.config import UrRtdeRobotConfig
 from drivers.ur_rtde.robot import UrRtdeRobot
-from drivers.ur_rtde.ursim_control import UrsimControl
+from hil.campaign.ursim_control import UrsimControl
 from hil.clock import ManualClock
-from hil.config.faults import TRANSPORT_COMMANDS, FaultKind, FaultSpec
+from hil.config import build_devices, load_setup
+from hil.config.faults import TRANSPORT_COMMANDS, FaultChannelConfig, FaultKind, FaultSpec
 from hil.errors import ConfigError
 from hil.geometry.transform import RigidTransform
+
+CONFIGS = Path(configs.__file__).parent
 
 
 class FakeChannel:
@@ -160,19 +166,36 @@ def ur_robot(**kw: Any) -> UrRtdeRobot:
 
 
 def test_channel_of_an_emulated_ur() -> None:
-    ch = transport_channel(ur_robot(emulator_control_port=30201))
+    ch = transport_channel(FaultChannelConfig(host="127.3.4.5", port=30201))
     assert isinstance(ch, UrsimControl)
-    assert (ch.host, ch.port) == ("127.0.0.1", 30201)
+    assert (ch.host, ch.port) == ("127.3.4.5", 30201)
 
 
-def test_refused_for_a_real_controller() -> None:
-    with pytest.raises(ConfigError, match="emulator_control_port"):
+def test_refused_without_a_fault_channel() -> None:
+    with pytest.raises(ConfigError, match=r"no \[fault_channel\]"):
         wrap_device(ur_robot(), "robot", [spec("protective_stop", 1.0, 1.0, transport=True)], ManualClock())
 
 
-def test_refused_for_a_robot_that_is_not_ur_rtde() -> None:
-    with pytest.raises(ConfigError, match="ur_rtde"):
-        transport_channel(object())  # type: ignore[arg-type]
+def test_refused_for_a_simulated_robot(tmp_path: Path) -> None:
+    setup = tmp_path / "sim.toml"
+    setup.write_text((CONFIGS / "sim.toml").read_text().replace(
+        'stereo = "calibration/sim_stereo.json"', f'stereo = "{CONFIGS / "calibration" / "sim_stereo.json"}"')
+        + '\n[fault_channel]\nport = 30200\n\n[[faults]]\nkind = "protective_stop"\nstart_s = 1.0\n'
+          'duration_s = 1.0\ntransport = true\n')
+    with pytest.raises(ConfigError, match="robot driver 'sim' is simulated"):
+        build_devices(load_setup(setup), ManualClock())
+
+
+@pytest.mark.parametrize("host", ["192.0.2.10", "robot.lab", "10.0.0.1"])
+def test_a_fault_channel_is_on_this_machine(host: str) -> None:
+    with pytest.raises(ValidationError, match="not a loopback address"):
+        FaultChannelConfig(host=host)
+    assert FaultChannelConfig(host="localhost").port == 30200
+
+
+def test_the_ur_driver_config_knows_no_emulator() -> None:
+    with pytest.raises(ValidationError, match="emulator_control_port"):
+        UrRtdeRobotConfig(driver="ur_rtde", host="127.0.0.1", emulator_control_port=30200)  # type: ignore[call-arg]
 
 
 class StubRobot(Robot):

@@ -65,7 +65,7 @@ def fresh(ursim: Ursim) -> Iterator[Ursim]:
 def write_config(tmp: Path, host: str, *, faults: str = "", confirm: tuple[str, ...] | None = None) -> Path:
     """configs/sim_ursim.toml pointed at ``host``, with a fault schedule and confirmations."""
     text = CONFIG.read_text()
-    text = text.replace('host = "127.0.0.1"', f'host = "{host}"', 1)
+    text = text.replace('host = "127.0.0.1"', f'host = "{host}"')  # the robot and its fault channel
     text = text.replace('stereo = "calibration/sim_stereo.json"',
                         f'stereo = "{ROOT / "configs" / "calibration" / "sim_stereo.json"}"', 1)
     # watchdogs loosened for a shared, loaded test machine (pauses of ~1 s happen there); the faults
@@ -254,11 +254,14 @@ def test_drop_connection_fault_recover_rebuilds_the_interfaces(
 
 
 def test_transport_fault_refused_without_an_emulator_channel(tmp_path: Path) -> None:
-    """A real controller (no emulator_control_port) cannot be faulted through its transport: the
-    setup is refused when the devices are built, before anything connects."""
+    """A real controller (no [fault_channel]) cannot be faulted through its transport: the setup is
+    refused when the devices are built, before anything connects."""
     config = write_config(tmp_path, "192.0.2.10", faults=(
         '[[faults]]\nkind = "protective_stop"\nstart_s = 1.0\nduration_s = 1.0\ntransport = true\n'))
-    config.write_text(config.read_text().replace("emulator_control_port = 30200", ""))
+    text, n = re.subn(r"^\[fault_channel\].*?(?=^\[)", "", config.read_text(), count=1,
+                      flags=re.MULTILINE | re.DOTALL)
+    assert n == 1
+    config.write_text(text)
     with pytest.raises(ConfigError, match="fault channel"):
         run(config, tmp_path / "sessions")
     assert not (tmp_path / "sessions").exists() or not any((tmp_path / "sessions").iterdir())

@@ -111,12 +111,12 @@ def test_ports_open_but_nothing_speaks_rtde(tmp_path: Path, run_probe: Callable[
 
 def test_connect_timeout_is_one_plain_line(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
                                            run_probe: Callable[..., ProbeRun]) -> None:
-    from hil.probe import ur_wire
+    from drivers.ur_rtde import probe_wire
 
     def times_out(host: str, port: int, timeout_s: float) -> float:
         raise TimeoutError("timed out")
 
-    monkeypatch.setattr(ur_wire, "tcp_connect", times_out)
+    monkeypatch.setattr(probe_wire, "tcp_connect", times_out)
     run = run_probe(_robot_setup(tmp_path, "127.0.0.1"))
     check = run.checks("robot")["tcp_30004"]
     assert check["message"] == "no answer from 127.0.0.1:30004 (RTDE) within 2 s"

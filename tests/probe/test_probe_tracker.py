@@ -142,10 +142,10 @@ def test_aurora_sensor_out_of_volume_and_missing(tmp_path: Path, trackersim: Cal
 def test_serial_port_without_permission(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
                                         trackersim: Callable[..., TrackerSim],
                                         run_probe: Callable[..., ProbeRun]) -> None:
-    import hil.probe.tracker as probe_tracker
+    import hil.probe.serial_port as serial_port
 
     sim = trackersim("--protocol", "fob", "--motion", "static")
-    monkeypatch.setattr(probe_tracker.os, "access", lambda path, mode: False)  # we run as root here
+    monkeypatch.setattr(serial_port.os, "access", lambda path, mode: False)  # we run as root here
     run = run_probe(_fob(tmp_path, sim.path, 115200, "{ reference = 0 }"))
     check = run.checks("tracker")["port_permissions"]
     assert check["status"] == "fail"

@@ -6,15 +6,12 @@ import threading
 
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
 
 from drivers.interfaces.camera import Frame, StereoFrame
 from drivers.interfaces.errors import DeviceTimeoutError, ProtocolError
-from drivers.tracker_serial.aurora_protocol import crc16 as driver_crc16
+from drivers.tracker_serial import probe_aurora
 from hil.probe import Checklist, DeviceReport, Finding, Outcome, ProbeReport, Status, render_text
 from hil.probe.camera import frame_checks
-from hil.probe.serial_wire import ndi_check, ndi_crc16, parse_phsr
 
 
 def test_steps_stop_at_the_first_failure_with_cause_and_hint() -> None:
@@ -124,23 +121,36 @@ def test_frame_checks_flag_size_and_skew_problems() -> None:
     assert checks["frame_rate"].status is Status.OK
 
 
-def test_ndi_crc_check_value_and_reset_reply() -> None:
-    assert ndi_crc16(b"123456789") == 0xBB3D
-    assert ndi_check(b"RESETBE6F") == "RESET"
+class _Line:
+    """A serial port stand-in that answers every command with one canned reply line."""
+
+    def __init__(self, reply: bytes) -> None:
+        self.reply = reply
+        self.sent = b""
+
+    def write(self, data: bytes) -> int:
+        self.sent += data
+        return len(data)
+
+    def read_until(self, end: bytes) -> bytes:
+        return self.reply
+
+    def reset_input_buffer(self) -> None:
+        pass
 
 
-@given(st.binary(max_size=200))
-def test_ndi_crc_matches_the_driver(data: bytes) -> None:
-    assert ndi_crc16(data) == driver_crc16(data)
+def test_aurora_probe_frames_commands_and_reads_replies_with_the_driver_codec() -> None:
+    port = _Line(b"OKAYA896\r")  # reference A2.2: OKAY -> A896
+    assert probe_aurora.command(port, "INIT:", 0.5) == "OKAY"
+    assert port.sent == b"INIT:E3A5\r"
 
 
-def test_ndi_reply_with_a_bad_crc_or_an_error_code() -> None:
-    from hil.probe.serial_wire import NdiError
-
-    with pytest.raises(NdiError, match="fails its CRC"):
-        ndi_check(b"RESETBE6E")
-    error = b"ERROR0D"
-    with pytest.raises(NdiError, match="ERROR0D") as info:
-        ndi_check(error + f"{ndi_crc16(error):04X}".encode())
-    assert info.value.code == 0x0D
-    assert parse_phsr("020A0010B001") == [(0x0A, 0x001), (0x0B, 0x001)]
+def test_aurora_probe_reply_with_a_bad_crc_or_an_error_code() -> None:
+    with pytest.raises(probe_aurora.NdiError, match="fails its CRC") as bad:
+        probe_aurora.command(_Line(b"RESETBE6E\r"), "VER:4", 0.5)
+    assert bad.value.code is None
+    with pytest.raises(probe_aurora.NdiError, match=r"^ERROR04$") as info:
+        probe_aurora.command(_Line(b"ERROR046802\r"), "VER:4", 0.5)
+    assert info.value.code == 0x04
+    assert probe_aurora.answers(_Line(b"ERROR046802\r"), 9600, 0.5) == "(answers ERROR04)"
+    assert probe_aurora.answers(_Line(b"RESETBE6E\r"), 9600, 0.5) is None

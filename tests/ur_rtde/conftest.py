@@ -24,7 +24,7 @@ import pytest
 from drivers.interfaces.robot import MotionLimits
 from drivers.ur_rtde.config import UrRtdeRobotConfig
 from drivers.ur_rtde.robot import UrRtdeRobot
-from drivers.ur_rtde.ursim_control import UrsimControl
+from hil.campaign.ursim_control import UrsimControl
 from hil.clock import MonotonicClock
 
 ROOT = Path(__file__).resolve().parents[2]

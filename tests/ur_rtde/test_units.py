@@ -14,7 +14,8 @@ from pydantic import ValidationError
 from drivers.interfaces.errors import ProtocolError
 from drivers.interfaces.lifecycle import DeviceState
 from drivers.interfaces.robot import MotionLimits, SafetyStatus
-from drivers.ur_rtde.config import UrRtdeConfig, UrRtdeRobotConfig, factory
+from drivers.ur_rtde.config import UrRtdeConfig, UrRtdeRobotConfig
+from drivers.ur_rtde.plugin import factory
 from drivers.ur_rtde.robot import UrRtdeRobot, pose_from_ur, pose_to_ur, safety_from_bits, trapezoid_time_s
 from hil.clock import ManualClock
 from hil.geometry.transform import RigidTransform

@@ -15,19 +15,24 @@ break (the driver's ``break_as_nul`` option sends one). NUL never occurs in a va
 Tool status: a sensor whose pose source gives None is ``MISSING``; a pose outside the box
 volume is reported with the out-of-volume port status bit (0x40), one within ``margin_mm`` of a
 face with the partially-in-volume bit (0x80). Frame numbers count at ``frame_rate_hz``.
+
+The bytes come from the emulator's own encoder (:mod:`emulators.trackersim.ndi_wire`), written
+from the manual's facts and independent of the driver's codec.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from drivers.tracker_serial import aurora_protocol as ap
+from emulators.trackersim import ndi_wire as nw
 from emulators.trackersim.device import EmulatedDevice
 from emulators.trackersim.faults import Faults
 from emulators.trackersim.poses import PoseSource
 from emulators.trackersim.pty_link import PtyLink
 
-_PS = ap.PortStatus
+_PS = nw.Port
+_RMS_ERROR = 0.05  # the error figure every valid transform reports
+_SYSTEM_STATUS = 0  # no system fault
 
 
 class AuroraDevice(EmulatedDevice):
@@ -45,12 +50,12 @@ class AuroraDevice(EmulatedDevice):
         self.volume_min = np.asarray(volume_min_mm, dtype=float)
         self.volume_max = np.asarray(volume_max_mm, dtype=float)
         self.margin_mm = margin_mm
-        super().__init__(link, poses, faults, baud=9600)
+        super().__init__(link, poses, faults, baud=nw.RESET_BAUD)
         self.reset()
 
     def reset(self) -> None:
         with self.lock:
-            self.baud = 9600
+            self.baud = nw.RESET_BAUD
             self.initialized = False
             self.tracking = False
             self.handles: dict[int, int] = {0x0A + i: _PS.TOOL_IN_PORT for i in range(self.n_tools)}
@@ -65,7 +70,7 @@ class AuroraDevice(EmulatedDevice):
         if b"\x00" in data:  # the break, whatever the baud
             data = data[data.rindex(b"\x00") + 1:]
             self.reset()
-            self.send(ap.RESET_REPLY)
+            self.send(nw.reset_reply())
         if data:
             super().handle_input(data)
 
@@ -80,8 +85,8 @@ class AuroraDevice(EmulatedDevice):
             self._line.clear()
             self._reply_error(0x02)
 
-    def _reply(self, text: str | bytes) -> None:
-        self.send(self._damage(ap.frame_reply(text), ascii_reply=True))
+    def _reply(self, text: str) -> None:
+        self.send(self._damage(nw.reply(text), ascii_reply=True))
 
     def _reply_error(self, code: int) -> None:
         self._reply(f"ERROR{code:02X}")
@@ -105,9 +110,8 @@ class AuroraDevice(EmulatedDevice):
         return bytes(out)
 
     def _execute(self, line: bytes) -> None:
-        try:
-            cmd = ap.parse_command(line)
-        except ap.NdiDecodeError:
+        cmd = nw.read_command(line)
+        if cmd is None:
             self._reply_error(0x01)
             return
         if cmd.crc_ok is False:
@@ -123,14 +127,14 @@ class AuroraDevice(EmulatedDevice):
     # --- commands ---------------------------------------------------------------------------------
     def _cmd_init(self, params: str) -> None:
         self.initialized = True
-        self._reply(ap.OKAY)
+        self._reply(nw.OKAY)
 
     def _cmd_comm(self, params: str) -> None:
-        if len(params) != 5 or params[0] not in ap.BAUD_FROM_CODE or params[1:] != "0000":
+        if len(params) != 5 or params[0] not in nw.COMM_BAUD or params[1:] != "0000":
             self._reply_error(0x06 if len(params) == 5 else 0x07)
             return
-        self._reply(ap.OKAY)  # at the old settings
-        self.baud = ap.BAUD_FROM_CODE[params[0]]
+        self._reply(nw.OKAY)  # at the old settings
+        self.baud = nw.COMM_BAUD[params[0]]
 
     def _cmd_ver(self, params: str) -> None:
         self._reply("NDI AURORA Control Firmware\nFreeze Tag: AURORA Rev 008\n"
@@ -164,11 +168,11 @@ class AuroraDevice(EmulatedDevice):
         if mode not in ("00", "01", "02", "03", "04"):
             self._reply_error(0x09)
             return
-        self._reply(ap.format_phsr(entries))
+        self._reply(nw.phsr_text(entries))
 
     def _cmd_phf(self, params: str) -> None:
         if self._handle(params) is not None:
-            self._reply(ap.OKAY)
+            self._reply(nw.OKAY)
 
     def _cmd_pinit(self, params: str) -> None:
         if not self.initialized:
@@ -177,7 +181,7 @@ class AuroraDevice(EmulatedDevice):
         h = self._handle(params)
         if h is not None:
             self.handles[h] |= _PS.INITIALIZED
-            self._reply(ap.OKAY)
+            self._reply(nw.OKAY)
 
     def _cmd_pena(self, params: str) -> None:
         h = self._handle(params)
@@ -190,7 +194,7 @@ class AuroraDevice(EmulatedDevice):
             self._reply_error(0x0E)
             return
         self.handles[h] |= _PS.ENABLED
-        self._reply(ap.OKAY)
+        self._reply(nw.OKAY)
 
     def _cmd_tstart(self, params: str) -> None:
         if not self.initialized or self.tracking:
@@ -198,16 +202,16 @@ class AuroraDevice(EmulatedDevice):
             return
         self.tracking = True
         self._frame_t0_s = self.now_s()
-        self._reply(ap.OKAY)
+        self._reply(nw.OKAY)
 
     def _cmd_tstop(self, params: str) -> None:
         if not self.tracking:
             self._reply_error(0x0C)
             return
         self.tracking = False
-        self._reply(ap.OKAY)
+        self._reply(nw.OKAY)
 
-    def _tracking_reply(self, params: str) -> ap.TrackingReply | None:
+    def _tracking_reply(self, params: str) -> list[nw.ToolFrame] | None:
         if not self.tracking:
             self._reply_error(0x0C)
             return None
@@ -216,25 +220,24 @@ class AuroraDevice(EmulatedDevice):
         except ValueError:
             self._reply_error(0x07)
             return None
-        if mode & ~(ap.TX_MODE_TRANSFORMS | ap.TX_MODE_OUT_OF_VOLUME):
+        if mode & ~(nw.REPLY_TRANSFORMS | nw.REPLY_OUT_OF_VOLUME):
             self._reply_error(0x23)  # reply options this emulator does not produce
             return None
         frame = self.frame_number()
         now = self.now_s()
-        recs = []
+        tools = []
         for h, st in sorted(self.handles.items()):
             if not st & _PS.ENABLED:
                 continue
             T = self.poses.pose(f"{h:02X}", now)
-            status = int(st)
             if T is None:
-                recs.append(ap.HandleRecord(h, "missing", port_status=status, frame=frame))
+                tools.append(nw.ToolFrame(h, None, int(st), frame))
                 continue
-            status |= self._volume_bits(T.t)
             q = T.as_quaternion()
-            recs.append(ap.HandleRecord(h, "valid", (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
-                                        (float(T.t[0]), float(T.t[1]), float(T.t[2])), 0.05, status, frame))
-        return ap.TrackingReply(tuple(recs), 0)
+            pose = (float(q[0]), float(q[1]), float(q[2]), float(q[3]),
+                    float(T.t[0]), float(T.t[1]), float(T.t[2]), _RMS_ERROR)
+            tools.append(nw.ToolFrame(h, pose, int(st) | self._volume_bits(T.t), frame))
+        return tools
 
     def _volume_bits(self, p: np.ndarray) -> int:
         if np.any(p < self.volume_min) or np.any(p > self.volume_max):
@@ -244,14 +247,14 @@ class AuroraDevice(EmulatedDevice):
         return 0
 
     def _cmd_tx(self, params: str) -> None:
-        reply = self._tracking_reply(params)
-        if reply is not None:
-            self._reply(ap.format_tx(reply))
+        tools = self._tracking_reply(params)
+        if tools is not None:
+            self._reply(nw.tx_text(tools, _SYSTEM_STATUS))
 
     def _cmd_bx(self, params: str) -> None:
-        reply = self._tracking_reply(params)
-        if reply is not None:
-            self.send(self._damage(ap.format_bx(reply), ascii_reply=False))
+        tools = self._tracking_reply(params)
+        if tools is not None:
+            self.send(self._damage(nw.bx_reply(tools, _SYSTEM_STATUS), ascii_reply=False))
 
     def tick(self) -> float:
         return 0.02

@@ -1,5 +1,8 @@
 """An Ascension Flock of Birds on RS-232, byte-exact (FOB-MAN; reference section A1).
 
+The bytes come from the emulator's own encoder (:mod:`emulators.trackersim.fob_wire`), written
+from the manual's facts and independent of the driver's codec.
+
 One standalone bird (address 0) or a flock of N birds on FBB addresses 1..N with the host on
 the master (address 1). Implemented: RS232 TO FBB prefixes, the format commands, POINT, STREAM,
 STREAM STOP (``?``, and POINT/format commands stop a stream, p.100), BUTTON MODE/READ,
@@ -16,7 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from drivers.tracker_serial import fob_protocol as fp
+from emulators.trackersim import fob_wire as fw
 from emulators.trackersim.device import EmulatedDevice
 from emulators.trackersim.faults import Faults
 from emulators.trackersim.poses import PoseSource
@@ -37,7 +40,7 @@ _ZERO_POSE = RigidTransform.identity()
 @dataclass
 class _Bird:
     address: int
-    fmt: fp.FobFormat = fp.FobFormat.POSITION_ANGLES
+    fmt: fw.Format = fw.Format.POSITION_ANGLES
     button_mode: bool = False
     scaling: int = 0
     running: bool = False
@@ -109,16 +112,16 @@ class FobDevice(EmulatedDevice):
             return 0
         cmd = buf[pos]
         pos += 1
-        if cmd == fp.CMD_EXAMINE:
+        if cmd == fw.EXAMINE:
             if len(buf) < pos + 1:
                 return 0
             self._examine(buf[pos], target)
             return pos + 1
-        if cmd == fp.CMD_CHANGE:
+        if cmd == fw.CHANGE:
             if len(buf) < pos + 1:
                 return 0
             param = buf[pos]
-            n = fp.CHANGE_DATA_BYTES.get(param)
+            n = fw.CHANGE_BYTES.get(param)
             if n is None:
                 self._set_error(6)
                 return pos + 1
@@ -146,105 +149,111 @@ class FobDevice(EmulatedDevice):
         return bird
 
     def _command(self, cmd: int, data: bytes, target: int | None) -> None:
-        fmt = fp.FobFormat.from_command(cmd)
+        fmt = fw.Format.for_command(cmd)
         if fmt is not None:
             bird = self._bird(target)
             if bird is not None:
                 bird.fmt = fmt
             self.stream = False
             return
-        if cmd == fp.CMD_POINT:
+        if cmd == fw.POINT:
             self.stream = False
             self._send_records(target)
-        elif cmd == fp.CMD_STREAM:
+        elif cmd == fw.STREAM:
             self.stream = True
             self._stream_target = target
             self._next_record_s = self.now_s()
-        elif cmd == fp.CMD_STREAM_STOP:
+        elif cmd == fw.STREAM_STOP:
             self.stream = False
-        elif cmd == fp.CMD_BUTTON_MODE:
+        elif cmd == fw.BUTTON_MODE:
             bird = self._bird(target)
             if bird is not None:
                 bird.button_mode = bool(data[0])
-        elif cmd == fp.CMD_BUTTON_READ:
+        elif cmd == fw.BUTTON_READ:
             self.send(b"\x00")
-        elif cmd == fp.CMD_SLEEP:
+        elif cmd == fw.SLEEP:
             for bird in self.birds.values():
                 bird.sleeping = True
-        elif cmd == fp.CMD_RUN:
+        elif cmd == fw.RUN:
             for bird in self.birds.values():
                 bird.sleeping = False
         elif cmd in _RATE_DIVISOR:
             self.report_divisor = _RATE_DIVISOR[cmd]
-        elif cmd == fp.CMD_XOFF:
+        elif cmd == fw.XOFF:
             self.xoff = True
-        elif cmd == fp.CMD_XON:
+        elif cmd == fw.XON:
             self.xoff = False
-        elif cmd == 0x74:  # METAL ERROR
+        elif cmd == fw.METAL_ERROR:
             self.send(b"\x00")
 
     def _examine(self, param: int, target: int | None) -> None:
         bird = self._bird(target)
         if bird is None:
             return
-        if param == fp.PARAM_BIRD_STATUS:
-            st = fp.BirdStatus.build(master=bird.address == self.master, initialized=self.auto_configured,
-                                     error=self.error_code != 0, running=bird.running,
-                                     sleeping=bird.sleeping, stream=self.stream, fmt=bird.fmt)
-            reply = st.to_bytes()
-        elif param == fp.PARAM_SOFTWARE_REVISION:
+        if param == fw.BIRD_STATUS:
+            reply = fw.BirdState(master=bird.address == self.master, initialized=self.auto_configured,
+                                 error=self.error_code != 0, running=bird.running, sleeping=bird.sleeping,
+                                 stream=self.stream, fmt=bird.fmt).word()
+        elif param == fw.SOFTWARE_REVISION:
             reply = b"\x03\x43"  # 3.67
-        elif param == 0x02:
+        elif param == fw.CRYSTAL_SPEED:
             reply = b"\x28\x00"  # 40 MHz
-        elif param == fp.PARAM_POSITION_SCALING:
+        elif param == fw.POSITION_SCALING:
             reply = bytes([bird.scaling, 0])
-        elif param == 0x04:
+        elif param == fw.FILTER:
             reply = b"\x04\x00"
-        elif param == fp.PARAM_MEASUREMENT_RATE:
+        elif param == fw.MEASUREMENT_RATE:
             reply = round(self.rate_hz * 256).to_bytes(2, "little")
-        elif param == fp.PARAM_ERROR_CODE:
+        elif param == fw.ERROR_CODE:
             reply = bytes([self.error_code])
             self.error_code, self.error_info = 0, 0
-        elif param == fp.PARAM_MODEL_ID:
+        elif param == fw.MODEL_ID:
             reply = b"6DFOB     "
-        elif param == fp.PARAM_EXPANDED_ERROR_CODE:
+        elif param == fw.EXPANDED_ERROR_CODE:
             reply = bytes([self.error_code, self.error_info])
-        elif param == fp.PARAM_ADDRESSING_MODE:
+        elif param == fw.ADDRESSING_MODE:
             reply = b"\x00"
-        elif param == fp.PARAM_FBB_ADDRESS:
+        elif param == fw.FBB_ADDRESS:
             reply = bytes([bird.address])
-        elif param == fp.PARAM_GROUP_MODE:
+        elif param == fw.GROUP_MODE:
             reply = bytes([int(self.group_mode)])
-        elif param == fp.PARAM_FLOCK_STATUS:
-            reply = bytes(
-                (0xA0 | (0x40 if self.birds[a].running else 0) | (0x01 if a == self.master else 0))
-                if a in self.birds else 0 for a in range(1, 15))
-        elif param in fp.EXAMINE_REPLY_BYTES:
-            reply = bytes(fp.EXAMINE_REPLY_BYTES[param])
+        elif param == fw.FLOCK_STATUS:
+            reply = bytes(self._flock_status(a) for a in range(1, 15))
+        elif param in fw.EXAMINE_BYTES:
+            reply = bytes(fw.EXAMINE_BYTES[param])
         else:
             self._set_error(6)
             return
         self.send(reply)
 
+    def _flock_status(self, address: int) -> int:
+        """The flock system status byte of one FBB address (0: no bird there); the master holds
+        the transmitter."""
+        bird = self.birds.get(address)
+        if bird is None:
+            return 0
+        return (fw.FLOCK_ACCESSIBLE | fw.FLOCK_HAS_SENSOR | (fw.FLOCK_RUNNING if bird.running else 0)
+                | (fw.FLOCK_TRANSMITTER if address == self.master else 0))
+
     def _change(self, param: int, data: bytes, target: int | None) -> None:
         bird = self._bird(target)
         if bird is None:
             return
-        if param == fp.PARAM_POSITION_SCALING:
+        if param == fw.POSITION_SCALING:
             value = int.from_bytes(data, "little")
             if value not in (0, 1):
                 self._set_error(6)
                 return
             bird.scaling = value
-        elif param == fp.PARAM_MEASUREMENT_RATE:
+        elif param == fw.MEASUREMENT_RATE:
             rate = int.from_bytes(data, "little") / 256.0
             if not 20.0 <= rate <= 144.0:
                 self._set_error(6)
                 return
             self.rate_hz = rate
-        elif param == fp.PARAM_GROUP_MODE:
+        elif param == fw.GROUP_MODE:
             self.group_mode = bool(data[0])
-        elif param == fp.PARAM_AUTO_CONFIG:
+        elif param == fw.AUTO_CONFIG:
             n = data[0]
             if self.n_birds == 1 or n > self.n_birds or n < 1:
                 self._set_error(33)  # slave configuration error
@@ -258,9 +267,9 @@ class FobDevice(EmulatedDevice):
         T = self.poses.pose(self.sensor_id(bird), self.now_s())
         if T is None or bird.sleeping:
             T = _ZERO_POSE
-        layout = fp.RecordLayout(bird.fmt, bird.button_mode, self.group_mode)
-        full = fp.position_full_scale_mm(bird.scaling)
-        return fp.encode_record(T, layout, full_scale_mm=full, address=bird.address)
+        return fw.record(T, bird.fmt, full_scale_in=72.0 if bird.scaling else 36.0,
+                         button=0 if bird.button_mode else None,
+                         address=bird.address if self.group_mode else None)
 
     def _damage(self, rec: bytes) -> bytes:
         now = self.now_s()

@@ -1,14 +1,11 @@
-"""Just enough of UR's wire protocols for a read-only diagnosis, over plain sockets with timeouts.
+"""Just enough of UR's wire protocols for a read-only diagnosis, over plain sockets with timeouts
+(used by :mod:`drivers.ur_rtde.probe`; the constants are :mod:`drivers.ur_rtde.wire`'s).
 
-RTDE (TCP 30004, big-endian; header ``>HB`` = total size incl. the 3-byte header, type byte):
-``V`` request protocol version (body ``>H`` 2; reply one byte, 1 = accepted), ``v`` controller
-version (reply ``>IIII`` major, minor, bugfix, build), ``O`` set up outputs (``>d`` frequency +
-comma-joined names; reply byte recipe id, 0 = refused, then the types), ``S`` start (reply one byte,
-1 = ok), ``U`` data package (recipe id + values), ``P`` pause. Facts: reference/ur-rtde.md.
-
-Dashboard server (TCP 29999): one greeting line, then one reply line per command line
-(``robotmode`` -> ``Robotmode: RUNNING``, ``safetystatus``/``safetymode``, ``running`` ->
-``Program running: true``, ``is in remote control`` (e-Series 5.6+), ``PolyscopeVersion``).
+RTDE (TCP 30004): request protocol version 2, ask the controller version, set up a small output
+recipe, start, read data packages for a window, pause. Dashboard server (TCP 29999): one greeting
+line, then one reply line per command line (``robotmode`` -> ``Robotmode: RUNNING``,
+``safetystatus``/``safetymode``, ``running`` -> ``Program running: true``, ``is in remote control``
+(e-Series 5.6+), ``PolyscopeVersion``).
 
 Nothing here moves the arm, uploads a script or takes control: the probe only reads.
 """
@@ -21,33 +18,13 @@ import struct
 import time
 from dataclasses import dataclass
 
+from drivers.ur_rtde import wire
 from hil.probe.runner import WireProblem
-
-RTDE_PORT = 30004
-DASHBOARD_PORT = 29999
-SCRIPT_PORT = 30003
-
-_HEADER = struct.Struct(">HB")
-_V_PROTOCOL = ord("V")
-_V_CONTROLLER = ord("v")
-_SETUP_OUTPUTS = ord("O")
-_START = ord("S")
-_PAUSE = ord("P")
-_DATA = ord("U")
-_TEXT = ord("M")
 
 #: RTDE outputs the probe subscribes to, with their struct codes.
 STREAM_OUTPUTS: tuple[tuple[str, str], ...] = (
     ("timestamp", "d"), ("robot_mode", "i"), ("safety_mode", "i"), ("runtime_state", "I"),
 )
-
-ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
-               4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
-SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
-                6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
-                10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE", 12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
-                13: "SYSTEM_THREE_POSITION_ENABLING_STOP"}
-RUNTIME_STATES = {0: "STOPPING", 1: "STOPPED", 2: "PLAYING", 3: "PAUSING", 4: "PAUSED", 5: "RESUMING"}
 
 
 class WireError(WireProblem):
@@ -67,12 +44,12 @@ class ControllerVersion:
     @property
     def family(self) -> str:
         """``cb3`` (PolyScope 3.x), ``e_series`` (5.x) or ``other``."""
-        return {3: "cb3", 5: "e_series"}.get(self.major, "other")
+        return wire.FAMILY_BY_MAJOR.get(self.major, "other")
 
     @property
     def rtde_rate_hz(self) -> float:
         """The controller's RTDE rate: 125 Hz up to 3.x, 500 Hz from 5.x."""
-        return 125.0 if self.major <= 3 else 500.0
+        return wire.CONTROLLER_RATE_HZ[wire.rate_family(self.major)]
 
 
 @dataclass(frozen=True)
@@ -131,34 +108,34 @@ class RtdeProbe(_Conn):
     """A minimal read-only RTDE client (one connection, closed by :meth:`close`)."""
 
     def __init__(self, host: str, timeout_s: float) -> None:
-        super().__init__(host, RTDE_PORT, timeout_s)
+        super().__init__(host, wire.RTDE_PORT, timeout_s)
 
     def _send(self, msg_type: int, body: bytes = b"") -> None:
-        self.sock.sendall(_HEADER.pack(_HEADER.size + len(body), msg_type) + body)
+        self.sock.sendall(wire.HEADER.pack(wire.HEADER.size + len(body), msg_type) + body)
 
     def _recv(self) -> tuple[int, bytes]:
-        size, msg_type = _HEADER.unpack(self.recv_exact(_HEADER.size))
-        if size < _HEADER.size:
+        size, msg_type = wire.HEADER.unpack(self.recv_exact(wire.HEADER.size))
+        if size < wire.HEADER.size:
             raise WireError(f"RTDE message size {size} is below the header size")
-        return msg_type, self.recv_exact(size - _HEADER.size)
+        return msg_type, self.recv_exact(size - wire.HEADER.size)
 
     def _reply(self, expected: int) -> bytes:
         for _ in range(64):  # text messages may come in between
             msg_type, body = self._recv()
             if msg_type == expected:
                 return body
-            if msg_type not in (_TEXT, _DATA):
+            if msg_type not in (wire.TEXT_MESSAGE, wire.DATA_PACKAGE):
                 raise WireError(f"expected RTDE message {chr(expected)!r}, got type {msg_type}")
         raise WireError(f"no RTDE {chr(expected)!r} reply among 64 messages")
 
-    def request_protocol_version(self, version: int = 2) -> bool:
-        self._send(_V_PROTOCOL, struct.pack(">H", version))
-        body = self._reply(_V_PROTOCOL)
+    def request_protocol_version(self, version: int = wire.PROTOCOL_VERSION) -> bool:
+        self._send(wire.REQUEST_PROTOCOL_VERSION, struct.pack(">H", version))
+        body = self._reply(wire.REQUEST_PROTOCOL_VERSION)
         return bool(body[:1] == b"\x01")
 
     def controller_version(self) -> ControllerVersion:
-        self._send(_V_CONTROLLER)
-        body = self._reply(_V_CONTROLLER)
+        self._send(wire.GET_CONTROLLER_VERSION)
+        body = self._reply(wire.GET_CONTROLLER_VERSION)
         if len(body) < 16:
             raise WireError(f"controller version reply has {len(body)} bytes, expected 16")
         return ControllerVersion(*struct.unpack(">IIII", body[:16]))
@@ -166,26 +143,26 @@ class RtdeProbe(_Conn):
     def stream(self, frequency_hz: float, window_s: float, max_packages: int = 2000) -> StreamStats:
         """Subscribe to :data:`STREAM_OUTPUTS`, start, read packages for ``window_s``, pause."""
         names = ",".join(n for n, _ in STREAM_OUTPUTS)
-        self._send(_SETUP_OUTPUTS, struct.pack(">d", frequency_hz) + names.encode("ascii"))
-        body = self._reply(_SETUP_OUTPUTS)
+        self._send(wire.SETUP_OUTPUTS, struct.pack(">d", frequency_hz) + names.encode("ascii"))
+        body = self._reply(wire.SETUP_OUTPUTS)
         if not body or body[0] == 0 or b"NOT_FOUND" in body:
             raise WireError(f"the controller refused the output recipe ({body[1:].decode(errors='replace')})")
-        self._send(_START)
-        if self._reply(_START)[:1] != b"\x01":
+        self._send(wire.START)
+        if self._reply(wire.START)[:1] != b"\x01":
             raise WireError("the controller refused to start the RTDE stream")
         codec = struct.Struct(">B" + "".join(c for _, c in STREAM_OUTPUTS))
         samples: list[StreamSample] = []
         deadline = time.monotonic() + window_s
         while time.monotonic() < deadline and len(samples) < max_packages:
             msg_type, data = self._recv()
-            if msg_type != _DATA:
+            if msg_type != wire.DATA_PACKAGE:
                 continue
             if len(data) != codec.size:
                 raise WireError(f"data package of {len(data)} bytes, expected {codec.size}")
             _rid, ts, rm, sm, rs = codec.unpack(data)
             samples.append(StreamSample(ts, rm, sm, rs))
         with contextlib.suppress(OSError):
-            self._send(_PAUSE)
+            self._send(wire.PAUSE)
         if not samples:
             raise WireError(f"no data package within {window_s:g} s")
         rate: float | None = None
@@ -199,7 +176,7 @@ class DashboardProbe(_Conn):
     """A line client for the dashboard server. ``greeting`` is its first line."""
 
     def __init__(self, host: str, timeout_s: float) -> None:
-        super().__init__(host, DASHBOARD_PORT, timeout_s)
+        super().__init__(host, wire.DASHBOARD_PORT, timeout_s)
         self._buf = bytearray()
         self.greeting = self._line()
 
