@@ -113,7 +113,7 @@ class RobotPoseFollower:
     clock); :meth:`T_robot_from_flange_at` interpolates them at the asked time (the newest sample
     after it, the oldest before it). While the driver cannot report (lost connection, recovery),
     the last known pose stands: the physical arm is somewhere, and the world keeps seeing it
-    there. The thread ends when the robot is closed. ``T_flange_from_tcp`` of the driver (its
+    there. The thread ends when the robot is closed (also one built and never opened). ``T_flange_from_tcp`` of the driver (its
     attribute, identity without one) turns the reported TCP pose into the flange pose.
     """
 
@@ -142,14 +142,12 @@ class RobotPoseFollower:
                 self._samples.append((st.t_ns, T))
 
     def _run(self) -> None:
-        seen_active = False
         while not self._stop.wait(self.period_s):
             state = self.robot.state
             if state is DeviceState.ACTIVE:
-                seen_active = True
                 self._sample()
-            elif state is DeviceState.CLOSED and seen_active:
-                return
+            elif state is DeviceState.CLOSED:
+                return  # closed (after use, or built and never opened): nothing more to follow
 
     def stop(self) -> None:
         self._stop.set()
