@@ -38,7 +38,7 @@ def matrix_ids(scenarios: list[Scenario], seeds: list[int]) -> list[str]:
     return [rid for s in seeds for rid in (f"baseline_s{s}", *(f"{sc.name}_s{s}" for sc in scenarios))]
 
 
-class _Context:
+class SimTaskFactory:
     """What every task of one simulator campaign shares."""
 
     def __init__(self, config: Path, plan: str | None, timeout_s: float, keep_logs: bool,
@@ -97,7 +97,7 @@ def run_campaign(
     say = progress or (lambda _m: None)
     config = config.resolve()
     plan = str(Path(plan).resolve()) if plan else None
-    ctx = _Context(config, plan, timeout_s, keep_logs, check_version, hook)
+    ctx = SimTaskFactory(config, plan, timeout_s, keep_logs, check_version, hook)
     ids = matrix_ids(scenarios, seeds)
     owned = {rid for k, rid in enumerate(ids) if shard is None or shard.owns(k)}
     need = [s for s in seeds

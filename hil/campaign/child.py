@@ -32,19 +32,20 @@ def _exit_when_orphaned(parent: int) -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
-def _call_hook(hook: str, spec: dict[str, Any]) -> None:
-    module, _, name = hook.partition(":")
-    getattr(importlib.import_module(module), name)(spec)
+def _call_hook(hook: str, spec: dict[str, Any], result_path: str) -> None:
+    """``module:function[:argument]`` -> ``function(spec, result_path, argument or None)``."""
+    module, name, *arg = hook.split(":", 2)
+    getattr(importlib.import_module(module), name)(spec, result_path, arg[0] if arg else None)
 
 
 def main(argv: list[str]) -> int:
-    from .pool import _worker
-
     task_path, result_path = argv
     _exit_when_orphaned(os.getppid())
     payload = json.loads(Path(task_path).read_text())
     if payload.get("hook"):
-        _call_hook(str(payload["hook"]), payload["spec"])
+        _call_hook(str(payload["hook"]), payload["spec"], result_path)
+    from .pool import _worker
+
     if payload["tier"] == "transport":
         from .transport import TransportSpec, run_transport_one
 

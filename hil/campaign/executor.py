@@ -156,7 +156,9 @@ class DaskExecutor(Executor):
     """
 
     def __init__(self, *, scheduler: str | None = None, workers: int = 2,
-                 connect_timeout_s: float = SCHEDULER_CONNECT_TIMEOUT_S) -> None:
+                 connect_timeout_s: float | None = None) -> None:
+        if connect_timeout_s is None:
+            connect_timeout_s = SCHEDULER_CONNECT_TIMEOUT_S
         distributed = _import_distributed()
         import dask
 

@@ -53,7 +53,8 @@ class RunTask:
     fields; transport: ``scenario`` and ``seed``). ``inputs``: what the record echoes.
     ``code_version``/``config_sha256``: what the worker must match (unless ``check_version`` is
     False). ``paths``: the files the config digest is taken over, as the worker sees them.
-    ``hook``: ``module:function`` called with the child's spec in the child before the run (tests).
+    ``hook``: ``module:function[:argument]``, called in the child before the run as
+    ``function(spec, result_path, argument)`` (tests: a run that dies, hangs, kills its worker).
     """
 
     tier: Tier
