@@ -20,7 +20,7 @@ from typing import Any
 
 from hil.errors import HilError
 
-from .task import RunTask, TaskOutcome, _error_record, execute_task, finish_record
+from .task import RunTask, TaskOutcome, _error_record, execute_task, finish_record, kill_running
 
 Progress = Callable[[str], None]
 #: Attempts of one run: the first, and one retry.
@@ -122,7 +122,11 @@ class LocalExecutor(Executor):
         self._pool = cf.ThreadPoolExecutor(max_workers=jobs, thread_name_prefix="campaign-run")
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        """Cancel the runs not started, kill the running ones (an interrupted campaign: a finished
+        one has none), wait for the threads."""
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        kill_running()
+        self._pool.shutdown(wait=True)
 
     def _submit(self, task: RunTask, attempt: int) -> Any:
         return self._pool.submit(execute_task, task)

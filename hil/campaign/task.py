@@ -28,6 +28,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,19 @@ Tier = Literal["simulator", "transport"]
 MAX_SHIPPED_BYTES = 64 * 1024 * 1024
 #: Last characters of the child's stderr kept in the record of a run that died.
 STDERR_TAIL_CHARS = 2000
+
+_live: set[subprocess.Popen[bytes]] = set()  # the run processes this process started, still running
+_live_lock = threading.Lock()
+
+
+def kill_running() -> int:
+    """Kill every run process this process started that still runs (an interrupted campaign);
+    returns how many. Their tasks record them as died."""
+    with _live_lock:
+        procs = list(_live)
+    for proc in procs:
+        _kill_group(proc)
+    return len(procs)
 
 
 @dataclass(frozen=True)
@@ -170,6 +184,8 @@ def _child(task: RunTask, child_spec: dict[str, Any], tmp: Path) -> TaskOutcome:
             [sys.executable, "-m", "hil.campaign.child", str(task_path), str(result_path)],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True,
         )
+        with _live_lock:
+            _live.add(proc)
         try:
             proc.wait(timeout=task.timeout_s)
         except subprocess.TimeoutExpired:
@@ -180,6 +196,8 @@ def _child(task: RunTask, child_spec: dict[str, Any], tmp: Path) -> TaskOutcome:
         finally:
             if proc.poll() is None:  # interrupted while waiting: leave nothing behind
                 _kill_group(proc)
+            with _live_lock:
+                _live.discard(proc)
     if result_path.is_file():
         return TaskOutcome(json.loads(result_path.read_text()))
     tail = err_path.read_text(errors="replace")[-STDERR_TAIL_CHARS:] or None

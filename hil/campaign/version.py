@@ -9,7 +9,6 @@ checkout are there; else the installed package version. ``source`` says which.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import shutil
 import subprocess
@@ -41,13 +40,11 @@ def code_version(root: Path | None = None) -> dict[str, Any]:
     not counted; ``diff_sha256``: SHA-256 of ``git diff HEAD``, None when clean), else
     ``{"id", "source": "package", "package"}``. ``id`` is the one string compared between workers
     and shards: ``git:<commit>``, ``git:<commit>+dirty.<first 12 hex of diff_sha256>`` or
-    ``package:<version>``. Blocking (two or three git calls); never raises.
+    ``package:<version>``. Not cached: a worker checks it before every run, as every run's process
+    imports the checkout afresh (an edit during a campaign shows). Blocking (two or three git
+    calls, ~15 ms); never raises.
     """
-    return dict(_code_version(root or PACKAGE_ROOT))
-
-
-@functools.cache
-def _code_version(root: Path) -> tuple[tuple[str, Any], ...]:
+    root = root or PACKAGE_ROOT
     if (root / ".git").exists() and shutil.which("git") is not None:
         try:
             commit = _git(root, "rev-parse", "HEAD").decode().strip()
@@ -57,9 +54,9 @@ def _code_version(root: Path) -> tuple[tuple[str, Any], ...]:
             pass
         else:
             ident = f"git:{commit}" + (f"+dirty.{diff[:12]}" if diff else "")
-            return (("id", ident), ("source", "git"), ("commit", commit), ("dirty", dirty),
-                    ("diff_sha256", diff), ("package", __version__))
-    return (("id", f"package:{__version__}"), ("source", "package"), ("package", __version__))
+            return {"id": ident, "source": "git", "commit": commit, "dirty": dirty, "diff_sha256": diff,
+                    "package": __version__}
+    return {"id": f"package:{__version__}", "source": "package", "package": __version__}
 
 
 def config_digest(paths: Sequence[str | Path]) -> str:
