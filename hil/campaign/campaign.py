@@ -8,6 +8,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from hil.errors import InputFileError
+
 from .executor import Executor, LocalExecutor, Progress
 from .outputs import LogSink, write_summary
 from .report import summarise
@@ -45,6 +47,9 @@ class SimTaskFactory:
                  check_version: bool, hook: str | None) -> None:
         self.config, self.plan = config, plan
         self.paths = (str(config), str(_plan_path(config, plan)))
+        for path, option in zip(self.paths, ("--config", "--plan"), strict=True):
+            if not Path(path).is_file():
+                raise InputFileError(path, f"no such file ({option})")
         self.digest = config_digest(self.paths)
         self.version = code_version()
         self.timeout_s, self.keep_logs = timeout_s, keep_logs

@@ -193,3 +193,12 @@ def test_code_version_without_git_is_the_package_version(tmp_path: Path) -> None
 
     assert code_version(tmp_path) == {"id": f"package:{__version__}", "source": "package",
                                       "package": __version__}
+
+
+def test_a_missing_plan_is_one_line_exit_2(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    plan = tmp_path / "none.json"
+    assert main(["campaign", "frame_drop@lock", "--plan", str(plan), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    expected = f"hil campaign: error: {plan}: no such file (--plan)"
+    assert [line for line in err if "error" in line] == [expected]
+    assert not (tmp_path / "o" / "campaign.json").exists()
