@@ -8,8 +8,9 @@ HIL_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${HIL_VENV:-$HIL_ROOT/.venv}"
 PY="${PYTHON:-python3}"
 
-# Extras every set-up installs: dev tools, and the report/console/OpenIGTLink features.
-HIL_DEFAULT_EXTRAS="dev,report,console,igtl"
+# Extras every set-up installs: dev tools, the report/console/OpenIGTLink features, and the Dask
+# executor of the fault campaigns.
+HIL_DEFAULT_EXTRAS="dev,report,console,igtl,campaign-dask"
 
 log() { printf '[setup] %s\n' "$*" >&2; }
 

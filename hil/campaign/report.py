@@ -23,7 +23,7 @@ def summarise(results: list[dict[str, Any]], *, config: str) -> dict[str, Any]:
             "reasons": r.get("reasons", []),
             "outcome": r.get("outcome"),
             "session_log": r.get("session_log"),
-            "replay": (
+            "replay": r.get("replay") or (
                 f"hil campaign {r['scenario']} --seed {r['seed']} --config {config}"
                 if r.get("kind")
                 else f"hil run {config} --seed {r['seed']} --auto"

@@ -15,6 +15,15 @@ the emulators' fault channels to the REAL drivers (``ur_rtde`` on ``tools/ursim`
 names FAMILY@STATE (``rtde_protective_stop@compensate``, ``serial``, ``@lock``, ...; none = every
 family x every state); stdout: the family x state table; files ``DIR/transport.json`` and
 ``DIR/transport.html``.
+
+``--executor local|dask [--scheduler ADDRESS]``: where the runs execute (both tiers): this
+machine's processes (default), or a Dask cluster (the scheduler at ADDRESS, or a LocalCluster of
+``--jobs`` workers on loopback); needs the ``campaign-dask`` extra. ``--shard I/N`` (0-based) runs
+the I-th of N deterministic slices of the matrix, for array jobs.
+
+``hil campaign merge DIR... [--out DIR] [--json] [--allow-mismatch] [--allow-partial]``: combine
+campaign outputs (shards) into one summary, the ``--json`` object of ``hil campaign``
+(:mod:`hil.campaign.merge`). Every JSON object is documented in docs/campaign.md.
 """
 
 from __future__ import annotations
@@ -29,6 +38,40 @@ from typing import Any
 from hil.errors import InputFileError
 
 
+class _CampaignParser(argparse.ArgumentParser):
+    """``hil campaign``'s parser: ``hil campaign merge ...`` goes to the merge parser (the
+    campaign's own positional SCENARIO list leaves no room for an argparse sub-command)."""
+
+    merge_parser: argparse.ArgumentParser
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: list[str] | None = None, namespace: argparse.Namespace | None = None,
+    ) -> tuple[argparse.Namespace, list[str]]:
+        if args and args[0] == "merge":
+            return self.merge_parser.parse_known_args(args[1:], namespace)
+        return super().parse_known_args(args, namespace)
+
+
+def _add_merge_parser(prog: str) -> argparse.ArgumentParser:
+    m = argparse.ArgumentParser(
+        prog=f"{prog} merge",
+        description="Combine campaign outputs (the --out directories of shards, or of any campaign "
+        "runs of one matrix) into one report: DIR/campaign.json or transport.json and .html, and the "
+        "failing runs' logs. Refuses outputs of different code versions, configs or matrices unless "
+        "--allow-mismatch, missing shards unless --allow-partial, and always a run present twice. "
+        "Exit code 0 when every merged run passed, 1 otherwise, 2 when refused.",
+    )
+    m.add_argument("dirs", nargs="+", metavar="DIR", help="campaign output directories")
+    m.add_argument("--out", default="campaign-merged", help="output directory (default: ./campaign-merged)")
+    m.add_argument("--json", action="store_true",
+                   help="print the merged summary as one JSON object (the object of hil campaign --json)")
+    m.add_argument("--allow-mismatch", action="store_true",
+                   help="merge outputs of different code versions, config digests or matrices")
+    m.add_argument("--allow-partial", action="store_true", help="merge although shards are missing")
+    m.set_defaults(func=run_merge)
+    return m
+
+
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "campaign",
@@ -37,8 +80,12 @@ def add_parser(sub: Any) -> None:
         "parallel processes) and check every run: no command outside the limits reached "
         "the robot driver, each fault ends in a safe state within a bounded time with the "
         "robot stopped, no unhandled exception or hang, a complete verifiable session log, "
-        "and recovery continues to lock.",
+        "and recovery continues to lock. Runs on this machine or on a Dask cluster (--executor); "
+        "--shard runs a slice. 'hil campaign merge DIR...' combines outputs (see its --help).",
     )
+    p.__class__ = _CampaignParser  # routes `hil campaign merge ...` (see _CampaignParser)
+    assert isinstance(p, _CampaignParser)
+    p.merge_parser = _add_merge_parser(p.prog)
     p.add_argument(
         "scenarios",
         nargs="*",
@@ -70,14 +117,27 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--transport", action="store_true",
                    help="run the transport tier: faults through the emulators to the real drivers, "
                         "in real time (SCENARIOS: FAMILY@STATE transport scenario names)")
+    p.add_argument("--executor", choices=["local", "dask"], default="local",
+                   help="where runs execute: local processes (default) or a Dask cluster "
+                        "(needs the campaign-dask extra)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="with --executor dask: the Dask scheduler (tcp://host:8786); default: a "
+                        "LocalCluster of --jobs worker processes on 127.0.0.1")
+    p.add_argument("--shard", metavar="I/N",
+                   help="run only slice I of N of the matrix (0-based: 0/4 .. 3/4), for array jobs; "
+                        "combine the outputs with 'hil campaign merge'")
+    p.add_argument("--allow-mismatch", action="store_true",
+                   help="let workers whose code version or config differs from this checkout run")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from hil.campaign.campaign import run_campaign
+    from hil.campaign.executor import open_executor
     from hil.campaign.report import table
     from hil.campaign.scenarios import select
+    from hil.campaign.shard import parse_shard
     from hil.config import default_setup_path
 
     if args.seed_list:
@@ -94,29 +154,57 @@ def run(args: argparse.Namespace) -> int:
         raise InputFileError("--jobs", f"must be >= 1, got {args.jobs}")
     if args.timeout is not None and args.timeout <= 0:
         raise InputFileError("--timeout", f"must be > 0, got {args.timeout}")
+    if args.scheduler is not None and args.executor != "dask":
+        raise InputFileError("--scheduler", "applies to --executor dask only")
+    shard = parse_shard(args.shard) if args.shard is not None else None
     out = Path(args.out)
 
     def progress(msg: str) -> None:
         print(f"hil campaign: {msg}", file=sys.stderr, flush=True)
 
     if args.transport:
-        return _run_transport(args, seeds, out, progress)
-    scenarios = select(list(args.scenarios))
-    config = Path(args.config) if args.config else default_setup_path()
-
-    progress(f"{len(scenarios)} scenario(s) x {len(seeds)} seed(s) on {config}")
-    summary = run_campaign(
-        scenarios,
-        seeds,
-        config=config,
-        plan=args.plan,
-        jobs=args.jobs,
-        out_dir=out,
-        keep_logs=args.keep_logs,
-        timeout_s=args.timeout if args.timeout is not None else 300.0,
-        progress=progress,
-    )
+        if args.config or args.plan:
+            raise InputFileError("--config/--plan",
+                                 "do not apply to --transport (each run writes its own setup)")
+        transport_scenarios = _transport_selection(list(args.scenarios), progress)
+    else:
+        scenarios = select(list(args.scenarios))
+        config = Path(args.config) if args.config else default_setup_path()
+        if not config.is_file():
+            raise InputFileError(str(config), "no such setup file (--config)")
+    with open_executor(args.executor, jobs=args.jobs, scheduler=args.scheduler) as executor:
+        if args.transport:
+            return _run_transport(args, transport_scenarios, seeds, out, progress, executor, shard)
+        progress(f"{len(scenarios)} scenario(s) x {len(seeds)} seed(s) on {config}"
+                 + (f", shard {shard}" if shard else ""))
+        summary = run_campaign(
+            scenarios,
+            seeds,
+            config=config,
+            plan=args.plan,
+            out_dir=out,
+            executor=executor,
+            shard=shard,
+            keep_logs=args.keep_logs,
+            timeout_s=args.timeout if args.timeout is not None else 300.0,
+            check_version=not args.allow_mismatch,
+            progress=progress,
+        )
     return _report(summary, args.json, table(summary["results"]), out, "campaign")
+
+
+def run_merge(args: argparse.Namespace) -> int:
+    from hil.campaign.merge import merge_outputs
+    from hil.campaign.outputs import stem_of
+    from hil.campaign.report import table
+    from hil.campaign.transport import transport_table
+
+    out = Path(args.out)
+    summary = merge_outputs([Path(d) for d in args.dirs], out_dir=out, allow_mismatch=args.allow_mismatch,
+                            allow_partial=args.allow_partial)
+    stem = stem_of(summary)
+    text = transport_table(summary["results"]) if stem == "transport" else table(summary["results"])
+    return _report(summary, args.json, text, out, stem)
 
 
 def _report(summary: dict[str, Any], as_json: bool, table_text: str, out: Path, stem: str) -> int:
@@ -139,27 +227,29 @@ def _report(summary: dict[str, Any], as_json: bool, table_text: str, out: Path, 
     return 0 if summary["failed"] == 0 else 1
 
 
-def _run_transport(args: argparse.Namespace, seeds: list[int], out: Path, progress: Any) -> int:
-    from hil.campaign.transport import (
-        TRANSPORT_TIMEOUT_S,
-        run_transport_campaign,
-        select_transport,
-        transport_table,
-    )
+def _transport_selection(patterns: list[str], progress: Any) -> list[Any]:
+    from hil.campaign.transport import select_transport
 
-    if args.config or args.plan:
-        raise InputFileError("--config/--plan", "do not apply to --transport (each run writes its own setup)")
-    scenarios = select_transport(list(args.scenarios))
-    if not args.scenarios:  # the whole matrix: leave out what cannot run on this machine, and say so
+    scenarios = select_transport(patterns)
+    if not patterns:  # the whole matrix: leave out what cannot run on this machine, and say so
         from hil.campaign.gige import why_not_runnable
 
         why = why_not_runnable()
         if why is not None:
             scenarios = [s for s in scenarios if s.emulator != "fakegv"]
             progress(f"camera_stream_loss left out of the matrix: {why} (select it by name to see it fail)")
-    progress(f"transport tier: {len(scenarios)} scenario(s) x {len(seeds)} seed(s), {args.jobs} at a time, "
-             "real time")
-    summary = run_transport_campaign(
-        scenarios, seeds, out_dir=out, keep_logs=args.keep_logs, jobs=args.jobs,
-        timeout_s=args.timeout if args.timeout is not None else TRANSPORT_TIMEOUT_S, progress=progress)
+    return scenarios
+
+
+def _run_transport(args: argparse.Namespace, scenarios: list[Any], seeds: list[int], out: Path,
+                   progress: Any, executor: Any, shard: Any) -> int:
+    from hil.campaign.transport import TRANSPORT_TIMEOUT_S, transport_table
+    from hil.campaign.transport_tasks import run_transport_matrix
+
+    progress(f"transport tier: {len(scenarios)} scenario(s) x {len(seeds)} seed(s), real time"
+             + (f", shard {shard}" if shard else ""))
+    summary = run_transport_matrix(
+        scenarios, seeds, out_dir=out, executor=executor, shard=shard, keep_logs=args.keep_logs,
+        timeout_s=args.timeout if args.timeout is not None else TRANSPORT_TIMEOUT_S,
+        check_version=not args.allow_mismatch, progress=progress)
     return _report(summary, args.json, transport_table(summary["results"]), out, "transport")
