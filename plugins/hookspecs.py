@@ -16,6 +16,8 @@ import pluggy
 from plugins.registry import DriverRegistry
 
 if TYPE_CHECKING:  # not imported at run time: loading the plugin manager must not load the probe
+    from hil.controller.fsm import FireResult
+    from hil.controller.snapshot import ControllerSnapshot
     from hil.probe.registry import ProbeRegistry
 
 PROJECT_NAME = "hil"
@@ -50,3 +52,22 @@ def hil_register_probes(registry: ProbeRegistry) -> None:
     probe still gets the driver-level checks (build, open, stream). Wire constants belong to the
     driver package that registers the probe, next to its protocol code.
     """
+
+
+# ---------------------------------------------------------------- runtime observers
+@hookspec
+def hil_on_tick(snapshot: ControllerSnapshot) -> None:
+    """Called in the controller's thread after every control tick with a frozen snapshot.
+
+    Contract: return quickly (a few ms at most: the next tick waits), never command a device
+    and never block on I/O (hand work to your own thread). An exception is logged
+    (``observer_failed``, once per distinct error) and never reaches the control loop; the other
+    plugins are still called. The built-in OpenIGTLink stream is a plugin on this hook.
+    """
+
+
+@hookspec
+def hil_on_transition(transition: FireResult, snapshot: ControllerSnapshot) -> None:
+    """Called in the controller's thread after every applied state transition (the new state's
+    entry action has run) with the transition and a frozen snapshot. Same contract as
+    :func:`hil_on_tick`."""

@@ -12,8 +12,8 @@ code calls.
 from __future__ import annotations
 
 import importlib
-from collections.abc import Iterable
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING, Any
 
 import pluggy
 
@@ -103,6 +103,13 @@ class HilPlugins:
         self.manager.hook.hil_register_probes(registry=registry)
         _log.debug("probes_registered", count=len(registry.probes()))
         return registry
+
+
+    def implementations(self, hook: str) -> list[tuple[str, Callable[..., Any]]]:
+        """Each plugin's implementation of ``hook``, as ``(plugin name, function)``, in pluggy's
+        call order (for callers that isolate every plugin's call, e.g. the runtime observers)."""
+        caller = getattr(self.manager.hook, hook)
+        return [(impl.plugin_name, impl.function) for impl in reversed(caller.get_hookimpls())]
 
 
 def default_registry() -> DriverRegistry:

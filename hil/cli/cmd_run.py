@@ -27,6 +27,7 @@ from hil.config.setup import SetupConfig
 from hil.controller.controller import Controller
 from hil.controller.fsm import Event, State
 from hil.controller.metrics import RunSummary
+from hil.controller.observers import HookCaller, TickObserver
 from hil.controller.operator_input import AutoOperator, Operator, OperatorView
 from hil.controller.perception import CollinearNeedleChecker, StereoMarkerLocator, StereoNeedleChecker
 from hil.controller.plan_file import ProcedurePlan, load_plan
@@ -35,10 +36,10 @@ from hil.controller.tracker_use import TrackerUse
 from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.errors import HilError, InputFileError
 from hil.geometry.transform import RigidTransform
-from hil.igtl.snapshot import snapshot_from_controller
 from hil.session.log import SessionLog, file_sha256
 from hil.tracking.session import load_tracker_calibration
 from hil.vision.camera_model import StereoCalibration, load_calibration
+from plugins.manager import HilPlugins
 
 if TYPE_CHECKING:
     from hil.igtl.server import IgtlServer
@@ -179,7 +180,7 @@ def wrap_robot(devices: Devices, wrapper: RobotWrapper) -> Devices:
 
 def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, *, clock: Clock,
                      session: SessionLog, operator: Operator,
-                     observers: Sequence[Callable[[Controller], None]] = ()) -> Controller:
+                     observers: Sequence[TickObserver] = (), hooks: HookCaller | None = None) -> Controller:
     """The controller ``hil run`` builds for ``setup`` on ``devices`` (ACTIVE, or opened before
     :meth:`Controller.run`): marker locator on the setup's stereo calibration, rig geometry,
     procedure, ``[safety]`` limits and watchdog ages, the simulated world as breath-hold coach and
@@ -199,7 +200,7 @@ def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, 
         coach=world if isinstance(world, BreathHoldCoach) else None,
         truth=world if isinstance(world, GroundTruth) else None,
         needle_check=_needle_checker(setup, devices.camera),
-        observers=observers,
+        observers=observers, hooks=hooks,
         tracker_use=_tracker_use(setup, world is not None),
     )
 
@@ -248,13 +249,15 @@ def _start_igtl(setup: SetupConfig, clock: Clock) -> IgtlServer | None:
     return server
 
 
-def _igtl_publisher(igtl: IgtlServer) -> Callable[[Controller], None]:
-    """A controller observer that streams a snapshot after every tick (rate-limited by the server)."""
+def runtime_plugins(igtl: IgtlServer | None, plan: ProcedurePlan) -> HilPlugins:
+    """The installed plugins (entry points: their ``hil_on_tick`` / ``hil_on_transition`` see the
+    run) plus, when the OpenIGTLink server runs, the built-in stream on the same hooks."""
+    plugins = HilPlugins()
+    if igtl is not None:
+        from hil.igtl.plugin import PLUGIN_NAME, IgtlPlugin
 
-    def igtl_publish(ctl: Controller) -> None:
-        igtl.publish(snapshot_from_controller(ctl), ctl.clock.now_ns())
-
-    return igtl_publish
+        plugins.register(IgtlPlugin(igtl, plan), PLUGIN_NAME)
+    return plugins
 
 
 def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *, auto: bool,
@@ -305,7 +308,7 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
         ctl = build_controller(
             setup, plan, devices, clock=clock, session=session,
             operator=operator or (AutoOperator() if auto else InteractiveOperator()),
-            observers=() if igtl is None else (_igtl_publisher(igtl),),
+            hooks=runtime_plugins(igtl, plan),
         )
         summary = ctl.run(max_duration_s)
     finally:

@@ -1,8 +1,9 @@
 """The controller loop in its own thread, so the UI never blocks it (and it never blocks the UI).
 
 Each iteration: one :meth:`Controller.tick` (which blocks on the camera for at most a few frame
-periods), then a :class:`~hil.console.view.ConsoleView` snapshot (bounded work) and, when
-enabled, one OpenIGTLink publish (never blocks). On a simulated clock the loop can be paced to
+periods), then a :class:`~hil.console.view.ConsoleView` built from the controller's frozen
+snapshot (bounded work). The OpenIGTLink stream, when enabled, is a runtime plugin of the
+controller (``hil_on_tick``), not the runner's business. On a simulated clock the loop can be paced to
 the wall clock (the simulator then runs in real time when the machine keeps up).
 
 On quit the runner aborts any procedure under way (ABORT_REQUESTED through the state machine:
@@ -18,7 +19,7 @@ import time
 from typing import TYPE_CHECKING
 
 from hil.console.operator import ConsoleOperator
-from hil.console.view import ConsoleView, build_view
+from hil.console.view import ConsoleView, ViewSetup, build_view
 from hil.controller.fsm import Event, State
 from hil.controller.gate import rms_deviation_mm
 from hil.log import get_logger
@@ -42,7 +43,7 @@ class ControllerRunner:
         operator: the console's operator queue.
         pace: sleep so the controller clock does not run ahead of the wall clock (simulated
             clocks only; a real clock is paced by the camera).
-        igtl: an started OpenIGTLink server to publish to, or None.
+        igtl: the session's OpenIGTLink server (its address and clients are shown), or None.
         session_log: path shown to the operator.
     """
 
@@ -51,6 +52,9 @@ class ControllerRunner:
         self.ctl, self.operator, self.pace, self.igtl = ctl, operator, pace, igtl
         self.session_log = session_log
         self._breathing: collections.deque[float] = collections.deque(maxlen=_BREATHING_SAMPLES)
+        cfg = ctl.cfg
+        self._setup = ViewSetup(ctl.plan, cfg.gate.tolerance_mm, cfg.gate.dwell_s,
+                                int(ctl.rig.flange_markers_mm.shape[0]))
         self._lock = threading.Lock()
         self._view: ConsoleView | None = None
         self._thread: threading.Thread | None = None
@@ -88,31 +92,16 @@ class ControllerRunner:
         return f"{host}:{port}, {self.igtl.clients} client(s)"
 
     def _publish(self, ended: bool = False) -> None:
-        ctl = self.ctl
-        comp: float | None = None
-        if ctl.state is State.COMPENSATE and ctl.comp_errors_mm:
-            comp = ctl.comp_errors_mm[-1]
-        elif ctl.state is State.LOCK and ctl.lock_errors:
-            comp = ctl.lock_errors[-1][0]
-        view = build_view(ctl, breathing_mm=list(self._breathing), comp_error_mm=comp,
-                          session_log=self.session_log, igtl=self._igtl_text(), ended=ended,
-                          error=self.error)
+        """One view from a fresh snapshot (the controller's thread; bounded work)."""
+        snap = self.ctl.snapshot()
+        if snap.reference_optical_mm is not None and snap.live_mm is not None:
+            dev, n = rms_deviation_mm(snap.reference_optical_mm, snap.live_mm)
+            if n > 0 and not ended:
+                self._breathing.append(dev)
+        view = build_view(snap, self._setup, breathing_mm=list(self._breathing),
+                          session_log=self.session_log, igtl=self._igtl_text(), ended=ended, error=self.error)
         with self._lock:
             self._view = view
-
-    def _sample_breathing(self) -> None:
-        ctl = self.ctl
-        if ctl.patient_reg is not None and ctl.live_mm is not None:
-            dev, n = rms_deviation_mm(ctl.patient_reg.reference_optical_mm, ctl.live_mm)
-            if n > 0:
-                self._breathing.append(dev)
-
-    def _publish_igtl(self) -> None:
-        if self.igtl is None:
-            return
-        from hil.igtl.snapshot import snapshot_from_controller
-
-        self.igtl.publish(snapshot_from_controller(self.ctl), self.ctl.clock.now_ns())
 
     def _abort_if_under_way(self) -> None:
         ctl = self.ctl
@@ -130,9 +119,7 @@ class ControllerRunner:
             while not self.operator.quit_requested:
                 ctl.tick()
                 self.ticks += 1
-                self._sample_breathing()
                 self._publish()
-                self._publish_igtl()
                 if self.pace:
                     ahead = (clock.now_ns() - sim0) * 1e-9 - (time.monotonic() - wall0)
                     if ahead > 0:

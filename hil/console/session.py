@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hil.cli.cmd_run import build_controller
+from hil.cli.cmd_run import build_controller, runtime_plugins
 from hil.clock import Clock, ManualClock
 from hil.config import build_devices, default_setup_path, load_setup
 from hil.config.build import Devices, clock_for
@@ -139,7 +139,8 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
         raise
     operator = ConsoleOperator()
     # The very controller `hil run` builds (locator, rig, limits, watchdogs, needle check, tracker use).
-    ctl = build_controller(setup, the_plan, devices, clock=clk, session=session, operator=operator)
+    ctl = build_controller(setup, the_plan, devices, clock=clk, session=session, operator=operator,
+                           hooks=runtime_plugins(igtl, the_plan))
     runner = ControllerRunner(ctl, operator, pace=isinstance(clk, ManualClock) and not fast, igtl=igtl,
                               session_log=str(session.path))
     runner.start()

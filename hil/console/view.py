@@ -4,7 +4,6 @@ work: a few small array operations), read by the UI thread. Immutable once built
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -12,10 +11,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hil.controller.fsm import State
-from hil.controller.gate import rms_deviation_mm
 
 if TYPE_CHECKING:
-    from hil.controller.controller import Controller
+    from hil.controller.plan_file import ProcedurePlan
+    from hil.controller.snapshot import ControllerSnapshot
 
 #: States shown on the workflow line, in procedure order.
 WORKFLOW: tuple[State, ...] = (State.IDLE, State.REGISTER, State.PLAN, State.APPROACH, State.GATE,
@@ -107,16 +106,27 @@ def _tuple3(p: Sequence[float] | np.ndarray) -> tuple[float, float, float]:
     return float(p[0]), float(p[1]), float(p[2])
 
 
-def _markers(ctl: Controller) -> tuple[MarkerRow, ...]:
+@dataclass(frozen=True)
+class ViewSetup:
+    """What the view needs beyond a snapshot, fixed for the session: the plan, the gate's
+    settings and the flange layout's size."""
+
+    plan: ProcedurePlan
+    gate_tolerance_mm: float
+    gate_dwell_s: float
+    flange_markers: int
+
+
+def _markers(snap: ControllerSnapshot, vs: ViewSetup) -> tuple[MarkerRow, ...]:
     rows: list[MarkerRow] = []
-    live = ctl.live_mm
-    n_skin = ctl.plan.fiducials_mm.shape[0]
-    preg, T_change = ctl.patient_reg, ctl.T_change_meas
+    live = snap.live_mm
+    n_skin = vs.plan.fiducials_mm.shape[0]
+    ref, T_change = snap.reference_optical_mm, snap.T_change_meas
     moved = None
     ref_ok = None
-    if preg is not None and T_change is not None:
-        moved = T_change.apply(np.nan_to_num(preg.reference_optical_mm))
-        ref_ok = np.all(np.isfinite(preg.reference_optical_mm), axis=1)
+    if ref is not None and T_change is not None:
+        moved = T_change.apply(np.nan_to_num(ref))
+        ref_ok = np.all(np.isfinite(ref), axis=1)
     for i in range(n_skin):
         pos = None
         res = None
@@ -125,8 +135,8 @@ def _markers(ctl: Controller) -> tuple[MarkerRow, ...]:
             if moved is not None and ref_ok is not None and bool(ref_ok[i]):
                 res = float(np.linalg.norm(moved[i] - live[i]))
         rows.append(MarkerRow("skin", i, pos, res))
-    fl = ctl.flange_mm
-    for i in range(ctl.rig.flange_markers_mm.shape[0]):
+    fl = snap.flange_mm
+    for i in range(vs.flange_markers):
         pos = None
         if fl is not None and i < fl.shape[0] and bool(np.all(np.isfinite(fl[i]))):
             pos = _tuple3(fl[i])
@@ -134,56 +144,39 @@ def _markers(ctl: Controller) -> tuple[MarkerRow, ...]:
     return tuple(rows)
 
 
-def _finite(x: float | None) -> float | None:
-    return x if x is not None and math.isfinite(x) else None
-
-
-def build_view(ctl: Controller, *, breathing_mm: Sequence[float], comp_error_mm: float | None,
+def build_view(snap: ControllerSnapshot, vs: ViewSetup, *, breathing_mm: Sequence[float],
                session_log: str, igtl: str, ended: bool = False, error: str = "") -> ConsoleView:
-    """Snapshot the controller (call in the controller thread, between ticks)."""
-    cfg = ctl.cfg
-    v = ctl.view()
-    dev: float | None = None
-    if ctl.patient_reg is not None and ctl.live_mm is not None:
-        dev = _finite(rms_deviation_mm(ctl.patient_reg.reference_optical_mm, ctl.live_mm)[0])
-    st = ctl.last_state
-    now_ns = ctl.clock.now_ns()
-    connected = st is not None and (now_ns - st.t_ns) * 1e-9 <= _ROBOT_FRESH_S and not (
-        v.state is State.FAULT and "disconnect" in v.last_reason.lower())
-    guide_err: float | None = None
-    if v.state in (State.APPROACH, State.GATE, State.COMPENSATE, State.LOCK):
-        try:
-            guide_err = _finite(ctl.guide_error_optical_mm())
-        except Exception:  # noqa: BLE001 - a display probe must never stop the loop
-            guide_err = None
-    plan = ctl.plan
-    timeline = tuple((float(r["t_s"]), str(r["state"]), str(r.get("reason") or ""))
-                     for r in ctl.timeline[-12:])
+    """The console's view of one controller snapshot (pure; any thread)."""
+    state = State(snap.state)
+    st = snap.robot
+    connected = st is not None and (snap.t_ns - st.t_ns) * 1e-9 <= _ROBOT_FRESH_S and not (
+        state is State.FAULT and "disconnect" in snap.last_reason.lower())
+    plan = vs.plan
+    timeline = tuple((r.t_s, r.state, r.reason) for r in snap.timeline[-12:])
     return ConsoleView(
-        t_s=v.t_s, state=v.state.value, pending=v.pending,
-        pending_reason="" if ctl.fsm.pending is None else ctl.fsm.pending.reason, last_reason=v.last_reason,
-        hint=hint_for(v.state, v.pending, cfg.gate.tolerance_mm, cfg.gate.dwell_s),
-        markers=_markers(ctl),
-        gate_deviation_mm=dev, gate_tolerance_mm=cfg.gate.tolerance_mm, gate_dwell_s=cfg.gate.dwell_s,
-        gate_open=v.state in (State.COMPENSATE, State.LOCK),
+        t_s=snap.t_s, state=snap.state, pending=snap.pending, pending_reason=snap.pending_reason,
+        last_reason=snap.last_reason,
+        hint=hint_for(state, snap.pending, vs.gate_tolerance_mm, vs.gate_dwell_s),
+        markers=_markers(snap, vs),
+        gate_deviation_mm=snap.gate_deviation_mm, gate_tolerance_mm=vs.gate_tolerance_mm,
+        gate_dwell_s=vs.gate_dwell_s,
+        gate_open=state in (State.COMPENSATE, State.LOCK),
         breathing_mm=tuple(breathing_mm),
         robot_connected=connected,
         robot_mode="unknown" if st is None else st.mode.value,
         robot_safety="unknown" if st is None else st.safety.value,
         robot_speed_mm_s=None if st is None else float(st.tcp_speed_mm_s),
         robot_tcp_mm=None if st is None else _tuple3(st.T_robot_from_tcp.t),
-        guide_error_mm=guide_err,
-        fre_mm=None if ctl.patient_reg is None else ctl.patient_reg.fre_rms_mm,
-        tre_expected_mm=None if ctl.patient_reg is None else ctl.patient_reg.tre_expected_mm,
-        robot_fre_mm=None if ctl.robot_reg is None else ctl.robot_reg.fre_rms_mm,
-        comp_error_mm=comp_error_mm,
-        faults=tuple(ctl.faults[-8:]),
+        guide_error_mm=snap.guide_error_mm,
+        fre_mm=snap.fre_mm, tre_expected_mm=snap.tre_expected_mm, robot_fre_mm=snap.robot_fre_mm,
+        comp_error_mm=snap.truth_error_mm,
+        faults=snap.faults[-8:],
         timeline=timeline,
         plan_source=plan.source, plan_fiducials=int(plan.fiducials_mm.shape[0]),
         plan_entry_mm=_tuple3(np.asarray(plan.entry_mm).reshape(3)),
         plan_target_mm=_tuple3(np.asarray(plan.target_mm).reshape(3)),
-        frames=ctl.frames, commands_sent=ctl.safety.commands_sent,
-        commands_refused=ctl.safety.commands_refused,
-        operator_commands_decided=ctl.operator_commands_decided,
+        frames=snap.frames, commands_sent=snap.commands_sent,
+        commands_refused=snap.commands_refused,
+        operator_commands_decided=snap.operator_commands_decided,
         session_log=session_log, igtl=igtl, ended=ended, error=error,
     )

@@ -78,6 +78,7 @@ class Controller(ControllerParts):
                                           "event": res.event.value, "confirmed": confirmed,
                                           "reason": res.reason if confirmed else reason})
                     self._enter(res)
+                    self._notify_transition(res)
         finally:
             self._processing = False
         return first

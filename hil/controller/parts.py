@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import abc
 import collections
-from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, cast
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from hil.controller.fsm import Event, FireResult, Fsm, State
 from hil.controller.markers import MarkerTracker
 from hil.controller.metrics import RunMetrics, RunSummary, TruthMeter, percentile
 from hil.controller.needle import NeedleAxisChecker, NeedleCheck
+from hil.controller.observers import HookCaller, Observers, TickObserver
 from hil.controller.operator_input import (
     AcknowledgingOperator,
     CommandResult,
@@ -45,6 +47,13 @@ from hil.controller.pipeline import DevicePipeline, MarkerLocator
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, RigGeometry
 from hil.controller.registration import PatientRegistration, RobotRegistration
+from hil.controller.snapshot import (
+    ControllerSnapshot,
+    TimelineRow,
+    frozen_array,
+    frozen_transform,
+    guide_in_image,
+)
 from hil.controller.supervisor import Supervisor
 from hil.controller.tracker_roles import TrackerRoles
 from hil.controller.tracker_use import TrackerUse
@@ -56,9 +65,13 @@ from hil.safety.watchdog import WatchdogSet
 from hil.session.log import SessionLog
 
 if TYPE_CHECKING:
-    from hil.controller.controller import Controller
+    pass
 
 _log = get_logger(__name__)
+
+
+def _finite(x: float | None) -> float | None:
+    return x if x is not None and math.isfinite(x) else None
 
 
 class ControllerParts(abc.ABC):
@@ -74,9 +87,10 @@ class ControllerParts(abc.ABC):
         limits: the safety layer's motion limits.
         watchdog_ages_s: ``{"camera": s, "robot": s, "tracker": s}``.
         session: the session log (every event, transition, command, measurement, fault).
-        observers: called with the controller at the end of every tick (display, OpenIGTLink);
-            read-only, in the controller's thread; their exceptions are logged
-            (``observer_failed``) and never stop the control loop.
+        observers: called with a frozen snapshot at the end of every tick (display, stream), in
+            the controller's thread; their exceptions are logged (``observer_failed``) and never
+            stop the control loop (:mod:`hil.controller.observers`).
+        hooks: the plugins' runtime hooks (``hil_on_tick``, ``hil_on_transition``), same rules.
         tracker_use: the magnetic tracker's part (``[procedure.tracking]``); None: not used.
         operator: operator input.
         coach: asks the patient for breath-holds (the simulated world, or None on a rig).
@@ -90,14 +104,14 @@ class ControllerParts(abc.ABC):
         limits: MotionLimits, watchdog_ages_s: dict[str, float], session: SessionLog,
         operator: Operator, coach: BreathHoldCoach | None = None, truth: GroundTruth | None = None,
         needle_check: NeedleAxisChecker | None = None,
-        observers: Sequence[Callable[[Controller], None]] = (),
+        observers: Sequence[TickObserver] = (),
         tracker_use: TrackerUse | None = None,
+        hooks: HookCaller | None = None,
     ) -> None:
         self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
         self.locate, self.plan, self.rig, self.cfg = locate, plan, rig, procedure
         self.session, self.operator, self.coach, self.truth = session, operator, coach, truth
-        self.observers = tuple(observers)
-        self._observer_errors: dict[int, str] = {}
+        self.observing = Observers(observers, hooks, session)
         self.tracker_use = tracker_use if tracker is not None else None
         self.fsm = Fsm(procedure.confirm, listener=self._on_fire)
         self.safety = SafetyLayer(robot, limits, clock,
@@ -191,17 +205,14 @@ class ControllerParts(abc.ABC):
                            tcp_speed_mm_s=st.tcp_speed_mm_s, live_mm=est.live_mm)
 
     def _notify_observers(self) -> None:
-        """Call every observer with the controller, after the tick (whatever it did). An
-        observer's exception is logged (``observer_failed``) and never reaches the control loop."""
-        for i, obs in enumerate(self.observers):
-            try:
-                obs(cast("Controller", self))
-            except Exception as exc:  # noqa: BLE001 - an observer (display, stream) must not stop control
-                name, error = getattr(obs, "__name__", repr(obs)), f"{type(exc).__name__}: {exc}"
-                _log.warning(ev.OBSERVER_FAILED, observer=name, error=error)
-                if self._observer_errors.get(i) != error:  # once per distinct error, not every tick
-                    self._observer_errors[i] = error
-                    self.session.write(ev.OBSERVER_FAILED, observer=name, error=error)
+        """After the tick (whatever it did): the observers and ``hil_on_tick`` get a snapshot."""
+        if self.observing.watching_ticks():
+            self.observing.on_tick(self.snapshot())
+
+    def _notify_transition(self, res: FireResult) -> None:
+        """After an applied transition's entry action: ``hil_on_transition`` gets it with a snapshot."""
+        if self.observing.watching_transitions():
+            self.observing.on_transition(res, self.snapshot())
 
     # ------------------------------------------------------------------ operator input
     def _handle_operator(self, cmd: OperatorCommand) -> None:
@@ -338,6 +349,43 @@ class ControllerParts(abc.ABC):
     def guide_error_optical_mm(self) -> float | None:
         """The camera-measured guide error against the patient as seen in the latest pair, mm."""
         return self.est.guide_error_optical_mm()
+
+    # ------------------------------------------------------------------ snapshot
+    def snapshot(self) -> ControllerSnapshot:
+        """The controller now, frozen (:mod:`hil.controller.snapshot`). Call in the controller's
+        thread, between ticks; bounded work."""
+        est, state = self.est, self.state
+        p = self.fsm.pending
+        guide_err: float | None = None
+        if state in (State.APPROACH, State.GATE, State.COMPENSATE, State.LOCK):
+            guide_err = _finite(est.guide_error_optical_mm())
+        truth: float | None = None
+        if state is State.COMPENSATE and self.truth_meter.comp_errors_mm:
+            truth = self.truth_meter.comp_errors_mm[-1]
+        elif state is State.LOCK and self.truth_meter.lock_errors:
+            truth = self.truth_meter.lock_errors[-1][0]
+        preg, rreg = est.patient_reg, est.robot_reg
+        return ControllerSnapshot(
+            t_ns=self.clock.now_ns(), t_s=self.t_s(), state=state.value, sub_state=self.sub_state,
+            pending=None if p is None else p.goto.name, pending_reason="" if p is None else p.reason,
+            last_reason=self._last_reason, started=self._started,
+            timeline=tuple(TimelineRow(float(r["t_s"]), str(r["state"]), str(r.get("reason") or ""))
+                           for r in self.timeline),
+            fre_mm=None if preg is None else preg.fre_rms_mm,
+            tre_expected_mm=None if preg is None else preg.tre_expected_mm,
+            robot_fre_mm=None if rreg is None else rreg.fre_rms_mm,
+            T_optical_from_image=frozen_transform(None if preg is None else preg.T_optical_from_image),
+            T_robot_from_optical=frozen_transform(None if rreg is None else rreg.T_robot_from_optical),
+            T_bias=frozen_transform(est.T_bias) or RigidTransform.identity(),
+            T_change_meas=frozen_transform(est.T_change_meas),
+            T_image_from_guide=frozen_transform(guide_in_image(est)),
+            reference_optical_mm=frozen_array(None if preg is None else preg.reference_optical_mm),
+            live_mm=frozen_array(est.live_mm), flange_mm=frozen_array(est.flange_mm),
+            gate_deviation_mm=_finite(est.gate_deviation_mm()), guide_error_mm=guide_err,
+            robot=est.last_state, tracker=dict(est.tracker_samples), faults=tuple(self.faults),
+            frames=self.metrics.frames, commands_sent=self.safety.commands_sent,
+            commands_refused=self.safety.commands_refused,
+            operator_commands_decided=self.operator_commands_decided, truth_error_mm=truth)
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> RunSummary:

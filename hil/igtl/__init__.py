@@ -2,6 +2,6 @@
 sensors. Optional: needs the ``igtl`` extra (pyigtl). See docs/igtl.md."""
 
 from hil.igtl.config import IgtlConfig
-from hil.igtl.snapshot import IgtlSnapshot, guide_in_image, snapshot_from_controller
+from hil.igtl.snapshot import IgtlSnapshot, igtl_snapshot
 
-__all__ = ["IgtlConfig", "IgtlSnapshot", "guide_in_image", "snapshot_from_controller"]
+__all__ = ["IgtlConfig", "IgtlSnapshot", "igtl_snapshot"]

@@ -28,7 +28,8 @@ from numpy.typing import NDArray
 from hil.geometry.transform import RigidTransform
 
 if TYPE_CHECKING:
-    from hil.controller.controller import Controller
+    from hil.controller.plan_file import ProcedurePlan
+    from hil.controller.snapshot import ControllerSnapshot
 
 FloatArray = NDArray[np.float64]
 
@@ -48,42 +49,23 @@ def _sensor_device_name(sensor: str) -> str:
     return f"{clean}ToTracker"
 
 
-def guide_in_image(ctrl: Controller) -> RigidTransform | None:
-    """``T_image_from_guide`` from a controller's registrations, bias, live change and robot
-    state (see the module doc); None before both registrations and a robot state exist."""
-    preg, rreg, st = ctrl.patient_reg, ctrl.robot_reg, ctrl.last_state
-    if preg is None or rreg is None or st is None:
-        return None
-    T_change = ctrl.T_change_meas if ctrl.T_change_meas is not None else RigidTransform.identity()
-    T_optical_from_tcp = rreg.T_robot_from_optical.inverse() @ ctrl.T_bias.inverse() @ st.T_robot_from_tcp
-    return (preg.T_optical_from_image.inverse() @ T_change.inverse() @ T_optical_from_tcp
-            @ ctrl.rig.T_tcp_from_guide)
-
-
-def snapshot_from_controller(ctrl: Controller) -> IgtlSnapshot:
-    """Build the snapshot from a :class:`hil.controller.controller.Controller` (read-only; call it
-    in the controller's thread, between ticks)."""
+def igtl_snapshot(snap: ControllerSnapshot, plan: ProcedurePlan) -> IgtlSnapshot:
+    """The messages for one controller snapshot (module doc). ``plan`` gives the Plan points."""
     tf: dict[str, FloatArray] = {}
-    g = guide_in_image(ctrl)
-    if g is not None:
-        tf["GuideToImage"] = g.as_matrix()
-    preg = ctrl.patient_reg
-    if preg is not None:
-        tf["ImageToOptical"] = preg.T_optical_from_image.as_matrix()
-        T_change = ctrl.T_change_meas if ctrl.T_change_meas is not None else RigidTransform.identity()
-        tf["PatientToOptical"] = (T_change @ preg.T_optical_from_image).as_matrix()
-    tracker = ctrl.tracker
-    if tracker is not None:
-        for name, sample in sorted(tracker.latest().items()):
-            if not sample.missing and sample.T_tracker_from_sensor is not None:
-                tf[_sensor_device_name(name)] = sample.T_tracker_from_sensor.as_matrix()
-    view = ctrl.view()
-    status = f"state={view.state.value}"
-    if view.pending:
-        status += f" pending={view.pending}"
-    if view.last_reason:
-        status += f" reason={view.last_reason}"
-    plan = ctrl.plan
+    if snap.T_image_from_guide is not None:
+        tf["GuideToImage"] = snap.T_image_from_guide.as_matrix()
+    if snap.T_optical_from_image is not None:
+        tf["ImageToOptical"] = snap.T_optical_from_image.as_matrix()
+        T_change = snap.T_change_meas if snap.T_change_meas is not None else RigidTransform.identity()
+        tf["PatientToOptical"] = (T_change @ snap.T_optical_from_image).as_matrix()
+    for name, sample in sorted(snap.tracker.items()):
+        if not sample.missing and sample.T_tracker_from_sensor is not None:
+            tf[_sensor_device_name(name)] = sample.T_tracker_from_sensor.as_matrix()
+    status = f"state={snap.state}"
+    if snap.pending:
+        status += f" pending={snap.pending}"
+    if snap.last_reason:
+        status += f" reason={snap.last_reason}"
     points = {"entry": np.asarray(plan.entry_mm, dtype=np.float64).reshape(3),
               "target": np.asarray(plan.target_mm, dtype=np.float64).reshape(3)}
     return IgtlSnapshot(tf, status, points)

@@ -10,6 +10,7 @@ import pytest
 from hil.config import load_setup
 from hil.controller.controller import Controller
 from hil.controller.plan_file import load_plan
+from hil.controller.snapshot import ControllerSnapshot
 from hil.session import read_session_log
 
 CONFIG = Path("configs/sim.toml")
@@ -29,10 +30,10 @@ def test_observers_see_every_tick_and_their_failures_are_logged_once(
 
     seen: list[tuple[str, int]] = []
 
-    def watcher(ctl: Controller) -> None:
-        seen.append((ctl.state.value, ctl.frames))
+    def watcher(snap: ControllerSnapshot) -> None:
+        seen.append((snap.state, snap.frames))
 
-    def broken(ctl: Controller) -> None:
+    def broken(snap: ControllerSnapshot) -> None:
         raise RuntimeError("display gone")
 
     real = cmd_run.Controller

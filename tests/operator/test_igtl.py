@@ -12,10 +12,9 @@ import pytest
 from pydantic import ValidationError
 
 from hil.clock import ManualClock
-from hil.controller.fsm import State
-from hil.controller.operator_input import OperatorView
+from hil.controller.snapshot import ControllerSnapshot, guide_in_image
 from hil.geometry.transform import RigidTransform
-from hil.igtl import IgtlConfig, IgtlSnapshot, guide_in_image, snapshot_from_controller
+from hil.igtl import IgtlConfig, IgtlSnapshot, igtl_snapshot
 from hil.igtl.server import IgtlError, IgtlServer
 
 DEADLINE_S = 5.0
@@ -121,22 +120,29 @@ def test_no_client_nothing_queued_and_close_is_idempotent() -> None:
     srv.close()
 
 
-def _fake_controller(T_optical_from_image: RigidTransform, T_robot_from_optical: RigidTransform,
-                     T_change: RigidTransform, T_bias: RigidTransform, T_robot_from_tcp: RigidTransform,
-                     T_tcp_from_guide: RigidTransform) -> SimpleNamespace:
-    """The attributes snapshot_from_controller reads, with the Controller's names."""
-    ref = RigidTransform.from_rotvec([0.1, 0.2, 0.3], [5.0, 6.0, 7.0])
-    sensors = {"reference": SimpleNamespace(missing=False, T_tracker_from_sensor=ref),
-               "needle": SimpleNamespace(missing=True, T_tracker_from_sensor=None)}
+def _fake_estimate(T_optical_from_image: RigidTransform, T_robot_from_optical: RigidTransform,
+                   T_change: RigidTransform, T_bias: RigidTransform, T_robot_from_tcp: RigidTransform,
+                   T_tcp_from_guide: RigidTransform) -> SimpleNamespace:
+    """The attributes guide_in_image reads, with the Estimate's names."""
     return SimpleNamespace(
         patient_reg=SimpleNamespace(T_optical_from_image=T_optical_from_image),
         robot_reg=SimpleNamespace(T_robot_from_optical=T_robot_from_optical),
         last_state=SimpleNamespace(T_robot_from_tcp=T_robot_from_tcp),
-        T_change_meas=T_change, T_bias=T_bias, rig=SimpleNamespace(T_tcp_from_guide=T_tcp_from_guide),
-        tracker=SimpleNamespace(latest=lambda: sensors),
-        view=lambda: OperatorView(State.COMPENSATE, None, "gate open", 12.0, True),
-        plan=SimpleNamespace(entry_mm=np.array([1.0, 2.0, 3.0]), target_mm=np.array([1.0, 2.0, -70.0])),
-    )
+        T_change_meas=T_change, T_bias=T_bias, rig=SimpleNamespace(T_tcp_from_guide=T_tcp_from_guide))
+
+
+PLAN = SimpleNamespace(entry_mm=np.array([1.0, 2.0, 3.0]), target_mm=np.array([1.0, 2.0, -70.0]))
+
+
+def _snapshot(T_image_from_guide: RigidTransform | None, T_optical_from_image: RigidTransform | None,
+              T_change: RigidTransform | None, tracker: dict[str, object]) -> ControllerSnapshot:
+    return ControllerSnapshot(
+        t_ns=12_000_000_000, t_s=12.0, state="compensate", sub_state="tracking", pending=None,
+        pending_reason="", last_reason="gate open", started=True, timeline=(), fre_mm=0.1,
+        tre_expected_mm=0.2, robot_fre_mm=0.05, T_optical_from_image=T_optical_from_image,
+        T_robot_from_optical=None, T_bias=RigidTransform.identity(), T_change_meas=T_change,
+        T_image_from_guide=T_image_from_guide, reference_optical_mm=None, live_mm=None, flange_mm=None,
+        gate_deviation_mm=None, guide_error_mm=None, robot=None, tracker=tracker)  # type: ignore[arg-type]
 
 
 def test_guide_in_image_follows_the_moving_patient() -> None:
@@ -151,23 +157,26 @@ def test_guide_in_image_follows_the_moving_patient() -> None:
     # where the robot must be (robot frame) for the guide to be there, seen by the camera
     T_optical_from_guide = T_change @ T_oi @ T_image_from_guide_wanted
     T_robot_from_tcp = T_bias @ T_ro @ T_optical_from_guide @ T_tg.inverse()
-    ctrl = _fake_controller(T_oi, T_ro, T_change, T_bias, T_robot_from_tcp, T_tg)
-    got = guide_in_image(ctrl)  # type: ignore[arg-type]
+    est = _fake_estimate(T_oi, T_ro, T_change, T_bias, T_robot_from_tcp, T_tg)
+    got = guide_in_image(est)  # type: ignore[arg-type]
     assert got is not None
     np.testing.assert_allclose(got.as_matrix(), T_image_from_guide_wanted.as_matrix(), atol=1e-9)
-    snap = snapshot_from_controller(ctrl)  # type: ignore[arg-type]
+    ref = RigidTransform.from_rotvec([0.1, 0.2, 0.3], [5.0, 6.0, 7.0])
+    sensors = {"reference": SimpleNamespace(missing=False, T_tracker_from_sensor=ref),
+               "needle": SimpleNamespace(missing=True, T_tracker_from_sensor=None)}
+    snap = igtl_snapshot(_snapshot(got, T_oi, T_change, sensors), PLAN)  # type: ignore[arg-type]
     assert sorted(snap.transforms) == ["GuideToImage", "ImageToOptical", "PatientToOptical",
                                        "ReferenceToTracker"]
+    np.testing.assert_allclose(snap.transforms["GuideToImage"], T_image_from_guide_wanted.as_matrix(),
+                               atol=1e-9)
     np.testing.assert_allclose(snap.transforms["PatientToOptical"], (T_change @ T_oi).as_matrix(), atol=1e-12)
-    np.testing.assert_allclose(snap.transforms["ReferenceToTracker"],
-                               RigidTransform.from_rotvec([0.1, 0.2, 0.3], [5.0, 6.0, 7.0]).as_matrix())
+    np.testing.assert_allclose(snap.transforms["ReferenceToTracker"], ref.as_matrix())
     assert snap.status == "state=compensate reason=gate open"
     np.testing.assert_array_equal(snap.points["target"], [1.0, 2.0, -70.0])
 
 
 def test_nothing_before_registration() -> None:
-    ctrl = _fake_controller(*(RigidTransform.identity(),) * 6)
-    ctrl.patient_reg = None
-    ctrl.tracker = None
-    assert guide_in_image(ctrl) is None  # type: ignore[arg-type]
-    assert snapshot_from_controller(ctrl).transforms == {}  # type: ignore[arg-type]
+    est = _fake_estimate(*(RigidTransform.identity(),) * 6)
+    est.patient_reg = None
+    assert guide_in_image(est) is None  # type: ignore[arg-type]
+    assert igtl_snapshot(_snapshot(None, None, None, {}), PLAN).transforms == {}  # type: ignore[arg-type]

@@ -1,0 +1,103 @@
+"""What observers see: a frozen :class:`ControllerSnapshot`, built by the controller thread after
+each tick (bounded work: a few small array copies) and never changed afterwards.
+
+Observers — the console, the OpenIGTLink stream, runtime plugins (``hil_on_tick``,
+``hil_on_transition``) — read snapshots or the session log, never the controller: they cannot
+see half-updated state and cannot command a device. Units: mm, seconds; frames in the names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.interfaces.robot import RobotState
+from drivers.interfaces.tracker import TrackerSample
+from hil.controller.estimate import Estimate
+from hil.geometry.transform import RigidTransform
+
+FloatArray = NDArray[np.float64]
+
+
+def frozen_array(a: FloatArray | None) -> FloatArray | None:
+    if a is None:
+        return None
+    out = np.array(a, dtype=np.float64, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+def frozen_transform(T: RigidTransform | None) -> RigidTransform | None:
+    if T is None:
+        return None
+    R, t = np.array(T.R, copy=True), np.array(T.t, copy=True)
+    R.setflags(write=False)
+    t.setflags(write=False)
+    return RigidTransform(R, t)
+
+
+@dataclass(frozen=True)
+class TimelineRow:
+    """One applied transition: when (s since start), the state entered, why."""
+
+    t_s: float
+    state: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class ControllerSnapshot:
+    """The controller after one tick (module doc). Arrays are read-only copies."""
+
+    t_ns: int
+    t_s: float
+    state: str
+    sub_state: str | None
+    pending: str | None
+    pending_reason: str
+    last_reason: str
+    started: bool
+    timeline: tuple[TimelineRow, ...]
+    # registration
+    fre_mm: float | None
+    tre_expected_mm: float | None
+    robot_fre_mm: float | None
+    T_optical_from_image: RigidTransform | None
+    T_robot_from_optical: RigidTransform | None
+    T_bias: RigidTransform
+    T_change_meas: RigidTransform | None
+    #: the guide in the CT frame, where the controller believes it is (see :func:`guide_in_image`)
+    T_image_from_guide: RigidTransform | None
+    # markers, optical frame (NaN rows: not seen)
+    reference_optical_mm: FloatArray | None
+    live_mm: FloatArray | None
+    flange_mm: FloatArray | None
+    gate_deviation_mm: float | None
+    guide_error_mm: float | None
+    # devices
+    robot: RobotState | None
+    tracker: dict[str, TrackerSample] = field(default_factory=dict)
+    # counts
+    faults: tuple[str, ...] = ()
+    frames: int = 0
+    commands_sent: int = 0
+    commands_refused: int = 0
+    operator_commands_decided: int = 0
+    #: the simulator's truth: the latest guide error in COMPENSATE or LOCK (None on a rig)
+    truth_error_mm: float | None = None
+
+
+def guide_in_image(est: Estimate) -> RigidTransform | None:
+    """``T_image_from_guide``: the needle guide in the CT frame from the registrations, the
+    closed-loop bias, the live rigid change and the robot state (seed 000 eq 12 and §3):
+    ``T_optical_from_image^-1 @ T_change^-1 @ T_robot_from_optical^-1 @ T_bias^-1 @
+    T_robot_from_tcp @ T_tcp_from_guide``; None before both registrations and a robot state."""
+    preg, rreg, st = est.patient_reg, est.robot_reg, est.last_state
+    if preg is None or rreg is None or st is None:
+        return None
+    T_change = est.T_change_meas if est.T_change_meas is not None else RigidTransform.identity()
+    T_optical_from_tcp = rreg.T_robot_from_optical.inverse() @ est.T_bias.inverse() @ st.T_robot_from_tcp
+    return (preg.T_optical_from_image.inverse() @ T_change.inverse() @ T_optical_from_tcp
+            @ est.rig.T_tcp_from_guide)
