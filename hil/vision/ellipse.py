@@ -300,3 +300,51 @@ def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]
             )
         )
     return out
+
+
+def circle_normals_from_conics(
+    C_px: FloatArray, K: FloatArray
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """:func:`circle_normals_from_conic` for a stack of conics (P, 3, 3) seen by one camera ``K``:
+    the two candidate normals (P, 3) each and a validity mask (P,) (False: not an ellipse)."""
+    P = C_px.shape[0]
+    if P == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=bool)
+    Q = K.T @ C_px @ K
+    lam, V = np.linalg.eigh(Q)  # ascending
+    flip = np.sum(lam > 0, axis=1) == 1
+    # descending order l1 >= l2 > 0 > l3: reversed, or (after negating a one-positive spectrum)
+    # the negated ascending order
+    l1 = np.where(flip, -lam[:, 0], lam[:, 2])
+    l2 = np.where(flip, -lam[:, 1], lam[:, 1])
+    l3 = np.where(flip, -lam[:, 2], lam[:, 0])
+    v1 = np.where(flip[:, None], V[:, :, 0], V[:, :, 2])
+    v3 = np.where(flip[:, None], V[:, :, 2], V[:, :, 0])
+    ok = (l1 >= l2) & (l2 > 0) & (l3 < 0)
+    den = np.where(ok, l1 - l3, 1.0)
+    g = np.sqrt(np.maximum((l1 - l2) / den, 0.0))
+    h = np.sqrt(np.maximum((l2 - l3) / den, 0.0))
+    out = []
+    for sgn in (1.0, -1.0):
+        n = v1 * (sgn * g)[:, None] + v3 * h[:, None]
+        n = n / np.linalg.norm(n, axis=1, keepdims=True)
+        n = np.where((n[:, 2] > 0)[:, None], -n, n)
+        out.append(np.asarray(n, dtype=np.float64))
+    return out[0], out[1], np.asarray(ok, dtype=np.bool_)
+
+
+def projected_centers_from_normals(C_px: FloatArray, K: FloatArray, normals: FloatArray) -> FloatArray:
+    """:func:`projected_center_from_normal` for stacks: conics (P, 3, 3), normals (P, 3) -> (P, 2)."""
+    fx, s, cx, fy, cy = float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])
+    n0, n1, n2 = normals[:, 0], normals[:, 1], normals[:, 2]
+    l0 = n0 / fx
+    l1 = (n1 - s * l0) / fy
+    l2 = n2 - cx * l0 - cy * l1
+    a, b, d = C_px[:, 0, 0], C_px[:, 0, 1], C_px[:, 0, 2]
+    c, e, f = C_px[:, 1, 1], C_px[:, 1, 2], C_px[:, 2, 2]
+    A00, A01, A02 = c * f - e * e, d * e - b * f, b * e - c * d
+    A11, A12, A22 = a * f - d * d, b * d - a * e, a * c - b * b
+    p0 = A00 * l0 + A01 * l1 + A02 * l2
+    p1 = A01 * l0 + A11 * l1 + A12 * l2
+    p2 = A02 * l0 + A12 * l1 + A22 * l2
+    return np.stack([p0 / p2, p1 / p2], axis=1)

@@ -1,0 +1,174 @@
+"""Sub-pixel ring edges of many markers at once (steps 3-5 of :mod:`hil.vision.detect`).
+
+Given an initial guess of each ring (a ray origin near its centre and the outer / inner ellipse
+sizes), intensity profiles are sampled along ``n_rays`` rays from the origin (bicubic, every
+0.25 px, one ``cv2.remap`` over the whole image for all rings), the outer and inner edges are the
+mid-level crossings between the ring level and the background / hole level, each edge gets the
+direct ellipse-specific fit (Fitzgibbon 1999) with one robust re-fit, and the ring check and the
+centre estimate of :func:`hil.vision.detect.finish_ring` follow.
+
+Full-frame detection seeds it from the coarse contours of each candidate; the tracking locator
+(:mod:`hil.vision.tracking`) seeds it from each marker's predicted position and last ellipses. The
+arithmetic is the same for both, so the two modes share one centre estimator. Cost grows with
+the number of rings and their size, not with the image size.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+U8Image = NDArray[np.uint8]
+
+#: radial step of the profiles, px
+RAY_STEP_PX = 0.25
+
+
+@dataclass(frozen=True)
+class RingSeeds:
+    """Initial guesses of E rings (pixels, full-image coordinates).
+
+    origin_px: (E, 2) ray origins (near each ring's centre). outer / inner: (E, 3) semi-axes
+    ``a, b`` and major-axis angle (rad) of the expected outer / inner edge, centred on the origin.
+    dark_on_light: (E,) polarity.
+    """
+
+    origin_px: FloatArray
+    outer: FloatArray
+    inner: FloatArray
+    dark_on_light: BoolArray
+
+    @property
+    def count(self) -> int:
+        return int(self.origin_px.shape[0])
+
+    @staticmethod
+    def stack(seeds: list[RingSeeds]) -> RingSeeds:
+        if not seeds:
+            return RingSeeds(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=bool))
+        return RingSeeds(
+            np.concatenate([s.origin_px for s in seeds]),
+            np.concatenate([s.outer for s in seeds]),
+            np.concatenate([s.inner for s in seeds]),
+            np.concatenate([s.dark_on_light for s in seeds]),
+        )
+
+
+@dataclass(frozen=True)
+class RingEdges:
+    """Edge points of E rings on all rays: (E, n_rays) coordinates with masks (edge found), the
+    fraction of rays with both edges, and ``ok`` (E,): contrast and fraction checks passed."""
+
+    xo: FloatArray
+    yo: FloatArray
+    mo: BoolArray
+    xi: FloatArray
+    yi: FloatArray
+    mi: BoolArray
+    frac: FloatArray
+    ok: BoolArray
+    dark_on_light: BoolArray
+
+
+def ellipse_radius(a: FloatArray, b: FloatArray, angle: FloatArray, theta: FloatArray) -> FloatArray:
+    """Distance from an ellipse's centre to its edge along directions ``theta``: (E,) x (n,) -> (E, n)."""
+    phi = theta[None, :] - angle[:, None]
+    a2, b2 = a[:, None], b[:, None]
+    return np.asarray(a2 * b2 / np.sqrt((b2 * np.cos(phi)) ** 2 + (a2 * np.sin(phi)) ** 2), dtype=np.float64)
+
+
+def _upper_median(values: FloatArray, mask: BoolArray) -> tuple[FloatArray, BoolArray]:
+    """Per row, the element of rank ``count // 2`` of the masked values (the upper median, as
+    ``np.partition(x, x.size // 2)``), and whether the row had any value."""
+    v = np.sort(np.where(mask, values, np.inf), axis=1)
+    cnt = mask.sum(axis=1)
+    med = np.take_along_axis(v, (cnt // 2)[:, None], axis=1)[:, 0]
+    return med, cnt > 0
+
+
+def ring_edges(
+    img: U8Image, seeds: RingSeeds, n_rays: int, min_contrast: float, min_valid_fraction: float
+) -> RingEdges:
+    """Sub-pixel outer and inner edge points of every seeded ring (see the module doc).
+
+    A ring fails (``ok`` False) when its ring is not ``min_contrast`` grey levels darker than the
+    background (and 0.35 of that than its hole), or when both edges are found on fewer than
+    ``min_valid_fraction`` of the rays; an edge further than ``1.5 + 0.15 r`` (outer) or
+    ``1.5 + 0.25 r`` (inner) px from the seed's radius on a ray does not count. Pure CPU.
+    """
+    E, n, ds = seeds.count, n_rays, RAY_STEP_PX
+    theta: FloatArray = np.arange(n, dtype=np.float64) * (2 * math.pi / n)
+    cos_t, sin_t = np.cos(theta), np.sin(theta)
+    if E == 0:
+        z, zb = np.zeros((0, n)), np.zeros((0, n), dtype=bool)
+        return RingEdges(z, z, zb, z, z, zb, np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool))
+    r_out = ellipse_radius(seeds.outer[:, 0], seeds.outer[:, 1], seeds.outer[:, 2], theta)
+    r_in = ellipse_radius(seeds.inner[:, 0], seeds.inner[:, 1], seeds.inner[:, 2], theta)
+    r_max = r_out.max(axis=1) + 3.0
+    n_samples = np.ceil(r_max / ds).astype(np.int64)  # len(np.arange(0, r_max, ds)) per ring
+    S = int(n_samples.max())
+    r = np.arange(S, dtype=np.float64) * ds
+    valid = np.arange(S)[None, :] < n_samples[:, None]  # (E, S)
+    ox, oy = seeds.origin_px[:, 0], seeds.origin_px[:, 1]
+    mapx = (ox[:, None, None] + r[None, None, :] * cos_t[None, :, None]).astype(np.float32)
+    mapy = (oy[:, None, None] + r[None, None, :] * sin_t[None, :, None]).astype(np.float32)
+    prof = cv2.remap(
+        img, mapx.reshape(E * n, S), mapy.reshape(E * n, S), cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE
+    ).astype(np.float64).reshape(E, n, S)
+    dol = seeds.dark_on_light
+    if not np.all(dol):
+        prof = np.where(dol[:, None, None], prof, 255.0 - prof)
+    rr = r[None, None, :]
+    valid3 = valid[:, None, :]
+    in_ring = (rr >= r_in[:, :, None] - 0.5) & (rr <= r_out[:, :, None] + 0.5) & valid3
+    ring_prof = np.where(in_ring, prof, np.inf)
+    jmin = np.argmin(ring_prof, axis=2)  # (E, n)
+    ring_min = np.min(ring_prof, axis=2)
+    ring_level, _ = _upper_median(ring_min, np.ones_like(ring_min, dtype=bool))
+    tail = (rr >= r_out[:, :, None] + 1.8) & valid3
+    bg_level, has_tail = _upper_median(prof.reshape(E, n * S), tail.reshape(E, n * S))
+    if not np.all(has_tail):
+        last = prof[np.arange(E), :, n_samples - 1].mean(axis=1)
+        bg_level = np.where(has_tail, bg_level, last)
+    hole_r = np.maximum(0.35 * r_in.min(axis=1), 0.3)
+    hole = np.broadcast_to(((r[None, :] <= hole_r[:, None]) & valid)[:, None, :], (E, n, S))
+    hole_level, _ = _upper_median(prof.reshape(E, n * S), hole.reshape(E, n * S))
+    contrast_ok = (bg_level - ring_level >= min_contrast) & (hole_level - ring_level >= 0.35 * min_contrast)
+    t_out = (0.5 * (bg_level + ring_level))[:, None, None]
+    t_in = (0.5 * (hole_level + ring_level))[:, None, None]
+    ridx = np.arange(S)[None, None, :]
+    ee, nn = np.arange(E)[:, None], np.arange(n)[None, :]
+    # outer edge: first sample past the ring minimum at or above t_out
+    above_o = (prof >= t_out) & (ridx > jmin[:, :, None]) & valid3
+    jo = np.argmax(above_o, axis=2)
+    ok_o = above_o[ee, nn, jo] & (jo > 0)
+    jo1 = np.maximum(jo - 1, 0)
+    p1, p0 = prof[ee, nn, jo], prof[ee, nn, jo1]
+    ro_sub = r[jo1] + ds * (t_out[:, :, 0] - p0) / np.where(p1 - p0 == 0, 1e-9, p1 - p0)
+    # inner edge: last sample before the ring minimum at or above t_in
+    above_i = (prof >= t_in) & (ridx < jmin[:, :, None])
+    ji = S - 1 - np.argmax(above_i[:, :, ::-1], axis=2)
+    ok_i = above_i[ee, nn, ji] & (ji < S - 1)
+    q0, q1 = prof[ee, nn, ji], prof[ee, nn, np.minimum(ji + 1, S - 1)]
+    ri_sub = r[ji] + ds * (q0 - t_in[:, :, 0]) / np.where(q0 - q1 == 0, 1e-9, q0 - q1)
+    ok_o &= np.abs(ro_sub - r_out) < 1.5 + 0.15 * r_out
+    ok_i &= np.abs(ri_sub - r_in) < 1.5 + 0.25 * r_in
+    frac = np.count_nonzero(ok_o & ok_i, axis=1) / n
+    ok = contrast_ok & (frac >= min_valid_fraction)
+    return RingEdges(
+        ox[:, None] + ro_sub * cos_t,
+        oy[:, None] + ro_sub * sin_t,
+        ok_o,
+        ox[:, None] + ri_sub * cos_t,
+        oy[:, None] + ri_sub * sin_t,
+        ok_i,
+        frac,
+        ok,
+        dol.copy(),
+    )
