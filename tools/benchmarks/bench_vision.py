@@ -449,8 +449,8 @@ def _print_sequence(r: dict[str, Any]) -> None:
     print(f"{'3D error / bound':<28}" + "".join(f"{m['err3d_mm_rms'] / b:>14.2f}" for _, m in rows)
           + f"   (bound {b:.4f} mm)")
     print(f"{'missed / false':<28}" + "".join(f"{m['missed']:>8} / {m['false']:<3}" for _, m in rows))
-    print(f"full-frame re-acquisitions (both images): {sq['reacquisitions']}, markers lost from their window: "
-          f"{sq['losses']}")
+    print(f"full-frame re-acquisitions (both images): {sq['reacquisitions']}, "
+          f"markers lost from their window: {sq['losses']}")
 
 
 def _print_scaling(rows: list[dict[str, Any]]) -> None:
