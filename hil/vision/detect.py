@@ -26,7 +26,7 @@ kept for comparison.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -35,8 +35,8 @@ from numpy.typing import NDArray
 
 from hil.errors import VisionError
 from hil.vision.conics import concentric_center, conic_center
-from hil.vision.ellipse import Ellipse, fit_conic_paper, fit_ellipses_robust_batch
-from hil.vision.ring_edges import RingEdges, RingSeeds, ring_edges
+from hil.vision.ellipse import Ellipse, fit_conic_paper, fit_ellipse_arrays
+from hil.vision.ring_edges import RingEdges, RingSeeds, ring_edges, ring_edges_multi
 
 FloatArray = NDArray[np.float64]
 U8Image = NDArray[np.uint8]
@@ -291,50 +291,58 @@ def edges_of(img: U8Image, seeds: RingSeeds, params: DetectParams) -> RingEdges:
     return ring_edges(img, seeds, params.n_rays, params.min_contrast, params.min_valid_fraction)
 
 
-def finish_ring(
-    eo: Ellipse | None, ei: Ellipse | None, frac: float, dark_on_light: bool, params: DetectParams
-) -> RingDetection | None:
-    """The ring check and the centre estimate of a fitted outer/inner ellipse pair (None: not a
-    ring marker): residuals, concentricity, inner/outer size ratio, equal eccentricity."""
-    if eo is None or ei is None:
-        return None
-    if eo.residual_rms_px > params.max_residual_px or ei.residual_rms_px > params.max_residual_px:
-        return None
-    if float(np.linalg.norm(eo.center_px - ei.center_px)) > params.concentric_tol * eo.a_px + 0.15:
-        return None
-    ratio = math.sqrt(ei.a_px * ei.b_px / (eo.a_px * eo.b_px))
-    if abs(ratio - params.inner_outer_ratio) > params.ratio_tol:
-        return None
-    if abs(eo.b_px / eo.a_px - ei.b_px / ei.a_px) > params.eccentricity_tol:
-        return None
-    # centre: the conic centres weighted by edge length (the number of independent edge pixels;
-    # the per-point residuals understate the inner edge's pixel-grid bias), and its uncertainty
-    # from the circle-fit variance 2 sigma^2 / N per axis of each ellipse
-    wo, wi = center_weights(eo, ei)
-    center = wo * eo.center_px + wi * ei.center_px
-    var_o = 2.0 * max(eo.residual_rms_px, 0.01) ** 2 / eo.n_points
-    var_i = 2.0 * max(ei.residual_rms_px, 0.01) ** 2 / ei.n_points
-    sigma = math.sqrt(wo * wo * var_o + wi * wi * var_i)
-    n_all = eo.n_points + ei.n_points
-    resid = math.sqrt((eo.residual_rms_px**2 * eo.n_points + ei.residual_rms_px**2 * ei.n_points) / n_all)
-    return RingDetection(center, sigma, eo, ei, resid, dark_on_light, frac)
-
-
 def fit_rings(edges: RingEdges, params: DetectParams) -> list[RingDetection | None]:
-    """Robust ellipse fits of every ring's two edges in one batch, then :func:`finish_ring`;
-    None for a ring whose edges failed (``edges.ok`` False) or that fails the ring check."""
+    """Robust ellipse fits of every ring's two edges in one batch, then the ring check and the
+    centre estimate, all rings at once; None for a ring whose edges failed (``edges.ok`` False)
+    or that is not a ring marker.
+
+    Ring check: both fits real ellipses with RMS residual <= ``max_residual_px``, concentric
+    (centre distance <= ``concentric_tol`` x outer a + 0.15 px), inner/outer size ratio within
+    ``ratio_tol`` of the marker's, equal eccentricity (|b/a| difference <= ``eccentricity_tol``).
+    Centre: the two conic centres weighted by edge length (the number of independent edge pixels;
+    the per-point residuals understate the inner edge's pixel-grid bias); its uncertainty from the
+    circle-fit variance 2 sigma^2 / N per axis of each ellipse.
+    """
     idx = np.nonzero(edges.ok)[0]
     out: list[RingDetection | None] = [None] * int(edges.ok.size)
     if idx.size == 0:
         return out
-    X = np.concatenate([edges.xo[idx], edges.xi[idx]])
-    Y = np.concatenate([edges.yo[idx], edges.yi[idx]])
-    M = np.concatenate([edges.mo[idx], edges.mi[idx]])
-    fits = fit_ellipses_robust_batch(X, Y, M)
     m = idx.size
-    for k, i in enumerate(idx):
-        frac, dol = float(edges.frac[i]), bool(edges.dark_on_light[i])
-        out[int(i)] = finish_ring(fits[k], fits[m + k], frac, dol, params)
+    f = fit_ellipse_arrays(
+        np.concatenate([edges.xo[idx], edges.xi[idx]]),
+        np.concatenate([edges.yo[idx], edges.yi[idx]]),
+        np.concatenate([edges.mo[idx], edges.mi[idx]]),
+    )
+    o, i = slice(0, m), slice(m, 2 * m)
+    ao, bo, ai, bi = f.a_px[o], f.b_px[o], f.a_px[i], f.b_px[i]
+    ro, ri = f.residual_rms_px[o], f.residual_rms_px[i]
+    co, ci = f.center_px[o], f.center_px[i]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.sqrt(ai * bi / (ao * bo))
+        ecc = np.abs(bo / ao - bi / ai)
+    sep = np.hypot(co[:, 0] - ci[:, 0], co[:, 1] - ci[:, 1])
+    ok = (
+        f.good[o] & f.good[i]
+        & (ro <= params.max_residual_px) & (ri <= params.max_residual_px)
+        & (sep <= params.concentric_tol * ao + 0.15)
+        & (np.abs(ratio - params.inner_outer_ratio) <= params.ratio_tol)
+        & (ecc <= params.eccentricity_tol)
+    )
+    po, pi = ao + bo, ai + bi
+    wo, wi = po / (po + pi), pi / (po + pi)
+    center = wo[:, None] * co + wi[:, None] * ci
+    no, ni = f.n_points[o], f.n_points[i]
+    var_o = 2.0 * np.maximum(ro, 0.01) ** 2 / np.maximum(no, 1)
+    var_i = 2.0 * np.maximum(ri, 0.01) ** 2 / np.maximum(ni, 1)
+    sigma = np.sqrt(wo * wo * var_o + wi * wi * var_i)
+    resid = np.sqrt((ro**2 * no + ri**2 * ni) / np.maximum(no + ni, 1))
+    for k in np.nonzero(ok)[0]:
+        eo, ei = f.ellipse(int(k)), f.ellipse(m + int(k))
+        assert eo is not None
+        assert ei is not None
+        j = int(idx[k])
+        out[j] = RingDetection(center[k], float(sigma[k]), eo, ei, float(resid[k]),
+                               bool(edges.dark_on_light[j]), float(edges.frac[j]))
     return out
 
 
@@ -377,10 +385,16 @@ def detect_rings(
     Raises:
         VisionError: the image is not a non-empty 2-D uint8 array.
     """
-    frame = validate_image(img, name)
-    pending: list[tuple[tuple[int, int, int, int], Iterator[tuple[Contour, Contour, bool]]]] = []
+    return detect_rings_multi([(img, name)], params)[0]
+
+
+_Pending = tuple[tuple[int, int, int, int], Iterator[tuple[Contour, Contour, bool]]]
+
+
+def _first_hypotheses(frame: U8Image, params: DetectParams) -> tuple[list[_Pending], list[RingSeeds]]:
+    """Per candidate ROI, the seed of its first usable coarse ring hypothesis (and the rest, lazily)."""
+    pending: list[_Pending] = []
     seeds: list[RingSeeds] = []
-    found: list[RingDetection | None] = []
     for box in find_candidates(frame, params):
         x0, y0, x1, y1 = box
         roi = frame[y0:y1, x0:x1]
@@ -393,13 +407,34 @@ def detect_rings(
                 pending.append((box, hyps))
                 seeds.append(seed)
                 break
-    if pending:
-        first = fit_rings(edges_of(frame, RingSeeds.stack(seeds), params), params)
-        for (box, hyps), det in zip(pending, first, strict=True):
+    return pending, seeds
+
+
+def detect_rings_multi(
+    images: Sequence[tuple[object, str]], params: DetectParams = DetectParams()
+) -> list[list[RingDetection]]:
+    """:func:`detect_rings` of several frames (e.g. both of a stereo pair, given with their names
+    for the errors), with the first hypotheses of all of them fitted in one batch.
+
+    Raises:
+        VisionError: an image is not a non-empty 2-D uint8 array.
+    """
+    frames = [validate_image(img, name) for img, name in images]
+    firsts = [_first_hypotheses(f, params) for f in frames]
+    parts = [(f, RingSeeds.stack(seeds)) for f, (_, seeds) in zip(frames, firsts, strict=True)]
+    dets = fit_rings(ring_edges_multi(parts, params.n_rays, params.min_contrast, params.min_valid_fraction),
+                     params)
+    out: list[list[RingDetection]] = []
+    start = 0
+    for frame, (pending, _) in zip(frames, firsts, strict=True):
+        found: list[RingDetection | None] = []
+        for (box, hyps), det in zip(pending, dets[start : start + len(pending)], strict=True):
             if det is None:  # the remaining hypotheses of this candidate, one by one
                 det = _refine_hypotheses(frame, box, hyps, params)
             found.append(det)
-    return _deduplicated(found)
+        start += len(pending)
+        out.append(_deduplicated(found))
+    return out
 
 
 def _deduplicated(found: list[RingDetection | None]) -> list[RingDetection]:

@@ -247,12 +247,33 @@ def _sampson_batch(C: FloatArray, X: FloatArray, Y: FloatArray) -> FloatArray:
     return np.asarray(alg / np.maximum(2.0 * np.sqrt(gx * gx + gy * gy), 1e-300), dtype=np.float64)
 
 
-def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> list[Ellipse | None]:
+@dataclass(frozen=True)
+class EllipseArrays:
+    """E fitted ellipses as arrays: conics (E, 3, 3), centres (E, 2), semi-axes a >= b (E,),
+    major-axis angles (E,), RMS Sampson residuals (E,), points used (E,), and ``good`` (E,): the
+    fit is a real ellipse (the other rows are meaningless)."""
+
+    conic: FloatArray
+    center_px: FloatArray
+    a_px: FloatArray
+    b_px: FloatArray
+    angle_rad: FloatArray
+    residual_rms_px: FloatArray
+    n_points: NDArray[np.int64]
+    good: NDArray[np.bool_]
+
+    def ellipse(self, i: int) -> Ellipse | None:
+        if not self.good[i]:
+            return None
+        return Ellipse(self.center_px[i].copy(), float(self.a_px[i]), float(self.b_px[i]),
+                       float(self.angle_rad[i]), self.conic[i], float(self.residual_rms_px[i]),
+                       int(self.n_points[i]))
+
+
+def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> EllipseArrays:
     """Robust direct ellipse fits of E point sets (X, Y (E, R), M the used points): a fit, the
     points beyond 3 MAD of the Sampson distances (and 0.05 px) dropped, a re-fit. Same result as
     fitting each set on its own, with far fewer numpy calls."""
-    if X.shape[0] == 0:
-        return []
     W = M.astype(np.float64)
     C, ok = _direct_fit_batch(X, Y, W)
     d = np.abs(_sampson_batch(C, X, Y))
@@ -260,7 +281,8 @@ def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]
     srt = np.sort(np.where(M, d, np.inf), axis=1)
     mad = np.take_along_axis(srt, np.maximum(cnt // 2, 0)[:, None], axis=1)[:, 0] * 1.4826 + 1e-3
     keep = M & (d <= np.maximum(3.0 * mad, 0.05)[:, None])
-    refit = (keep.sum(axis=1) < M.sum(axis=1)) & (keep.sum(axis=1) >= 6)
+    n_keep = keep.sum(axis=1)
+    refit = (n_keep < cnt) & (n_keep >= 6)
     if np.any(refit):
         W2 = np.where(refit[:, None], keep, M).astype(np.float64)
         C2, ok2 = _direct_fit_batch(X, Y, W2)
@@ -283,23 +305,15 @@ def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]
     good = ok & (det > 0) & (k < 0) & (lam_s > 0) & np.isfinite(a_ax) & np.isfinite(b_ax)
     n_pts = M.sum(axis=1)
     res = np.sqrt(np.where(M, d * d, 0.0).sum(axis=1) / np.maximum(n_pts, 1))
-    out: list[Ellipse | None] = []
-    for i in range(X.shape[0]):
-        if not good[i]:
-            out.append(None)
-            continue
-        out.append(
-            Ellipse(
-                np.array([cx[i], cy[i]]),
-                float(a_ax[i]),
-                float(b_ax[i]),
-                float(angle[i]),
-                C[i],
-                float(res[i]),
-                int(n_pts[i]),
-            )
-        )
-    return out
+    return EllipseArrays(C, np.stack([cx, cy], axis=1), a_ax, b_ax, angle, res, n_pts, good)
+
+
+def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> list[Ellipse | None]:
+    """:func:`fit_ellipse_arrays` as one :class:`Ellipse` (or None: not an ellipse) per point set."""
+    if X.shape[0] == 0:
+        return []
+    fits = fit_ellipse_arrays(X, Y, M)
+    return [fits.ellipse(i) for i in range(X.shape[0])]
 
 
 def circle_normals_from_conics(
@@ -307,10 +321,14 @@ def circle_normals_from_conics(
 ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
     """:func:`circle_normals_from_conic` for a stack of conics (P, 3, 3) seen by one camera ``K``:
     the two candidate normals (P, 3) each and a validity mask (P,) (False: not an ellipse)."""
-    P = C_px.shape[0]
-    if P == 0:
+    if C_px.shape[0] == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=bool)
-    Q = K.T @ C_px @ K
+    return circle_normals_from_cones(K.T @ C_px @ K)
+
+
+def circle_normals_from_cones(Q: FloatArray) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """The two candidate circle-plane normals of each cone ``Q = K^T C K`` (P, 3, 3) (normalised
+    camera coordinates; Shiu & Ahmad 1989), and a validity mask. See :func:`circle_normals_from_conic`."""
     lam, V = np.linalg.eigh(Q)  # ascending
     flip = np.sum(lam > 0, axis=1) == 1
     # descending order l1 >= l2 > 0 > l3: reversed, or (after negating a one-positive spectrum)
@@ -327,19 +345,16 @@ def circle_normals_from_conics(
     out = []
     for sgn in (1.0, -1.0):
         n = v1 * (sgn * g)[:, None] + v3 * h[:, None]
-        n = n / np.linalg.norm(n, axis=1, keepdims=True)
+        n = n / np.sqrt(np.sum(n * n, axis=1, keepdims=True))
         n = np.where((n[:, 2] > 0)[:, None], -n, n)
         out.append(np.asarray(n, dtype=np.float64))
     return out[0], out[1], np.asarray(ok, dtype=np.bool_)
 
 
-def projected_centers_from_normals(C_px: FloatArray, K: FloatArray, normals: FloatArray) -> FloatArray:
-    """:func:`projected_center_from_normal` for stacks: conics (P, 3, 3), normals (P, 3) -> (P, 2)."""
-    fx, s, cx, fy, cy = float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])
-    n0, n1, n2 = normals[:, 0], normals[:, 1], normals[:, 2]
-    l0 = n0 / fx
-    l1 = (n1 - s * l0) / fy
-    l2 = n2 - cx * l0 - cy * l1
+def poles_of_lines(C_px: FloatArray, lines: FloatArray) -> FloatArray:
+    """Pole of each line ``l`` (N, 3) with respect to its conic (N, 3, 3): ``p ~ adj(C) l`` (C
+    symmetric), as (N, 2) pixels."""
+    l0, l1, l2 = lines[:, 0], lines[:, 1], lines[:, 2]
     a, b, d = C_px[:, 0, 0], C_px[:, 0, 1], C_px[:, 0, 2]
     c, e, f = C_px[:, 1, 1], C_px[:, 1, 2], C_px[:, 2, 2]
     A00, A01, A02 = c * f - e * e, d * e - b * f, b * e - c * d
@@ -348,3 +363,17 @@ def projected_centers_from_normals(C_px: FloatArray, K: FloatArray, normals: Flo
     p1 = A01 * l0 + A11 * l1 + A12 * l2
     p2 = A02 * l0 + A12 * l1 + A22 * l2
     return np.stack([p0 / p2, p1 / p2], axis=1)
+
+
+def vanishing_lines(K: FloatArray, normals: FloatArray) -> FloatArray:
+    """``l = K^-T n`` for an upper-triangular K and normals (N, 3) -> (N, 3)."""
+    fx, s, cx, fy, cy = float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])
+    l0 = normals[:, 0] / fx
+    l1 = (normals[:, 1] - s * l0) / fy
+    l2 = normals[:, 2] - cx * l0 - cy * l1
+    return np.stack([l0, l1, l2], axis=1)
+
+
+def projected_centers_from_normals(C_px: FloatArray, K: FloatArray, normals: FloatArray) -> FloatArray:
+    """:func:`projected_center_from_normal` for stacks: conics (P, 3, 3), normals (P, 3) -> (P, 2)."""
+    return poles_of_lines(C_px, vanishing_lines(K, normals))

@@ -5,7 +5,7 @@ sizes), intensity profiles are sampled along ``n_rays`` rays from the origin (bi
 0.25 px, one ``cv2.remap`` over the whole image for all rings), the outer and inner edges are the
 mid-level crossings between the ring level and the background / hole level, each edge gets the
 direct ellipse-specific fit (Fitzgibbon 1999) with one robust re-fit, and the ring check and the
-centre estimate of :func:`hil.vision.detect.finish_ring` follow.
+centre estimate of :func:`hil.vision.detect.fit_rings` follow.
 
 Full-frame detection seeds it from the coarse contours of each candidate; the tracking locator
 (:mod:`hil.vision.tracking`) seeds it from each marker's predicted position and last ellipses. The
@@ -16,6 +16,7 @@ the number of rings and their size, not with the image size.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -95,13 +96,23 @@ def _upper_median(values: FloatArray, mask: BoolArray) -> tuple[FloatArray, Bool
 def ring_edges(
     img: U8Image, seeds: RingSeeds, n_rays: int, min_contrast: float, min_valid_fraction: float
 ) -> RingEdges:
-    """Sub-pixel outer and inner edge points of every seeded ring (see the module doc).
+    """Sub-pixel outer and inner edge points of every seeded ring of one image: see
+    :func:`ring_edges_multi`."""
+    return ring_edges_multi([(img, seeds)], n_rays, min_contrast, min_valid_fraction)
+
+
+def ring_edges_multi(
+    parts: Sequence[tuple[U8Image, RingSeeds]], n_rays: int, min_contrast: float, min_valid_fraction: float
+) -> RingEdges:
+    """Sub-pixel outer and inner edge points of every seeded ring (see the module doc) of several
+    images at once (e.g. both of a stereo pair): the rows of the result follow ``parts`` in order.
 
     A ring fails (``ok`` False) when its ring is not ``min_contrast`` grey levels darker than the
     background (and 0.35 of that than its hole), or when both edges are found on fewer than
     ``min_valid_fraction`` of the rays; an edge further than ``1.5 + 0.15 r`` (outer) or
     ``1.5 + 0.25 r`` (inner) px from the seed's radius on a ray does not count. Pure CPU.
     """
+    seeds = RingSeeds.stack([sd for _, sd in parts])
     E, n, ds = seeds.count, n_rays, RAY_STEP_PX
     theta: FloatArray = np.arange(n, dtype=np.float64) * (2 * math.pi / n)
     cos_t, sin_t = np.cos(theta), np.sin(theta)
@@ -118,9 +129,16 @@ def ring_edges(
     ox, oy = seeds.origin_px[:, 0], seeds.origin_px[:, 1]
     mapx = (ox[:, None, None] + r[None, None, :] * cos_t[None, :, None]).astype(np.float32)
     mapy = (oy[:, None, None] + r[None, None, :] * sin_t[None, :, None]).astype(np.float32)
-    prof = cv2.remap(
-        img, mapx.reshape(E * n, S), mapy.reshape(E * n, S), cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE
-    ).astype(np.float64).reshape(E, n, S)
+    rows: list[NDArray[np.uint8]] = []
+    start = 0
+    for img, sd in parts:
+        stop = start + sd.count
+        if stop > start:
+            mx = mapx[start:stop].reshape(-1, S)
+            my = mapy[start:stop].reshape(-1, S)
+            rows.append(np.asarray(cv2.remap(img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)))
+        start = stop
+    prof = np.concatenate(rows).astype(np.float64).reshape(E, n, S)
     dol = seeds.dark_on_light
     if not np.all(dol):
         prof = np.where(dol[:, None, None], prof, 255.0 - prof)

@@ -27,8 +27,8 @@ from scipy.optimize import linear_sum_assignment
 from hil.geometry.triangulation import triangulate_dlt, triangulate_midpoint
 from hil.vision.camera_model import StereoCalibration, undistort_pixels
 from hil.vision.conics import concentric_center, conic_center, conic_centers
-from hil.vision.detect import RingDetection, center_weights
-from hil.vision.ellipse import circle_normals_from_conics, projected_centers_from_normals
+from hil.vision.detect import RingDetection
+from hil.vision.ellipse import circle_normals_from_cones, poles_of_lines, vanishing_lines
 
 FloatArray = NDArray[np.float64]
 Correction = Literal["normal", "concentric", "none"]
@@ -140,30 +140,34 @@ def _ideal_with_affines(
     return np.asarray(c0, dtype=np.float64), H
 
 
-def _weights(det: RingDetection) -> tuple[float, float]:
-    return center_weights(det.outer, det.inner)
-
-
 def _to_ideal_stack(C: FloatArray, H: FloatArray | None) -> FloatArray:
-    """:func:`_to_ideal` of a stack of conics (P, 3, 3) with their affine maps (None: identity)."""
+    """Conics (P, 3, 3) in distorted pixels -> ideal pixels through their affine maps ``H``
+    (P, 3, 3) (None: identity): ``H^-T C H^-1``, normalised."""
     if H is None:
         return C
-    Ji = np.linalg.inv(H[:, :2, :2])
+    a, b, c, d = H[:, 0, 0], H[:, 0, 1], H[:, 1, 0], H[:, 1, 1]
+    det = a * d - b * c
     Hi = np.zeros_like(H)
-    Hi[:, :2, :2] = Ji
-    Hi[:, :2, 2] = -np.einsum("pij,pj->pi", Ji, H[:, :2, 2])
+    Hi[:, 0, 0], Hi[:, 0, 1], Hi[:, 1, 0], Hi[:, 1, 1] = d / det, -b / det, -c / det, a / det
+    tx, ty = H[:, 0, 2], H[:, 1, 2]
+    Hi[:, 0, 2] = -(Hi[:, 0, 0] * tx + Hi[:, 0, 1] * ty)
+    Hi[:, 1, 2] = -(Hi[:, 1, 0] * tx + Hi[:, 1, 1] * ty)
     Hi[:, 2, 2] = 1.0
     Ci = np.transpose(Hi, (0, 2, 1)) @ C @ Hi
-    return np.asarray(Ci / np.linalg.norm(Ci, axis=(1, 2), keepdims=True), dtype=np.float64)
+    return np.asarray(Ci / np.sqrt(np.sum(Ci * Ci, axis=(1, 2), keepdims=True)), dtype=np.float64)
 
 
 def _conic_stacks(
     dets: list[RingDetection], H: FloatArray | None
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Outer and inner conics in ideal (undistorted) pixels (P, 3, 3) and the centre weights (P, 2)."""
-    Co = _to_ideal_stack(np.stack([d.outer.conic for d in dets]), H)
-    Ci = _to_ideal_stack(np.stack([d.inner.conic for d in dets]), H)
-    return Co, Ci, np.array([_weights(d) for d in dets])
+    P = len(dets)
+    C = _to_ideal_stack(
+        np.array([d.outer.conic for d in dets] + [d.inner.conic for d in dets]),
+        None if H is None else np.concatenate([H, H]),
+    )
+    ax = np.array([(d.outer.a_px + d.outer.b_px, d.inner.a_px + d.inner.b_px) for d in dets]).reshape(P, 2)
+    return C[:P], C[P:], ax / ax.sum(axis=1, keepdims=True)
 
 
 def _normal_correction(
@@ -178,31 +182,28 @@ def _normal_correction(
     """The plane-normal perspective correction of paired detections (module doc, step 3), for all
     pairs at once: moves the ideal centres ``UL``, ``UR`` (P, 2) in place; returns the normals
     (optical frame; None where a conic gave no normal)."""
-    KL, _, _, _ = cal.camera("left")
-    KR, _, R_rl, _ = cal.camera("right")
+    KL, KR, R_rl = cal.K_left, cal.K_right, cal.R_right_from_left
+    P = len(left)
     CoL, CiL, wl = _conic_stacks(left, HL)
     CoR, CiR, wr = _conic_stacks(right, HR)
-    l1, l2, okL = circle_normals_from_conics(CoL, KL)
-    r1, r2, okR = circle_normals_from_conics(CoR, KR)
-    r1, r2 = r1 @ R_rl, r2 @ R_rl  # R_rl^T n: the right candidates in the left frame
-    combos = [(l1, r1), (l1, r2), (l2, r1), (l2, r2)]  # first maximum wins, as in a loop over left then right
-    dots = np.stack([np.sum(a * b, axis=1) for a, b in combos], axis=1)
+    c1, c2, okc = circle_normals_from_cones(np.concatenate([KL.T @ CoL @ KL, KR.T @ CoR @ KR]))
+    l1, l2, okL = c1[:P], c2[:P], okc[:P]
+    r1, r2, okR = c1[P:] @ R_rl, c2[P:] @ R_rl, okc[P:]  # R_rl^T n: the right candidates in the left frame
+    # the best-agreeing pair of candidates (first maximum wins, as in a loop over left then right)
+    dots = np.stack([np.sum(a * b, axis=1) for a, b in ((l1, r1), (l1, r2), (l2, r1), (l2, r2))], axis=1)
     best = np.argmax(dots, axis=1)
-    nl = np.where((best < 2)[:, None], l1, l2)
-    nr = np.where((best % 2 == 0)[:, None], r1, r2)
-    n = nl + nr
-    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.where((best < 2)[:, None], l1, l2) + np.where((best % 2 == 0)[:, None], r1, r2)
+    n = n / np.sqrt(np.sum(n * n, axis=1, keepdims=True))
     nR = n @ R_rl.T
     ok = okL & okR
-    dl = wl[:, :1] * (projected_centers_from_normals(CoL, KL, n) - conic_centers(CoL)) + wl[:, 1:] * (
-        projected_centers_from_normals(CiL, KL, n) - conic_centers(CiL)
-    )
-    dr = wr[:, :1] * (projected_centers_from_normals(CoR, KR, nR) - conic_centers(CoR)) + wr[:, 1:] * (
-        projected_centers_from_normals(CiR, KR, nR) - conic_centers(CiR)
-    )
+    lL, lR = vanishing_lines(KL, n), vanishing_lines(KR, nR)
+    C = np.concatenate([CoL, CiL, CoR, CiR])
+    shift = poles_of_lines(C, np.concatenate([lL, lL, lR, lR])) - conic_centers(C)
+    dl = wl[:, :1] * shift[:P] + wl[:, 1:] * shift[P : 2 * P]
+    dr = wr[:, :1] * shift[2 * P : 3 * P] + wr[:, 1:] * shift[3 * P :]
     UL += np.where(ok[:, None], dl, 0.0)
     UR += np.where(ok[:, None], dr, 0.0)
-    return [np.asarray(n[k], dtype=np.float64) if ok[k] else None for k in range(n.shape[0])]
+    return [n[k].copy() if ok[k] else None for k in range(P)]
 
 
 def _concentric_correction(

@@ -8,7 +8,7 @@ ellipses) and its image velocity. For a new frame:
    frames' timestamps when given, else one frame).
 2. Windowed search: the rays of :mod:`hil.vision.ring_edges` are cast from each predicted centre
    with the last ellipses' radii, all markers of the image in one batch, and the ellipse fits,
-   ring check and centre estimate of :func:`hil.vision.detect.finish_ring` follow -- the very
+   ring check and centre estimate of :func:`hil.vision.detect.fit_rings` follow -- the very
    estimator of full-frame detection. A marker that fails there (it moved further than the rays'
    tolerance, or part of it is hidden) gets the full-frame detector's coarse step inside its
    window (:func:`hil.vision.detect.refine_in_box`).
@@ -43,13 +43,14 @@ from hil.vision.detect import (
     DetectParams,
     RingDetection,
     detect_rings,
+    detect_rings_multi,
     edges_of,
     fit_rings,
     refine_in_box,
     validate_image,
 )
 from hil.vision.pipeline import LocateResult
-from hil.vision.ring_edges import RingSeeds
+from hil.vision.ring_edges import RingSeeds, ring_edges_multi
 from hil.vision.stereo import StereoParams, match_and_triangulate
 
 FloatArray = NDArray[np.float64]
@@ -76,6 +77,15 @@ class TrackingParams:
             raise ValueError(f"window_margin_px must be >= 0, got {self.window_margin_px}")
         if self.reacquire_every < 0 or self.lost_retry_every < 1 or self.forget_after < 1:
             raise ValueError("reacquire_every must be >= 0, lost_retry_every and forget_after >= 1")
+
+
+@dataclass(frozen=True)
+class _Step:
+    """One frame in progress: full-frame search or windows, predicted centres (px), elapsed time."""
+
+    full: bool
+    preds: FloatArray
+    dt: float
 
 
 @dataclass
@@ -117,9 +127,23 @@ class ImageTracker:
     def tracked(self) -> int:
         return len(self._tracks)
 
+    @property
+    def markers(self) -> list[RingDetection]:
+        """The tracked markers' latest detections."""
+        return [t.det for t in self._tracks]
+
     def update(self, img: U8Image, t_s: float | None = None) -> list[RingDetection]:
         """The markers in ``img`` (a validated grey frame); see the module doc. ``t_s``: the
         frame's time (s, any monotonic origin) for the velocity; None: one unit per frame."""
+        step = self.begin(t_s)
+        found = None
+        if not step.full:
+            dp = self.detect_params
+            found = fit_rings(edges_of(img, self.seeds(step), dp), dp)
+        return self.finish(img, step, found)
+
+    def begin(self, t_s: float | None) -> _Step:
+        """Start a frame: elapsed time, predictions, and whether it gets a full-frame search."""
         self.stats.frames += 1
         dt = 1.0 if t_s is None or self._t_s is None else max(t_s - self._t_s, 1e-6)
         self._t_s = t_s
@@ -131,20 +155,45 @@ class ImageTracker:
             or (self.params.reacquire_every > 0 and self._since_full >= self.params.reacquire_every)
             or (missing_for is not None and missing_for % self.params.lost_retry_every == 0)
         )
-        preds = self._predict(dt)
-        if not full:
-            found = self._windowed(img, preds)
-            lost = sum(1 for d in found if d is None)
-            if lost == 0:
-                self._advance([d for d in found if d is not None], preds, dt)
-                return [t.det for t in self._tracks]
+        return _Step(full, self._predict(dt), dt)
+
+    def seeds(self, step: _Step) -> RingSeeds:
+        """The windowed search's ray seeds: each marker's last ellipses at its prediction."""
+        tracks = self._tracks
+        return RingSeeds(
+            step.preds,
+            np.array([[t.det.outer.a_px, t.det.outer.b_px, t.det.outer.angle_rad] for t in tracks]),
+            np.array([[t.det.inner.a_px, t.det.inner.b_px, t.det.inner.angle_rad] for t in tracks]),
+            np.array([t.det.dark_on_light for t in tracks]),
+        )
+
+    def finish(
+        self, img: U8Image, step: _Step, found: list[RingDetection | None] | None
+    ) -> list[RingDetection]:
+        """End a frame: :meth:`resolve_windows`, else a full-frame search (:meth:`reacquire`).
+        Returns the markers of this frame."""
+        if step.full or found is None or not self.resolve_windows(img, step, found):
+            self.reacquire(detect_rings(img, self.detect_params, self.name), step)
+        return [t.det for t in self._tracks]
+
+    def resolve_windows(self, img: U8Image, step: _Step, found: list[RingDetection | None]) -> bool:
+        """Gate the windowed results ``found`` (one per track, from :meth:`seeds`), search a
+        failed marker's window with the coarse step; True when every marker was found (tracks
+        updated), False when one is lost (counted; the frame needs a full-frame search)."""
+        found = self._windowed(img, step.preds, found)
+        lost = sum(1 for d in found if d is None)
+        if lost:
             self.stats.losses += lost
-        dets = detect_rings(img, self.detect_params, self.name)
+            return False
+        self._advance([d for d in found if d is not None], step.dt)
+        return True
+
+    def reacquire(self, dets: list[RingDetection], step: _Step) -> None:
+        """Take a full-frame search's detections as the tracks (see :meth:`_reacquired`)."""
         self.stats.reacquisitions += 1
         self._force = False
         self._since_full = 0
-        self._reacquired(dets, preds, dt)
-        return [t.det for t in self._tracks]
+        self._reacquired(dets, step.preds, step.dt)
 
     # ---- internals --------------------------------------------------------------------------
     def _missing_for(self) -> int | None:
@@ -177,15 +226,11 @@ class ImageTracker:
             half = np.minimum(half, 0.5 * d.min(axis=1))
         return half
 
-    def _windowed(self, img: U8Image, preds: FloatArray) -> list[RingDetection | None]:
+    def _windowed(
+        self, img: U8Image, preds: FloatArray, found: list[RingDetection | None]
+    ) -> list[RingDetection | None]:
         tracks = self._tracks
-        seeds = RingSeeds(
-            preds,
-            np.array([[t.det.outer.a_px, t.det.outer.b_px, t.det.outer.angle_rad] for t in tracks]),
-            np.array([[t.det.inner.a_px, t.det.inner.b_px, t.det.inner.angle_rad] for t in tracks]),
-            np.array([t.det.dark_on_light for t in tracks]),
-        )
-        found = fit_rings(edges_of(img, seeds, self.detect_params), self.detect_params)
+        found = list(found)
         gates = self._gates(preds)
         h, w = img.shape
         centres = np.array([[np.nan, np.nan] if d is None else d.center_px for d in found])
@@ -215,13 +260,18 @@ class ImageTracker:
                     found[int(j) if dist[i] <= dist[j] else int(i)] = None
         return found
 
-    def _advance(self, dets: list[RingDetection], preds: FloatArray, dt: float) -> None:
-        vmax = self.params.max_speed_px_per_frame
+    def _advance(self, dets: list[RingDetection], dt: float) -> None:
         for t, det in zip(self._tracks, dets, strict=True):
-            v = (det.center_px - t.det.center_px) / dt
-            speed = float(np.linalg.norm(v)) * (1.0 if self._t_s is None else dt)
-            t.velocity_px_s = v if speed <= vmax else v * (vmax / speed)
+            t.velocity_px_s = self._velocity(det.center_px - t.det.center_px, dt)
             t.det = det
+
+    def _velocity(self, step_px: FloatArray, dt: float) -> FloatArray:
+        """Velocity (px per second, or per frame without timestamps) of a move of ``step_px`` in
+        ``dt``, its move per frame clamped to ``max_speed_px_per_frame``."""
+        move = float(np.hypot(step_px[0], step_px[1]))
+        vmax = self.params.max_speed_px_per_frame
+        scale = 1.0 if move <= vmax else vmax / move
+        return np.asarray(step_px * (scale / dt), dtype=np.float64)
 
     def _reacquired(self, dets: list[RingDetection], preds: FloatArray, dt: float) -> None:
         """New tracks from a full-frame search; a detection near an old track's prediction keeps
@@ -237,11 +287,7 @@ class ImageTracker:
                 j = int(np.argmin(d))
                 if d[j] <= gates[j] and j not in used:
                     used.add(j)
-                    v = (det.center_px - old[j].det.center_px) / dt
-                    speed = float(np.linalg.norm(v)) * (1.0 if self._t_s is None else dt)
-                    vmax = self.params.max_speed_px_per_frame
-                    if speed > vmax:
-                        v = v * (vmax / speed)
+                    v = self._velocity(det.center_px - old[j].det.center_px, dt)
             new.append(_Track(det, v))
         self._tracks = new
         if len(new) >= self._expected:
@@ -309,7 +355,26 @@ class MarkerTracker:
         """
         left = validate_image(left_img, "left image", self.cal.image_size)
         right = validate_image(right_img, "right image", self.cal.image_size)
-        dl = self.left.update(left, t_s)
-        dr = self.right.update(right, t_s)
+        trackers = ((self.left, left), (self.right, right))
+        steps = [tr.begin(t_s) for tr, _ in trackers]
+        windowed = [k for k in range(2) if not steps[k].full]
+        found: list[list[RingDetection | None] | None] = [None, None]
+        if windowed:  # both images' windows in one batch
+            parts = [(trackers[k][1], trackers[k][0].seeds(steps[k])) for k in windowed]
+            dp = self.left.detect_params
+            fitted = fit_rings(ring_edges_multi(parts, dp.n_rays, dp.min_contrast, dp.min_valid_fraction), dp)
+            start = 0
+            for k, (_, sd) in zip(windowed, parts, strict=True):
+                found[k] = fitted[start : start + sd.count]
+                start += sd.count
+        need = [
+            k for k in range(2)
+            if steps[k].full or not trackers[k][0].resolve_windows(trackers[k][1], steps[k], found[k] or [])
+        ]
+        if need:  # full-frame searches, both images in one batch
+            images = [(trackers[k][1], trackers[k][0].name) for k in need]
+            for k, dets in zip(need, detect_rings_multi(images, self.left.detect_params), strict=True):
+                trackers[k][0].reacquire(dets, steps[k])
+        dl, dr = self.left.markers, self.right.markers
         stereo = match_and_triangulate(self.cal, dl, dr, self.stereo_params)
         return LocateResult(tuple(dl), tuple(dr), stereo)

@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 
 from hil.geometry.triangulation import triangulate_dlt
 from hil.vision.camera_model import StereoCalibration, undistort_pixels
-from hil.vision.detect import detect_rings, detect_rings_paper
+from hil.vision.detect import detect_rings, detect_rings_multi, detect_rings_paper
 from hil.vision.render import RenderedPair, RenderOptions, random_marker_layout, render_stereo
 from hil.vision.stereo import StereoParams, match_and_triangulate
 
@@ -251,7 +251,7 @@ def run(
         bound_for_scene(cal, markers, clean, noise, px_var, mm_var)
         for corr in corrections:
             t0, w0 = time.thread_time(), time.perf_counter()
-            dl, dr = detect_rings(pair.left), detect_rings(pair.right)
+            dl, dr = detect_rings_multi([(pair.left, "left image"), (pair.right, "right image")])
             st = match_and_triangulate(cal, dl, dr, StereoParams(correction=corr))
             ours[corr].times.append(time.thread_time() - t0)
             ours[corr].wall.append(time.perf_counter() - w0)

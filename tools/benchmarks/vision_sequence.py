@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hil.vision.camera_model import StereoCalibration
-from hil.vision.detect import detect_rings
+from hil.vision.detect import detect_rings_multi
 from hil.vision.render import RenderOptions, RingMarker3D, random_marker_layout, render_stereo
 from hil.vision.stereo import match_and_triangulate
 from hil.vision.tracking import MarkerTracker, TrackingParams
@@ -125,7 +125,7 @@ def run_sequence(
         track.times.append(time.thread_time() - t0)
         track.score(res.points_mm, truth_mm, visible)
         t0 = time.thread_time()
-        st = match_and_triangulate(cal, detect_rings(pair.left), detect_rings(pair.right))
+        st = match_and_triangulate(cal, *detect_rings_multi([(pair.left, "left"), (pair.right, "right")]))
         full.times.append(time.thread_time() - t0)
         full.score(st.points_mm, truth_mm, visible)
         if baseline is not None:
