@@ -196,6 +196,20 @@ def projected_center_from_normal(C_px: FloatArray, K: FloatArray, normal_cam: Fl
     return np.array([p0 / p2, p1 / p2])
 
 
+#: the ellipse constraint 4ac - b^2 as a quadratic form of (a, b, c)
+_C1 = np.array([[0.0, 0.0, 2.0], [0.0, -1.0, 0.0], [2.0, 0.0, 0.0]])
+
+
+def _cholesky_rows(A: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Cholesky factors of a stack of symmetric 3x3 matrices and which were positive definite
+    (the others get the identity)."""
+    try:
+        return np.linalg.cholesky(A), np.ones(A.shape[0], dtype=bool)
+    except np.linalg.LinAlgError:
+        pd = np.linalg.eigvalsh(A)[:, 0] > 0
+        return np.linalg.cholesky(np.where(pd[:, None, None], A, np.eye(3))), pd
+
+
 def _direct_fit_batch(X: FloatArray, Y: FloatArray, W: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Weighted direct ellipse fits of E point sets at once: X, Y, W are (E, R) (weight 0 = unused
     point). Returns conics (E, 3, 3) (normalised) and a validity mask (E,)."""
@@ -209,22 +223,28 @@ def _direct_fit_batch(X: FloatArray, Y: FloatArray, W: FloatArray) -> tuple[Floa
     s = np.where(s > 0, s, 1.0)
     xn, yn = xc / s[:, None], yc / s[:, None]
     D = np.stack([xn * xn, xn * yn, yn * yn, xn, yn, np.ones_like(xn)], axis=1)  # (E, 6, R)
-    S = np.einsum("eir,ejr->eij", D * W[:, None, :], D)
+    S = (D * W[:, None, :]) @ np.transpose(D, (0, 2, 1))
     S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
     det3 = np.linalg.det(S3)
     ok &= np.abs(det3) > 1e-12
     S3 = np.where(ok[:, None, None], S3, np.eye(3))
     T = -np.linalg.solve(S3, np.transpose(S2, (0, 2, 1)))
-    M = S1 + S2 @ T
-    M = np.stack([M[:, 2] / 2.0, -M[:, 1], M[:, 0] / 2.0], axis=1)
-    M = np.where(np.isfinite(M), M, 0.0)
-    _, V = np.linalg.eig(M)
-    V = V.real
-    cond = 4.0 * V[:, 0, :] * V[:, 2, :] - V[:, 1, :] ** 2  # (E, 3)
-    has = np.any(cond > 0, axis=1)
-    ok &= has
-    k = np.argmax(cond > 0, axis=1)
-    a1 = V[np.arange(V.shape[0]), :, k]  # (E, 3)
+    # reduced scatter Sr = S1 - S2 S3^-1 S2^T (symmetric, positive semi-definite); the fit is the
+    # generalised eigenvector Sr a = lambda C1 a with a^T C1 a = 4ac - b^2 > 0 (Halir & Flusser).
+    # Symmetric form: Sr = L L^T, B = L^-1 C1 L^-T; the one positive eigenvalue of B gives a = L^-T v.
+    Sr = S1 + S2 @ T
+    Sr = 0.5 * (Sr + np.transpose(Sr, (0, 2, 1)))
+    Sr = np.where(np.isfinite(Sr), Sr, 0.0)
+    tr = np.trace(Sr, axis1=1, axis2=2)
+    pos = ok & (tr > 0)
+    Sr = np.where(pos[:, None, None], Sr + (1e-12 * tr)[:, None, None] * np.eye(3), np.eye(3))
+    L, pd = _cholesky_rows(Sr)
+    pos &= pd
+    Li = np.linalg.inv(L)
+    B = Li @ _C1 @ np.transpose(Li, (0, 2, 1))
+    mu, V = np.linalg.eigh(B)
+    a1 = np.einsum("eji,ej->ei", Li, V[:, :, 2])  # L^-T v of the largest (the positive) eigenvalue
+    ok &= pos & (mu[:, 2] > 0) & (4.0 * a1[:, 0] * a1[:, 2] - a1[:, 1] ** 2 > 0)
     a2 = np.einsum("eij,ej->ei", T, a1)
     a, b, c = a1[:, 0], a1[:, 1], a1[:, 2]
     d, e, f = a2[:, 0], a2[:, 1], a2[:, 2]

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -84,12 +85,12 @@ def ellipse_radius(a: FloatArray, b: FloatArray, angle: FloatArray, theta: Float
     return np.asarray(a2 * b2 / np.sqrt((b2 * np.cos(phi)) ** 2 + (a2 * np.sin(phi)) ** 2), dtype=np.float64)
 
 
-def _upper_median(values: FloatArray, mask: BoolArray) -> tuple[FloatArray, BoolArray]:
+def _upper_median(values: NDArray[np.floating[Any]], mask: BoolArray) -> tuple[FloatArray, BoolArray]:
     """Per row, the element of rank ``count // 2`` of the masked values (the upper median, as
     ``np.partition(x, x.size // 2)``), and whether the row had any value."""
     v = np.sort(np.where(mask, values, np.inf), axis=1)
     cnt = mask.sum(axis=1)
-    med = np.take_along_axis(v, (cnt // 2)[:, None], axis=1)[:, 0]
+    med = np.take_along_axis(v, (cnt // 2)[:, None], axis=1)[:, 0].astype(np.float64)
     return med, cnt > 0
 
 
@@ -125,7 +126,8 @@ def ring_edges_multi(
     n_samples = np.ceil(r_max / ds).astype(np.int64)  # len(np.arange(0, r_max, ds)) per ring
     S = int(n_samples.max())
     r = np.arange(S, dtype=np.float64) * ds
-    valid = np.arange(S)[None, :] < n_samples[:, None]  # (E, S)
+    jr = np.arange(S)
+    valid3 = (jr[None, :] < n_samples[:, None])[:, None, :]  # (E, 1, S)
     ox, oy = seeds.origin_px[:, 0], seeds.origin_px[:, 1]
     mapx = (ox[:, None, None] + r[None, None, :] * cos_t[None, :, None]).astype(np.float32)
     mapy = (oy[:, None, None] + r[None, None, :] * sin_t[None, :, None]).astype(np.float32)
@@ -138,42 +140,50 @@ def ring_edges_multi(
             my = mapy[start:stop].reshape(-1, S)
             rows.append(np.asarray(cv2.remap(img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)))
         start = stop
-    prof = np.concatenate(rows).astype(np.float64).reshape(E, n, S)
+    # grey levels are integers: float32 holds them and every threshold below exactly enough
+    prof = np.concatenate(rows).astype(np.float32).reshape(E, n, S)
     dol = seeds.dark_on_light
     if not np.all(dol):
-        prof = np.where(dol[:, None, None], prof, 255.0 - prof)
-    rr = r[None, None, :]
-    valid3 = valid[:, None, :]
-    in_ring = (rr >= r_in[:, :, None] - 0.5) & (rr <= r_out[:, :, None] + 0.5) & valid3
-    ring_prof = np.where(in_ring, prof, np.inf)
+        prof = np.where(dol[:, None, None], prof, np.float32(255.0) - prof)
+    # sample-index ranges per ray: the ring [r_in - 0.5, r_out + 0.5], the tail r >= r_out + 1.8
+    j_ring_lo = np.ceil((r_in - 0.5) / ds - 1e-9).astype(np.int64)
+    j_ring_hi = np.floor((r_out + 0.5) / ds + 1e-9).astype(np.int64)
+    j_tail = np.ceil((r_out + 1.8) / ds - 1e-9).astype(np.int64)
+    jr3 = jr[None, None, :]
+    in_ring = (jr3 >= j_ring_lo[:, :, None]) & (jr3 <= j_ring_hi[:, :, None]) & valid3
+    ring_prof = np.where(in_ring, prof, np.float32(np.inf))
     jmin = np.argmin(ring_prof, axis=2)  # (E, n)
-    ring_min = np.min(ring_prof, axis=2)
+    ring_min = np.take_along_axis(ring_prof, jmin[:, :, None], axis=2)[:, :, 0].astype(np.float64)
     ring_level, _ = _upper_median(ring_min, np.ones_like(ring_min, dtype=bool))
-    tail = (rr >= r_out[:, :, None] + 1.8) & valid3
-    bg_level, has_tail = _upper_median(prof.reshape(E, n * S), tail.reshape(E, n * S))
+    t0 = max(int(j_tail.min()), 0)  # only the tail columns are sorted for the background level
+    tail = (jr3[:, :, t0:] >= j_tail[:, :, None]) & valid3[:, :, t0:]
+    bg_level, has_tail = _upper_median(prof[:, :, t0:].reshape(E, -1), tail.reshape(E, -1))
     if not np.all(has_tail):
         last = prof[np.arange(E), :, n_samples - 1].mean(axis=1)
         bg_level = np.where(has_tail, bg_level, last)
     hole_r = np.maximum(0.35 * r_in.min(axis=1), 0.3)
-    hole = np.broadcast_to(((r[None, :] <= hole_r[:, None]) & valid)[:, None, :], (E, n, S))
-    hole_level, _ = _upper_median(prof.reshape(E, n * S), hole.reshape(E, n * S))
+    n_hole = np.floor(hole_r / ds + 1e-9).astype(np.int64) + 1  # samples with r <= hole_r
+    J = int(n_hole.max())
+    hole = np.broadcast_to(((jr[None, :J] < n_hole[:, None]) & valid3[:, 0, :J])[:, None, :], (E, n, J))
+    hole_level, _ = _upper_median(prof[:, :, :J].reshape(E, -1), hole.reshape(E, -1))
     contrast_ok = (bg_level - ring_level >= min_contrast) & (hole_level - ring_level >= 0.35 * min_contrast)
     t_out = (0.5 * (bg_level + ring_level))[:, None, None]
     t_in = (0.5 * (hole_level + ring_level))[:, None, None]
-    ridx = np.arange(S)[None, None, :]
+    ridx = jr3
     ee, nn = np.arange(E)[:, None], np.arange(n)[None, :]
     # outer edge: first sample past the ring minimum at or above t_out
     above_o = (prof >= t_out) & (ridx > jmin[:, :, None]) & valid3
     jo = np.argmax(above_o, axis=2)
     ok_o = above_o[ee, nn, jo] & (jo > 0)
     jo1 = np.maximum(jo - 1, 0)
-    p1, p0 = prof[ee, nn, jo], prof[ee, nn, jo1]
+    p1, p0 = prof[ee, nn, jo].astype(np.float64), prof[ee, nn, jo1].astype(np.float64)
     ro_sub = r[jo1] + ds * (t_out[:, :, 0] - p0) / np.where(p1 - p0 == 0, 1e-9, p1 - p0)
     # inner edge: last sample before the ring minimum at or above t_in
     above_i = (prof >= t_in) & (ridx < jmin[:, :, None])
     ji = S - 1 - np.argmax(above_i[:, :, ::-1], axis=2)
     ok_i = above_i[ee, nn, ji] & (ji < S - 1)
-    q0, q1 = prof[ee, nn, ji], prof[ee, nn, np.minimum(ji + 1, S - 1)]
+    q0 = prof[ee, nn, ji].astype(np.float64)
+    q1 = prof[ee, nn, np.minimum(ji + 1, S - 1)].astype(np.float64)
     ri_sub = r[ji] + ds * (q0 - t_in[:, :, 0]) / np.where(q0 - q1 == 0, 1e-9, q0 - q1)
     ok_o &= np.abs(ro_sub - r_out) < 1.5 + 0.15 * r_out
     ok_i &= np.abs(ri_sub - r_in) < 1.5 + 0.25 * r_in
