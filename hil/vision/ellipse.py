@@ -204,10 +204,10 @@ def _cholesky_rows(A: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Cholesky factors of a stack of symmetric 3x3 matrices and which were positive definite
     (the others get the identity)."""
     try:
-        return np.linalg.cholesky(A), np.ones(A.shape[0], dtype=bool)
+        return np.asarray(np.linalg.cholesky(A), dtype=np.float64), np.ones(A.shape[0], dtype=bool)
     except np.linalg.LinAlgError:
-        pd = np.linalg.eigvalsh(A)[:, 0] > 0
-        return np.linalg.cholesky(np.where(pd[:, None, None], A, np.eye(3))), pd
+        pd = np.asarray(np.linalg.eigvalsh(A)[:, 0] > 0, dtype=np.bool_)
+        return np.asarray(np.linalg.cholesky(np.where(pd[:, None, None], A, np.eye(3))), dtype=np.float64), pd
 
 
 def _direct_fit_batch(X: FloatArray, Y: FloatArray, W: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
