@@ -18,7 +18,8 @@ ellipses) and its image velocity. For a new frame:
 4. Re-acquisition: a full-frame search of the image (:func:`hil.vision.detect.detect_rings`)
    whenever a marker was lost in this frame (the same frame is searched again, so a marker that
    only outran its window is found), every ``reacquire_every`` frames (a new marker may have
-   appeared), every ``lost_retry_every`` frames while fewer markers are tracked than were seen
+   appeared; a stereo tracker staggers its two cameras by half that period), every
+   ``lost_retry_every`` frames while fewer markers are tracked than were seen
    (one is hidden), and on request.
 
 The stereo stage is unchanged (:func:`hil.vision.stereo.match_and_triangulate`): global pairing
@@ -111,10 +112,12 @@ class ImageTracker:
     params: TrackingParams = field(default_factory=TrackingParams)
     detect_params: DetectParams = field(default_factory=DetectParams)
     name: str = "image"
+    #: frames by which this camera's periodic full-frame searches are offset (a stereo tracker
+    #: staggers its two cameras so that one pair never pays for both)
+    phase: int = 0
     stats: ImageStats = field(default_factory=ImageStats)
     _tracks: list[_Track] = field(default_factory=list)
     _t_s: float | None = None
-    _since_full: int = 0
     _expected: int = 0
     _missing_since: int | None = None
     _force: bool = False
@@ -147,12 +150,12 @@ class ImageTracker:
         self.stats.frames += 1
         dt = 1.0 if t_s is None or self._t_s is None else max(t_s - self._t_s, 1e-6)
         self._t_s = t_s
-        self._since_full += 1
         missing_for = self._missing_for()
+        every = self.params.reacquire_every
         full = (
             self._force
             or not self._tracks
-            or (self.params.reacquire_every > 0 and self._since_full >= self.params.reacquire_every)
+            or (every > 0 and (self.stats.frames + self.phase) % every == 0)
             or (missing_for is not None and missing_for % self.params.lost_retry_every == 0)
         )
         return _Step(full, self._predict(dt), dt)
@@ -192,7 +195,6 @@ class ImageTracker:
         """Take a full-frame search's detections as the tracks (see :meth:`_reacquired`)."""
         self.stats.reacquisitions += 1
         self._force = False
-        self._since_full = 0
         self._reacquired(dets, step.preds, step.dt)
 
     # ---- internals --------------------------------------------------------------------------
@@ -335,7 +337,7 @@ class MarkerTracker:
         dp = detect_params or DetectParams()
         self.stereo_params = stereo_params or StereoParams()
         self.left = ImageTracker(self.params, dp, "left image")
-        self.right = ImageTracker(self.params, dp, "right image")
+        self.right = ImageTracker(self.params, dp, "right image", phase=self.params.reacquire_every // 2)
 
     def request_reacquire(self) -> None:
         """Both images of the next pair get a full-frame search."""
