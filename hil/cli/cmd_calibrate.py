@@ -1,10 +1,13 @@
 """``hil calibrate --left GLOB --right GLOB [--board 6x7] [--square 24] --out FILE`` — stereo
 calibration from chessboard image pairs (paired by sorted file name; seed 001 section 4.1).
 
-Writes the calibration file (versioned JSON, docs/calibration-format.md) and prints one JSON
-summary on stdout: ``pairs_found``, ``pairs_used``, ``rms_left``, ``rms_right``, ``rms_stereo``
-(px), ``baseline`` and ``T`` (in the square's units), ``rejected_views`` (which and why),
-``board_not_found``, ``elapsed_s``, ``out``. Progress goes to stderr (a bar on a terminal).
+Each image is searched with a detection cascade (the classic detector with a quick pre-check,
+then with OpenCV's default flags, then the SB detector; a time budget per image). Writes the
+calibration file (versioned JSON, docs/calibration-format.md) and prints one JSON summary on
+stdout (every field: docs/calibrate.md): ``pairs_found``, ``pairs_used``, ``rms_left``,
+``rms_right``, ``rms_stereo`` (px), ``baseline`` and ``T`` (in the square's units), ``per_view``
+(reprojection errors, outlier flag), ``views_left_out`` (which and why), ``detections`` (per
+image: detector, time), ``board_not_found``, ``elapsed_s``, ``out``. Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -56,6 +59,19 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--out", required=True, metavar="FILE", help="calibration file to write (JSON)")
     p.add_argument("--min-pairs", type=int, default=5, help="fewest usable pairs (default 5)")
     p.add_argument("--fix-k3", action="store_true", help="do not estimate the k3 radial term")
+    p.add_argument(
+        "--exclude-outliers",
+        action="store_true",
+        help="leave views whose reprojection error is far above the median out and re-calibrate "
+        "(default: flag them in per_view only)",
+    )
+    p.add_argument(
+        "--detect-budget",
+        type=_positive,
+        default=5.0,
+        metavar="S",
+        help="seconds per image after which no further board detector is tried (default 5)",
+    )
     p.set_defaults(func=run)
 
 
@@ -83,11 +99,19 @@ def run(args: argparse.Namespace) -> int:
         square_mm=args.square,
         min_pairs=args.min_pairs,
         fix_k3=args.fix_k3,
+        exclude_outliers=args.exclude_outliers,
+        detect_budget_s=args.detect_budget,
     )
     result = calibrate_from_files(args.left, args.right, settings, _progress_printer())
     save_calibration(result.calibration, args.out)
+    for _view, reason in result.left_out:
+        print(f"calibrate: left out {reason}", file=sys.stderr)
     for view, reason in result.rejected:
-        print(f"calibrate: rejected view {view}: {reason}", file=sys.stderr)
+        print(f"calibrate: left out view {view}: {reason}", file=sys.stderr)
+    for v in result.per_view:
+        if v["outlier"] and v["used"]:
+            print(f"calibrate: view {v['view']} is an outlier (kept; --exclude-outliers leaves it out)",
+                  file=sys.stderr)
     json.dump({**result.summary(), "out": args.out}, sys.stdout, indent=2)
     sys.stdout.write("\n")
     return 0

@@ -30,6 +30,7 @@ from hil.controller.metrics import RunSummary
 from hil.controller.observers import HookCaller, TickObserver
 from hil.controller.operator_input import AutoOperator, Operator, OperatorView
 from hil.controller.perception import CollinearNeedleChecker, StereoMarkerLocator, StereoNeedleChecker
+from hil.controller.perception import StereoMarkerLocator as _Locator
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.controller.planning import RigGeometry
 from hil.controller.tracker_use import TrackerUse
@@ -39,6 +40,7 @@ from hil.geometry.transform import RigidTransform
 from hil.session.log import SessionLog, file_sha256
 from hil.tracking.session import load_tracker_calibration
 from hil.vision.camera_model import StereoCalibration, load_calibration
+from hil.vision.tracking import TrackingParams
 from plugins.manager import HilPlugins
 
 if TYPE_CHECKING:
@@ -153,6 +155,18 @@ def _calibration(setup: SetupConfig, camera: object) -> StereoCalibration:
     return StereoCalibration.synthetic()
 
 
+def marker_locator(setup: SetupConfig, camera: object) -> StereoMarkerLocator:
+    """The controller's marker locator on the setup's calibration: region-of-interest tracking
+    when ``[procedure.vision] roi_tracking`` (the default), else a full-frame search per pair."""
+    v = setup.procedure.vision
+    loc = StereoMarkerLocator(_calibration(setup, camera))
+    if v.roi_tracking and isinstance(loc, _Locator):  # (tests may substitute their own locator)
+        loc.use_tracking(TrackingParams(window_margin_px=v.window_margin_px,
+                                        reacquire_every=v.reacquire_every_frames,
+                                        lost_retry_every=v.lost_retry_every_frames))
+    return loc
+
+
 def _needle_checker(setup: SetupConfig,
                     camera: object) -> StereoNeedleChecker | CollinearNeedleChecker | None:
     """The seed-004 needle-axis check when ``[procedure.lock.needle_check]`` is set, else None:
@@ -191,7 +205,7 @@ def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, 
     world = devices.world
     return Controller(
         camera=devices.camera, robot=devices.robot, tracker=devices.tracker, clock=clock,
-        locate=StereoMarkerLocator(_calibration(setup, devices.camera)), plan=plan, rig=_rig(setup),
+        locate=marker_locator(setup, devices.camera), plan=plan, rig=_rig(setup),
         procedure=setup.procedure, limits=sf.motion_limits(),
         watchdog_ages_s={"camera": sf.camera_frame_max_age_ms / 1e3,
                          "robot": sf.robot_state_max_age_ms / 1e3,
@@ -311,6 +325,8 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
             hooks=runtime_plugins(igtl, plan),
         )
         summary = ctl.run(max_duration_s)
+        if isinstance(ctl.locate, _Locator):
+            summary.locate_ms = ctl.locate.locate_ms()
     finally:
         devices.close_all()
         if igtl is not None:
@@ -356,6 +372,8 @@ def print_text(s: RunSummary, out: TextIO) -> None:
     out.write(f"latency          p50 {_fmt(s.latency_ms['p50'], 'ms', 1)}, "
               f"p95 {_fmt(s.latency_ms['p95'], 'ms', 1)}"
               " (exposure -> command)\n")
+    out.write(f"locate           p50 {_fmt(s.locate_ms['p50'], 'ms', 1)}, "
+              f"p95 {_fmt(s.locate_ms['p95'], 'ms', 1)} (markers per stereo pair)\n")
     out.write(f"time to lock     {_fmt(s.time_to_lock_s, 's', 2)}\n")
     if s.faults:
         out.write(f"faults           {'; '.join(s.faults)}\n")

@@ -211,6 +211,26 @@ class ResumeConfig(BaseModel):
     initial_speed_fraction: float = Field(0.1, gt=0, le=1.0)
 
 
+class VisionConfig(BaseModel):
+    """Marker location in the loop (issue 17; docs/benchmarks.md): region-of-interest tracking of the
+    ring markers between full-frame searches (:mod:`hil.vision.tracking`), with the same accuracy
+    as a full-frame search at a fraction of its cost."""
+
+    model_config = _STRICT
+
+    roi_tracking: bool = Field(True, description="search each marker only in a window around its predicted "
+                                                 "position; false: a full-frame search on every pair")
+    reacquire_every_frames: int = Field(
+        30, ge=0, le=100000,
+        description="full-frame search every this many pairs (a new marker may have appeared); 0: only when "
+        "a marker is lost")
+    lost_retry_every_frames: int = Field(
+        5, ge=1, le=100000, description="while a marker is missing (hidden), a full-frame search every this "
+        "many pairs")
+    window_margin_px: float = Field(8.0, ge=0.0, le=200.0, description="how far a marker's window reaches "
+                                    "beyond its outer ellipse, px")
+
+
 class TrackingConfig(BaseModel):
     """The magnetic tracker in the procedure (seed 003 clinical step 5; docs/run.md).
 
@@ -263,6 +283,7 @@ class ProcedureConfig(BaseModel):
     lock: LockConfig = LockConfig()
     resume: ResumeConfig = ResumeConfig()
     tracking: TrackingConfig = TrackingConfig()
+    vision: VisionConfig = VisionConfig()
     confirm: tuple[Confirmation, ...] = ("plan_to_approach", "lock_to_done")
     max_duration_s: float = Field(300.0, gt=0, description="abort the whole procedure after this")
     camera_prefetch: bool = Field(

@@ -52,6 +52,8 @@ class RunSummary:
     report: str | None = None
     #: the tracked needle tip against the planned target while locked (last sample; see docs/run.md)
     tracked_needle: dict[str, float] | None = None
+    #: marker-location time per stereo pair, p50 / p95 (ms; set by hil run from its locator)
+    locate_ms: dict[str, float | None] = field(default_factory=lambda: {"p50": None, "p95": None})
     comp_errors_mm: list[float] = field(default_factory=list, repr=False)
     comp_error_age_s: list[float] = field(default_factory=list, repr=False)
 

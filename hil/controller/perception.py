@@ -3,6 +3,10 @@ needle-axis check (seed 004 §III contour lines, or §II-A collinear beads) agai
 
 from __future__ import annotations
 
+import threading
+import time
+from collections import deque
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -11,8 +15,13 @@ from hil.vision.beads import BeadAxisMeasurement, measure_bead_axis
 from hil.vision.camera_model import StereoCalibration
 from hil.vision.lines import NeedleAxisMeasurement, measure_needle_axis
 from hil.vision.pipeline import locate_markers
+from hil.vision.tracking import MarkerTracker, TrackingParams
 
 FloatArray = NDArray[np.float64]
+
+
+#: locate-time samples kept for the summary (the newest; ~1 h at 30 pairs/s)
+LOCATE_SAMPLES = 100_000
 
 
 class StereoMarkerLocator:
@@ -20,17 +29,47 @@ class StereoMarkerLocator:
     :data:`hil.controller.pipeline.MarkerLocator`. Identification is left to the controller
     (it knows the reference state and the flange layout).
 
+    With ``tracking`` the markers are searched in windows around their predicted positions between
+    full-frame searches (:class:`hil.vision.tracking.MarkerTracker`, which keeps the state); without,
+    every pair gets a full-frame search. Either way the time of each call (wall clock, ms) is kept:
+    :meth:`locate_ms` gives its p50 / p95. Calls must not overlap (the controller's thread or the
+    frame prefetcher's, one at a time); a lock makes overlapping calls wait rather than corrupt
+    the tracking state.
+
     Raises (when called):
         VisionError: an image does not fit the calibration.
     """
 
-    def __init__(self, calibration: StereoCalibration) -> None:
+    def __init__(self, calibration: StereoCalibration, tracking: TrackingParams | None = None) -> None:
         self.calibration = calibration
+        self.tracker = None if tracking is None else MarkerTracker(calibration, tracking)
+        self._lock = threading.Lock()
+        self._locate_ms: deque[float] = deque(maxlen=LOCATE_SAMPLES)
+
+    def use_tracking(self, tracking: TrackingParams | None) -> None:
+        """Switch to region-of-interest tracking with ``tracking`` (None: full-frame searches); the
+        next call starts with a full-frame search."""
+        with self._lock:
+            self.tracker = None if tracking is None else MarkerTracker(self.calibration, tracking)
 
     def __call__(self, frame: StereoFrame) -> FloatArray:
-        res = locate_markers(self.calibration, frame.left.image, frame.right.image)
+        with self._lock:
+            t0 = time.perf_counter_ns()
+            if self.tracker is None:
+                res = locate_markers(self.calibration, frame.left.image, frame.right.image)
+            else:
+                res = self.tracker.locate(frame.left.image, frame.right.image, frame.left.t_ns * 1e-9)
+            self._locate_ms.append((time.perf_counter_ns() - t0) * 1e-6)
         pts: FloatArray = np.asarray(res.points_mm, dtype=np.float64).reshape(-1, 3)
         return pts
+
+    def locate_ms(self) -> dict[str, float | None]:
+        """p50 and p95 of the time per call so far (ms, wall clock; None before the first call)."""
+        with self._lock:
+            samples = list(self._locate_ms)
+        if not samples:
+            return {"p50": None, "p95": None}
+        return {"p50": float(np.percentile(samples, 50)), "p95": float(np.percentile(samples, 95))}
 
 
 class StereoNeedleChecker:

@@ -221,23 +221,17 @@ def distort_normalized(xy: FloatArray, dist: FloatArray) -> FloatArray:
 
 def undistort_normalized(xy_d: FloatArray, dist: FloatArray, iterations: int = 20) -> FloatArray:
     """Invert :func:`distort_normalized` by fixed-point iteration (exact to ~1e-12 for lens-like
-    distortion within the image). (N, 2) -> (N, 2)."""
-    if not np.any(dist):
-        return xy_d.copy()
-    k1, k2, p1, p2, k3 = (float(v) for v in dist)
-    x, y = xy_d[:, 0].copy(), xy_d[:, 1].copy()
-    for _ in range(iterations):
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-        x_new = (xy_d[:, 0] - dx) / radial
-        y_new = (xy_d[:, 1] - dy) / radial
-        step = float(np.max(np.abs(x_new - x) + np.abs(y_new - y))) if x.size else 0.0
-        x, y = x_new, y_new
-        if step < 1e-14:
-            break
-    return np.stack([x, y], axis=1)
+    distortion within the image). (N, 2) -> (N, 2).
+
+    The iteration is OpenCV's ``undistortPoints`` with an identity camera and a fixed iteration
+    count (the same fixed point ``x = (x_d - tangential(x)) / radial(x)``, in C++)."""
+    if not np.any(dist) or xy_d.shape[0] == 0:
+        return np.array(xy_d, dtype=np.float64, copy=True)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-15)
+    eye = np.eye(3)
+    pts = np.ascontiguousarray(xy_d, dtype=np.float64).reshape(-1, 1, 2)
+    out = cv2.undistortPoints(pts, eye, np.asarray(dist, dtype=np.float64), R=eye, P=eye, criteria=crit)
+    return np.asarray(out.reshape(-1, 2), dtype=np.float64)
 
 
 def project_points(points_cam_mm: FloatArray, K: FloatArray, dist: FloatArray) -> FloatArray:

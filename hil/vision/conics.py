@@ -89,3 +89,12 @@ def concentric_center(C_outer: FloatArray, C_inner: FloatArray) -> FloatArray | 
     if abs(v[2]) < 1e-12:
         return None
     return np.asarray(v[:2] / v[2], dtype=np.float64)
+
+
+def conic_centers(C: FloatArray) -> FloatArray:
+    """:func:`conic_center` of a stack of ellipse conics (P, 3, 3) -> (P, 2) (NaN for a parabola)."""
+    a, b, c = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
+    d, e = C[:, 0, 2], C[:, 1, 2]
+    det = a * c - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.stack([(b * e - c * d) / det, (b * d - a * e) / det], axis=1)

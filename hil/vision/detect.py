@@ -26,7 +26,7 @@ kept for comparison.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -35,14 +35,8 @@ from numpy.typing import NDArray
 
 from hil.errors import VisionError
 from hil.vision.conics import concentric_center, conic_center
-from hil.vision.ellipse import (
-    Ellipse,
-    ellipse_from_conic,
-    fit_conic_direct,
-    fit_conic_paper,
-    fit_ellipses_robust_batch,
-    sampson_distances,
-)
+from hil.vision.ellipse import Ellipse, fit_conic_paper, fit_ellipse_arrays
+from hil.vision.ring_edges import RingEdges, RingSeeds, ring_edges, ring_edges_multi
 
 FloatArray = NDArray[np.float64]
 U8Image = NDArray[np.uint8]
@@ -264,17 +258,6 @@ def _ring_in_mask(dark: U8Image, params: DetectParams) -> tuple[Contour, Contour
     return None
 
 
-def _fast_median(x: FloatArray) -> float:
-    """Median (upper median for even sizes) by partial sort: ~10x cheaper than np.median here."""
-    k = x.size // 2
-    return float(np.partition(x, k)[k])
-
-
-def _ellipse_radius(a: float, b: float, angle: float, theta: FloatArray) -> FloatArray:
-    phi = theta - angle
-    return np.asarray(a * b / np.sqrt((b * np.cos(phi)) ** 2 + (a * np.sin(phi)) ** 2), dtype=np.float64)
-
-
 def _initial_ellipse(pts: Contour) -> tuple[FloatArray, float, float, float]:
     (cx, cy), (d1, d2), ang = cv2.fitEllipse(pts)
     a, b = d1 / 2.0, d2 / 2.0
@@ -285,157 +268,109 @@ def _initial_ellipse(pts: Contour) -> tuple[FloatArray, float, float, float]:
 
 
 # ---- 3.+4. sub-pixel edges, fits, ring check ------------------------------------------------
-def _robust_fit(x: FloatArray, y: FloatArray) -> Ellipse | None:
-    C = fit_conic_direct(x, y)
-    if C is None:
-        return None
-    d = sampson_distances(C, x, y)
-    ad = np.abs(d)
-    mad = _fast_median(ad) * 1.4826 + 1e-3
-    keep = ad <= max(3.0 * mad, 0.05)
-    n_keep = int(keep.sum())
-    if n_keep < x.size and n_keep >= 6:
-        x, y = x[keep], y[keep]
-        C2 = fit_conic_direct(x, y)
-        if C2 is None:
-            return None
-        C = C2
-        d = sampson_distances(C, x, y)
-    return ellipse_from_conic(C, residuals=d)
-
-
-@dataclass(frozen=True)
-class _Edges:
-    """Sub-pixel edge points of one ring hypothesis on all rays (mask = edge found)."""
-
-    xo: FloatArray
-    yo: FloatArray
-    mo: NDArray[np.bool_]
-    xi: FloatArray
-    yi: FloatArray
-    mi: NDArray[np.bool_]
-    frac: float
-    dark_on_light: bool
-
-
-def _edges(
-    roi: U8Image,
-    x0: int,
-    y0: int,
-    outer_pts: Contour,
-    inner_pts: Contour,
-    dark_on_light: bool,
-    params: DetectParams,
-) -> _Edges | None:
+def seed_from_contours(
+    x0: int, y0: int, outer_pts: Contour, inner_pts: Contour, dark_on_light: bool, params: DetectParams
+) -> RingSeeds | None:
+    """The ray seed of one coarse ring hypothesis of a ROI at (x0, y0): origin at the outer
+    contour's ellipse centre, radii of the contours' ellipses (None: outer size out of range)."""
     c0, ao, bo, ango = _initial_ellipse(outer_pts)
     _, ai, bi, angi = _initial_ellipse(inner_pts)
     if not params.min_outer_px <= 2 * ao <= params.max_outer_px:
         return None
     # outer contour pixels lie ~0.5 px inside the edge, hole pixels ~0.5 px outside it
-    ao, bo, ai, bi = ao + 0.5, bo + 0.5, max(ai - 0.5, 0.8), max(bi - 0.5, 0.8)
-    n = params.n_rays
-    theta: FloatArray = np.arange(n, dtype=np.float64) * (2 * math.pi / n)
-    r_out = _ellipse_radius(ao, bo, ango, theta)
-    r_in = _ellipse_radius(ai, bi, angi, theta)
-    ds = 0.25
-    r_max = float(r_out.max()) + 3.0
-    r = np.arange(0.0, r_max, ds)
-    cos_t, sin_t = np.cos(theta), np.sin(theta)
-    mapx = (c0[0] + r[None, :] * cos_t[:, None]).astype(np.float32)
-    mapy = (c0[1] + r[None, :] * sin_t[:, None]).astype(np.float32)
-    prof = cv2.remap(roi, mapx, mapy, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
-    if not dark_on_light:
-        prof = 255.0 - prof
-    S = r.size
-    ridx = np.arange(S)[None, :]
-    in_ring = (r[None, :] >= r_in[:, None] - 0.5) & (r[None, :] <= r_out[:, None] + 0.5)
-    ring_prof = np.where(in_ring, prof, np.inf)
-    jmin = np.argmin(ring_prof, axis=1)
-    ring_level = _fast_median(np.min(ring_prof, axis=1))
-    tail = r[None, :] >= r_out[:, None] + 1.8
-    bg_level = _fast_median(prof[tail]) if np.any(tail) else float(prof[:, -1].mean())
-    hole_level = _fast_median(prof[:, r <= max(0.35 * float(r_in.min()), 0.3)].ravel())
-    if bg_level - ring_level < params.min_contrast or hole_level - ring_level < 0.35 * params.min_contrast:
-        return None
-    t_out = 0.5 * (bg_level + ring_level)
-    t_in = 0.5 * (hole_level + ring_level)
-    rows = np.arange(n)
-    # outer edge: first sample past the ring minimum at or above t_out
-    above_o = (prof >= t_out) & (ridx > jmin[:, None])
-    jo = np.argmax(above_o, axis=1)
-    ok_o = above_o[rows, jo] & (jo > 0)
-    p1, p0 = prof[rows, jo], prof[rows, np.maximum(jo - 1, 0)]
-    ro_sub = r[np.maximum(jo - 1, 0)] + ds * (t_out - p0) / np.where(p1 - p0 == 0, 1e-9, p1 - p0)
-    # inner edge: last sample before the ring minimum at or above t_in
-    above_i = (prof >= t_in) & (ridx < jmin[:, None])
-    ji = S - 1 - np.argmax(above_i[:, ::-1], axis=1)
-    ok_i = above_i[rows, ji] & (ji < S - 1)
-    q0, q1 = prof[rows, ji], prof[rows, np.minimum(ji + 1, S - 1)]
-    ri_sub = r[ji] + ds * (q0 - t_in) / np.where(q0 - q1 == 0, 1e-9, q0 - q1)
-    ok_o &= np.abs(ro_sub - r_out) < 1.5 + 0.15 * r_out
-    ok_i &= np.abs(ri_sub - r_in) < 1.5 + 0.25 * r_in
-    frac = float(np.count_nonzero(ok_o & ok_i)) / n
-    if frac < params.min_valid_fraction:
-        return None
-    cx, cy = c0[0] + x0, c0[1] + y0
-    return _Edges(
-        cx + ro_sub * cos_t,
-        cy + ro_sub * sin_t,
-        ok_o,
-        cx + ri_sub * cos_t,
-        cy + ri_sub * sin_t,
-        ok_i,
-        frac,
-        dark_on_light,
+    return RingSeeds(
+        np.array([[c0[0] + x0, c0[1] + y0]]),
+        np.array([[ao + 0.5, bo + 0.5, ango]]),
+        np.array([[max(ai - 0.5, 0.8), max(bi - 0.5, 0.8), angi]]),
+        np.array([dark_on_light]),
     )
 
 
-def _finish(
-    eo: Ellipse | None, ei: Ellipse | None, edges: _Edges, params: DetectParams
+def edges_of(img: U8Image, seeds: RingSeeds, params: DetectParams) -> RingEdges:
+    """:func:`hil.vision.ring_edges.ring_edges` with the detection settings."""
+    return ring_edges(img, seeds, params.n_rays, params.min_contrast, params.min_valid_fraction)
+
+
+def fit_rings(edges: RingEdges, params: DetectParams) -> list[RingDetection | None]:
+    """Robust ellipse fits of every ring's two edges in one batch, then the ring check and the
+    centre estimate, all rings at once; None for a ring whose edges failed (``edges.ok`` False)
+    or that is not a ring marker.
+
+    Ring check: both fits real ellipses with RMS residual <= ``max_residual_px``, concentric
+    (centre distance <= ``concentric_tol`` x outer a + 0.15 px), inner/outer size ratio within
+    ``ratio_tol`` of the marker's, equal eccentricity (|b/a| difference <= ``eccentricity_tol``).
+    Centre: the two conic centres weighted by edge length (the number of independent edge pixels;
+    the per-point residuals understate the inner edge's pixel-grid bias); its uncertainty from the
+    circle-fit variance 2 sigma^2 / N per axis of each ellipse.
+    """
+    idx = np.nonzero(edges.ok)[0]
+    out: list[RingDetection | None] = [None] * int(edges.ok.size)
+    if idx.size == 0:
+        return out
+    m = idx.size
+    f = fit_ellipse_arrays(
+        np.concatenate([edges.xo[idx], edges.xi[idx]]),
+        np.concatenate([edges.yo[idx], edges.yi[idx]]),
+        np.concatenate([edges.mo[idx], edges.mi[idx]]),
+    )
+    o, i = slice(0, m), slice(m, 2 * m)
+    ao, bo, ai, bi = f.a_px[o], f.b_px[o], f.a_px[i], f.b_px[i]
+    ro, ri = f.residual_rms_px[o], f.residual_rms_px[i]
+    co, ci = f.center_px[o], f.center_px[i]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.sqrt(ai * bi / (ao * bo))
+        ecc = np.abs(bo / ao - bi / ai)
+    sep = np.hypot(co[:, 0] - ci[:, 0], co[:, 1] - ci[:, 1])
+    ok = (
+        f.good[o] & f.good[i]
+        & (ro <= params.max_residual_px) & (ri <= params.max_residual_px)
+        & (sep <= params.concentric_tol * ao + 0.15)
+        & (np.abs(ratio - params.inner_outer_ratio) <= params.ratio_tol)
+        & (ecc <= params.eccentricity_tol)
+    )
+    po, pi = ao + bo, ai + bi
+    wo, wi = po / (po + pi), pi / (po + pi)
+    center = wo[:, None] * co + wi[:, None] * ci
+    no, ni = f.n_points[o], f.n_points[i]
+    var_o = 2.0 * np.maximum(ro, 0.01) ** 2 / np.maximum(no, 1)
+    var_i = 2.0 * np.maximum(ri, 0.01) ** 2 / np.maximum(ni, 1)
+    sigma = np.sqrt(wo * wo * var_o + wi * wi * var_i)
+    resid = np.sqrt((ro**2 * no + ri**2 * ni) / np.maximum(no + ni, 1))
+    for k in np.nonzero(ok)[0]:
+        eo, ei = f.ellipse(int(k)), f.ellipse(m + int(k))
+        assert eo is not None
+        assert ei is not None
+        j = int(idx[k])
+        out[j] = RingDetection(center[k], float(sigma[k]), eo, ei, float(resid[k]),
+                               bool(edges.dark_on_light[j]), float(edges.frac[j]))
+    return out
+
+
+def _refine_hypotheses(
+    img: U8Image, box: tuple[int, int, int, int], hyps: Iterator[tuple[Contour, Contour, bool]],
+    params: DetectParams,
 ) -> RingDetection | None:
-    """The ring check and the centre estimate of a fitted outer/inner ellipse pair."""
-    if eo is None or ei is None:
-        return None
-    if eo.residual_rms_px > params.max_residual_px or ei.residual_rms_px > params.max_residual_px:
-        return None
-    if float(np.linalg.norm(eo.center_px - ei.center_px)) > params.concentric_tol * eo.a_px + 0.15:
-        return None
-    ratio = math.sqrt(ei.a_px * ei.b_px / (eo.a_px * eo.b_px))
-    if abs(ratio - params.inner_outer_ratio) > params.ratio_tol:
-        return None
-    if abs(eo.b_px / eo.a_px - ei.b_px / ei.a_px) > params.eccentricity_tol:
-        return None
-    # centre: the conic centres weighted by edge length (the number of independent edge pixels;
-    # the per-point residuals understate the inner edge's pixel-grid bias), and its uncertainty
-    # from the circle-fit variance 2 sigma^2 / N per axis of each ellipse
-    wo, wi = center_weights(eo, ei)
-    center = wo * eo.center_px + wi * ei.center_px
-    var_o = 2.0 * max(eo.residual_rms_px, 0.01) ** 2 / eo.n_points
-    var_i = 2.0 * max(ei.residual_rms_px, 0.01) ** 2 / ei.n_points
-    sigma = math.sqrt(wo * wo * var_o + wi * wi * var_i)
-    n_all = eo.n_points + ei.n_points
-    resid = math.sqrt((eo.residual_rms_px**2 * eo.n_points + ei.residual_rms_px**2 * ei.n_points) / n_all)
-    return RingDetection(center, sigma, eo, ei, resid, edges.dark_on_light, edges.frac)
+    """The remaining ring hypotheses of one ROI, one by one, until one passes."""
+    x0, y0 = box[0], box[1]
+    for outer_pts, inner_pts, dol in hyps:
+        seed = seed_from_contours(x0, y0, outer_pts, inner_pts, dol, params)
+        if seed is None:
+            continue
+        det = fit_rings(edges_of(img, seed, params), params)[0]
+        if det is not None:
+            return det
+    return None
 
 
-def _fit_one(edges: _Edges, params: DetectParams) -> RingDetection | None:
-    eo = _robust_fit(edges.xo[edges.mo], edges.yo[edges.mo])
-    ei = _robust_fit(edges.xi[edges.mi], edges.yi[edges.mi])
-    return _finish(eo, ei, edges, params)
-
-
-def _refine(img: U8Image, box: tuple[int, int, int, int], params: DetectParams) -> RingDetection | None:
-    """One candidate ROI on its own (every ring hypothesis in turn until one passes)."""
+def refine_in_box(img: U8Image, box: tuple[int, int, int, int], params: DetectParams) -> RingDetection | None:
+    """The ring in one ROI (x0, y0, x1, y1) of a full frame, found as in full-frame detection
+    (every coarse hypothesis in turn until one passes); a ring touching the ROI border is not
+    found. None when there is none."""
     x0, y0, x1, y1 = box
     roi = img[y0:y1, x0:x1]
     if roi.shape[0] < 6 or roi.shape[1] < 6:
         return None
-    for outer_pts, inner_pts, dark_on_light in _coarse_rings(roi, params):
-        edges = _edges(roi, x0, y0, outer_pts, inner_pts, dark_on_light, params)
-        det = None if edges is None else _fit_one(edges, params)
-        if det is not None:
-            return det
-    return None
+    return _refine_hypotheses(img, box, _coarse_rings(roi, params), params)
 
 
 def detect_rings(
@@ -450,9 +385,16 @@ def detect_rings(
     Raises:
         VisionError: the image is not a non-empty 2-D uint8 array.
     """
-    frame = validate_image(img, name)
-    pending: list[tuple[tuple[int, int, int, int], Iterator[tuple[Contour, Contour, bool]], _Edges]] = []
-    found: list[RingDetection | None] = []
+    return detect_rings_multi([(img, name)], params)[0]
+
+
+_Pending = tuple[tuple[int, int, int, int], Iterator[tuple[Contour, Contour, bool]]]
+
+
+def _first_hypotheses(frame: U8Image, params: DetectParams) -> tuple[list[_Pending], list[RingSeeds]]:
+    """Per candidate ROI, the seed of its first usable coarse ring hypothesis (and the rest, lazily)."""
+    pending: list[_Pending] = []
+    seeds: list[RingSeeds] = []
     for box in find_candidates(frame, params):
         x0, y0, x1, y1 = box
         roi = frame[y0:y1, x0:x1]
@@ -460,27 +402,42 @@ def detect_rings(
             continue
         hyps = _coarse_rings(roi, params)
         for outer_pts, inner_pts, dol in hyps:
-            edges = _edges(roi, x0, y0, outer_pts, inner_pts, dol, params)
-            if edges is not None:
-                pending.append((box, hyps, edges))
+            seed = seed_from_contours(x0, y0, outer_pts, inner_pts, dol, params)
+            if seed is not None:
+                pending.append((box, hyps))
+                seeds.append(seed)
                 break
-    if pending:
-        n = len(pending)
-        X = np.array([e.xo for _, _, e in pending] + [e.xi for _, _, e in pending])
-        Y = np.array([e.yo for _, _, e in pending] + [e.yi for _, _, e in pending])
-        M = np.array([e.mo for _, _, e in pending] + [e.mi for _, _, e in pending])
-        fits = fit_ellipses_robust_batch(X, Y, M)
-        for k, (box, hyps, edges) in enumerate(pending):
-            det = _finish(fits[k], fits[n + k], edges, params)
+    return pending, seeds
+
+
+def detect_rings_multi(
+    images: Sequence[tuple[object, str]], params: DetectParams = DetectParams()
+) -> list[list[RingDetection]]:
+    """:func:`detect_rings` of several frames (e.g. both of a stereo pair, given with their names
+    for the errors), with the first hypotheses of all of them fitted in one batch.
+
+    Raises:
+        VisionError: an image is not a non-empty 2-D uint8 array.
+    """
+    frames = [validate_image(img, name) for img, name in images]
+    firsts = [_first_hypotheses(f, params) for f in frames]
+    parts = [(f, RingSeeds.stack(seeds)) for f, (_, seeds) in zip(frames, firsts, strict=True)]
+    dets = fit_rings(ring_edges_multi(parts, params.n_rays, params.min_contrast, params.min_valid_fraction),
+                     params)
+    out: list[list[RingDetection]] = []
+    start = 0
+    for frame, (pending, _) in zip(frames, firsts, strict=True):
+        found: list[RingDetection | None] = []
+        for (box, hyps), det in zip(pending, dets[start : start + len(pending)], strict=True):
             if det is None:  # the remaining hypotheses of this candidate, one by one
-                x0, y0, x1, y1 = box
-                roi = frame[y0:y1, x0:x1]
-                for outer_pts, inner_pts, dol in hyps:
-                    e2 = _edges(roi, x0, y0, outer_pts, inner_pts, dol, params)
-                    det = None if e2 is None else _fit_one(e2, params)
-                    if det is not None:
-                        break
+                det = _refine_hypotheses(frame, box, hyps, params)
             found.append(det)
+        start += len(pending)
+        out.append(_deduplicated(found))
+    return out
+
+
+def _deduplicated(found: list[RingDetection | None]) -> list[RingDetection]:
     out: list[RingDetection] = []
     for det in found:
         if det is None:

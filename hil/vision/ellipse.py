@@ -196,6 +196,20 @@ def projected_center_from_normal(C_px: FloatArray, K: FloatArray, normal_cam: Fl
     return np.array([p0 / p2, p1 / p2])
 
 
+#: the ellipse constraint 4ac - b^2 as a quadratic form of (a, b, c)
+_C1 = np.array([[0.0, 0.0, 2.0], [0.0, -1.0, 0.0], [2.0, 0.0, 0.0]])
+
+
+def _cholesky_rows(A: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Cholesky factors of a stack of symmetric 3x3 matrices and which were positive definite
+    (the others get the identity)."""
+    try:
+        return np.asarray(np.linalg.cholesky(A), dtype=np.float64), np.ones(A.shape[0], dtype=bool)
+    except np.linalg.LinAlgError:
+        pd = np.asarray(np.linalg.eigvalsh(A)[:, 0] > 0, dtype=np.bool_)
+        return np.asarray(np.linalg.cholesky(np.where(pd[:, None, None], A, np.eye(3))), dtype=np.float64), pd
+
+
 def _direct_fit_batch(X: FloatArray, Y: FloatArray, W: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Weighted direct ellipse fits of E point sets at once: X, Y, W are (E, R) (weight 0 = unused
     point). Returns conics (E, 3, 3) (normalised) and a validity mask (E,)."""
@@ -209,22 +223,28 @@ def _direct_fit_batch(X: FloatArray, Y: FloatArray, W: FloatArray) -> tuple[Floa
     s = np.where(s > 0, s, 1.0)
     xn, yn = xc / s[:, None], yc / s[:, None]
     D = np.stack([xn * xn, xn * yn, yn * yn, xn, yn, np.ones_like(xn)], axis=1)  # (E, 6, R)
-    S = np.einsum("eir,ejr->eij", D * W[:, None, :], D)
+    S = (D * W[:, None, :]) @ np.transpose(D, (0, 2, 1))
     S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
     det3 = np.linalg.det(S3)
     ok &= np.abs(det3) > 1e-12
     S3 = np.where(ok[:, None, None], S3, np.eye(3))
     T = -np.linalg.solve(S3, np.transpose(S2, (0, 2, 1)))
-    M = S1 + S2 @ T
-    M = np.stack([M[:, 2] / 2.0, -M[:, 1], M[:, 0] / 2.0], axis=1)
-    M = np.where(np.isfinite(M), M, 0.0)
-    _, V = np.linalg.eig(M)
-    V = V.real
-    cond = 4.0 * V[:, 0, :] * V[:, 2, :] - V[:, 1, :] ** 2  # (E, 3)
-    has = np.any(cond > 0, axis=1)
-    ok &= has
-    k = np.argmax(cond > 0, axis=1)
-    a1 = V[np.arange(V.shape[0]), :, k]  # (E, 3)
+    # reduced scatter Sr = S1 - S2 S3^-1 S2^T (symmetric, positive semi-definite); the fit is the
+    # generalised eigenvector Sr a = lambda C1 a with a^T C1 a = 4ac - b^2 > 0 (Halir & Flusser).
+    # Symmetric form: Sr = L L^T, B = L^-1 C1 L^-T; the one positive eigenvalue of B gives a = L^-T v.
+    Sr = S1 + S2 @ T
+    Sr = 0.5 * (Sr + np.transpose(Sr, (0, 2, 1)))
+    Sr = np.where(np.isfinite(Sr), Sr, 0.0)
+    tr = np.trace(Sr, axis1=1, axis2=2)
+    pos = ok & (tr > 0)
+    Sr = np.where(pos[:, None, None], Sr + (1e-12 * tr)[:, None, None] * np.eye(3), np.eye(3))
+    L, pd = _cholesky_rows(Sr)
+    pos &= pd
+    Li = np.linalg.inv(L)
+    B = Li @ _C1 @ np.transpose(Li, (0, 2, 1))
+    mu, V = np.linalg.eigh(B)
+    a1 = np.einsum("eji,ej->ei", Li, V[:, :, 2])  # L^-T v of the largest (the positive) eigenvalue
+    ok &= pos & (mu[:, 2] > 0) & (4.0 * a1[:, 0] * a1[:, 2] - a1[:, 1] ** 2 > 0)
     a2 = np.einsum("eij,ej->ei", T, a1)
     a, b, c = a1[:, 0], a1[:, 1], a1[:, 2]
     d, e, f = a2[:, 0], a2[:, 1], a2[:, 2]
@@ -247,12 +267,33 @@ def _sampson_batch(C: FloatArray, X: FloatArray, Y: FloatArray) -> FloatArray:
     return np.asarray(alg / np.maximum(2.0 * np.sqrt(gx * gx + gy * gy), 1e-300), dtype=np.float64)
 
 
-def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> list[Ellipse | None]:
+@dataclass(frozen=True)
+class EllipseArrays:
+    """E fitted ellipses as arrays: conics (E, 3, 3), centres (E, 2), semi-axes a >= b (E,),
+    major-axis angles (E,), RMS Sampson residuals (E,), points used (E,), and ``good`` (E,): the
+    fit is a real ellipse (the other rows are meaningless)."""
+
+    conic: FloatArray
+    center_px: FloatArray
+    a_px: FloatArray
+    b_px: FloatArray
+    angle_rad: FloatArray
+    residual_rms_px: FloatArray
+    n_points: NDArray[np.int64]
+    good: NDArray[np.bool_]
+
+    def ellipse(self, i: int) -> Ellipse | None:
+        if not self.good[i]:
+            return None
+        return Ellipse(self.center_px[i].copy(), float(self.a_px[i]), float(self.b_px[i]),
+                       float(self.angle_rad[i]), self.conic[i], float(self.residual_rms_px[i]),
+                       int(self.n_points[i]))
+
+
+def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> EllipseArrays:
     """Robust direct ellipse fits of E point sets (X, Y (E, R), M the used points): a fit, the
     points beyond 3 MAD of the Sampson distances (and 0.05 px) dropped, a re-fit. Same result as
     fitting each set on its own, with far fewer numpy calls."""
-    if X.shape[0] == 0:
-        return []
     W = M.astype(np.float64)
     C, ok = _direct_fit_batch(X, Y, W)
     d = np.abs(_sampson_batch(C, X, Y))
@@ -260,7 +301,8 @@ def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]
     srt = np.sort(np.where(M, d, np.inf), axis=1)
     mad = np.take_along_axis(srt, np.maximum(cnt // 2, 0)[:, None], axis=1)[:, 0] * 1.4826 + 1e-3
     keep = M & (d <= np.maximum(3.0 * mad, 0.05)[:, None])
-    refit = (keep.sum(axis=1) < M.sum(axis=1)) & (keep.sum(axis=1) >= 6)
+    n_keep = keep.sum(axis=1)
+    refit = (n_keep < cnt) & (n_keep >= 6)
     if np.any(refit):
         W2 = np.where(refit[:, None], keep, M).astype(np.float64)
         C2, ok2 = _direct_fit_batch(X, Y, W2)
@@ -283,20 +325,75 @@ def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]
     good = ok & (det > 0) & (k < 0) & (lam_s > 0) & np.isfinite(a_ax) & np.isfinite(b_ax)
     n_pts = M.sum(axis=1)
     res = np.sqrt(np.where(M, d * d, 0.0).sum(axis=1) / np.maximum(n_pts, 1))
-    out: list[Ellipse | None] = []
-    for i in range(X.shape[0]):
-        if not good[i]:
-            out.append(None)
-            continue
-        out.append(
-            Ellipse(
-                np.array([cx[i], cy[i]]),
-                float(a_ax[i]),
-                float(b_ax[i]),
-                float(angle[i]),
-                C[i],
-                float(res[i]),
-                int(n_pts[i]),
-            )
-        )
-    return out
+    return EllipseArrays(C, np.stack([cx, cy], axis=1), a_ax, b_ax, angle, res, n_pts, good)
+
+
+def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> list[Ellipse | None]:
+    """:func:`fit_ellipse_arrays` as one :class:`Ellipse` (or None: not an ellipse) per point set."""
+    if X.shape[0] == 0:
+        return []
+    fits = fit_ellipse_arrays(X, Y, M)
+    return [fits.ellipse(i) for i in range(X.shape[0])]
+
+
+def circle_normals_from_conics(
+    C_px: FloatArray, K: FloatArray
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """:func:`circle_normals_from_conic` for a stack of conics (P, 3, 3) seen by one camera ``K``:
+    the two candidate normals (P, 3) each and a validity mask (P,) (False: not an ellipse)."""
+    if C_px.shape[0] == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=bool)
+    return circle_normals_from_cones(K.T @ C_px @ K)
+
+
+def circle_normals_from_cones(Q: FloatArray) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """The two candidate circle-plane normals of each cone ``Q = K^T C K`` (P, 3, 3) (normalised
+    camera coordinates; Shiu & Ahmad 1989), and a validity mask. See :func:`circle_normals_from_conic`."""
+    lam, V = np.linalg.eigh(Q)  # ascending
+    flip = np.sum(lam > 0, axis=1) == 1
+    # descending order l1 >= l2 > 0 > l3: reversed, or (after negating a one-positive spectrum)
+    # the negated ascending order
+    l1 = np.where(flip, -lam[:, 0], lam[:, 2])
+    l2 = np.where(flip, -lam[:, 1], lam[:, 1])
+    l3 = np.where(flip, -lam[:, 2], lam[:, 0])
+    v1 = np.where(flip[:, None], V[:, :, 0], V[:, :, 2])
+    v3 = np.where(flip[:, None], V[:, :, 2], V[:, :, 0])
+    ok = (l1 >= l2) & (l2 > 0) & (l3 < 0)
+    den = np.where(ok, l1 - l3, 1.0)
+    g = np.sqrt(np.maximum((l1 - l2) / den, 0.0))
+    h = np.sqrt(np.maximum((l2 - l3) / den, 0.0))
+    out = []
+    for sgn in (1.0, -1.0):
+        n = v1 * (sgn * g)[:, None] + v3 * h[:, None]
+        n = n / np.sqrt(np.sum(n * n, axis=1, keepdims=True))
+        n = np.where((n[:, 2] > 0)[:, None], -n, n)
+        out.append(np.asarray(n, dtype=np.float64))
+    return out[0], out[1], np.asarray(ok, dtype=np.bool_)
+
+
+def poles_of_lines(C_px: FloatArray, lines: FloatArray) -> FloatArray:
+    """Pole of each line ``l`` (N, 3) with respect to its conic (N, 3, 3): ``p ~ adj(C) l`` (C
+    symmetric), as (N, 2) pixels."""
+    l0, l1, l2 = lines[:, 0], lines[:, 1], lines[:, 2]
+    a, b, d = C_px[:, 0, 0], C_px[:, 0, 1], C_px[:, 0, 2]
+    c, e, f = C_px[:, 1, 1], C_px[:, 1, 2], C_px[:, 2, 2]
+    A00, A01, A02 = c * f - e * e, d * e - b * f, b * e - c * d
+    A11, A12, A22 = a * f - d * d, b * d - a * e, a * c - b * b
+    p0 = A00 * l0 + A01 * l1 + A02 * l2
+    p1 = A01 * l0 + A11 * l1 + A12 * l2
+    p2 = A02 * l0 + A12 * l1 + A22 * l2
+    return np.stack([p0 / p2, p1 / p2], axis=1)
+
+
+def vanishing_lines(K: FloatArray, normals: FloatArray) -> FloatArray:
+    """``l = K^-T n`` for an upper-triangular K and normals (N, 3) -> (N, 3)."""
+    fx, s, cx, fy, cy = float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])
+    l0 = normals[:, 0] / fx
+    l1 = (normals[:, 1] - s * l0) / fy
+    l2 = normals[:, 2] - cx * l0 - cy * l1
+    return np.stack([l0, l1, l2], axis=1)
+
+
+def projected_centers_from_normals(C_px: FloatArray, K: FloatArray, normals: FloatArray) -> FloatArray:
+    """:func:`projected_center_from_normal` for stacks: conics (P, 3, 3), normals (P, 3) -> (P, 2)."""
+    return poles_of_lines(C_px, vanishing_lines(K, normals))

@@ -12,7 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 from hil.errors import GeometryError
 from hil.geometry.matching import MarkerMatch, match_markers
 from hil.vision.camera_model import StereoCalibration
-from hil.vision.detect import DetectParams, RingDetection, detect_rings, validate_image
+from hil.vision.detect import DetectParams, RingDetection, detect_rings_multi, validate_image
 from hil.vision.stereo import StereoParams, StereoResult, match_and_triangulate
 
 FloatArray = NDArray[np.float64]
@@ -98,8 +98,7 @@ def locate_markers(
     left = validate_image(left_img, "left image", cal.image_size)
     right = validate_image(right_img, "right image", cal.image_size)
     dp = detect_params or DetectParams()
-    det_l = detect_rings(left, dp, "left image")
-    det_r = detect_rings(right, dp, "right image")
+    det_l, det_r = detect_rings_multi([(left, "left image"), (right, "right image")], dp)
     stereo = match_and_triangulate(cal, det_l, det_r, stereo_params or StereoParams())
     match: MarkerMatch | None = None
     err: str | None = None

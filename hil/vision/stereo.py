@@ -26,9 +26,9 @@ from scipy.optimize import linear_sum_assignment
 
 from hil.geometry.triangulation import triangulate_dlt, triangulate_midpoint
 from hil.vision.camera_model import StereoCalibration, undistort_pixels
-from hil.vision.conics import concentric_center, conic_center
-from hil.vision.detect import RingDetection, center_weights
-from hil.vision.ellipse import circle_normals_from_conic, projected_center_from_normal
+from hil.vision.conics import concentric_center, conic_center, conic_centers
+from hil.vision.detect import RingDetection
+from hil.vision.ellipse import circle_normals_from_cones, poles_of_lines, vanishing_lines
 
 FloatArray = NDArray[np.float64]
 Correction = Literal["normal", "concentric", "none"]
@@ -117,53 +117,111 @@ def _rectify(cal: StereoCalibration, side: str, uv_ideal: FloatArray) -> FloatAr
     return np.asarray(out.reshape(-1, 2), dtype=np.float64)
 
 
-def _ideal_affines(cal: StereoCalibration, side: str, centers_px: FloatArray) -> list[FloatArray]:
-    """Per centre, the 3x3 affine map distorted -> ideal pixels linearised at the centre (exact
-    for no distortion; the second-order error over a ring is far below the noise)."""
+def _ideal_with_affines(
+    cal: StereoCalibration, side: str, centers_px: FloatArray
+) -> tuple[FloatArray, FloatArray | None]:
+    """The ideal (undistorted) pixels of the centres (n, 2) and, per centre, the 3x3 affine map
+    distorted -> ideal pixels linearised at the centre (n, 3, 3); None for a camera without
+    distortion (every map the identity). The second-order error over a ring is far below the
+    noise. One undistortion of all points."""
     K, dist, _, _ = cal.camera(side)
     n = centers_px.shape[0]
-    if not np.any(dist):
-        return [np.eye(3) for _ in range(n)]
+    if not np.any(dist) or n == 0:
+        return centers_px.astype(np.float64, copy=True), None
     h = 1.0
     pts = np.concatenate([centers_px, centers_px + np.array([h, 0.0]), centers_px + np.array([0.0, h])])
     ideal = undistort_pixels(pts, K, dist)
-    out = []
-    for k in range(n):
-        c0, cx, cy = ideal[k], ideal[n + k], ideal[2 * n + k]
-        J = np.column_stack([(cx - c0) / h, (cy - c0) / h])
-        H = np.eye(3)
-        H[:2, :2] = J
-        H[:2, 2] = c0 - J @ centers_px[k]
-        out.append(H)
-    return out
+    c0, cx, cy = ideal[:n], ideal[n : 2 * n], ideal[2 * n :]
+    H = np.zeros((n, 3, 3))
+    H[:, :2, 0] = (cx - c0) / h
+    H[:, :2, 1] = (cy - c0) / h
+    H[:, :2, 2] = c0 - np.einsum("pij,pj->pi", H[:, :2, :2], centers_px)
+    H[:, 2, 2] = 1.0
+    return np.asarray(c0, dtype=np.float64), H
 
 
-def _to_ideal(C: FloatArray, H: FloatArray) -> FloatArray:
-    if H[0, 0] == 1.0 and H[1, 1] == 1.0 and not H[0, 1] and not H[1, 0] and not H[0, 2] and not H[1, 2]:
+def _to_ideal_stack(C: FloatArray, H: FloatArray | None) -> FloatArray:
+    """Conics (P, 3, 3) in distorted pixels -> ideal pixels through their affine maps ``H``
+    (P, 3, 3) (None: identity): ``H^-T C H^-1``, normalised."""
+    if H is None:
         return C
-    # inverse of the affine map [J t; 0 1] is [J^-1  -J^-1 t; 0 1]
-    Ji = np.linalg.inv(H[:2, :2])
-    Hi = np.eye(3)
-    Hi[:2, :2] = Ji
-    Hi[:2, 2] = -Ji @ H[:2, 2]
-    Ci = Hi.T @ C @ Hi
-    return np.asarray(Ci / np.linalg.norm(Ci), dtype=np.float64)
+    a, b, c, d = H[:, 0, 0], H[:, 0, 1], H[:, 1, 0], H[:, 1, 1]
+    det = a * d - b * c
+    Hi = np.zeros_like(H)
+    Hi[:, 0, 0], Hi[:, 0, 1], Hi[:, 1, 0], Hi[:, 1, 1] = d / det, -b / det, -c / det, a / det
+    tx, ty = H[:, 0, 2], H[:, 1, 2]
+    Hi[:, 0, 2] = -(Hi[:, 0, 0] * tx + Hi[:, 0, 1] * ty)
+    Hi[:, 1, 2] = -(Hi[:, 1, 0] * tx + Hi[:, 1, 1] * ty)
+    Hi[:, 2, 2] = 1.0
+    Ci = np.transpose(Hi, (0, 2, 1)) @ C @ Hi
+    return np.asarray(Ci / np.sqrt(np.sum(Ci * Ci, axis=(1, 2), keepdims=True)), dtype=np.float64)
 
 
-def _weights(det: RingDetection) -> tuple[float, float]:
-    return center_weights(det.outer, det.inner)
+def _conic_stacks(
+    dets: list[RingDetection], H: FloatArray | None
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Outer and inner conics in ideal (undistorted) pixels (P, 3, 3) and the centre weights (P, 2)."""
+    P = len(dets)
+    C = _to_ideal_stack(
+        np.array([d.outer.conic for d in dets] + [d.inner.conic for d in dets]),
+        None if H is None else np.concatenate([H, H]),
+    )
+    ax = np.array([(d.outer.a_px + d.outer.b_px, d.inner.a_px + d.inner.b_px) for d in dets]).reshape(P, 2)
+    return C[:P], C[P:], ax / ax.sum(axis=1, keepdims=True)
 
 
-def _common_normal(cands_l: tuple[FloatArray, FloatArray], cands_r_in_left: list[FloatArray]) -> FloatArray:
-    best = None
-    for nl in cands_l:
-        for nr in cands_r_in_left:
-            c = float(nl @ nr)
-            if best is None or c > best[0]:
-                best = (c, nl, nr)
-    assert best is not None
-    n = best[1] + best[2]
-    return np.asarray(n / np.linalg.norm(n), dtype=np.float64)
+def _normal_correction(
+    cal: StereoCalibration,
+    left: list[RingDetection],
+    right: list[RingDetection],
+    HL: FloatArray | None,
+    HR: FloatArray | None,
+    UL: FloatArray,
+    UR: FloatArray,
+) -> list[FloatArray | None]:
+    """The plane-normal perspective correction of paired detections (module doc, step 3), for all
+    pairs at once: moves the ideal centres ``UL``, ``UR`` (P, 2) in place; returns the normals
+    (optical frame; None where a conic gave no normal)."""
+    KL, KR, R_rl = cal.K_left, cal.K_right, cal.R_right_from_left
+    P = len(left)
+    CoL, CiL, wl = _conic_stacks(left, HL)
+    CoR, CiR, wr = _conic_stacks(right, HR)
+    c1, c2, okc = circle_normals_from_cones(np.concatenate([KL.T @ CoL @ KL, KR.T @ CoR @ KR]))
+    l1, l2, okL = c1[:P], c2[:P], okc[:P]
+    r1, r2, okR = c1[P:] @ R_rl, c2[P:] @ R_rl, okc[P:]  # R_rl^T n: the right candidates in the left frame
+    # the best-agreeing pair of candidates (first maximum wins, as in a loop over left then right)
+    dots = np.stack([np.sum(a * b, axis=1) for a, b in ((l1, r1), (l1, r2), (l2, r1), (l2, r2))], axis=1)
+    best = np.argmax(dots, axis=1)
+    n = np.where((best < 2)[:, None], l1, l2) + np.where((best % 2 == 0)[:, None], r1, r2)
+    n = n / np.sqrt(np.sum(n * n, axis=1, keepdims=True))
+    nR = n @ R_rl.T
+    ok = okL & okR
+    lL, lR = vanishing_lines(KL, n), vanishing_lines(KR, nR)
+    C = np.concatenate([CoL, CiL, CoR, CiR])
+    shift = poles_of_lines(C, np.concatenate([lL, lL, lR, lR])) - conic_centers(C)
+    dl = wl[:, :1] * shift[:P] + wl[:, 1:] * shift[P : 2 * P]
+    dr = wr[:, :1] * shift[2 * P : 3 * P] + wr[:, 1:] * shift[3 * P :]
+    UL += np.where(ok[:, None], dl, 0.0)
+    UR += np.where(ok[:, None], dr, 0.0)
+    return [n[k].copy() if ok[k] else None for k in range(P)]
+
+
+def _concentric_correction(
+    left: list[RingDetection],
+    right: list[RingDetection],
+    HL: FloatArray | None,
+    HR: FloatArray | None,
+    UL: FloatArray,
+    UR: FloatArray,
+) -> None:
+    """The concentric-conic correction (per view): moves ``UL``, ``UR`` in place."""
+    CoL, CiL, wl = _conic_stacks(left, HL)
+    CoR, CiR, wr = _conic_stacks(right, HR)
+    for k in range(UL.shape[0]):
+        ccl, ccr = concentric_center(CoL[k], CiL[k]), concentric_center(CoR[k], CiR[k])
+        if ccl is not None and ccr is not None:
+            UL[k] += ccl - (wl[k, 0] * conic_center(CoL[k]) + wl[k, 1] * conic_center(CiL[k]))
+            UR[k] += ccr - (wr[k, 0] * conic_center(CoR[k]) + wr[k, 1] * conic_center(CiR[k]))
 
 
 def match_and_triangulate(
@@ -177,11 +235,12 @@ def match_and_triangulate(
     Raises:
         GeometryError (from the triangulation) only for degenerate input such as parallel rays.
     """
-    KL, distL, _, _ = cal.camera("left")
-    KR, distR, R_rl, _ = cal.camera("right")
+    KL, KR = cal.K_left, cal.K_right
+    R_rl = cal.R_right_from_left
     cL = np.array([d.center_px for d in left]).reshape(-1, 2)
     cR = np.array([d.center_px for d in right]).reshape(-1, 2)
-    iL, iR = undistort_pixels(cL, KL, distL), undistort_pixels(cR, KR, distR)
+    iL, HL_all = _ideal_with_affines(cal, "left", cL)
+    iR, HR_all = _ideal_with_affines(cal, "right", cR)
     rL, rR = _rectify(cal, "left", iL), _rectify(cal, "right", iR)
     nl, nr = len(left), len(right)
     if nl == 0 or nr == 0:
@@ -210,41 +269,16 @@ def match_and_triangulate(
     used_l, used_r = {a for a, _ in pairs}, {b for _, b in pairs}
     if not pairs:
         return StereoResult((), (), tuple(range(nl)), tuple(range(nr)))
-    uvl, uvr, normals = [], [], []
-    if params.correction != "none":
-        HL = _ideal_affines(cal, "left", cL[[a for a, _ in pairs]])
-        HR = _ideal_affines(cal, "right", cR[[b for _, b in pairs]])
-    for k, (a, b) in enumerate(pairs):
-        ul, ur, n = iL[a], iR[b], None
-        if params.correction != "none":
-            CoL, CiL = _to_ideal(left[a].outer.conic, HL[k]), _to_ideal(left[a].inner.conic, HL[k])
-            CoR, CiR = _to_ideal(right[b].outer.conic, HR[k]), _to_ideal(right[b].inner.conic, HR[k])
-            wl, wr = _weights(left[a]), _weights(right[b])
-            if params.correction == "normal":
-                candL = circle_normals_from_conic(CoL, KL)
-                candR = circle_normals_from_conic(CoR, KR)
-                if candL is not None and candR is not None:
-                    n = _common_normal(candL, [R_rl.T @ c for c in candR])
-                    nR = R_rl @ n
-                    ul = (
-                        ul
-                        + wl[0] * (projected_center_from_normal(CoL, KL, n) - conic_center(CoL))
-                        + wl[1] * (projected_center_from_normal(CiL, KL, n) - conic_center(CiL))
-                    )
-                    ur = (
-                        ur
-                        + wr[0] * (projected_center_from_normal(CoR, KR, nR) - conic_center(CoR))
-                        + wr[1] * (projected_center_from_normal(CiR, KR, nR) - conic_center(CiR))
-                    )
-            else:
-                ccl, ccr = concentric_center(CoL, CiL), concentric_center(CoR, CiR)
-                if ccl is not None and ccr is not None:
-                    ul = ul + (ccl - (wl[0] * conic_center(CoL) + wl[1] * conic_center(CiL)))
-                    ur = ur + (ccr - (wr[0] * conic_center(CoR) + wr[1] * conic_center(CiR)))
-        uvl.append(ul)
-        uvr.append(ur)
-        normals.append(n)
-    UL, UR = np.array(uvl), np.array(uvr)
+    ia = np.array([a for a, _ in pairs])
+    ib = np.array([b for _, b in pairs])
+    UL, UR = iL[ia].copy(), iR[ib].copy()
+    normals: list[FloatArray | None] = [None] * len(pairs)
+    HL = None if HL_all is None else HL_all[ia]
+    HR = None if HR_all is None else HR_all[ib]
+    if params.correction == "normal":
+        normals = _normal_correction(cal, [left[a] for a in ia], [right[b] for b in ib], HL, HR, UL, UR)
+    elif params.correction == "concentric":
+        _concentric_correction([left[a] for a in ia], [right[b] for b in ib], HL, HR, UL, UR)
     pts = triangulate_dlt(cal.P_left(), cal.P_right(), UL, UR)
     dirs_l = np.column_stack([UL, np.ones(len(UL))]) @ np.linalg.inv(KL).T
     dirs_r = (np.column_stack([UR, np.ones(len(UR))]) @ np.linalg.inv(KR).T) @ R_rl

@@ -86,16 +86,26 @@ def test_recovers_intrinsics_and_baseline(
     assert len(cal.quality["per_view"]) == 14
 
 
-def test_outlier_view_is_rejected_and_named(
+def test_outlier_view_is_flagged_and_excluded_on_request(
     rig: StereoCalibration, corners: tuple[list[np.ndarray], list[np.ndarray]]
 ) -> None:
     cl, cr = [c.copy() for c in corners[0]], [c.copy() for c in corners[1]]
     cl[3] = cl[3] + np.random.default_rng(0).normal(0.0, 2.0, cl[3].shape)
     names = [f"view{i}" for i in range(len(cl))]
-    res = calibrate_from_corners(cl, cr, rig.image_size, names=names)
+    flagged = calibrate_from_corners(cl, cr, rig.image_size, names=names)
+    assert flagged.rejected == ()
+    assert flagged.pairs_used == 14
+    assert [v["view"] for v in flagged.per_view if v["outlier"]] == ["view3"]
+    assert all(v["used"] for v in flagged.per_view)
+    assert flagged.calibration.quality["outlier_views"] == ["view3"]
+    excl = CalibrationSettings(exclude_outliers=True)
+    res = calibrate_from_corners(cl, cr, rig.image_size, excl, names=names)
     assert [v for v, _ in res.rejected] == ["view3"]
-    assert "outlier" in res.rejected[0][1]
+    assert "far above the median" in res.rejected[0][1]
     assert res.pairs_used == 13
+    assert [v["view"] for v in res.per_view if not v["used"]] == ["view3"]
+    assert res.per_view[3]["rms_stereo_px"] is None
+    assert res.summary()["views_left_out"] == [{"view": "view3", "reason": res.rejected[0][1]}]
     assert res.calibration.baseline_mm == pytest.approx(rig.baseline_mm, abs=0.3)
 
 
@@ -156,7 +166,9 @@ def test_cli_calibrate_errors(views: Path, tmp_path: Path, capsys: pytest.Captur
     assert main([*args, "--left", str(tmp_path / "none_*.png"), "--right", str(views / "right_*.png")]) == 2
     assert "no left images match" in capsys.readouterr().err
     assert main([*args, "--left", str(views / "left_0*.png"), "--right", str(views / "right_*.png")]) == 2
-    assert "10 left images but 14 right images" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "right_10.png: 10 left images but 14 right images" in err
+    assert len(err.strip().splitlines()) == 1
     assert (
         main(
             [
@@ -171,7 +183,9 @@ def test_cli_calibrate_errors(views: Path, tmp_path: Path, capsys: pytest.Captur
         )
         == 2
     )
-    assert "board was found in both images of only 0 of 14" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "left_02.png: the 8x9 board was not found in any image of the first 3 pair(s)" in err
+    assert "check --board" in err
     with pytest.raises(SystemExit):
         main([*args, "--left", "a", "--right", "b", "--board", "six"])
 
@@ -181,7 +195,7 @@ def test_calibrate_image_size_mismatch(views: Path, tmp_path: Path) -> None:
         img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
         cv2.imwrite(str(tmp_path / f"l{i}.png"), img)
         cv2.imwrite(str(tmp_path / f"r{i}.png"), img if i != 1 else img[:-2])
-    with pytest.raises(CalibrationError, match=r"r1\.png is 960x538 but"):
+    with pytest.raises(CalibrationError, match=r"r1\.png: image is 960x538 but .*l1\.png is 960x540"):
         calibrate_from_files(str(tmp_path / "l*.png"), str(tmp_path / "r*.png"))
 
 

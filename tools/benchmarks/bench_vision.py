@@ -1,7 +1,8 @@
 """Benchmark the stereo ring-marker pipeline against ground truth, the first-order lower bound and
 a plain OpenCV baseline.
 
-Run: ``tools/bench vision [--pairs N] [--markers M] [--noise SIGMA] [--seed S] [--json]``
+Run: ``tools/bench vision [--pairs N] [--markers M] [--noise SIGMA] [--seed S] [--frames F]
+[--scaling] [--json]``
 
 Scene (seed-001-like): 1920x1080, f = 1394 px, baseline 120 mm, mild radial distortion, M ring
 markers (7/3 mm) on a curved skin patch ~1 m away, tilted up to 45 degrees, Gaussian sensor noise
@@ -22,6 +23,12 @@ Printed side by side:
   pairing + correction + triangulation) and for the baseline;
 - a near-range scene (450 mm, tilts up to 60 degrees) where the perspective bias is larger, with
   and without the correction.
+- region-of-interest tracking (hil.vision.tracking) on a sequence of F pairs with the markers
+  moving at breathing speed and one hidden for a while (tools/benchmarks/vision_sequence.py), side
+  by side with the full-frame pipeline and the OpenCV baseline on the same pairs: pairs/s, 3D
+  error against the bound of that sequence, full-frame re-acquisitions and losses;
+- with ``--scaling``: pairs/s and 3D error of both modes for 4, 8, 16, 32 markers and for
+  1280x720, 1920x1080 and 3840x2160 images (the table of docs/benchmarks.md).
 Wall-clock figures depend on the machine; the accuracy figures do not (fixed seed).
 """
 
@@ -40,9 +47,12 @@ from numpy.typing import NDArray
 
 from hil.geometry.triangulation import triangulate_dlt
 from hil.vision.camera_model import StereoCalibration, undistort_pixels
-from hil.vision.detect import detect_rings, detect_rings_paper
+from hil.vision.detect import detect_rings, detect_rings_multi, detect_rings_paper
 from hil.vision.render import RenderedPair, RenderOptions, random_marker_layout, render_stereo
 from hil.vision.stereo import StereoParams, match_and_triangulate
+
+sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
+from vision_sequence import run_sequence, scaled_rig, scaling_sweep
 
 FloatArray = NDArray[np.float64]
 MATCH_PX = 2.0
@@ -241,7 +251,7 @@ def run(
         bound_for_scene(cal, markers, clean, noise, px_var, mm_var)
         for corr in corrections:
             t0, w0 = time.thread_time(), time.perf_counter()
-            dl, dr = detect_rings(pair.left), detect_rings(pair.right)
+            dl, dr = detect_rings_multi([(pair.left, "left image"), (pair.right, "right image")])
             st = match_and_triangulate(cal, dl, dr, StereoParams(correction=corr))
             ours[corr].times.append(time.thread_time() - t0)
             ours[corr].wall.append(time.perf_counter() - w0)
@@ -283,6 +293,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--markers", type=int, default=8)
     ap.add_argument("--noise", type=float, default=2.0, help="sensor noise sigma, grey levels (default 2)")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--frames", type=int, default=90, help="pairs of the tracking sequence (default 90, 3 s)")
+    ap.add_argument("--scaling", action="store_true",
+                    help="also sweep marker count (4-32) and image size (1280x720-3840x2160)")
+    ap.add_argument("--scaling-frames", type=int, default=30, help="pairs per scaling case (default 30)")
     ap.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
@@ -290,6 +304,11 @@ def main(argv: list[str] | None = None) -> int:
     near = run(
         max(args.pairs // 3, 5), args.markers, args.noise, args.seed + 1, 450.0, 60.0, with_baseline=False
     )
+    seq = run_sequence(
+        scaled_rig(1920), args.markers, args.frames, args.noise, args.seed,
+        baseline=(_blob_detector(), baseline_centres, baseline_points), bound_every=3, bound=bound_for_scene,
+    )
+    sq_t, sq_f, sq_b = seq["track"], seq["full"], seq["baseline"]
     ours, base, paper = main_res["ours"], main_res["baseline"], main_res["paper"]
     best = ours["normal"]
     t_med, t_p95, pps = best.time_stats()
@@ -319,6 +338,28 @@ def main(argv: list[str] | None = None) -> int:
         "false_detections": ours["none"].false,
         "baseline_missed": base.missed,
         "baseline_false": base.false,
+        "tracking_pairs_per_s": sq_t.pairs_per_s(),
+        "tracking_time_per_pair_ms_median": sq_t.ms(50),
+        "tracking_time_per_pair_ms_p95": sq_t.ms(95),
+        "tracking_err3d_mm_rms": sq_t.rms(),
+        "tracking_err3d_bound_mm": seq["bound_mm"],
+        "reacquisitions": seq["reacquisitions"],
+        "losses": seq["losses"],
+        "sequence": {
+            "frames": seq["frames"],
+            "hidden_frames": seq["hidden_frames"],
+            "tracking": {"pairs_per_s": sq_t.pairs_per_s(), "err3d_mm_rms": sq_t.rms(),
+                         "time_per_pair_ms_median": sq_t.ms(50), "time_per_pair_ms_p95": sq_t.ms(95),
+                         "missed": sq_t.missed, "false": sq_t.false},
+            "full_frame": {"pairs_per_s": sq_f.pairs_per_s(), "err3d_mm_rms": sq_f.rms(),
+                           "time_per_pair_ms_median": sq_f.ms(50), "time_per_pair_ms_p95": sq_f.ms(95),
+                           "missed": sq_f.missed, "false": sq_f.false},
+            "baseline": {"pairs_per_s": sq_b.pairs_per_s(), "err3d_mm_rms": sq_b.rms(),
+                         "time_per_pair_ms_median": sq_b.ms(50), "missed": sq_b.missed, "false": sq_b.false},
+            "err3d_bound_mm": seq["bound_mm"],
+            "reacquisitions": seq["reacquisitions"],
+            "losses": seq["losses"],
+        },
         "near_450mm": {
             "err3d_mm_rms_normal": near["ours"]["normal"].err3d_rms(),
             "err3d_mm_rms_concentric": near["ours"]["concentric"].err3d_rms(),
@@ -328,6 +369,8 @@ def main(argv: list[str] | None = None) -> int:
             "center_err_bound_px": near["bound_px"],
         },
     }
+    if args.scaling:
+        result["scaling"] = scaling_sweep(args.noise, args.seed, args.scaling_frames)
     if args.json:
         json.dump(result, sys.stdout)
         sys.stdout.write("\n")
@@ -384,7 +427,40 @@ def main(argv: list[str] | None = None) -> int:
         f"concentric {nr['err3d_mm_rms_concentric']:.4f} | none {nr['err3d_mm_rms_uncorrected']:.4f} | "
         f"bound {nr['err3d_bound_mm']:.4f}"
     )
+    _print_sequence(result)
+    if args.scaling:
+        _print_scaling(result["scaling"])
     return 0
+
+
+def _print_sequence(r: dict[str, Any]) -> None:
+    sq = r["sequence"]
+    b = sq["err3d_bound_mm"]
+    print(
+        f"\ntracking sequence: {sq['frames']} pairs at 30/s, {r['markers']} markers breathing (8 mm, 4 s), "
+        f"marker 0 hidden in pairs {sq['hidden_frames'][0]}-{sq['hidden_frames'][1] - 1}"
+    )
+    print(f"{'':<28}{'tracking':>14}{'full frame':>14}{'OpenCV':>14}")
+    rows = [("tracking", sq["tracking"]), ("full frame", sq["full_frame"]), ("OpenCV", sq["baseline"])]
+    print(f"{'pairs/s (one core)':<28}" + "".join(f"{m['pairs_per_s']:>14.1f}" for _, m in rows))
+    print(f"{'time per pair, ms median':<28}"
+          + "".join(f"{m['time_per_pair_ms_median']:>14.2f}" for _, m in rows))
+    print(f"{'3D error, mm RMS':<28}" + "".join(f"{m['err3d_mm_rms']:>14.4f}" for _, m in rows))
+    print(f"{'3D error / bound':<28}" + "".join(f"{m['err3d_mm_rms'] / b:>14.2f}" for _, m in rows)
+          + f"   (bound {b:.4f} mm)")
+    print(f"{'missed / false':<28}" + "".join(f"{m['missed']:>8} / {m['false']:<3}" for _, m in rows))
+    print(f"full-frame re-acquisitions (both images): {sq['reacquisitions']}, "
+          f"markers lost from their window: {sq['losses']}")
+
+
+def _print_scaling(rows: list[dict[str, Any]]) -> None:
+    print("\nscaling (pairs/s one core; 3D error mm RMS)")
+    print(f"{'image':<12}{'markers':>8}{'track pairs/s':>15}{'full pairs/s':>14}{'track err':>11}"
+          f"{'full err':>10}{'reacq':>7}{'lost':>6}")
+    for row in rows:
+        print(f"{row['image']:<12}{row['markers']:>8}{row['tracking_pairs_per_s']:>15.1f}"
+              f"{row['pairs_per_s']:>14.1f}{row['tracking_err3d_mm_rms']:>11.4f}{row['err3d_mm_rms']:>10.4f}"
+              f"{row['reacquisitions']:>7}{row['losses']:>6}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,382 @@
+"""Region-of-interest tracking of ring markers: once acquired, each marker is searched for only in
+a window around its predicted position, with the same sub-pixel estimator as a full-frame search.
+
+Per camera (:class:`ImageTracker`), each tracked marker keeps its last detection (outer and inner
+ellipses) and its image velocity. For a new frame:
+
+1. Prediction: last centre + velocity x elapsed time (constant velocity; the elapsed time is the
+   frames' timestamps when given, else one frame).
+2. Windowed search: the rays of :mod:`hil.vision.ring_edges` are cast from each predicted centre
+   with the last ellipses' radii, all markers of the image in one batch, and the ellipse fits,
+   ring check and centre estimate of :func:`hil.vision.detect.fit_rings` follow -- the very
+   estimator of full-frame detection. A marker that fails there (it moved further than the rays'
+   tolerance, or part of it is hidden) gets the full-frame detector's coarse step inside its
+   window (:func:`hil.vision.detect.refine_in_box`).
+3. Gating: a result is the marker only when its centre lies inside the window and nearer to the
+   prediction than half the distance to any other marker's prediction; two markers never take the
+   same detection. Anything else is *lost* -- never snapped to a neighbour.
+4. Re-acquisition: a full-frame search of the image (:func:`hil.vision.detect.detect_rings`)
+   whenever a marker was lost in this frame (the same frame is searched again, so a marker that
+   only outran its window is found), every ``reacquire_every`` frames (a new marker may have
+   appeared; a stereo tracker staggers its two cameras by half that period), every
+   ``lost_retry_every`` frames while fewer markers are tracked than were seen
+   (one is hidden), and on request.
+
+The stereo stage is unchanged (:func:`hil.vision.stereo.match_and_triangulate`): global pairing
+on the rectified rows and ring sizes, the plane-normal perspective correction and the ray-gap
+check. Pure CPU; the cost grows with the number of markers, not with the image size (a full-frame
+search excepted).
+
+Thread safety: a tracker holds mutable state; calls must not overlap (one thread at a time), but
+successive calls may come from different threads.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hil.vision.camera_model import StereoCalibration
+from hil.vision.detect import (
+    DetectParams,
+    RingDetection,
+    detect_rings,
+    detect_rings_multi,
+    edges_of,
+    fit_rings,
+    refine_in_box,
+    validate_image,
+)
+from hil.vision.pipeline import LocateResult
+from hil.vision.ring_edges import RingSeeds, ring_edges_multi
+from hil.vision.stereo import StereoParams, match_and_triangulate
+
+FloatArray = NDArray[np.float64]
+U8Image = NDArray[np.uint8]
+
+
+@dataclass(frozen=True)
+class TrackingParams:
+    """window_margin_px: how far beyond the marker's outer ellipse (px) its window reaches.
+    reacquire_every: a full-frame search every this many frames (0: only when needed).
+    lost_retry_every: while fewer markers are tracked than were seen, a full-frame search every
+    this many frames. forget_after: after this many frames a missing marker is no longer searched
+    for (the scene has fewer markers now). max_speed_px_per_frame: velocity clamp of the prediction.
+    """
+
+    window_margin_px: float = 8.0
+    reacquire_every: int = 30
+    lost_retry_every: int = 5
+    forget_after: int = 150
+    max_speed_px_per_frame: float = 20.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.window_margin_px) and self.window_margin_px >= 0):
+            raise ValueError(f"window_margin_px must be >= 0, got {self.window_margin_px}")
+        if self.reacquire_every < 0 or self.lost_retry_every < 1 or self.forget_after < 1:
+            raise ValueError("reacquire_every must be >= 0, lost_retry_every and forget_after >= 1")
+
+
+@dataclass(frozen=True)
+class _Step:
+    """One frame in progress: full-frame search or windows, predicted centres (px), elapsed time."""
+
+    full: bool
+    preds: FloatArray
+    dt: float
+
+
+@dataclass
+class _Track:
+    det: RingDetection
+    velocity_px_s: FloatArray  # per second (or per frame without timestamps)
+
+
+@dataclass
+class ImageStats:
+    """Counters of one camera: frames, full-frame searches (``reacquisitions``), markers lost from
+    their window (``losses``)."""
+
+    frames: int = 0
+    reacquisitions: int = 0
+    losses: int = 0
+
+
+@dataclass
+class ImageTracker:
+    """The markers of one camera (see the module doc). Not thread-safe: one call at a time."""
+
+    params: TrackingParams = field(default_factory=TrackingParams)
+    detect_params: DetectParams = field(default_factory=DetectParams)
+    name: str = "image"
+    #: frames by which this camera's periodic full-frame searches are offset (a stereo tracker
+    #: staggers its two cameras so that one pair never pays for both)
+    phase: int = 0
+    stats: ImageStats = field(default_factory=ImageStats)
+    _tracks: list[_Track] = field(default_factory=list)
+    _t_s: float | None = None
+    _expected: int = 0
+    _missing_since: int | None = None
+    _force: bool = False
+
+    def request_reacquire(self) -> None:
+        """The next frame gets a full-frame search."""
+        self._force = True
+
+    @property
+    def tracked(self) -> int:
+        return len(self._tracks)
+
+    @property
+    def markers(self) -> list[RingDetection]:
+        """The tracked markers' latest detections."""
+        return [t.det for t in self._tracks]
+
+    def update(self, img: U8Image, t_s: float | None = None) -> list[RingDetection]:
+        """The markers in ``img`` (a validated grey frame); see the module doc. ``t_s``: the
+        frame's time (s, any monotonic origin) for the velocity; None: one unit per frame."""
+        step = self.begin(t_s)
+        found = None
+        if not step.full:
+            dp = self.detect_params
+            found = fit_rings(edges_of(img, self.seeds(step), dp), dp)
+        return self.finish(img, step, found)
+
+    def begin(self, t_s: float | None) -> _Step:
+        """Start a frame: elapsed time, predictions, and whether it gets a full-frame search."""
+        self.stats.frames += 1
+        dt = 1.0 if t_s is None or self._t_s is None else max(t_s - self._t_s, 1e-6)
+        self._t_s = t_s
+        missing_for = self._missing_for()
+        every = self.params.reacquire_every
+        full = (
+            self._force
+            or not self._tracks
+            or (every > 0 and (self.stats.frames + self.phase) % every == 0)
+            or (missing_for is not None and missing_for % self.params.lost_retry_every == 0)
+        )
+        return _Step(full, self._predict(dt), dt)
+
+    def seeds(self, step: _Step) -> RingSeeds:
+        """The windowed search's ray seeds: each marker's last ellipses at its prediction."""
+        tracks = self._tracks
+        return RingSeeds(
+            step.preds,
+            np.array([[t.det.outer.a_px, t.det.outer.b_px, t.det.outer.angle_rad] for t in tracks]),
+            np.array([[t.det.inner.a_px, t.det.inner.b_px, t.det.inner.angle_rad] for t in tracks]),
+            np.array([t.det.dark_on_light for t in tracks]),
+        )
+
+    def finish(
+        self, img: U8Image, step: _Step, found: list[RingDetection | None] | None
+    ) -> list[RingDetection]:
+        """End a frame: :meth:`resolve_windows`, else a full-frame search (:meth:`reacquire`).
+        Returns the markers of this frame."""
+        if step.full or found is None or not self.resolve_windows(img, step, found):
+            self.reacquire(detect_rings(img, self.detect_params, self.name), step)
+        return [t.det for t in self._tracks]
+
+    def resolve_windows(self, img: U8Image, step: _Step, found: list[RingDetection | None]) -> bool:
+        """Gate the windowed results ``found`` (one per track, from :meth:`seeds`), search a
+        failed marker's window with the coarse step; True when every marker was found (tracks
+        updated), False when one is lost (counted; the frame needs a full-frame search)."""
+        found = self._windowed(img, step.preds, found)
+        lost = sum(1 for d in found if d is None)
+        if lost:
+            self.stats.losses += lost
+            return False
+        self._advance([d for d in found if d is not None], step.dt)
+        return True
+
+    def reacquire(self, dets: list[RingDetection], step: _Step) -> None:
+        """Take a full-frame search's detections as the tracks (see :meth:`_reacquired`)."""
+        self.stats.reacquisitions += 1
+        self._force = False
+        self._reacquired(dets, step.preds, step.dt)
+
+    # ---- internals --------------------------------------------------------------------------
+    def _missing_for(self) -> int | None:
+        """Frames since fewer markers are tracked than were seen (None: none missing, or missing
+        longer than ``forget_after``: then the smaller count becomes the expected one)."""
+        if self._expected <= len(self._tracks):
+            self._missing_since = None
+            return None
+        if self._missing_since is None:
+            self._missing_since = self.stats.frames
+        since = self.stats.frames - self._missing_since
+        if since > self.params.forget_after:
+            self._expected, self._missing_since = len(self._tracks), None
+            return None
+        return since
+
+    def _predict(self, dt: float) -> FloatArray:
+        if not self._tracks:
+            return np.zeros((0, 2))
+        c = np.array([t.det.center_px for t in self._tracks])
+        v = np.array([t.velocity_px_s for t in self._tracks])
+        return np.asarray(c + v * dt, dtype=np.float64)
+
+    def _gates(self, preds: FloatArray) -> FloatArray:
+        """Per track, the largest accepted distance of a detection from its prediction (px)."""
+        half = np.array([_window_half_px(t.det, self.params.window_margin_px) for t in self._tracks])
+        if preds.shape[0] > 1:
+            d = np.linalg.norm(preds[:, None, :] - preds[None, :, :], axis=2)
+            np.fill_diagonal(d, np.inf)
+            half = np.minimum(half, 0.5 * d.min(axis=1))
+        return half
+
+    def _windowed(
+        self, img: U8Image, preds: FloatArray, found: list[RingDetection | None]
+    ) -> list[RingDetection | None]:
+        tracks = self._tracks
+        found = list(found)
+        gates = self._gates(preds)
+        h, w = img.shape
+        centres = np.array([[np.nan, np.nan] if d is None else d.center_px for d in found])
+        dist = np.linalg.norm(centres - preds, axis=1)
+        for i in np.nonzero(~(dist <= gates))[0]:
+            half = _window_half_px(tracks[i].det, self.params.window_margin_px)
+            x, y = preds[i]
+            box = (
+                max(int(x - half), 0),
+                max(int(y - half), 0),
+                min(math.ceil(x + half), w),
+                min(math.ceil(y + half), h),
+            )
+            det = refine_in_box(img, box, self.detect_params) if box[2] > box[0] and box[3] > box[1] else None
+            ok = det is not None and float(np.linalg.norm(det.center_px - preds[i])) <= gates[i]
+            found[i] = det if ok else None
+            centres[i] = det.center_px if det is not None and ok else np.nan
+            dist[i] = float(np.linalg.norm(centres[i] - preds[i]))
+        # two markers never take the same detection: the one nearer its prediction keeps it
+        if len(found) > 1:
+            sep = np.linalg.norm(centres[:, None, :] - centres[None, :, :], axis=2)
+            b = np.array([np.nan if d is None else d.outer.b_px for d in found])
+            close = sep < 0.5 * np.minimum(b[:, None], b[None, :])
+            np.fill_diagonal(close, False)
+            for i, j in zip(*np.nonzero(np.triu(close)), strict=True):
+                if found[i] is not None and found[j] is not None:
+                    found[int(j) if dist[i] <= dist[j] else int(i)] = None
+        return found
+
+    def _advance(self, dets: list[RingDetection], dt: float) -> None:
+        for t, det in zip(self._tracks, dets, strict=True):
+            t.velocity_px_s = self._velocity(det.center_px - t.det.center_px, dt)
+            t.det = det
+
+    def _velocity(self, step_px: FloatArray, dt: float) -> FloatArray:
+        """Velocity (px per second, or per frame without timestamps) of a move of ``step_px`` in
+        ``dt``, its move per frame clamped to ``max_speed_px_per_frame``."""
+        move = float(np.hypot(step_px[0], step_px[1]))
+        vmax = self.params.max_speed_px_per_frame
+        scale = 1.0 if move <= vmax else vmax / move
+        return np.asarray(step_px * (scale / dt), dtype=np.float64)
+
+    def _reacquired(self, dets: list[RingDetection], preds: FloatArray, dt: float) -> None:
+        """New tracks from a full-frame search; a detection near an old track's prediction keeps
+        that track's velocity (the nearest pairs first)."""
+        old = self._tracks
+        new: list[_Track] = []
+        used: set[int] = set()
+        gates = self._gates(preds) if old else np.zeros(0)
+        for det in dets:
+            v = np.zeros(2)
+            if old:
+                d = np.linalg.norm(preds - det.center_px, axis=1)
+                j = int(np.argmin(d))
+                if d[j] <= gates[j] and j not in used:
+                    used.add(j)
+                    v = self._velocity(det.center_px - old[j].det.center_px, dt)
+            new.append(_Track(det, v))
+        self._tracks = new
+        if len(new) >= self._expected:
+            self._expected, self._missing_since = len(new), None
+        elif self._missing_since is None:
+            self._missing_since = self.stats.frames
+
+
+def _window_half_px(det: RingDetection, margin_px: float) -> float:
+    """Half the side of a marker's search window: its outer ellipse's major semi-axis, the
+    full-frame ROI's slack (x 1.35 + 4 px) and the margin."""
+    return det.outer.a_px * 1.35 + 4.0 + margin_px
+
+
+@dataclass
+class TrackingStats:
+    """Both cameras' counters (see :class:`ImageStats`)."""
+
+    frames: int
+    reacquisitions: int
+    losses: int
+
+
+class MarkerTracker:
+    """Stereo ring-marker localisation with region-of-interest tracking (module doc).
+
+    Args:
+        cal: the rig's calibration; both images must have its size.
+        params / detect_params / stereo_params: tracking, detection and stereo settings.
+
+    :meth:`locate` returns the same :class:`~hil.vision.pipeline.LocateResult` as
+    :func:`hil.vision.pipeline.locate_markers` (without identification). Not thread-safe: one
+    call at a time (from any thread).
+    """
+
+    def __init__(
+        self,
+        cal: StereoCalibration,
+        params: TrackingParams | None = None,
+        detect_params: DetectParams | None = None,
+        stereo_params: StereoParams | None = None,
+    ) -> None:
+        self.cal = cal
+        self.params = params or TrackingParams()
+        dp = detect_params or DetectParams()
+        self.stereo_params = stereo_params or StereoParams()
+        self.left = ImageTracker(self.params, dp, "left image")
+        self.right = ImageTracker(self.params, dp, "right image", phase=self.params.reacquire_every // 2)
+
+    def request_reacquire(self) -> None:
+        """Both images of the next pair get a full-frame search."""
+        self.left.request_reacquire()
+        self.right.request_reacquire()
+
+    @property
+    def stats(self) -> TrackingStats:
+        a, b = self.left.stats, self.right.stats
+        return TrackingStats(a.frames, a.reacquisitions + b.reacquisitions, a.losses + b.losses)
+
+    def locate(self, left_img: object, right_img: object, t_s: float | None = None) -> LocateResult:
+        """Markers of one stereo pair (optical frame, mm). ``t_s``: the pair's time, s.
+
+        Raises:
+            VisionError: an image is empty, colour, not uint8 or not the calibration's size.
+        """
+        left = validate_image(left_img, "left image", self.cal.image_size)
+        right = validate_image(right_img, "right image", self.cal.image_size)
+        trackers = ((self.left, left), (self.right, right))
+        steps = [tr.begin(t_s) for tr, _ in trackers]
+        windowed = [k for k in range(2) if not steps[k].full]
+        found: list[list[RingDetection | None] | None] = [None, None]
+        if windowed:  # both images' windows in one batch
+            parts = [(trackers[k][1], trackers[k][0].seeds(steps[k])) for k in windowed]
+            dp = self.left.detect_params
+            fitted = fit_rings(ring_edges_multi(parts, dp.n_rays, dp.min_contrast, dp.min_valid_fraction), dp)
+            start = 0
+            for k, (_, sd) in zip(windowed, parts, strict=True):
+                found[k] = fitted[start : start + sd.count]
+                start += sd.count
+        need = [
+            k for k in range(2)
+            if steps[k].full or not trackers[k][0].resolve_windows(trackers[k][1], steps[k], found[k] or [])
+        ]
+        if need:  # full-frame searches, both images in one batch
+            images = [(trackers[k][1], trackers[k][0].name) for k in need]
+            for k, dets in zip(need, detect_rings_multi(images, self.left.detect_params), strict=True):
+                trackers[k][0].reacquire(dets, steps[k])
+        dl, dr = self.left.markers, self.right.markers
+        stereo = match_and_triangulate(self.cal, dl, dr, self.stereo_params)
+        return LocateResult(tuple(dl), tuple(dr), stereo)

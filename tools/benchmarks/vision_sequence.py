@@ -1,0 +1,176 @@
+"""Sequences for ``tools/bench vision``: markers moving at breathing speed, one of them hidden for
+a while, located by region-of-interest tracking, by the full-frame pipeline and by the plain
+OpenCV baseline on the same pairs; and the scaling sweep (marker count, image size).
+
+Scene: a seed-001-like rig scaled to the image width (f = 1394 px x width / 1920, so every size
+sees the same field of view), M ring markers (7/3 mm) on a curved skin patch ~1 m away, tilted up
+to 30 degrees, the patch moving sinusoidally 8 mm along an oblique direction with a 4 s period
+(peak 12.6 mm/s, a deep breath) at 30 pairs/s; marker 0 is hidden (covered) during the second
+quarter of the sequence. Timing is CPU time of the benchmark thread with ``cv2.setNumThreads(1)``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from hil.vision.camera_model import StereoCalibration
+from hil.vision.detect import detect_rings_multi
+from hil.vision.render import RenderOptions, RingMarker3D, random_marker_layout, render_stereo
+from hil.vision.stereo import match_and_triangulate
+from hil.vision.tracking import MarkerTracker, TrackingParams
+
+FloatArray = NDArray[np.float64]
+FPS = 30.0
+BREATH_MM, BREATH_PERIOD_S = 8.0, 4.0
+
+
+@dataclass
+class ModeTally:
+    """One locator on one sequence: CPU seconds per pair, 3D errors against the truth, markers
+    visible in both images but not reported, reported points matching no marker."""
+
+    times: list[float] = field(default_factory=list)
+    err3d: list[FloatArray] = field(default_factory=list)
+    missed: int = 0
+    false: int = 0
+
+    def rms(self) -> float:
+        e = np.array(self.err3d).reshape(-1, 3)
+        return float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) if e.size else float("nan")
+
+    def pairs_per_s(self) -> float:
+        return float(1.0 / np.mean(self.times)) if self.times else float("nan")
+
+    def ms(self, q: float) -> float:
+        return float(np.percentile(self.times, q) * 1e3) if self.times else float("nan")
+
+    def score(self, points: FloatArray, truth_mm: FloatArray, visible: NDArray[np.bool_]) -> None:
+        used: set[int] = set()
+        for p in points:
+            d = np.linalg.norm(truth_mm - p, axis=1)
+            j = int(np.argmin(d))
+            if d[j] < 5.0 and j not in used:
+                self.err3d.append(p - truth_mm[j])
+                used.add(j)
+            else:
+                self.false += 1
+        self.missed += sum(1 for j in range(len(truth_mm)) if visible[j] and j not in used)
+
+
+def scaled_rig(width: int) -> StereoCalibration:
+    """The benchmark rig at ``width`` x (width * 9 / 16) pixels, same field of view."""
+    height = width * 9 // 16
+    return StereoCalibration.synthetic(
+        f_px=1394.0 * width / 1920.0, image_size=(width, height), dist=[-0.05, 0.02, 0.0, 0.0, 0.0]
+    )
+
+
+def breathing_sequence(
+    n_markers: int, n_frames: int, seed: int
+) -> tuple[list[RingMarker3D], FloatArray, range]:
+    """The static layout, the patch offset per frame (n_frames, 3) mm, and the frames in which
+    marker 0 is hidden."""
+    rng = np.random.default_rng(seed)
+    spread = 120.0 * math.sqrt(max(n_markers, 8) / 8.0)
+    sep = 20.0 if n_markers <= 16 else 16.0
+    layout = random_marker_layout(rng, n_markers, 1000.0, spread, max_tilt_deg=30.0, min_separation_mm=sep)
+    d = np.array([0.3, 1.0, 0.4]) / np.linalg.norm([0.3, 1.0, 0.4])
+    t = np.arange(n_frames) / FPS
+    offsets = BREATH_MM * np.sin(2 * math.pi * t / BREATH_PERIOD_S)[:, None] * d[None, :]
+    return layout, offsets, range(n_frames // 4, n_frames // 2)
+
+
+def run_sequence(
+    cal: StereoCalibration,
+    n_markers: int,
+    n_frames: int,
+    noise: float,
+    seed: int,
+    *,
+    baseline: Any = None,
+    bound_every: int = 0,
+    bound: Any = None,
+) -> dict[str, Any]:
+    """Track, full-frame locate (and, with ``baseline`` = (blob detector, centres fn, points fn),
+    the OpenCV baseline) every pair of the sequence. ``bound``: a callable
+    (cal, markers, clean pair, sigma, px_var, mm_var) evaluated every ``bound_every`` pairs."""
+    layout, offsets, hidden = breathing_sequence(n_markers, n_frames, seed)
+    rng = np.random.default_rng(seed + 1000)
+    opt, clean_opt = RenderOptions(noise_sigma=noise), RenderOptions(noise_sigma=0.0)
+    tracker = MarkerTracker(cal, TrackingParams())
+    track, full, base = ModeTally(), ModeTally(), ModeTally()
+    px_var: list[float] = []
+    mm_var: list[float] = []
+    for k in range(n_frames):
+        markers = [
+            RingMarker3D(m.center_mm + offsets[k], m.normal, marker_id=m.marker_id)
+            for m in layout
+            if not (m.marker_id == 0 and k in hidden)
+        ]
+        pair = render_stereo(cal, markers, opt, rng)
+        truth_mm = np.array([m.center_mm for m in markers])
+        visible = np.array([t.visible_left and t.visible_right for t in pair.truth])
+        if bound is not None and bound_every > 0 and k % bound_every == 0:
+            clean = render_stereo(cal, markers, clean_opt, rng)
+            bound(cal, markers, clean, noise, px_var, mm_var)
+        t0 = time.thread_time()
+        res = tracker.locate(pair.left, pair.right, k / FPS)
+        track.times.append(time.thread_time() - t0)
+        track.score(res.points_mm, truth_mm, visible)
+        t0 = time.thread_time()
+        st = match_and_triangulate(cal, *detect_rings_multi([(pair.left, "left"), (pair.right, "right")]))
+        full.times.append(time.thread_time() - t0)
+        full.score(st.points_mm, truth_mm, visible)
+        if baseline is not None:
+            blob, centres, points = baseline
+            t0 = time.thread_time()
+            pts = points(cal, centres(blob, pair.left), centres(blob, pair.right))
+            base.times.append(time.thread_time() - t0)
+            base.score(pts, truth_mm, visible)
+    stats = tracker.stats
+    return {
+        "track": track,
+        "full": full,
+        "baseline": base,
+        "reacquisitions": stats.reacquisitions,
+        "losses": stats.losses,
+        "frames": n_frames,
+        "hidden_frames": [hidden.start, hidden.stop],
+        "bound_mm": float(np.sqrt(np.mean(mm_var))) if mm_var else float("nan"),
+    }
+
+
+def scaling_sweep(noise: float, seed: int, n_frames: int) -> list[dict[str, Any]]:
+    """Pairs/s and 3D error of both modes for 4, 8, 16, 32 markers at 1920x1080 and for 8 markers
+    at 1280x720, 1920x1080 and 3840x2160."""
+    cases = [(1920, m) for m in (4, 8, 16, 32)] + [(1280, 8), (3840, 8)]
+    rows = []
+    for width, m in cases:
+        cal = scaled_rig(width)
+        cv2.setNumThreads(1)
+        r = run_sequence(cal, m, n_frames, noise, seed)
+        tr, fu = r["track"], r["full"]
+        rows.append({
+            "image": f"{cal.image_size[0]}x{cal.image_size[1]}",
+            "markers": m,
+            "tracking_pairs_per_s": tr.pairs_per_s(),
+            "pairs_per_s": fu.pairs_per_s(),
+            "tracking_time_per_pair_ms_median": tr.ms(50),
+            "time_per_pair_ms_median": fu.ms(50),
+            "tracking_err3d_mm_rms": tr.rms(),
+            "err3d_mm_rms": fu.rms(),
+            "tracking_missed": tr.missed,
+            "missed": fu.missed,
+            "reacquisitions": r["reacquisitions"],
+            "losses": r["losses"],
+        })
+    rows.sort(key=lambda row: (row["image"] != "1920x1080", int(str(row["image"]).split("x")[0]),
+                               row["markers"]))
+    return rows
