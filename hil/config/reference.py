@@ -21,6 +21,7 @@ from hil.config.simulation import (
     BreathingConfig,
     DriftConfig,
     PatientConfig,
+    RigErrorsConfig,
     ShiftConfig,
     SimulationConfig,
     TremorConfig,
@@ -86,6 +87,7 @@ def config_reference_markdown(registry: DriverRegistry) -> str:
         model_table("[[simulation.shifts]]", ShiftConfig),
         model_table("[simulation.tremor]", TremorConfig),
         model_table("[[simulation.breath_holds]]", BreathHoldConfig),
+        model_table("[simulation.rig_errors]", RigErrorsConfig),
         model_table("[[faults]]", FaultSpec),
     ]
     for d in registry.drivers():

@@ -1294,6 +1294,9 @@ class Controller:
         now = state.t_ns
         T_robot_from_guide = state.T_robot_from_tcp @ self.rig.T_tcp_from_guide
         T_guide = self.truth.T_optical_from_robot @ T_robot_from_guide
+        true_flange = getattr(self.truth, "T_optical_from_flange", None)  # the real arm, not its report
+        if callable(true_flange) and (T_of := true_flange(now := self.clock.now_ns())) is not None:
+            T_guide = T_of @ self.rig.T_flange_from_guide
         entry = np.asarray(self.truth.entry_optical(now), dtype=np.float64)
         target = np.asarray(self.truth.target_optical(now), dtype=np.float64)
         u = (target - entry) / np.linalg.norm(target - entry)
