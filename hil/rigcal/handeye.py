@@ -126,6 +126,7 @@ class SolverSettings:
         outlier_mads: rejection threshold, in robust standard deviations above the median.
         outlier_floor_mm: a pose under this RMS residual is never an outlier.
         max_outlier_fraction: never reject more than this fraction of the fitted poses.
+        depth_weight: weight of the residuals' optical z (depth) component (see :func:`refine`).
     """
 
     min_poses: int = 8
@@ -135,6 +136,7 @@ class SolverSettings:
     outlier_mads: float = 4.0
     outlier_floor_mm: float = 0.3
     max_outlier_fraction: float = 0.25
+    depth_weight: float = 1.0
 
 
 def canonical_order(samples: Sequence[PoseSample]) -> list[PoseSample]:
@@ -246,9 +248,12 @@ def _unpack(x: FloatArray, m: int) -> tuple[RigidTransform, FloatArray]:
 
 
 def refine(samples: Sequence[PoseSample], Z0: RigidTransform, layout0: FloatArray,
-           scale_mm: float = 0.2) -> tuple[RigidTransform, FloatArray]:
+           scale_mm: float = 0.2, depth_weight: float = 1.0) -> tuple[RigidTransform, FloatArray]:
     """Least squares on every 3D marker residual over ``Z`` and each ``p_i`` (soft-L1 loss of
-    scale ``scale_mm``, so a few bad markers do not pull the fit)."""
+    scale ``scale_mm``, so a few bad markers do not pull the fit). The residual's optical z
+    (depth) component is multiplied by ``depth_weight``: a stereo rig measures depth about
+    distance / baseline times worse than across (whitening by that ratio is the weighted least
+    squares of triangulated points, and keeps depth-only calibration errors out of the layout)."""
     m = layout0.shape[0]
     B_R = np.array([s.T_robot_from_tcp.R for s in samples])
     B_t = np.array([s.T_robot_from_tcp.t for s in samples])
@@ -259,7 +264,9 @@ def refine(samples: Sequence[PoseSample], Z0: RigidTransform, layout0: FloatArra
         Z, p = _unpack(x, m)
         robot = np.einsum("kab,mb->kma", B_R, p) + B_t[:, None, :]
         pred = robot @ Z.R.T + Z.t
-        r: FloatArray = (pred - Y)[seen].ravel()
+        d = (pred - Y)[seen]
+        d[:, 2] *= depth_weight
+        r: FloatArray = d.ravel()
         return r
 
     sol = least_squares(residuals, _pack(Z0, layout0), loss="soft_l1", f_scale=scale_mm,
@@ -318,7 +325,7 @@ def solve_hand_eye(samples: Sequence[PoseSample], layout_tcp_mm: FloatArray,
     held = [s for i, s in enumerate(ordered) if k > 0 and i % k == k - 1]
     fit = [s for i, s in enumerate(ordered) if not (k > 0 and i % k == k - 1)]
     spread = check_rotation_diversity(fit, st)
-    Z, layout = refine(fit, *initial_estimate(fit, layout_tcp_mm))
+    Z, layout = refine(fit, *initial_estimate(fit, layout_tcp_mm), depth_weight=st.depth_weight)
     outliers: list[PoseSample] = []
     max_out = int(st.max_outlier_fraction * len(fit))
     while True:
@@ -333,7 +340,7 @@ def solve_hand_eye(samples: Sequence[PoseSample], layout_tcp_mm: FloatArray,
                 "check the marker plate is rigid and the arm reports the pose of the markers' time")
         outliers.append(fit.pop(worst))
         check_rotation_diversity(fit, st)
-        Z, layout = refine(fit, Z, layout)
+        Z, layout = refine(fit, Z, layout, depth_weight=st.depth_weight)
     res_out = [pose_residual(s, Z, layout, "outlier") for s in outliers]
     res_held = [pose_residual(s, Z, layout, "held_out") for s in held]
     by_sample = {id(s): r for s, r in zip(fit + outliers + held, res + res_out + res_held, strict=True)}
