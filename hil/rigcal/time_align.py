@@ -3,8 +3,9 @@ reports, using a rig calibration's time offsets (stamp minus true time, :mod:`hi
 
 Each adapter implements the same driver interface and delegates everything; only ``t_ns`` of
 frames, robot states and tracker samples changes (``t_ns - offset``). A camera's corrected frames
-say ``time_source = exposure``. The adapter owns the inner device's lifecycle (its open/close
-open and close the inner one). The controller then pairs frames with robot states at the right
+say ``time_source = exposure``. The lifecycle is the inner device's (``state``, ``open``,
+``close`` and the active check are delegated), so a device can be wrapped before or after it is
+opened, and closing either closes both. The controller then pairs frames with robot states at the right
 time and its prediction horizon (frame age + actuation lag) covers the real latency.
 """
 
@@ -13,10 +14,36 @@ from __future__ import annotations
 import dataclasses
 
 from drivers.interfaces.camera import FrameTime, StereoCamera, StereoFrame
+from drivers.interfaces.lifecycle import Device, DeviceState
 from drivers.interfaces.robot import Robot, RobotState
 from drivers.interfaces.tracker import PoseTracker, TrackerSample
 from hil.geometry.transform import RigidTransform
 from hil.rigcal.rigfile import RigCalibration
+
+
+class _Delegating:
+    """Lifecycle delegated to ``inner`` (mixed into each adapter before the interface class)."""
+
+    inner: Device
+
+    @property
+    def state(self) -> DeviceState:
+        return self.inner.state
+
+    def open(self) -> None:
+        self.inner.open()
+
+    def close(self) -> None:
+        self.inner.close()
+
+    def require_active(self, operation: str) -> None:
+        self.inner.require_active(operation)
+
+    def _open(self) -> None:  # never called: open() is the inner device's
+        raise NotImplementedError
+
+    def _close(self) -> None:
+        raise NotImplementedError
 
 
 def _inner_attr(wrapper: object, name: str) -> object:
@@ -28,8 +55,10 @@ def _inner_attr(wrapper: object, name: str) -> object:
     return getattr(inner, name)
 
 
-class TimeAlignedCamera(StereoCamera):
+class TimeAlignedCamera(_Delegating, StereoCamera):
     """A stereo camera whose frames are stamped ``offset_ns`` earlier (at exposure)."""
+
+    inner: StereoCamera
 
     def __init__(self, inner: StereoCamera, offset_ns: int) -> None:
         super().__init__(inner.name)
@@ -37,12 +66,6 @@ class TimeAlignedCamera(StereoCamera):
 
     def __getattr__(self, name: str) -> object:  # driver extras (calibration, world, ...)
         return _inner_attr(self, name)
-
-    def _open(self) -> None:
-        self.inner.open()
-
-    def _close(self) -> None:
-        self.inner.close()
 
     def grab(self, timeout_s: float) -> StereoFrame:
         self.require_active("grab")
@@ -64,9 +87,11 @@ class TimeAlignedCamera(StereoCamera):
         return self.inner.image_size
 
 
-class TimeAlignedRobot(Robot):
+class TimeAlignedRobot(_Delegating, Robot):
     """A robot whose states are stamped ``offset_ns`` earlier (the time the pose was the arm's).
     Motion commands go to the inner driver unchanged (the base class checks limits on both)."""
+
+    inner: Robot
 
     def __init__(self, inner: Robot, offset_ns: int) -> None:
         super().__init__(inner.name, inner.limits)
@@ -74,12 +99,6 @@ class TimeAlignedRobot(Robot):
 
     def __getattr__(self, name: str) -> object:  # driver extras (T_flange_from_tcp, ...)
         return _inner_attr(self, name)
-
-    def _open(self) -> None:
-        self.inner.open()
-
-    def _close(self) -> None:
-        self.inner.close()
 
     @property
     def control_rate_hz(self) -> float:
@@ -103,8 +122,10 @@ class TimeAlignedRobot(Robot):
         self.inner.recover()
 
 
-class TimeAlignedTracker(PoseTracker):
+class TimeAlignedTracker(_Delegating, PoseTracker):
     """A tracker whose samples are stamped ``offset_ns`` earlier."""
+
+    inner: PoseTracker
 
     def __init__(self, inner: PoseTracker, offset_ns: int) -> None:
         super().__init__(inner.name)
@@ -112,12 +133,6 @@ class TimeAlignedTracker(PoseTracker):
 
     def __getattr__(self, name: str) -> object:
         return _inner_attr(self, name)
-
-    def _open(self) -> None:
-        self.inner.open()
-
-    def _close(self) -> None:
-        self.inner.close()
 
     def latest(self) -> dict[str, TrackerSample]:
         self.require_active("latest")
@@ -132,7 +147,7 @@ class TimeAlignedTracker(PoseTracker):
 def time_aligned(camera: StereoCamera, robot: Robot, tracker: PoseTracker | None,
                  rig: RigCalibration) -> tuple[StereoCamera, Robot, PoseTracker | None]:
     """The devices wrapped with the rig calibration's offsets (a device without an offset in the
-    file is returned as it is). Wrap devices that are not opened yet, then open the wrappers."""
+    file is returned as it is), opened or not."""
     cam: StereoCamera = camera
     rob: Robot = robot
     trk = tracker
