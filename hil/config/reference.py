@@ -28,6 +28,7 @@ from hil.config.simulation import (
 )
 from hil.config.types import TransformConfig
 from hil.controller.config import ProcedureConfig
+from hil.rigcal.config import RigCalibrationConfig, TemporalConfig
 from hil.log import configure_logging
 from plugins.registry import DriverRegistry
 
@@ -104,6 +105,8 @@ def config_reference_markdown(registry: DriverRegistry) -> str:
     parts.append(model_table("[procedure]", ProcedureConfig))
     for name, sub in _nested(ProcedureConfig):
         parts.append(model_table(f"[procedure.{name}]", sub))
+    parts.append(model_table("[rig_calibration]", RigCalibrationConfig))
+    parts.append(model_table("[rig_calibration.temporal]", TemporalConfig))
     return "\n".join(parts)
 
 
