@@ -28,8 +28,8 @@ from hil.config.simulation import (
 )
 from hil.config.types import TransformConfig
 from hil.controller.config import ProcedureConfig
-from hil.rigcal.config import RigCalibrationConfig, TemporalConfig
 from hil.log import configure_logging
+from hil.rigcal.config import RigCalibrationConfig, TemporalConfig
 from plugins.registry import DriverRegistry
 
 
