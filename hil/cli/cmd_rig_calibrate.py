@@ -46,13 +46,14 @@ def add_parser(sub: Any) -> None:
 class StdinConfirm:
     """Asks on ``out`` and reads one answer line from ``inp``: ``y`` goes on, anything else aborts."""
 
-    def __init__(self, inp: TextIO = sys.stdin, out: TextIO = sys.stderr) -> None:
+    def __init__(self, inp: TextIO | None = None, out: TextIO | None = None) -> None:
         self.inp, self.out = inp, out
 
     def __call__(self, prompt: str) -> bool:
-        self.out.write(f"{prompt} [y]es / [a]bort: ")
-        self.out.flush()
-        return self.inp.readline().strip().lower().startswith("y")
+        out = self.out or sys.stderr
+        out.write(f"{prompt} [y]es / [a]bort: ")
+        out.flush()
+        return (self.inp or sys.stdin).readline().strip().lower().startswith("y")
 
 
 def default_out(config_path: Path) -> Path:
