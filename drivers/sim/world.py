@@ -249,9 +249,13 @@ class SimWorld:
         _log.info("world_follows_robot", robot=robot.name, driver=type(robot).__name__)
 
     # ------------------------------------------------------------------ ground truth
-    def rig_truth(self) -> RigTruth:
+    def rig_truth(self) -> RigTruth | None:
         """The true rig: flange-marker layout, robot base placement, and each simulated device's
-        time offset (``[simulation.rig_errors]``; the camera's is the mean reception offset)."""
+        time offset (``[simulation.rig_errors]``; the camera's is the mean reception offset).
+        None when the world follows a non-simulated robot driver: the arm the camera sees is then
+        the driver's report, with the driver's own (unknown) latency."""
+        if isinstance(self._robot, RobotPoseFollower):
+            return None
         e = self.rig_errors
         camera_ms = e.camera_reception_offset_ms if e.camera_timestamp == "reception" else 0.0
         return RigTruth(

@@ -104,6 +104,8 @@ def _truth(world: object, layout_flange: FloatArray | None,
     if not isinstance(world, RigTruthSource):
         return {}
     t = world.rig_truth()
+    if t is None:
+        return {}
     out: dict[str, Any] = {}
     if layout_flange is not None:
         d = layout_flange - t.flange_markers_mm

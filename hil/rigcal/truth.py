@@ -33,4 +33,6 @@ class RigTruth:
 class RigTruthSource(Protocol):
     """A world that knows the true rig (``drivers.sim.world.SimWorld``)."""
 
-    def rig_truth(self) -> RigTruth: ...
+    def rig_truth(self) -> RigTruth | None:
+        """The true rig, or None when the world does not know it (its arm is a real driver's)."""
+        ...

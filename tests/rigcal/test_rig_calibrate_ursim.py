@@ -59,6 +59,7 @@ def test_hand_eye_on_the_ur_emulator(config: Path, tmp_path: Path,
     assert s["poses"] == 8
     assert s["poses_used"] == 6
     assert s["validation_mm_rms"] < 0.5
+    assert "truth_layout_error_mm_rms" not in s   # the world sees the driver's report: no truth
     assert json.loads(out.read_text())["hand_eye"]["poses_used"] == 6
 
 

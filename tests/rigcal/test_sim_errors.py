@@ -33,6 +33,7 @@ def test_every_knob_is_off_by_default_and_the_perfect_rig_is_what_the_controller
     assert RigErrorsConfig() == perfect.simulation.rig_errors
     world, cam, robot, _, _ = _world(perfect, registry)
     truth = world.rig_truth()
+    assert truth is not None
     np.testing.assert_array_equal(truth.flange_markers_mm, np.asarray(perfect.frames.flange_markers_mm))
     assert truth.time_offsets_ms == {"camera": 0.0, "robot": 0.0, "tracker": 0.0}
     assert cam.true_calibration is cam.calibration
@@ -50,6 +51,7 @@ def test_realistic_rig_differs_as_configured(realistic: SetupConfig, registry: D
     world, cam, robot, tracker, clock = _world(realistic, registry)
     e = realistic.simulation.rig_errors
     truth = world.rig_truth()
+    assert truth is not None
     off = truth.flange_markers_mm - np.asarray(realistic.frames.flange_markers_mm)
     assert 0.05 < float(np.sqrt(np.mean(off**2))) < 3 * e.flange_marker_error_mm
     assert truth.time_offsets_ms == {"camera": 45.0, "robot": 8.0, "tracker": 20.0}
