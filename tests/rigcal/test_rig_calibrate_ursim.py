@@ -44,6 +44,8 @@ def config(ursim: Ursim, tmp_path: Path) -> Path:
     text = CONFIG.read_text().replace('host = "127.0.0.1"', f'host = "{ursim.host}"', 1)
     text = text.replace('stereo = "calibration/sim_stereo.json"',
                         f'stereo = "{ROOT / "configs" / "calibration" / "sim_stereo.json"}"', 1)
+    # a loaded shared host can starve the watchdog kicker for a few 100 ms while a frame renders
+    text = text.replace("state_max_age_s = 1.0", "state_max_age_s = 1.0\nrtde_watchdog_min_hz = 1.0", 1)
     for key, value in {"camera_frame_max_age_ms": 1500.0, "robot_state_max_age_ms": 1000.0}.items():
         text = re.sub(rf"^{key} = .*$", f"{key} = {value}", text, count=1, flags=re.MULTILINE)
     path = tmp_path / "ursim_rig.toml"
