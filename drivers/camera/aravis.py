@@ -15,9 +15,14 @@ id, unwrapped) counted from the side's first frame, which is given the trigger i
 arrived (software trigger) or 1 (hardware trigger). Failed buffers still advance the count.
 
 Timestamps: ``Frame.device_t_ns`` is the camera's timestamp (``arv_buffer_get_timestamp``, camera
-clock, ns). ``Frame.t_ns`` is the host reception time of the frame's first packet
-(``arv_buffer_get_system_timestamp``, wall clock) moved onto the controller clock by subtracting
-the frame's age at the moment it is handed over.
+clock, ns). The host reception time of the frame's first packet (``arv_buffer_get_system_timestamp``,
+wall clock) is moved onto the controller clock by subtracting the frame's age at the moment it is
+handed over. When the camera gives a timestamp, ``Frame.t_ns`` is that device time mapped to the
+controller clock by an estimated offset -- the smallest ``reception - device time`` over the side's
+last ``_OFFSET_WINDOW`` frames (the frame that travelled fastest; transfer jitter drops out, the
+shortest transfer time stays in and ``hil rig-calibrate --temporal`` measures it) -- and
+``Frame.time_source`` is ``exposure``; without one ``t_ns`` is the reception time
+(``time_source = reception``).
 
 Reconnection: a camera that stops answering (control channel lost, a trigger write failing, or
 no pair for ``_TIMEOUTS_BEFORE_LOST`` grabs in a row) makes ``grab()`` raise
@@ -37,6 +42,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import ModuleType
@@ -45,7 +51,7 @@ from typing import Any
 from drivers.camera.config import AravisCameraConfig
 from drivers.camera.pairing import FrameIdUnwrapper, PairRule, Side, StereoPairer
 from drivers.camera.pixels import PIXEL_FORMATS, PixelFormatError, to_mono8
-from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
+from drivers.interfaces.camera import Frame, FrameTime, StereoCamera, StereoFrame
 from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError
 from hil.clock import Clock
 from hil.log import get_logger
@@ -58,6 +64,8 @@ _POP_SLICE_S = 0.05
 _RECONNECT_RETRY_S = 0.5
 #: Grabs in a row without a pair after which the stream counts as lost (reconnect).
 _TIMEOUTS_BEFORE_LOST = 3
+#: frames per side over which the device-to-controller clock offset is the smallest seen
+_OFFSET_WINDOW = 100
 
 
 class AravisUnavailableError(DriverError):
@@ -107,6 +115,8 @@ class _Side:
     failed_buffers: int = 0
     dead: bool = False  # control lost / a command failed: teardown does not talk to it
     key_offset: int | None = None  # trigger id (or 1) of this side's first frame
+    # reception (controller clock) minus device timestamp of the last frames: the clock mapping
+    clock_offsets_ns: deque[int] = field(default_factory=lambda: deque(maxlen=_OFFSET_WINDOW))
 
 
 @dataclass
@@ -486,8 +496,13 @@ class AravisStereoCamera(StereoCamera):
                             error=str(exc))
                 return
             age_ns = max(0, self._wall_clock_ns() - int(buffer.get_system_timestamp()))
-            frame = Frame(image=image, t_ns=self._clock.now_ns() - age_ns, seq=index,
-                          device_t_ns=int(buffer.get_timestamp()))
+            reception_ns = self._clock.now_ns() - age_ns
+            device_ns = int(buffer.get_timestamp())
+            t_ns, source = reception_ns, FrameTime.RECEPTION
+            if device_ns > 0:  # the device's (exposure) time, mapped onto the controller clock
+                s.clock_offsets_ns.append(reception_ns - device_ns)
+                t_ns, source = device_ns + min(s.clock_offsets_ns), FrameTime.EXPOSURE
+            frame = Frame(image=image, t_ns=t_ns, seq=index, device_t_ns=device_ns, time_source=source)
             s.frames += 1
             self._pairer.push(s.side, frame, key=index + (s.key_offset or 1))
         finally:

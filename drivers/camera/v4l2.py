@@ -12,7 +12,10 @@ Timestamps: after ``grab()``, CAP_PROP_POS_MSEC on CAP_V4L2 is the kernel buffer
 ns; ``Frame.t_ns`` is it moved onto the controller clock by the frame's age. Two devices are
 paired by these timestamps: when the left and right timestamps differ by more than half a frame
 period, the older side is grabbed again (until the deadline). A side-by-side device gives one
-buffer: both halves share timestamp and sequence.
+buffer: both halves share timestamp and sequence. The kernel stamps a buffer when the driver
+fills it (for UVC, at the start or end of the transfer, after the exposure): frames say
+``time_source = reception``, and ``hil rig-calibrate --temporal`` measures the offset to the
+exposure.
 
 Sources: ``source = "device"`` opens ``/dev/videoN`` (or index N) with CAP_V4L2;
 ``source = "file"`` opens a recorded video with the same code (CAP_FFMPEG; POS_MSEC is then the
@@ -34,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.camera.config import V4l2CameraConfig
-from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
+from drivers.interfaces.camera import Frame, FrameTime, StereoCamera, StereoFrame
 from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError
 from hil.clock import Clock
 from hil.log import get_logger
@@ -218,8 +221,10 @@ class V4l2StereoCamera(StereoCamera):
             frame = self._retrieve(s)
             half = frame.image.shape[1] // 2
             pair = StereoFrame(
-                Frame(np.ascontiguousarray(frame.image[:, :half]), frame.t_ns, frame.seq, frame.device_t_ns),
-                Frame(np.ascontiguousarray(frame.image[:, half:]), frame.t_ns, frame.seq, frame.device_t_ns),
+                Frame(np.ascontiguousarray(frame.image[:, :half]), frame.t_ns, frame.seq, frame.device_t_ns,
+                      frame.time_source),
+                Frame(np.ascontiguousarray(frame.image[:, half:]), frame.t_ns, frame.seq, frame.device_t_ns,
+                      frame.time_source),
             )
         return pair
 
@@ -270,7 +275,9 @@ class V4l2StereoCamera(StereoCamera):
             if s.first_media_ns is None:
                 s.first_media_ns, s.first_clock_ns = ts_ns, self._clock.now_ns()
             t_ns = s.first_clock_ns + (ts_ns - s.first_media_ns)
-        return Frame(image=mono, t_ns=t_ns, seq=s.grabbed - 1, device_t_ns=ts_ns)
+        # V4L2 buffer timestamps are the driver's (when the buffer was filled): a reception time
+        return Frame(image=mono, t_ns=t_ns, seq=s.grabbed - 1, device_t_ns=ts_ns,
+                     time_source=FrameTime.RECEPTION)
 
 
 def _to_mono(image: NDArray[Any]) -> NDArray[np.uint8]:

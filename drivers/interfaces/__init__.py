@@ -4,7 +4,7 @@ Units at this boundary: millimetres, radians, nanoseconds (``t_ns``: host monoto
 and the core's :class:`hil.geometry.RigidTransform`.
 """
 
-from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
+from drivers.interfaces.camera import Frame, FrameTime, StereoCamera, StereoFrame
 from drivers.interfaces.errors import (
     DeviceFaultError,
     DeviceTimeoutError,
@@ -27,6 +27,7 @@ __all__ = [
     "DisconnectedError",
     "DriverError",
     "Frame",
+    "FrameTime",
     "LifecycleError",
     "LimitViolationError",
     "MotionLimits",

@@ -4,11 +4,19 @@ from __future__ import annotations
 
 from abc import abstractmethod
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
 
 from drivers.interfaces.lifecycle import Device
+
+
+class FrameTime(StrEnum):
+    """What a frame's ``t_ns`` marks."""
+
+    EXPOSURE = "exposure"    # the exposure (a device timestamp mapped to the host clock, or a simulation)
+    RECEPTION = "reception"  # when the host received the frame (the device gives nothing better)
 
 
 @dataclass(frozen=True)
@@ -21,12 +29,16 @@ class Frame:
             nothing better), ns, on the clock the controller uses.
         seq: per-camera frame counter (device frame id where there is one).
         device_t_ns: the device's own timestamp, ns, when it has one; None otherwise.
+        time_source: what ``t_ns`` marks (:class:`FrameTime`): the exposure, or the host
+            reception (later than the exposure by the transfer; ``hil rig-calibrate --temporal``
+            measures the difference).
     """
 
     image: NDArray[np.uint8]
     t_ns: int
     seq: int
     device_t_ns: int | None = None
+    time_source: FrameTime = FrameTime.EXPOSURE
 
 
 @dataclass(frozen=True)

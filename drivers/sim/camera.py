@@ -16,6 +16,12 @@ at ``T_flange_from_needle_guide`` when given (the *true* mounting, to simulate a
 from what the controller believes), else at the setup's ``[frames] T_flange_from_guide``. With
 ``needle_bead_count`` >= 1 the needle also carries bright bead markers (seed 004 §II-A) at
 ``needle_bead_offset_mm + i * needle_bead_spacing_mm`` from the tip.
+
+Rig errors (``[simulation.rig_errors]``, all off by default): with ``camera_calibration_error_px``
+the images are rendered through true cameras that differ from the calibration the controller
+uses (:attr:`SimStereoCamera.calibration` stays the told one); with ``camera_timestamp =
+"reception"`` frames are stamped ``camera_reception_offset_ms`` (+ jitter) after their exposure
+(``Frame.time_source`` says so), never later than they are delivered.
 """
 
 from __future__ import annotations
@@ -25,8 +31,9 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
-from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
+from drivers.interfaces.camera import Frame, FrameTime, StereoCamera, StereoFrame
 from drivers.interfaces.errors import DeviceTimeoutError
+from drivers.sim.rig_errors import reception_offset_ns, true_calibration
 from drivers.sim.world import FLANGE_MARKER_ID_BASE, SimWorld
 from hil.clock import Clock
 from hil.config.types import STRICT, TransformConfig
@@ -78,7 +85,11 @@ class SimStereoCamera(StereoCamera):
         self.cfg = cfg
         self.clock = clock
         self.world = world
-        self.calibration = calibration
+        self.calibration = calibration  # what the controller is told
+        errors = world.rig_errors
+        self.true_calibration = true_calibration(calibration, errors.camera_calibration_error_px,
+                                                 world.rng("camera_calibration_error"))
+        self._reception = errors.camera_timestamp == "reception"
         self.options = RenderOptions(noise_sigma=cfg.noise_sigma, blur_sigma_px=cfg.blur_sigma_px,
                                      glare_spots=cfg.glare_spots, seed=world.seed)
         self._period_ns = round(1e9 / cfg.frame_rate_hz)
@@ -157,15 +168,15 @@ class SimStereoCamera(StereoCamera):
         self._last_k = k
         t_render_ns = self.clock.now_ns()
         t_exp = self.exposure_time_ns(k)
-        pair = render_stereo(self.calibration, self.markers_at(t_exp), self.options,
+        pair = render_stereo(self.true_calibration, self.markers_at(t_exp), self.options,
                              self.world.rng("camera", k))
         pair = self._with_needle(pair, t_exp, k)
         right_image = pair.right
         self.last_truth = pair.truth
         self.last_truth_right = pair.truth
         if self._skew_ns != 0:
-            skewed = render_stereo(self.calibration, self.markers_at(t_exp + self._skew_ns), self.options,
-                                   self.world.rng("camera_right", k))
+            skewed = render_stereo(self.true_calibration, self.markers_at(t_exp + self._skew_ns),
+                                   self.options, self.world.rng("camera_right", k))
             skewed = self._with_needle(skewed, t_exp + self._skew_ns, k)
             right_image = skewed.right
             self.last_truth_right = skewed.truth
@@ -179,9 +190,16 @@ class SimStereoCamera(StereoCamera):
                                    _MAX_RENDER_LEAD_NS)
         if done_ns < ready_ns:
             self.clock.sleep((ready_ns - done_ns) * 1e-9)  # never before the camera would deliver it
-        left = Frame(image=pair.left, t_ns=t_exp, seq=k, device_t_ns=t_exp - self._t0_ns)
-        right = Frame(image=right_image, t_ns=t_exp + self._skew_ns, seq=k,
-                      device_t_ns=t_exp - self._t0_ns + self._skew_ns)
+        stamp_ns, source = t_exp, FrameTime.EXPOSURE
+        if self._reception:
+            e = self.world.rig_errors
+            off = reception_offset_ns(e.camera_reception_offset_ms, e.camera_timestamp_jitter_ms,
+                                      self.world.rng("camera_stamp", k))
+            stamp_ns, source = t_exp + min(off, self._latency_ns), FrameTime.RECEPTION
+        left = Frame(image=pair.left, t_ns=stamp_ns, seq=k, device_t_ns=t_exp - self._t0_ns,
+                     time_source=source)
+        right = Frame(image=right_image, t_ns=stamp_ns + self._skew_ns, seq=k,
+                      device_t_ns=t_exp - self._t0_ns + self._skew_ns, time_source=source)
         return StereoFrame(left, right)
 
     def needle_at(self, t_ns: int) -> Instrument3D | None:
@@ -207,7 +225,7 @@ class SimStereoCamera(StereoCamera):
         inst = self.needle_at(t_ns)
         if inst is None:
             return pair
-        ri = render_instrument_stereo(self.calibration, inst, self.options, self.world.rng("needle", k),
+        ri = render_instrument_stereo(self.true_calibration, inst, self.options, self.world.rng("needle", k),
                                       base=pair)
         return RenderedPair(ri.left, ri.right, pair.truth)
 

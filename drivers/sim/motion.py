@@ -97,6 +97,52 @@ class BreathingScript:
         return amp * math.cos(math.pi * (s - 0.5)) ** (2 * self.cfg.shape_n)
 
 
+class IrregularityScript:
+    """What makes breathing irregular beyond the per-cycle spread: a slow baseline wander of the
+    end-exhale position and occasional coughs, both along the breathing direction (mm).
+
+    The wander is two sinusoids (periods ``baseline_period_s`` and 0.37 times it, weights 0.6/0.4,
+    seeded phases) scaled to ``baseline_wander_mm``. Coughs are a Poisson process of
+    ``cough_rate_per_min``: each minute of world time draws its own count and times (seeded per
+    minute, so a time's value never depends on what was sampled before); a cough is a
+    ``sin^2`` pulse of ``cough_amplitude_mm`` over ``cough_duration_s``.
+    """
+
+    def __init__(self, cfg: BreathingConfig, seed: int) -> None:
+        self.cfg = cfg
+        self.seed = seed
+        self._phases: FloatArray = stream_rng(seed, "baseline_wander").uniform(0.0, 2.0 * math.pi, size=2)
+        self._coughs: dict[int, FloatArray] = {}
+
+    def _cough_starts(self, minute: int) -> FloatArray:
+        if minute not in self._coughs:
+            rng = stream_rng(self.seed, "cough", minute)
+            n = int(rng.poisson(self.cfg.cough_rate_per_min))
+            self._coughs[minute] = np.sort(60.0 * minute + 60.0 * rng.uniform(0.0, 1.0, size=n))
+        return self._coughs[minute]
+
+    def offset_mm(self, t_s: float) -> float:
+        """Displacement along the breathing direction at ``t_s`` (0 before t = 0 and when off)."""
+        c = self.cfg
+        if t_s <= 0.0 or not c.enabled:
+            return 0.0
+        out = 0.0
+        if c.baseline_wander_mm > 0.0:
+            w = 2.0 * math.pi * t_s / c.baseline_period_s
+            out += c.baseline_wander_mm * (0.6 * math.sin(w + self._phases[0])
+                                           + 0.4 * math.sin(w / 0.37 + self._phases[1]))
+        if c.cough_rate_per_min > 0.0 and c.cough_amplitude_mm > 0.0:
+            minute = int(t_s // 60.0)
+            for m in (minute - 1, minute):
+                if m < 0:
+                    continue
+                for start in self._cough_starts(m):
+                    s = (t_s - float(start)) / c.cough_duration_s
+                    if 0.0 <= s <= 1.0:
+                        out += c.cough_amplitude_mm * math.sin(math.pi * s) ** 2
+        return out
+
+
 def hold_weight(t_s: float, hold: BreathHoldConfig, ramp_s: float) -> float:
     """How far breathing is replaced by the hold level at ``t_s`` (0..1, eased at both ends)."""
     end = hold.start_s + hold.duration_s
@@ -158,6 +204,7 @@ class PatientMotion:
         self.sim = sim
         self.breathing = BreathingScript(sim.breathing, sim.seed)
         self.tremor = TremorScript(sim.tremor, sim.seed)
+        self.irregular = IrregularityScript(sim.breathing, sim.seed)
         self.holds: list[BreathHoldConfig] = list(sim.breath_holds)
 
     def sample(self, t_s: float) -> MotionSample:
@@ -166,6 +213,8 @@ class PatientMotion:
         if w > 0.0:
             active = max(self.holds, key=lambda h: hold_weight(t_s, h, self.sim.hold_ramp_s))
             b = (1.0 - w) * b + w * active.level * self.breathing.amplitude_at(active.start_s)
-        offset = self.breathing.direction * b + drift_mm(t_s, self.sim.drift) + self.tremor.offset_mm(t_s)
+        b_total = b + self.irregular.offset_mm(t_s)
+        offset = (self.breathing.direction * b_total + drift_mm(t_s, self.sim.drift)
+                  + self.tremor.offset_mm(t_s))
         T = shift_transform(t_s, self.sim.shifts) @ RigidTransform.from_translation(offset)
         return MotionSample(T, b, w)

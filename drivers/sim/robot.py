@@ -13,6 +13,12 @@ back to the analytic solver of :mod:`hil.kinematics.ur`. Joint accelerations are
 
 Limits of :class:`~drivers.interfaces.robot.MotionLimits` are checked by the base class before
 any of this runs.
+
+Rig errors (``[simulation.rig_errors]`` of the world, all off by default): with
+``robot_joint_offset_error_rad`` the true flange (:meth:`SimRobot.T_robot_from_flange_at`, what the
+world and the cameras see) is the forward kinematics of ``q + offsets`` while the arm reports the
+nominal kinematics of ``q``; with ``robot_state_latency_ms`` a state stamped ``t`` reports the
+joints (pose, speed) of ``t - latency``.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from pydantic import BaseModel, Field
 
 from drivers.interfaces.errors import SafetyStopError
 from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
+from drivers.sim.rig_errors import joint_offsets
 from drivers.sim.world import SimWorld
 from hil.clock import Clock
 from hil.config.types import STRICT, TransformConfig
@@ -169,7 +176,12 @@ class SimRobot(Robot):
         self._segments: deque[_Segment] = deque([_Hold(clock.now_ns(), q0)], maxlen=16)
         self._safety = SafetyStatus.NORMAL
         self._lock = threading.RLock()
+        self._q_error: FloatArray = np.zeros(6)
+        self._report_lag_ns = 0
         if world is not None:
+            e = world.rig_errors
+            self._q_error = joint_offsets(e.robot_joint_offset_error_rad, world.rng("robot_joint_offsets"))
+            self._report_lag_ns = round(e.robot_state_latency_ms * 1e6)
             world.attach_robot(self)
 
     # ------------------------------------------------------------------ lifecycle
@@ -221,10 +233,12 @@ class SimRobot(Robot):
         return s, ds * seg.length_mm
 
     def T_robot_from_flange_at(self, t_ns: int) -> RigidTransform:
-        return ur_forward(self.q_at(t_ns), self.cfg.model)
+        """The true flange pose at ``t_ns`` (with the rig's joint offset errors, if any)."""
+        return ur_forward(self.q_at(t_ns) + self._q_error, self.cfg.model)
 
     def T_robot_from_tcp_at(self, t_ns: int) -> RigidTransform:
-        return self.T_robot_from_flange_at(t_ns) @ self.T_flange_from_tcp
+        """The TCP pose the arm reports for ``t_ns`` (nominal kinematics of its joints)."""
+        return ur_forward(self.q_at(t_ns), self.cfg.model) @ self.T_flange_from_tcp
 
     def _mode_at(self, t_ns: int) -> RobotMode:
         if self._safety is not SafetyStatus.NORMAL:
@@ -238,7 +252,8 @@ class SimRobot(Robot):
         return RobotMode.IDLE
 
     def _state_now(self) -> RobotState:
-        t = self.clock.now_ns()
+        t_stamp = self.clock.now_ns()
+        t = t_stamp - self._report_lag_ns  # the joints the report carries
         q = self.q_at(t)
         T = ur_forward(q, self.cfg.model) @ self.T_flange_from_tcp
         dt_ns = 2_000_000
@@ -249,8 +264,8 @@ class SimRobot(Robot):
         if not resting:
             T_prev = self.T_robot_from_tcp_at(t - dt_ns)
             speed = float(np.linalg.norm(T.t - T_prev.t)) / (dt_ns * 1e-9)
-        return RobotState(T_robot_from_tcp=T, q_rad=q.copy(), mode=self._mode_at(t), safety=self._safety,
-                          t_ns=t, tcp_speed_mm_s=speed)
+        return RobotState(T_robot_from_tcp=T, q_rad=q.copy(), mode=self._mode_at(t_stamp),
+                          safety=self._safety, t_ns=t_stamp, tcp_speed_mm_s=speed)
 
     # ------------------------------------------------------------------ limits of the arm
     def _newton_ik(self, T_flange: RigidTransform, q_seed: FloatArray) -> FloatArray | None:

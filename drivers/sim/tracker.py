@@ -5,6 +5,10 @@ Samples exist at ``t0 + k / update_rate_hz``; :meth:`SimTracker.latest` returns 
 the robot flange, or fixed in the transmitter frame. Field distortion is a smooth radial error
 ``distortion_mm_per_m2 * r^2`` (r = distance from the transmitter, m), as metal near the field
 would give; it also raises the quality figure. Sensors beyond ``volume_radius_mm`` are missing.
+
+With ``[simulation.rig_errors] tracker_clock_offset_ms`` the samples are stamped that much after
+(or, negative, before) the time they were measured at, and a sample is available once both its
+measurement and its stamp are not in the future.
 """
 
 from __future__ import annotations
@@ -68,6 +72,7 @@ class SimTracker(PoseTracker):
         self.world = world
         self._attach = [s.T_attached_from_sensor.as_transform() for s in cfg.sensors]
         self._period_ns = round(1e9 / cfg.update_rate_hz)
+        self._stamp_offset_ns = round(world.rig_errors.tracker_clock_offset_ms * 1e6)
         self._t0_ns = 0
         self._cache: tuple[int, dict[str, TrackerSample]] | None = None
 
@@ -99,12 +104,13 @@ class SimTracker(PoseTracker):
         return T_tracker_from_optical @ T_opt @ self._attach[sensor_index]
 
     def _sample(self, k: int) -> dict[str, TrackerSample]:
-        t = self._t0_ns + k * self._period_ns
+        t_true = self._t0_ns + k * self._period_ns
+        t = t_true + self._stamp_offset_ns  # the stamp
         rng = self.world.rng("tracker", k)
         out: dict[str, TrackerSample] = {}
         for i, s in enumerate(self.cfg.sensors):
             noise = rng.normal(size=6)
-            T = self.true_pose(i, t)
+            T = self.true_pose(i, t_true)
             if T is None:
                 out[s.name] = TrackerSample(s.name, None, None, t, k, missing=True, flags=("not_attached",))
                 continue
@@ -122,7 +128,7 @@ class SimTracker(PoseTracker):
 
     def latest(self) -> dict[str, TrackerSample]:
         self.require_active("latest")
-        k = max((self.clock.now_ns() - self._t0_ns) // self._period_ns, 0)
+        k = max((self.clock.now_ns() - max(self._stamp_offset_ns, 0) - self._t0_ns) // self._period_ns, 0)
         if self._cache is None or self._cache[0] != k:
             self._cache = (k, self._sample(k))
         return dict(self._cache[1])

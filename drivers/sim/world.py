@@ -21,12 +21,14 @@ from drivers.interfaces.errors import DriverError
 from drivers.interfaces.lifecycle import DeviceState
 from drivers.interfaces.robot import Robot
 from drivers.sim.motion import MotionSample, PatientMotion, stream_rng
+from drivers.sim.rig_errors import true_flange_markers
 from hil.clock import Clock
 from hil.config.setup import FramesConfig, SetupConfig
 from hil.config.simulation import BreathHoldConfig, PatientConfig, SimulationConfig
 from hil.errors import ConfigError
 from hil.geometry.transform import RigidTransform
 from hil.log import get_logger
+from hil.rigcal.truth import RigTruth
 
 FloatArray = NDArray[np.float64]
 _GOLDEN_ANGLE_RAD = math.pi * (3.0 - math.sqrt(5.0))
@@ -187,7 +189,11 @@ class SimWorld:
         self.T_optical_from_image0 = sim.patient.T_optical_from_image.as_transform()
         self.T_optical_from_robot = sim.T_optical_from_robot.as_transform()
         self.T_optical_from_tracker = sim.T_optical_from_tracker.as_transform()
-        self.flange_markers_mm = np.asarray(frames.flange_markers_mm, dtype=np.float64)
+        self.rig_errors = sim.rig_errors
+        # the true layout: the configured (CAD) one moved by [simulation.rig_errors]
+        self.flange_markers_mm = true_flange_markers(
+            np.asarray(frames.flange_markers_mm, dtype=np.float64), sim.rig_errors.flange_marker_error_mm,
+            self.rng("flange_marker_error"))
         n = np.asarray(frames.flange_marker_normal, dtype=np.float64)
         self.flange_marker_normal: FloatArray = n / np.linalg.norm(n)
         self._robot: FlangeSource | None = None
@@ -241,6 +247,20 @@ class SimWorld:
         _log.info("world_follows_robot", robot=robot.name, driver=type(robot).__name__)
 
     # ------------------------------------------------------------------ ground truth
+    def rig_truth(self) -> RigTruth | None:
+        """The true rig: flange-marker layout, robot base placement, and each simulated device's
+        time offset (``[simulation.rig_errors]``; the camera's is the mean reception offset).
+        None when the world follows a non-simulated robot driver: the arm the camera sees is then
+        the driver's report, with the driver's own (unknown) latency."""
+        if isinstance(self._robot, RobotPoseFollower):
+            return None
+        e = self.rig_errors
+        camera_ms = e.camera_reception_offset_ms if e.camera_timestamp == "reception" else 0.0
+        return RigTruth(
+            flange_markers_mm=self.flange_markers_mm.copy(), T_optical_from_robot=self.T_optical_from_robot,
+            time_offsets_ms={"camera": camera_ms, "robot": e.robot_state_latency_ms,
+                             "tracker": e.tracker_clock_offset_ms})
+
     def motion_at(self, t_ns: int) -> MotionSample:
         with self._lock:
             return self.motion.sample(self.t_s(t_ns))

@@ -27,6 +27,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "hil.cli.cmd_drivers",
     "hil.cli.cmd_check_config",
     "hil.cli.cmd_tracker_calibrate",
+    "hil.cli.cmd_rig_calibrate",
     "hil.cli.cmd_calibrate",
     "hil.cli.cmd_locate",
     "hil.cli.cmd_report",

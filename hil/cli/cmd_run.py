@@ -18,8 +18,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-import numpy as np
-
 from drivers.interfaces.robot import Robot
 from hil.clock import Clock, ManualClock, MonotonicClock
 from hil.config import Devices, build_devices, default_setup_path, load_setup
@@ -37,6 +35,7 @@ from hil.controller.tracker_use import TrackerUse
 from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.errors import HilError, InputFileError
 from hil.geometry.transform import RigidTransform
+from hil.rigcal.apply import flange_markers_mm, rig_calibration_sha256, with_rig_time_offsets
 from hil.session.log import SessionLog, file_sha256
 from hil.tracking.session import load_tracker_calibration
 from hil.vision.camera_model import StereoCalibration, load_calibration
@@ -143,7 +142,7 @@ def _rig(setup: SetupConfig) -> RigGeometry:
     tcp_cfg = getattr(setup.robot, "T_flange_from_tcp", None)
     T_flange_from_tcp = tcp_cfg.as_transform() if tcp_cfg is not None else RigidTransform.identity()
     return RigGeometry(setup.frames.T_flange_from_guide.as_transform(),
-                       np.asarray(setup.frames.flange_markers_mm, dtype=np.float64), T_flange_from_tcp)
+                       flange_markers_mm(setup), T_flange_from_tcp)  # [calibration] rig, else CAD
 
 
 def _calibration(setup: SetupConfig, camera: object) -> StereoCalibration:
@@ -202,6 +201,7 @@ def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, 
     through a wrapper, build ``devices`` with :func:`wrap_robot` first. Raises what the
     calibration loader raises (InputFileError) for a bad calibration file."""
     sf = setup.safety
+    devices = with_rig_time_offsets(setup, devices)  # [calibration] rig: stamps at the true times
     world = devices.world
     return Controller(
         camera=devices.camera, robot=devices.robot, tracker=devices.tracker, clock=clock,
@@ -307,6 +307,8 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
         "plan_sha256": file_sha256(plan.source) if Path(plan.source).is_file() else None,
         "calibration": str(setup.calibration.stereo) if setup.calibration.stereo else None,
         "calibration_sha256": file_sha256(setup.calibration.stereo) if setup.calibration.stereo else None,
+        "rig_calibration": str(setup.calibration.rig) if setup.calibration.rig else None,
+        "rig_calibration_sha256": rig_calibration_sha256(setup),
         "seed": setup.simulation.seed if world is not None else None,
         "procedure": setup.procedure.model_dump(mode="json"), "auto": auto,
     }

@@ -21,6 +21,7 @@ from hil.config.simulation import (
     BreathingConfig,
     DriftConfig,
     PatientConfig,
+    RigErrorsConfig,
     ShiftConfig,
     SimulationConfig,
     TremorConfig,
@@ -28,6 +29,7 @@ from hil.config.simulation import (
 from hil.config.types import TransformConfig
 from hil.controller.config import ProcedureConfig
 from hil.log import configure_logging
+from hil.rigcal.config import RigCalibrationConfig, TemporalConfig
 from plugins.registry import DriverRegistry
 
 
@@ -86,6 +88,7 @@ def config_reference_markdown(registry: DriverRegistry) -> str:
         model_table("[[simulation.shifts]]", ShiftConfig),
         model_table("[simulation.tremor]", TremorConfig),
         model_table("[[simulation.breath_holds]]", BreathHoldConfig),
+        model_table("[simulation.rig_errors]", RigErrorsConfig),
         model_table("[[faults]]", FaultSpec),
         model_table("[fault_channel]", FaultChannelConfig),
     ]
@@ -103,6 +106,8 @@ def config_reference_markdown(registry: DriverRegistry) -> str:
     parts.append(model_table("[procedure]", ProcedureConfig))
     for name, sub in _nested(ProcedureConfig):
         parts.append(model_table(f"[procedure.{name}]", sub))
+    parts.append(model_table("[rig_calibration]", RigCalibrationConfig))
+    parts.append(model_table("[rig_calibration.temporal]", TemporalConfig))
     return "\n".join(parts)
 
 

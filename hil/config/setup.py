@@ -17,6 +17,7 @@ from hil.config.simulation import SimulationConfig
 from hil.config.types import STRICT, ConfigPath, TransformConfig, Vec3
 from hil.controller.config import ProcedureConfig
 from hil.igtl.config import IgtlConfig
+from hil.rigcal.config import RigCalibrationConfig
 
 #: Largest accepted camera / tracker watchdog age, ms (stale data beyond this cannot guide a needle).
 MAX_WATCHDOG_AGE_MS = 2000.0
@@ -86,6 +87,8 @@ class CalibrationConfig(BaseModel):
     model_config = STRICT
 
     stereo: ConfigPath | None = Field(None, description="stereo calibration JSON (hil.vision format)")
+    rig: ConfigPath | None = Field(
+        None, description="rig calibration JSON (hil rig-calibrate): flange-marker layout and time offsets")
 
 
 class SetupConfig(BaseModel):
@@ -110,6 +113,8 @@ class SetupConfig(BaseModel):
     fault_channel: FaultChannelConfig | None = Field(
         None, description="the UR emulator's fault channel, for [[faults]] with transport (tools/ursim only)")
     igtl: IgtlConfig = Field(IgtlConfig(), description="OpenIGTLink streaming to 3D Slicer (docs/igtl.md)")
+    rig_calibration: RigCalibrationConfig = Field(
+        RigCalibrationConfig(), description="hil rig-calibrate: poses, bounds, temporal motion")
     _config_dir: Path = PrivateAttr(default_factory=Path.cwd)
 
     @property

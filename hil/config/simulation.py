@@ -7,6 +7,7 @@ the same seed and the same requests give the same world, bit for bit.
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 from pydantic import BaseModel, Field, model_validator
 
@@ -61,6 +62,12 @@ class BreathingConfig(BaseModel):
     end_exhale_dwell_s: float = Field(0.8, ge=0, description="rest at exhale, part of the period")
     irregularity: float = Field(0.1, ge=0, le=0.5, description="per-cycle amplitude/period spread")
     direction: Vec3 = Field((0.0, 0.3, 1.0), description="displacement direction (image frame)")
+    baseline_wander_mm: float = Field(0.0, ge=0, le=20,
+                                      description="slow end-exhale baseline wander along direction (0: off)")
+    baseline_period_s: float = Field(45.0, gt=5, le=600, description="main period of the baseline wander")
+    cough_rate_per_min: float = Field(0.0, ge=0, le=10, description="mean coughs per minute (0: none)")
+    cough_amplitude_mm: float = Field(8.0, ge=0, le=40, description="peak displacement of a cough")
+    cough_duration_s: float = Field(0.6, gt=0.05, le=5, description="length of one cough")
 
     @model_validator(mode="after")
     def _check(self) -> BreathingConfig:
@@ -110,6 +117,47 @@ class BreathHoldConfig(BaseModel):
     level: float = Field(0.0, ge=0, le=1)
 
 
+class RigErrorsConfig(BaseModel):
+    """``[simulation.rig_errors]``: how the simulated rig differs from what the controller is told,
+    as a real rig does. Every knob defaults to zero/off: a perfect rig, the simulator as it always
+    was. Random parts are drawn once per world from ``[simulation] seed``.
+
+    Time offsets follow one convention (docs/rig-calibration.md): a device's offset is its
+    reported timestamp minus the true time of what it reports, ms.
+    """
+
+    model_config = STRICT
+
+    flange_marker_error_mm: float = Field(
+        0.0, ge=0, le=5,
+        description="sigma per axis of each flange marker's true offset from [frames] flange_markers_mm")
+    camera_calibration_error_px: float = Field(
+        0.0, ge=0, le=5,
+        description="the true cameras differ from the calibration file by about this reprojection RMS")
+    camera_timestamp: Literal["exposure", "reception"] = Field(
+        "exposure", description="what the simulated camera stamps its frames with")
+    camera_reception_offset_ms: float = Field(
+        0.0, ge=0, le=200, description="reception stamps: mean of stamp minus exposure")
+    camera_timestamp_jitter_ms: float = Field(
+        0.0, ge=0, le=20,
+        description="reception stamps: sigma of the per-frame jitter (truncated at 3 sigma)")
+    robot_state_latency_ms: float = Field(
+        0.0, ge=0, le=100, description="the arm reports the pose it had this long before the stamp")
+    robot_joint_offset_error_rad: float = Field(
+        0.0, ge=0, le=0.01,
+        description="sigma of the true joint zero offsets (kinematic error of the reported pose)")
+    tracker_clock_offset_ms: float = Field(
+        0.0, ge=-200, le=200, description="the tracker's stamps minus the true sample times")
+
+    @model_validator(mode="after")
+    def _check(self) -> RigErrorsConfig:
+        if self.camera_timestamp == "exposure" and (self.camera_reception_offset_ms > 0
+                                                     or self.camera_timestamp_jitter_ms > 0):
+            raise ValueError("camera_reception_offset_ms / camera_timestamp_jitter_ms need "
+                             'camera_timestamp = "reception"')
+        return self
+
+
 class SimulationConfig(BaseModel):
     """The simulated world."""
 
@@ -122,6 +170,7 @@ class SimulationConfig(BaseModel):
     drift: DriftConfig = DriftConfig()
     shifts: tuple[ShiftConfig, ...] = ()
     tremor: TremorConfig = TremorConfig()
+    rig_errors: RigErrorsConfig = Field(RigErrorsConfig(), description="rig errors unknown to the controller")
     breath_holds: tuple[BreathHoldConfig, ...] = ()
     hold_ramp_s: float = Field(0.4, ge=0, description="ease in/out of a breath-hold")
     hold_reaction_s: float = Field(1.0, ge=0, description="delay before a requested hold starts")

@@ -23,6 +23,7 @@ from hil.controller.controller import Controller
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import InputFileError
 from hil.igtl.config import IgtlConfig
+from hil.rigcal.apply import rig_calibration_sha256
 from hil.session.log import SessionLog, file_sha256
 
 
@@ -125,6 +126,8 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
         "plan_sha256": file_sha256(the_plan.source) if Path(the_plan.source).is_file() else None,
         "calibration": str(setup.calibration.stereo) if setup.calibration.stereo else None,
         "calibration_sha256": file_sha256(setup.calibration.stereo) if setup.calibration.stereo else None,
+        "rig_calibration": str(setup.calibration.rig) if setup.calibration.rig else None,
+        "rig_calibration_sha256": rig_calibration_sha256(setup),
         "seed": setup.simulation.seed if world is not None else None,
         "procedure": setup.procedure.model_dump(mode="json"),
         "igtl": igtl_cfg.model_dump(mode="json"),

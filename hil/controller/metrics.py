@@ -12,6 +12,7 @@ import numpy as np
 
 from drivers.interfaces.errors import DriverError
 from drivers.interfaces.robot import Robot
+from hil.clock import Clock
 from hil.controller import events as ev
 from hil.controller.estimate import Estimate
 from hil.controller.fsm import State
@@ -97,8 +98,9 @@ class TruthMeter:
     real moving path (``truth_error``), from the simulator's truth and the arm's pose read at
     the same instant. Never used for control."""
 
-    def __init__(self, truth: GroundTruth | None, robot: Robot, est: Estimate, session: SessionLog) -> None:
-        self.truth, self.robot, self.est, self.session = truth, robot, est, session
+    def __init__(self, truth: GroundTruth | None, robot: Robot, est: Estimate, session: SessionLog,
+                 clock: Clock) -> None:
+        self.truth, self.robot, self.est, self.session, self.clock = truth, robot, est, session, clock
         self.comp_errors_mm: list[float] = []
         self.comp_error_age_s: list[float] = []   # time since COMPENSATE was entered, per sample
         self.lock_errors: list[tuple[float, float]] = []
@@ -115,6 +117,10 @@ class TruthMeter:
         now = state.t_ns
         T_robot_from_guide = state.T_robot_from_tcp @ self.est.rig.T_tcp_from_guide
         T_guide = self.truth.T_optical_from_robot @ T_robot_from_guide
+        # a simulator with a real rig's errors knows the real arm, not only its (late, imprecise) report
+        true_flange = getattr(self.truth, "T_optical_from_flange", None)
+        if callable(true_flange) and (T_of := true_flange(now := self.clock.now_ns())) is not None:
+            T_guide = T_of @ self.est.rig.T_flange_from_guide
         entry = np.asarray(self.truth.entry_optical(now), dtype=np.float64)
         target = np.asarray(self.truth.target_optical(now), dtype=np.float64)
         u = (target - entry) / np.linalg.norm(target - entry)

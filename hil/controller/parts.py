@@ -130,7 +130,7 @@ class ControllerParts(abc.ABC):
         self.roles = TrackerRoles(self.tracker_use, session)
         self.needle = NeedleCheck(procedure.lock.needle_check, needle_check, session)
         self.needle_check = needle_check
-        self.truth_meter = TruthMeter(truth, robot, self.est, session)
+        self.truth_meter = TruthMeter(truth, robot, self.est, session, clock)
         self.ctx = PhaseContext(
             cfg=procedure, est=self.est, clock=clock, session=session, safety=self.safety, robot=robot,
             roles=self.roles, needle=self.needle, coach=coach, frame_period_s=self.frame_period_s,

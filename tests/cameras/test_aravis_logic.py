@@ -360,3 +360,26 @@ def test_free_run_and_hardware_trigger_settings(stub_aravis: type[StubAravis]) -
     cam.open()
     assert "clear_triggers()" in left.calls
     cam.close()
+
+
+def test_device_timestamps_are_mapped_by_the_fastest_transfer(stub_aravis: type[StubAravis]) -> None:
+    """t_ns = device time + min(reception - device time) so far: the transfer jitter drops out,
+    the shortest transfer stays."""
+    delays_ms = [5.0, 2.0, 7.0, 3.0]   # reception - exposure of frames 1..4, one second apart
+
+    def script(ts0: int) -> Callable[[int], list[StubBuffer]]:
+        def s(k: int) -> list[StubBuffer]:
+            return [StubBuffer(frame_id=k, value=k, device_ts_ns=ts0 + k * 1_000_000_000,
+                               system_ts_ns=WALL_NS - (4 - k) * 1_000_000_000 + round(delays_ms[k - 1] * 1e6)
+                               - 10_000_000)]
+        return s
+
+    cam = make(stub_aravis, StubCamera(script(10**12)), StubCamera(script(5 * 10**12)))
+    cam.open()
+    pairs = [cam.grab(1.0) for _ in range(4)]
+    # exposure of frame k on the controller clock: its reception minus its delay
+    exposure = [9_000_000_000 - 10_000_000 - (4 - k) * 1_000_000_000 for k in range(1, 5)]
+    assert [p.left.t_ns - e for p, e in zip(pairs, exposure, strict=True)] == [5_000_000, 2_000_000,
+                                                                                 2_000_000, 2_000_000]
+    assert all(p.left.time_source.value == "exposure" for p in pairs)
+    cam.close()

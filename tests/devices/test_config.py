@@ -26,7 +26,8 @@ def _write(tmp_path: Path, text: str) -> Path:
 
 def test_the_shipped_configs_are_the_expected_ones() -> None:
     assert [p.name for p in SHIPPED] == [
-        "sim.toml", "sim_faults.toml", "sim_needle.toml", "sim_needle_collinear.toml", "sim_ursim.toml",
+        "sim.toml", "sim_faults.toml", "sim_needle.toml", "sim_needle_collinear.toml", "sim_realistic.toml",
+        "sim_ursim.toml",
         "ur3_aravis_aurora.toml", "ur3_aravis_fob.toml", "ur3_v4l2.toml"]
 
 
@@ -60,7 +61,7 @@ def test_default_setup_is_the_embedded_sim_toml(monkeypatch: pytest.MonkeyPatch)
     assert default_setup_path() == Path("/x/y.toml")
 
 
-@pytest.mark.parametrize("name", ["sim", "sim_faults"])
+@pytest.mark.parametrize("name", ["sim", "sim_faults", "sim_realistic"])
 def test_bundled_plan_matches_the_simulated_phantom(name: str, registry: DriverRegistry) -> None:
     """configs/plans/<setup>_plan.json is the CT plan of that setup's simulated phantom."""
     from drivers.sim.world import phantom_from_config

@@ -1,6 +1,7 @@
 """Accuracy of the whole simulated procedure over many seeds.
 
-Run: ``tools/bench accuracy [--json] [--runs N] [--first-seed S] [--follow-s S] [--config FILE]``
+Run: ``tools/bench accuracy [--json] [--runs N] [--first-seed S] [--follow-s S] [--config FILE]
+[--no-rig-calibration]``
 
 Each run is ``hil run`` on the simulator (configs/sim.toml by default) with seed-001-like camera
 noise (the sim camera's defaults: 1394 px, 120 mm baseline, 2 grey levels of sensor noise, blur),
@@ -14,6 +15,12 @@ Two compensation figures: the normal procedure compensates during the requested 
 (micro-motion only); a second run per seed (``--follow-s``, default 12 s) opens the gate at once
 and follows free breathing, and its errors after a 2 s catch-up give ``comp_err_mm_p95`` (the
 hold-only figure when ``--follow-s 0``).
+
+With a config whose simulated rig has errors (``[simulation.rig_errors]``, e.g.
+``configs/sim_realistic.toml``) every seed is run twice, side by side: with the setup as given
+(the CAD flange-marker layout, no time offsets) and after ``hil rig-calibrate --auto`` of that
+seed's rig (``[calibration] rig`` pointing at the file); the JSON's ``calibrated`` object holds
+the second column and how far each calibration was from the simulator's truth.
 """
 
 from __future__ import annotations
@@ -30,9 +37,13 @@ from typing import Any
 import numpy as np
 
 from hil.cli.cmd_run import run_procedure
-from hil.config import SetupConfig, default_setup_path, load_setup
+from hil.config import SetupConfig, build_devices, default_setup_path, load_setup
+from hil.config.build import clock_for
+from hil.config.simulation import RigErrorsConfig
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.log import configure_logging
+from hil.rigcal.collect import auto_confirm
+from hil.rigcal.runner import run_rig_calibration
 
 
 def _rms(xs: list[float]) -> float | None:
@@ -56,47 +67,47 @@ def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Pa
     return [e for e, age in zip(s.comp_errors_mm, s.comp_error_age_s, strict=True) if age > 2.0]
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="tools/bench accuracy", description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=5, help="number of seeds (default 5)")
-    ap.add_argument("--first-seed", type=int, default=1)
-    ap.add_argument("--config", help="setup TOML (default: configs/sim.toml)")
-    ap.add_argument("--plan", help="plan JSON (default: plans/<config>_plan.json)")
-    ap.add_argument("--follow-s", type=float, default=12.0,
-                    help="per seed, also follow free breathing for this long (0: skip)")
-    ap.add_argument("--json", action="store_true", help="one JSON object on stdout")
-    args = ap.parse_args(argv)
-    if args.runs < 1:
-        ap.error("--runs must be >= 1")
-    configure_logging(level="error")
-    cfg_path = Path(args.config) if args.config else default_setup_path()
-    base = load_setup(cfg_path)
-    bundled = cfg_path.resolve().parent / "plans" / f"{cfg_path.stem}_plan.json"
-    plan_path = Path(args.plan) if args.plan else bundled
-    plan = load_plan(plan_path)
+def _calibrate_rig(cfg_path: Path, setup: SetupConfig, out: Path) -> dict[str, Any]:
+    """``hil rig-calibrate --auto`` of this seed's simulated rig into ``out``; its summary."""
+    clock = clock_for(setup)
+    outcome = run_rig_calibration(setup, cfg_path, build_devices(setup, clock), clock, auto_confirm,
+                                  out_path=out)
+    return outcome.summary
+
+
+def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argparse.Namespace, tmp: Path,
+           calibrate: bool) -> dict[str, Any]:
+    """One column of the table: every seed with the setup as given (CAD layout, no time offsets)
+    or, with ``calibrate``, after ``hil rig-calibrate`` of that seed's rig (``[calibration] rig``)."""
     breathing = base.simulation.breathing.model_copy(update={"enabled": True, "amplitude_mm": 10.0,
                                                             "period_s": 4.0})
     runs: list[dict[str, Any]] = []
     comp_all: list[float] = []
     follow_all: list[float] = []
-    t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="bench_accuracy_") as tmp:
-        for k in range(args.runs):
-            seed = args.first_seed + k
-            sim = base.simulation.model_copy(update={"seed": seed, "breathing": breathing})
-            setup = base.model_copy(update={"simulation": sim})
-            s = run_procedure(cfg_path, setup, plan, auto=True, session_dir=Path(tmp))
-            comp_all += s.comp_errors_mm
-            if args.follow_s > 0:
-                follow_all += _follow_run(cfg_path, setup, plan, Path(tmp), args.follow_s)
-            runs.append({"seed": seed, "final_state": s.final_state, "lock_error_mm": s.lock_error_mm,
-                         "lock_direction_error_deg": s.lock_direction_error_deg,
-                         "comp_error_p95_mm": s.comp_error_p95_mm, "gate_open_fraction": s.gate_open_fraction,
-                         "time_to_lock_s": s.time_to_lock_s, "fre_mm": s.fre_mm,
-                         "latency_ms_p95": s.latency_ms["p95"]})
-            if not args.json:
-                print(f"seed {seed}: {s.final_state}, lock {s.lock_error_mm}, "
-                      f"dir {s.lock_direction_error_deg}", file=sys.stderr)
+    rig_errors: list[dict[str, Any]] = []
+    for k in range(args.runs):
+        seed = args.first_seed + k
+        sim = base.simulation.model_copy(update={"seed": seed, "breathing": breathing})
+        setup = base.model_copy(update={"simulation": sim})
+        if calibrate:
+            rig_path = tmp / f"rig_{seed}.json"
+            rc = _calibrate_rig(cfg_path, setup, rig_path)
+            rig_errors.append({"seed": seed, "layout_mm_rms": rc.get("truth_layout_error_mm_rms"),
+                               "time_offset_error_ms": rc.get("truth_time_offset_error_ms")})
+            cal = setup.calibration.model_copy(update={"rig": rig_path})
+            setup = setup.model_copy(update={"calibration": cal})
+        s = run_procedure(cfg_path, setup, plan, auto=True, session_dir=tmp)
+        comp_all += s.comp_errors_mm
+        if args.follow_s > 0:
+            follow_all += _follow_run(cfg_path, setup, plan, tmp, args.follow_s)
+        runs.append({"seed": seed, "final_state": s.final_state, "lock_error_mm": s.lock_error_mm,
+                     "lock_direction_error_deg": s.lock_direction_error_deg,
+                     "comp_error_p95_mm": s.comp_error_p95_mm, "gate_open_fraction": s.gate_open_fraction,
+                     "time_to_lock_s": s.time_to_lock_s, "fre_mm": s.fre_mm,
+                     "latency_ms_p95": s.latency_ms["p95"]})
+        if not args.json:
+            print(f"{'calibrated' if calibrate else 'as given'} seed {seed}: {s.final_state}, "
+                  f"lock {s.lock_error_mm}, dir {s.lock_direction_error_deg}", file=sys.stderr)
     comp_main = follow_all or comp_all
     locked = [r for r in runs if r["lock_error_mm"] is not None]
     lock = [float(r["lock_error_mm"]) for r in locked]
@@ -116,24 +127,75 @@ def main(argv: list[str] | None = None) -> int:
         "comp_err_mm_p95_hold": float(np.percentile(comp_all, 95)) if comp_all else None,
         "gate_open_fraction_mean": statistics.fmean(gates) if gates else None,
         "time_to_lock_s_median": statistics.median(ttl) if ttl else None,
-        "wall_s": round(time.perf_counter() - t0, 1),
         "per_run": runs,
     }
+    if calibrate:
+        layout = [float(r["layout_mm_rms"]) for r in rig_errors if r["layout_mm_rms"] is not None]
+        offs = [abs(float(e)) for r in rig_errors for e in (r["time_offset_error_ms"] or {}).values()]
+        out["rig_layout_error_mm_rms_max"] = max(layout) if layout else None
+        out["rig_time_offset_error_ms_max"] = max(offs) if offs else None
+        out["rig_per_seed"] = rig_errors
+    return out
+
+
+def _print(cols: dict[str, dict[str, Any]]) -> None:
+    def f(x: float | None, u: str) -> str:
+        return "n/a" if x is None else f"{x:.3f} {u}"
+    rows = [("runs reaching done", lambda o: f"{o['runs_done']}/{o['runs']}"),
+            ("lock error RMS", lambda o: f(o["lock_err_mm_rms"], "mm")),
+            ("lock error mean", lambda o: f(o["lock_err_mm_mean"], "mm")),
+            ("lock error max", lambda o: f(o["lock_err_mm_max"], "mm")),
+            ("direction error RMS", lambda o: f(o["dir_err_deg_rms"], "deg")),
+            ("comp. following p95", lambda o: f(o["comp_err_mm_p95"], "mm")),
+            ("comp. following RMS", lambda o: f(o["comp_err_mm_rms_following"], "mm")),
+            ("comp. breath-hold p95", lambda o: f(o["comp_err_mm_p95_hold"], "mm")),
+            ("gate open fraction", lambda o: f(o["gate_open_fraction_mean"], "")),
+            ("time to lock median", lambda o: f(o["time_to_lock_s_median"], "s"))]
+    names = list(cols)
+    print(f"{'':24}" + "".join(f"{n:>22}" for n in names))
+    for label, get in rows:
+        print(f"{label:24}" + "".join(f"{get(cols[n]):>22}" for n in names))
+    cal = cols.get("calibrated rig")
+    if cal is not None:
+        print(f"rig calibration vs truth: layout <= {f(cal['rig_layout_error_mm_rms_max'], 'mm RMS')}, "
+              f"time offsets <= {f(cal['rig_time_offset_error_ms_max'], 'ms')} (worst seed)")
+    print("targets (calibrated rig): lock error <= 0.5 mm RMS, following free breathing <= 1 mm p95")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="tools/bench accuracy", description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=5, help="number of seeds (default 5)")
+    ap.add_argument("--first-seed", type=int, default=1)
+    ap.add_argument("--config", help="setup TOML (default: configs/sim.toml)")
+    ap.add_argument("--plan", help="plan JSON (default: plans/<config>_plan.json)")
+    ap.add_argument("--follow-s", type=float, default=12.0,
+                    help="per seed, also follow free breathing for this long (0: skip)")
+    ap.add_argument("--no-rig-calibration", action="store_true",
+                    help="with [simulation.rig_errors] set: skip the calibrated-rig column")
+    ap.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    args = ap.parse_args(argv)
+    if args.runs < 1:
+        ap.error("--runs must be >= 1")
+    configure_logging(level="error")
+    cfg_path = Path(args.config) if args.config else default_setup_path()
+    base = load_setup(cfg_path)
+    bundled = cfg_path.resolve().parent / "plans" / f"{cfg_path.stem}_plan.json"
+    plan_path = Path(args.plan) if args.plan else bundled
+    plan = load_plan(plan_path)
+    side_by_side = base.simulation.rig_errors != RigErrorsConfig() and not args.no_rig_calibration
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="bench_accuracy_") as tmp:
+        out = _bench(cfg_path, base, plan, args, Path(tmp), calibrate=False)
+        if side_by_side:
+            out["calibrated"] = _bench(cfg_path, base, plan, args, Path(tmp), calibrate=True)
+    out["wall_s"] = round(time.perf_counter() - t0, 1)
     if args.json:
         print(json.dumps(out))
     else:
-        def f(x: float | None, u: str) -> str:
-            return "n/a" if x is None else f"{x:.3f} {u}"
-        print(f"runs                  {out['runs']} ({out['runs_done']} reached done)")
-        print(f"lock error            mean {f(out['lock_err_mm_mean'], 'mm')}, "
-              f"RMS {f(out['lock_err_mm_rms'], 'mm')}, max {f(out['lock_err_mm_max'], 'mm')}")
-        print(f"direction error       RMS {f(out['dir_err_deg_rms'], 'deg')}")
-        print("compensation error    following free breathing: "
-              f"RMS {f(out['comp_err_mm_rms_following'], 'mm')}, p95 {f(out['comp_err_mm_p95'], 'mm')}")
-        print("                      during the breath-hold: "
-              f"RMS {f(out['comp_err_mm_rms_hold'], 'mm')}, p95 {f(out['comp_err_mm_p95_hold'], 'mm')}")
-        print(f"gate open fraction    {f(out['gate_open_fraction_mean'], '')}")
-        print(f"time to lock          median {f(out['time_to_lock_s_median'], 's')}")
+        cols = {"as configured (CAD)" if side_by_side else "as configured": out}
+        if side_by_side:
+            cols["calibrated rig"] = out["calibrated"]
+        _print(cols)
     return 0
 
 

@@ -1,0 +1,71 @@
+"""What ``hil run`` takes from ``[calibration] rig``: the calibrated flange-marker layout in place of
+the CAD one, and the devices wrapped so their stamps carry the calibrated time offsets."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hil.config.build import Devices
+from hil.config.setup import SetupConfig
+from hil.errors import InputFileError
+from hil.log import get_logger
+from hil.rigcal.rigfile import RigCalibration, load_rig_calibration
+from hil.rigcal.time_align import time_aligned
+
+FloatArray = NDArray[np.float64]
+_log = get_logger(__name__)
+EV_RIG_APPLIED = "rig_calibration_applied"
+
+
+def rig_calibration(setup: SetupConfig) -> RigCalibration | None:
+    """The setup's rig calibration file, or None when ``[calibration] rig`` is not set.
+
+    Raises:
+        InputFileError: the file is unreadable or invalid, or its layout has a different number of
+            markers than ``[frames] flange_markers_mm`` (a file of another rig).
+    """
+    path = setup.calibration.rig
+    if path is None:
+        return None
+    rig = load_rig_calibration(path)
+    n = len(setup.frames.flange_markers_mm)
+    if rig.flange_markers_mm is not None and rig.flange_markers_mm.shape[0] != n:
+        raise InputFileError(str(path), f"hand_eye.flange_markers_mm has {rig.flange_markers_mm.shape[0]} "
+                                        f"markers, [frames] flange_markers_mm {n}: a file of another rig?")
+    return rig
+
+
+def flange_markers_mm(setup: SetupConfig) -> FloatArray:
+    """The flange-marker layout (flange frame, mm) ``hil run`` uses: the rig calibration's when it
+    has a hand-eye part, else ``[frames] flange_markers_mm`` (CAD)."""
+    rig = rig_calibration(setup)
+    if rig is not None and rig.flange_markers_mm is not None:
+        return rig.flange_markers_mm
+    return np.asarray(setup.frames.flange_markers_mm, dtype=np.float64)
+
+
+def with_rig_time_offsets(setup: SetupConfig, devices: Devices) -> Devices:
+    """``devices`` with camera, robot and tracker wrapped by the rig calibration's time offsets
+    (:mod:`hil.rigcal.time_align`; opened or not), or unchanged without a file or offsets."""
+    rig = rig_calibration(setup)
+    if rig is None or not rig.time_offsets:
+        return devices
+    cam, rob, trk = time_aligned(devices.camera, devices.robot, devices.tracker, rig)
+    _log.info(EV_RIG_APPLIED, **{f"{k}_offset_ms": v.offset_ms for k, v in rig.time_offsets.items()})
+    return dataclasses.replace(devices, camera=cam, robot=rob, tracker=trk)
+
+
+def rig_calibration_sha256(setup: SetupConfig) -> str | None:
+    """SHA-256 of the ``[calibration] rig`` file for the session log header (None without one),
+    after checking the file is a valid rig calibration.
+
+    Raises:
+        InputFileError: see :func:`rig_calibration`.
+    """
+    if rig_calibration(setup) is None or setup.calibration.rig is None:
+        return None
+    return hashlib.sha256(setup.calibration.rig.read_bytes()).hexdigest()
