@@ -115,8 +115,9 @@ class RobotPoseFollower:
     clock); :meth:`T_robot_from_flange_at` interpolates them at the asked time (the newest sample
     after it, the oldest before it). While the driver cannot report (lost connection, recovery),
     the last known pose stands: the physical arm is somewhere, and the world keeps seeing it
-    there. The thread ends when the robot is closed (also one built and never opened). ``T_flange_from_tcp`` of the driver (its
-    attribute, identity without one) turns the reported TCP pose into the flange pose.
+    there. The thread ends when the robot is closed (also one built and never opened).
+    ``T_flange_from_tcp`` of the driver (its attribute, identity without one) turns the reported
+    TCP pose into the flange pose.
     """
 
     def __init__(self, robot: Robot, period_s: float = 0.01, history: int = 300) -> None:

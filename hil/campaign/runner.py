@@ -119,7 +119,7 @@ def _latency_bound_ms(setup: SetupConfig, device: str, frame_rate_hz: float) -> 
 def execute(spec: RunSpec) -> tuple[RunResult, Recording, Path, CampaignOperator, float]:
     """Run the procedure for ``spec``; returns the unjudged result, the recording, the log path,
     the operator and the camera frame rate."""
-    from hil.cli.cmd_run import build_controller, wrap_robot  # the controller `hil run` builds
+    from hil.controller.assembly import build_controller, wrap_robot  # the controller `hil run` builds
 
     config = Path(spec.config)
     setup = _setup_for(spec)

@@ -368,7 +368,7 @@ def run_judged(spec: TransportSpec, send: Callable[[str], object], *,
     :class:`RecordingRobot`), ``around`` (if any) around them, the controller with a
     state-triggered ``operator_type`` that sends the fault lines with ``send``. Never raises for a
     controller, driver or emulator problem (it fails the run)."""
-    from hil.cli.cmd_run import build_controller, wrap_robot
+    from hil.controller.assembly import build_controller, wrap_robot
 
     t_wall = time.perf_counter()
     sc = BY_NAME[spec.scenario]

@@ -12,13 +12,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hil.cli.cmd_run import build_controller, runtime_plugins
 from hil.clock import Clock, ManualClock
 from hil.config import build_devices, default_setup_path, load_setup
 from hil.config.build import Devices, clock_for
 from hil.config.setup import SetupConfig
 from hil.console.operator import ConsoleOperator
 from hil.console.runner import ControllerRunner
+from hil.controller.assembly import build_controller, runtime_plugins
 from hil.controller.controller import Controller
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import InputFileError

@@ -202,7 +202,7 @@ def run_soak(
     plan_path = Path(plan) if plan else config.resolve().parent / "plans" / f"{config.stem}_plan.json"
     procedure_plan = load_plan(plan_path)
     clock = MonotonicClock()
-    from hil.cli.cmd_run import build_controller, wrap_robot  # the controller `hil run` builds
+    from hil.controller.assembly import build_controller, wrap_robot  # the controller `hil run` builds
 
     limits = setup.safety.motion_limits()
     devices = wrap_robot(build_devices(setup, clock),

@@ -26,7 +26,7 @@ def _run(tmp_path: Path, max_s: float, **kw: Any) -> Any:
 
 def test_observers_see_every_tick_and_their_failures_are_logged_once(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import hil.cli.cmd_run as cmd_run
+    import hil.controller.assembly as assembly
 
     seen: list[tuple[str, int]] = []
 
@@ -36,13 +36,13 @@ def test_observers_see_every_tick_and_their_failures_are_logged_once(
     def broken(snap: ControllerSnapshot) -> None:
         raise RuntimeError("display gone")
 
-    real = cmd_run.Controller
+    real = assembly.Controller
 
     def with_observers(**kw: Any) -> Controller:
         kw["observers"] = (broken, watcher)
         return real(**kw)
 
-    monkeypatch.setattr(cmd_run, "Controller", with_observers)
+    monkeypatch.setattr(assembly, "Controller", with_observers)
     s = _run(tmp_path, 3.0)
     assert s.states[:2] == ["idle", "register"]
     # one call per tick (every tick grabbed a frame here), and one after the time-limit abort

@@ -210,9 +210,9 @@ def test_a_refused_command_is_never_sent_and_faults(tmp_path: Path) -> None:
 
 
 def test_an_internal_error_in_a_tick_becomes_a_fault(tmp_path: Path) -> None:
-    from hil.cli.cmd_run import _rig
     from hil.clock import ManualClock
     from hil.config import build_devices
+    from hil.controller.assembly import rig_geometry as _rig
     from hil.controller.controller import Controller
     from hil.controller.operator_input import AutoOperator
     from hil.session import SessionLog

@@ -125,8 +125,10 @@ def test_reference_sensor_stands_in_for_occluded_skin_markers(tmp_path: Path,
                 hide["on"] = True
             return super().poll(view)
 
+    import hil.controller.assembly as assembly
+
     monkeypatch.setattr(cmd_run, "build_devices", build_devices)
-    monkeypatch.setattr(cmd_run, "StereoMarkerLocator", locator)
+    monkeypatch.setattr(assembly, "StereoMarkerLocator", locator)
     base = load_setup(CONFIG)
     s = cmd_run.run_procedure(CONFIG, _setup(lock=base.procedure.lock.model_copy(update={"hold_s": 1.0})),
                               PLAN, auto=True, session_dir=tmp_path, max_duration_s=30.0,

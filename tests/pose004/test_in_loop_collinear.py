@@ -14,10 +14,11 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from hil.cli.cmd_run import _needle_checker, run_procedure
+from hil.cli.cmd_run import run_procedure
 from hil.config import load_setup
 from hil.config.setup import SetupConfig
 from hil.config.types import TransformConfig
+from hil.controller.assembly import _needle_checker
 from hil.controller.config import NeedleCheckConfig, ProcedureConfig
 from hil.controller.metrics import RunSummary
 from hil.controller.perception import CollinearNeedleChecker, StereoNeedleChecker

@@ -8,9 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from hil.cli.cmd_run import marker_locator, run_procedure
+from hil.cli.cmd_run import run_procedure
 from hil.config import load_setup
 from hil.config.setup import SetupConfig
+from hil.controller.assembly import marker_locator
 from hil.controller.plan_file import load_plan
 
 CONFIG = Path("configs/sim.toml")

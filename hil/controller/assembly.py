@@ -1,0 +1,176 @@
+"""Assembly: the controller ``hil run``, the console, campaigns and the soak build for a setup —
+the marker locator on the setup's calibration, the rig geometry (CAD or the rig calibration
+file), the procedure, the ``[safety]`` limits and watchdog ages, the simulated world as coach and
+truth, the needle-axis check, the tracker's roles, the runtime plugins (OpenIGTLink included).
+
+One place builds it, so every entry point runs the very same controller. Nothing here blocks
+except loading files; errors are the loaders' typed ones (InputFileError, CalibrationError).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from drivers.interfaces.robot import Robot
+from hil.clock import Clock
+from hil.config import Devices
+from hil.config.setup import SetupConfig
+from hil.controller.controller import Controller
+from hil.controller.observers import HookCaller, TickObserver
+from hil.controller.operator_input import Operator
+from hil.controller.perception import CollinearNeedleChecker, StereoMarkerLocator, StereoNeedleChecker
+from hil.controller.perception import StereoMarkerLocator as _Locator  # tests may substitute the factory
+from hil.controller.plan_file import ProcedurePlan
+from hil.controller.planning import RigGeometry
+from hil.controller.tracker_use import TrackerUse
+from hil.controller.truth import BreathHoldCoach, GroundTruth
+from hil.errors import InputFileError
+from hil.geometry.transform import RigidTransform
+from hil.rigcal.apply import flange_markers_mm, with_rig_time_offsets
+from hil.session.log import SessionLog
+from hil.tracking.session import load_tracker_calibration
+from hil.vision.camera_model import StereoCalibration, load_calibration
+from hil.vision.tracking import TrackingParams
+from plugins.manager import HilPlugins
+
+if TYPE_CHECKING:
+    from hil.igtl.server import IgtlServer
+
+
+def rig_geometry(setup: SetupConfig) -> RigGeometry:
+    tcp_cfg = getattr(setup.robot, "T_flange_from_tcp", None)
+    T_flange_from_tcp = tcp_cfg.as_transform() if tcp_cfg is not None else RigidTransform.identity()
+    return RigGeometry(setup.frames.T_flange_from_guide.as_transform(),
+                       flange_markers_mm(setup), T_flange_from_tcp)  # [calibration] rig, else CAD
+
+
+def _calibration(setup: SetupConfig, camera: object) -> StereoCalibration:
+    if setup.calibration.stereo is not None:
+        return load_calibration(setup.calibration.stereo)
+    cal = getattr(camera, "calibration", None)
+    if isinstance(cal, StereoCalibration):
+        return cal
+    return StereoCalibration.synthetic()
+
+
+def marker_locator(setup: SetupConfig, camera: object) -> StereoMarkerLocator:
+    """The controller's marker locator on the setup's calibration: region-of-interest tracking
+    when ``[procedure.vision] roi_tracking`` (the default), else a full-frame search per pair."""
+    v = setup.procedure.vision
+    loc = StereoMarkerLocator(_calibration(setup, camera))
+    if v.roi_tracking and isinstance(loc, _Locator):  # (tests may substitute their own locator)
+        loc.use_tracking(TrackingParams(window_margin_px=v.window_margin_px,
+                                        reacquire_every=v.reacquire_every_frames,
+                                        lost_retry_every=v.lost_retry_every_frames))
+    return loc
+
+
+def _needle_checker(setup: SetupConfig,
+                    camera: object) -> StereoNeedleChecker | CollinearNeedleChecker | None:
+    """The seed-004 needle-axis check when ``[procedure.lock.needle_check]`` is set, else None:
+    contour lines (``method = "cylinder"``) or collinear beads (``method = "collinear"``)."""
+    nc = setup.procedure.lock.needle_check
+    if nc is None:
+        return None
+    if nc.method == "collinear":
+        return CollinearNeedleChecker(_calibration(setup, camera), nc.bead_positions_mm(),
+                                      nc.max_mono_stereo_deg)
+    return StereoNeedleChecker(_calibration(setup, camera), nc.radius_mm)
+
+
+#: Takes the robot driver the setup built (CONFIGURED, not opened) and returns the robot the
+#: controller commands instead -- a recording, checking or fault-injecting wrapper. The wrapper
+#: owns the inner driver's lifecycle: its ``open``/``close`` open and close the inner one.
+RobotWrapper = Callable[[Robot], Robot]
+
+
+def wrap_robot(devices: Devices, wrapper: RobotWrapper) -> Devices:
+    """``devices`` (not opened) with the robot replaced by ``wrapper(devices.robot)``; open and
+    close the result (``open_all``/``close_all``) instead of the original."""
+    return dataclasses.replace(devices, robot=wrapper(devices.robot))
+
+
+def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, *, clock: Clock,
+                     session: SessionLog, operator: Operator,
+                     observers: Sequence[TickObserver] = (), hooks: HookCaller | None = None) -> Controller:
+    """The controller ``hil run`` builds for ``setup`` on ``devices`` (ACTIVE, or opened before
+    :meth:`Controller.run`): marker locator on the setup's stereo calibration, rig geometry,
+    procedure, ``[safety]`` limits and watchdog ages, the simulated world as breath-hold coach and
+    ground truth when there is one, the needle-axis check when configured. To command the robot
+    through a wrapper, build ``devices`` with :func:`wrap_robot` first. Raises what the
+    calibration loader raises (InputFileError) for a bad calibration file."""
+    sf = setup.safety
+    devices = with_rig_time_offsets(setup, devices)  # [calibration] rig: stamps at the true times
+    world = devices.world
+    return Controller(
+        camera=devices.camera, robot=devices.robot, tracker=devices.tracker, clock=clock,
+        locate=marker_locator(setup, devices.camera), plan=plan, rig=rig_geometry(setup),
+        procedure=setup.procedure, limits=sf.motion_limits(),
+        watchdog_ages_s={"camera": sf.camera_frame_max_age_ms / 1e3,
+                         "robot": sf.robot_state_max_age_ms / 1e3,
+                         "tracker": sf.tracker_max_age_ms / 1e3},
+        session=session, operator=operator,
+        coach=world if isinstance(world, BreathHoldCoach) else None,
+        truth=world if isinstance(world, GroundTruth) else None,
+        needle_check=_needle_checker(setup, devices.camera),
+        observers=observers, hooks=hooks,
+        tracker_use=_tracker_use(setup, world is not None),
+    )
+
+
+def _tracker_use(setup: SetupConfig, simulated_world: bool) -> TrackerUse | None:
+    """The tracker's part in the procedure (``[procedure.tracking]``), or None when no sensor is
+    configured for use or the setup has no tracker. The tracker registration comes from
+    ``calibration`` (a ``hil tracker-calibrate`` file); a simulated setup without one uses its
+    own transmitter mounting (``[simulation] T_optical_from_tracker``).
+
+    Raises:
+        InputFileError: no usable tracker registration.
+        CalibrationError: the calibration file is malformed.
+    """
+    tc = setup.procedure.tracking
+    if setup.tracker is None or (tc.needle_sensor is None and tc.reference_sensor is None):
+        return None
+    if tc.calibration is not None:
+        path = Path(tc.calibration)
+        if not path.is_absolute():
+            path = setup.config_dir / path
+        _, T = load_tracker_calibration(path)
+        if T is None:
+            raise InputFileError(str(path), "no registration (T_optical_from_tracker): run "
+                                            "hil tracker-calibrate with stylus touches")
+    elif simulated_world:
+        T = setup.simulation.T_optical_from_tracker.as_transform()
+    else:
+        raise InputFileError("[procedure.tracking]", "uses tracker sensors but names no calibration "
+                                                     "(the tracker registration)")
+    return TrackerUse(tc, T)
+
+
+def start_igtl(setup: SetupConfig, clock: Clock) -> IgtlServer | None:
+    """The read-only OpenIGTLink server of ``[igtl]`` when enabled (started), else None.
+
+    Raises:
+        IgtlError: the port cannot be bound, or the ``igtl`` extra (pyigtl) is missing.
+    """
+    if not setup.igtl.enabled:
+        return None
+    from hil.igtl.server import IgtlServer
+
+    server = IgtlServer(setup.igtl, clock)
+    server.start()
+    return server
+
+
+def runtime_plugins(igtl: IgtlServer | None, plan: ProcedurePlan) -> HilPlugins:
+    """The installed plugins (entry points: their ``hil_on_tick`` / ``hil_on_transition`` see the
+    run) plus, when the OpenIGTLink server runs, the built-in stream on the same hooks."""
+    plugins = HilPlugins()
+    if igtl is not None:
+        from hil.igtl.plugin import PLUGIN_NAME, IgtlPlugin
+
+        plugins.register(IgtlPlugin(igtl, plan), PLUGIN_NAME)
+    return plugins
