@@ -18,8 +18,17 @@ from textual.containers import Horizontal, Vertical
 from textual.screen import ModalScreen
 from textual.widgets import Button, DataTable, Footer, Header, Label, Sparkline, Static
 
+from hil.console.panels import (
+    banner_text,
+    gate_text,
+    plan_text,
+    registration_text,
+    robot_text,
+    timeline_text,
+    workflow_text,
+)
 from hil.console.session import ConsoleSession
-from hil.console.view import WORKFLOW, ConsoleView
+from hil.console.view import ConsoleView
 from hil.controller.fsm import Event
 from hil.controller.operator_input import CommandResult
 
@@ -51,10 +60,6 @@ CONFIRM_TEXT: dict[str, str] = {
     "resume": "The robot will MOVE to the stand-off pose above the entry.",
 }
 
-_STATE_STYLE = {"fault": "bold white on red", "safe_stop": "bold white on dark_red",
-                "paused": "bold black on yellow", "retract": "bold white on dark_orange"}
-
-
 def gate_windows(samples: tuple[float, ...], tolerance_mm: float, width: int) -> Text:
     """A strip under the breathing sparkline: green where the deviation was within the gate
     tolerance, red where it was over, bucketed like the sparkline (max per bucket)."""
@@ -70,10 +75,6 @@ def gate_windows(samples: tuple[float, ...], tolerance_mm: float, width: int) ->
         ok = max(chunk) <= tolerance_mm
         out.append("▀", style="green" if ok else "red")
     return out
-
-
-def _mm(x: float | None, digits: int = 3) -> str:
-    return "—" if x is None else f"{x:.{digits}f} mm"
 
 
 class ConfirmScreen(ModalScreen[bool]):
@@ -281,51 +282,26 @@ class ConsoleApp(App[dict[str, Any]]):
             self.push_screen(self._hil_confirm, lambda yes: self._on_confirm(name, yes))
 
     def _render_view(self, v: ConsoleView) -> None:
-        # fault banner
         banner = self.query_one("#banner", Static)
-        if v.error or v.state in ("fault", "safe_stop", "paused"):
-            reason = v.error or v.last_reason or (v.faults[-1] if v.faults else "")
-            banner.update(Text(f"{v.state.upper()}: {reason}\nway out: {v.hint}"))
-            banner.add_class("shown")
-        else:
+        text = banner_text(v)
+        if text is None:
             banner.remove_class("shown")
-        # workflow
-        wf = Text()
-        for i, s in enumerate(WORKFLOW):
-            if i:
-                wf.append(" → ", style="dim")
-            wf.append(f" {s.value} ", style="bold black on green" if s.value == v.state else "")
-        if v.state not in {s.value for s in WORKFLOW}:
-            wf.append("   ")
-            wf.append(f" {v.state} ", style=_STATE_STYLE.get(v.state, "bold reverse"))
-        wf.append(f"   t = {v.t_s:7.2f} s   frames {v.frames}", style="dim")
-        wf.append(f"\nnext: {v.hint}", style="italic")
-        self.query_one("#workflow", Static).update(wf)
-        # registration
-        self.query_one("#registration", Static).update(Text(
-            f"FRE            {_mm(v.fre_mm)}\n"
-            f"expected TRE   {_mm(v.tre_expected_mm)}\n"
-            f"robot FRE      {_mm(v.robot_fre_mm)}\n"
-            f"comp. error    {_mm(v.comp_error_mm)}" + ("" if v.comp_error_mm is None else " (truth)")))
-        # robot
-        tcp = "—" if v.robot_tcp_mm is None else "[" + ", ".join(f"{x:.1f}" for x in v.robot_tcp_mm) + "]"
-        robot = Text()
-        robot.append("connected      ")
-        robot.append("yes" if v.robot_connected else "NO", style="green" if v.robot_connected else "bold red")
-        robot.append(f"\nmode           {v.robot_mode}\nsafety         ")
-        robot.append(v.robot_safety, style="green" if v.robot_safety == "normal" else "bold red")
-        speed = "—" if v.robot_speed_mm_s is None else f"{v.robot_speed_mm_s:.1f} mm/s"
-        robot.append(f"\nspeed          {speed}\nTCP (robot)    {tcp}\n"
-                     f"guide error    {_mm(v.guide_error_mm)}\n"
-                     f"commands       {v.commands_sent} sent, {v.commands_refused} refused")
-        self.query_one("#robot", Static).update(robot)
-        # plan
-        e, t = v.plan_entry_mm, v.plan_target_mm
-        self.query_one("#plan", Static).update(Text(
-            f"{v.plan_source}\n{v.plan_fiducials} fiducials\n"
-            f"entry  [{e[0]:.1f}, {e[1]:.1f}, {e[2]:.1f}]\ntarget [{t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}]\n"
-            f"session log: {v.session_log}\nOpenIGTLink: {v.igtl}"))
-        # markers
+        else:
+            banner.update(text)
+            banner.add_class("shown")
+        self.query_one("#workflow", Static).update(workflow_text(v))
+        self.query_one("#registration", Static).update(registration_text(v))
+        self.query_one("#robot", Static).update(robot_text(v))
+        self.query_one("#plan", Static).update(plan_text(v))
+        self._render_markers(v)
+        self.query_one("#gate", Static).update(gate_text(v))
+        self.query_one("#breathing", Sparkline).data = list(v.breathing_mm)
+        bar = self.query_one("#gatebar", Static)
+        bar.update(gate_windows(v.breathing_mm, v.gate_tolerance_mm, max(bar.content_size.width, 1)))
+        tl_widget = self.query_one("#timeline", Static)
+        tl_widget.update(timeline_text(v, max(tl_widget.content_size.width, 20)))
+
+    def _render_markers(self, v: ConsoleView) -> None:
         table = self.query_one("#markers", DataTable)
         table.clear()
         for m in v.markers:
@@ -337,29 +313,3 @@ class ConsoleApp(App[dict[str, Any]]):
                 table.add_row(name, f"{x:.2f}", f"{y:.2f}", f"{z:.2f}",
                               "—" if m.residual_mm is None else f"{m.residual_mm:.3f}",
                               Text("visible", style="green"))
-        # gate
-        gate = Text()
-        if v.gate_open:
-            gate.append("OPEN", style="bold black on green")
-        else:
-            gate.append("CLOSED", style="bold white on red")
-        dev = v.gate_deviation_mm
-        within = dev is not None and dev <= v.gate_tolerance_mm
-        gate.append(f"\ndeviation  {_mm(dev)}  (tolerance {v.gate_tolerance_mm} mm, "
-                    f"dwell {v.gate_dwell_s} s)")
-        gate.append("\n" + ("within tolerance" if within else "over tolerance" if dev is not None
-                            else "no reference yet (register first)"),
-                    style="green" if within else "yellow")
-        self.query_one("#gate", Static).update(gate)
-        self.query_one("#breathing", Sparkline).data = list(v.breathing_mm)
-        bar = self.query_one("#gatebar", Static)
-        bar.update(gate_windows(v.breathing_mm, v.gate_tolerance_mm, max(bar.content_size.width, 1)))
-        # timeline
-        tl_widget = self.query_one("#timeline", Static)
-        width = max(tl_widget.content_size.width, 20)
-        tl = Text(no_wrap=True)
-        for ts, st, why in v.timeline[-8:]:
-            tl.append(f"{ts:7.2f} s  {st:<10} {why}"[:width] + "\n")
-        if v.faults:
-            tl.append(f"faults: {len(v.faults)} (last: {v.faults[-1][:60]})", style="bold red")
-        tl_widget.update(tl)

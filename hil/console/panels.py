@@ -1,0 +1,93 @@
+"""The console's panels as text, one pure function each, from a :class:`ConsoleView` (no widget,
+no controller: testable alone)."""
+
+from __future__ import annotations
+
+from rich.text import Text
+
+from hil.console.view import WORKFLOW, ConsoleView
+
+_STATE_STYLE = {"fault": "bold white on red", "safe_stop": "bold white on dark_red",
+                "paused": "bold black on yellow", "retract": "bold white on dark_orange"}
+
+
+def mm(x: float | None, digits: int = 3) -> str:
+    return "—" if x is None else f"{x:.{digits}f} mm"
+
+
+def banner_text(v: ConsoleView) -> Text | None:
+    """The fault / stop / pause banner with its way out, or None when the procedure is fine."""
+    if not (v.error or v.state in ("fault", "safe_stop", "paused")):
+        return None
+    reason = v.error or v.last_reason or (v.faults[-1] if v.faults else "")
+    return Text(f"{v.state.upper()}: {reason}\nway out: {v.hint}")
+
+
+def workflow_text(v: ConsoleView) -> Text:
+    """The procedure's states with the current one lit, the clock, and what comes next."""
+    wf = Text()
+    for i, s in enumerate(WORKFLOW):
+        if i:
+            wf.append(" → ", style="dim")
+        wf.append(f" {s.value} ", style="bold black on green" if s.value == v.state else "")
+    if v.state not in {s.value for s in WORKFLOW}:
+        wf.append("   ")
+        wf.append(f" {v.state} ", style=_STATE_STYLE.get(v.state, "bold reverse"))
+    wf.append(f"   t = {v.t_s:7.2f} s   frames {v.frames}", style="dim")
+    wf.append(f"\nnext: {v.hint}", style="italic")
+    return wf
+
+
+def registration_text(v: ConsoleView) -> Text:
+    return Text(
+        f"FRE            {mm(v.fre_mm)}\n"
+        f"expected TRE   {mm(v.tre_expected_mm)}\n"
+        f"robot FRE      {mm(v.robot_fre_mm)}\n"
+        f"comp. error    {mm(v.comp_error_mm)}" + ("" if v.comp_error_mm is None else " (truth)"))
+
+
+def robot_text(v: ConsoleView) -> Text:
+    tcp = "—" if v.robot_tcp_mm is None else "[" + ", ".join(f"{x:.1f}" for x in v.robot_tcp_mm) + "]"
+    robot = Text()
+    robot.append("connected      ")
+    robot.append("yes" if v.robot_connected else "NO", style="green" if v.robot_connected else "bold red")
+    robot.append(f"\nmode           {v.robot_mode}\nsafety         ")
+    robot.append(v.robot_safety, style="green" if v.robot_safety == "normal" else "bold red")
+    speed = "—" if v.robot_speed_mm_s is None else f"{v.robot_speed_mm_s:.1f} mm/s"
+    robot.append(f"\nspeed          {speed}\nTCP (robot)    {tcp}\n"
+                 f"guide error    {mm(v.guide_error_mm)}\n"
+                 f"commands       {v.commands_sent} sent, {v.commands_refused} refused")
+    return robot
+
+
+def plan_text(v: ConsoleView) -> Text:
+    e, t = v.plan_entry_mm, v.plan_target_mm
+    return Text(
+        f"{v.plan_source}\n{v.plan_fiducials} fiducials\n"
+        f"entry  [{e[0]:.1f}, {e[1]:.1f}, {e[2]:.1f}]\ntarget [{t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}]\n"
+        f"session log: {v.session_log}\nOpenIGTLink: {v.igtl}")
+
+
+def gate_text(v: ConsoleView) -> Text:
+    gate = Text()
+    if v.gate_open:
+        gate.append("OPEN", style="bold black on green")
+    else:
+        gate.append("CLOSED", style="bold white on red")
+    dev = v.gate_deviation_mm
+    within = dev is not None and dev <= v.gate_tolerance_mm
+    gate.append(f"\ndeviation  {mm(dev)}  (tolerance {v.gate_tolerance_mm} mm, dwell {v.gate_dwell_s} s)")
+    gate.append("\n" + ("within tolerance" if within else "over tolerance" if dev is not None
+                        else "no reference yet (register first)"),
+                style="green" if within else "yellow")
+    return gate
+
+
+def timeline_text(v: ConsoleView, width: int) -> Text:
+    """The last transitions, each cut to ``width`` characters, and the fault count."""
+    tl = Text(no_wrap=True)
+    for ts, st, why in v.timeline[-8:]:
+        tl.append(f"{ts:7.2f} s  {st:<10} {why}"[:width] + "\n")
+    if v.faults:
+        tl.append(f"faults: {len(v.faults)} (last: {v.faults[-1][:60]})", style="bold red")
+    return tl
