@@ -19,7 +19,7 @@ from hil.session.log import SessionLog, file_sha256, read_session_log, verify_se
 
 from .operator import CampaignOperator
 from .recorder import Recording, RecordingRobot
-from .scenarios import PROFILES
+from .scenarios import PROFILES, KindProfile
 
 #: States that count as the defined safe state after a fault (the robot is stopped on entry).
 SAFE_STATES = ("fault", "safe_stop", "paused")
@@ -191,10 +191,14 @@ def state_windows(entered: list[tuple[float, str]], end_s: float) -> dict[str, l
     return out
 
 
-def judge(
-    spec: RunSpec, result: RunResult, rec: Recording, log_path: Path, operator: CampaignOperator
-) -> RunResult:
-    """Apply the pass criteria (docs/campaign.md) and fill ``result``."""
+def _judge_run(
+    result: RunResult, rec: Recording, log_path: Path
+) -> tuple[int, list[tuple[float, str]], list[tuple[float, dict[str, Any]]]]:
+    """The criteria every run is held to (crash, complete log, limits) and its timeline.
+
+    Fills ``result``'s log verdict, state windows, command count and limit violations, adding
+    to ``result.reasons``; returns :func:`_timeline`'s ``(t0_ns, entered, records)`` (times in s).
+    """
     reasons = result.reasons
     if result.error is not None:
         result.outcome = "crashed"
@@ -214,6 +218,77 @@ def judge(
     ]
     if bad:
         reasons.append(f"{len(bad)} command(s) outside the limits reached the driver")
+    return t0_ns, entered, records
+
+
+def _judge_safe_state(
+    result: RunResult,
+    profile: KindProfile,
+    onset: float,
+    safe: tuple[float, str],
+    t0_ns: int,
+    entered: list[tuple[float, str]],
+    end_s: float,
+    rec: Recording,
+    operator: CampaignOperator,
+) -> None:
+    """A fault that reached the safe state ``safe = (t_safe, state)`` (s): its latency from when
+    the fault was detectable, that the robot was seen stopped before the operator's recovery, and
+    that the procedure continued to lock. Fills ``result`` and adds to ``result.reasons``."""
+    reasons = result.reasons
+    t_safe, s_safe = safe
+    result.outcome = result.outcome or "safe_state"
+    result.safe_state = s_safe
+    ref = onset
+    if profile.detect == "on_command":
+        after = [(c.t_ns - t0_ns) * 1e-9 for c in rec.commands if (c.t_ns - t0_ns) * 1e-9 >= onset - 1e-9]
+        ref = after[0] if after else onset
+    result.safe_latency_ms = round((t_safe - ref) * 1e3, 3)
+    if (
+        profile.detect != "content"
+        and result.latency_bound_ms is not None
+        and result.safe_latency_ms > result.latency_bound_ms
+    ):
+        reasons.append(
+            f"safe state {s_safe} {result.safe_latency_ms:.0f} ms after the fault was "
+            f"detectable (bound {result.latency_bound_ms:.0f} ms)"
+        )
+    # stopped or holding: a state sample under STOPPED_MM_S after entering the safe state,
+    # before the operator's first recovery command
+    t_recover = next((t for t, c in operator.commands if t >= t_safe), end_s + 1.0)
+    stops = [
+        (s.t_ns - t0_ns) * 1e-9
+        for s in rec.states
+        if t_safe - 1e-9 <= (s.t_ns - t0_ns) * 1e-9 <= t_recover and s.speed_mm_s < STOPPED_MM_S
+    ]
+    if stops:
+        result.stop_latency_ms = round((stops[0] - t_safe) * 1e3, 3)
+    else:
+        reasons.append(f"robot not seen stopped (< {STOPPED_MM_S} mm/s) in {s_safe} before recovery")
+    result.recovered_to_lock = any(s == "lock" and t > t_safe for t, s in entered)
+    if not result.recovered_to_lock:
+        reasons.append(f"did not continue to lock after recovery (final state {result.final_state})")
+
+
+def _judge_tolerated(result: RunResult) -> None:
+    """A fault that never reached a safe state: it passes only when the run still ended in done
+    with a lock error within ``TOLERATED_LOCK_MM`` mm. Adds to ``result.reasons``."""
+    result.outcome = result.outcome or "tolerated"
+    if result.final_state != State.DONE.value:
+        result.reasons.append(
+            f"fault neither reached a safe state nor was tolerated (final state {result.final_state})"
+        )
+    elif result.lock_error_mm is None or result.lock_error_mm > TOLERATED_LOCK_MM:
+        result.reasons.append(f"tolerated, but lock error {result.lock_error_mm} mm > {TOLERATED_LOCK_MM} mm")
+
+
+def judge(
+    spec: RunSpec, result: RunResult, rec: Recording, log_path: Path, operator: CampaignOperator
+) -> RunResult:
+    """Apply the pass criteria (docs/campaign.md) and fill ``result``."""
+    reasons = result.reasons
+    t0_ns, entered, records = _judge_run(result, rec, log_path)
+    end_s = records[-1][0]
     if spec.kind is None:
         if result.outcome != "crashed":
             result.outcome = "baseline"
@@ -239,45 +314,9 @@ def judge(
     safe = [(t, s) for t, s in entered if s in SAFE_STATES and t >= onset - 1e-9]
     if safe:
         t_safe, s_safe = safe[0]
-        result.outcome = result.outcome or "safe_state"
-        result.safe_state = s_safe
-        ref = onset
-        if profile.detect == "on_command":
-            after = [(c.t_ns - t0_ns) * 1e-9 for c in rec.commands if (c.t_ns - t0_ns) * 1e-9 >= onset - 1e-9]
-            ref = after[0] if after else onset
-        result.safe_latency_ms = round((t_safe - ref) * 1e3, 3)
-        if (
-            profile.detect != "content"
-            and result.latency_bound_ms is not None
-            and result.safe_latency_ms > result.latency_bound_ms
-        ):
-            reasons.append(
-                f"safe state {s_safe} {result.safe_latency_ms:.0f} ms after the fault was "
-                f"detectable (bound {result.latency_bound_ms:.0f} ms)"
-            )
-        # stopped or holding: a state sample under STOPPED_MM_S after entering the safe state,
-        # before the operator's first recovery command
-        t_recover = next((t for t, c in operator.commands if t >= t_safe), end_s + 1.0)
-        stops = [
-            (s.t_ns - t0_ns) * 1e-9
-            for s in rec.states
-            if t_safe - 1e-9 <= (s.t_ns - t0_ns) * 1e-9 <= t_recover and s.speed_mm_s < STOPPED_MM_S
-        ]
-        if stops:
-            result.stop_latency_ms = round((stops[0] - t_safe) * 1e3, 3)
-        else:
-            reasons.append(f"robot not seen stopped (< {STOPPED_MM_S} mm/s) in {s_safe} before recovery")
-        result.recovered_to_lock = any(s == "lock" and t > t_safe for t, s in entered)
-        if not result.recovered_to_lock:
-            reasons.append(f"did not continue to lock after recovery (final state {result.final_state})")
+        _judge_safe_state(result, profile, onset, (t_safe, s_safe), t0_ns, entered, end_s, rec, operator)
     else:
-        result.outcome = result.outcome or "tolerated"
-        if result.final_state != State.DONE.value:
-            reasons.append(
-                f"fault neither reached a safe state nor was tolerated (final state {result.final_state})"
-            )
-        elif result.lock_error_mm is None or result.lock_error_mm > TOLERATED_LOCK_MM:
-            reasons.append(f"tolerated, but lock error {result.lock_error_mm} mm > {TOLERATED_LOCK_MM} mm")
+        _judge_tolerated(result)
     result.passed = not reasons
     return result
 

@@ -32,6 +32,10 @@ import numpy as np
 from hil.cli.argtypes import xyz_mm
 from hil.errors import DegenerateConfigurationError, GeometryError, InputFileError
 from hil.geometry.stereotaxy import (
+    Rod,
+    SliceSpots,
+    StereotacticFrame,
+    StereotaxyResult,
     error_box_mm,
     load_frame,
     load_spots,
@@ -129,9 +133,12 @@ def _rl(a: Any) -> Any:
     return [_r(v) for v in np.asarray(a, dtype=np.float64).reshape(-1)]
 
 
-def run(args: argparse.Namespace) -> int:
-    frame = load_frame(args.frame)
-    spots = load_spots(args.spots)
+def _frame_rods(frame: StereotacticFrame, spots: SliceSpots, args: argparse.Namespace) -> list[Rod]:
+    """The frame's rod of each spot, in spot order.
+
+    Raises:
+        InputFileError: a spot names a rod the frame does not define (names the spots file).
+    """
     rods = []
     for rid in spots.rod_ids:
         try:
@@ -140,15 +147,33 @@ def run(args: argparse.Namespace) -> int:
             raise InputFileError(
                 args.spots, f"spot on rod {rid!r}, which frame {args.frame} does not define"
             ) from None
+    return rods
+
+
+def _pixel_size(args: argparse.Namespace, spots: SliceSpots) -> tuple[tuple[float, float] | None, str]:
+    """The pixel size (mm) to register with and where it comes from: ``--pixel-mm`` ("given"),
+    the spots file ("file"), or None ("estimated" by the registration)."""
     if args.pixel_mm is not None:
-        pixel, source = args.pixel_mm, "given"
-    elif spots.pixel_mm is not None:
-        pixel, source = spots.pixel_mm, "file"
-    else:
-        pixel, source = None, "estimated"
-    slice_z = args.slice_z_mm if args.slice_z_mm is not None else spots.slice_z_mm
+        return args.pixel_mm, "given"
+    if spots.pixel_mm is not None:
+        return spots.pixel_mm, "file"
+    return None, "estimated"
+
+
+def _register(
+    args: argparse.Namespace,
+    rods: list[Rod],
+    spots: SliceSpots,
+    pixel: tuple[float, float] | None,
+    slice_z: float,
+) -> StereotaxyResult:
+    """:func:`register_single_slice` with the command's options.
+
+    Raises:
+        InputFileError: the spots cannot be registered (degenerate or invalid; names the spots file).
+    """
     try:
-        res = register_single_slice(
+        return register_single_slice(
             rods,
             spots.uv_px,
             pixel,
@@ -160,14 +185,41 @@ def run(args: argparse.Namespace) -> int:
         raise InputFileError(args.spots, f"cannot register: {exc}") from None
     except GeometryError as exc:
         raise InputFileError(args.spots, str(exc)) from None
+
+
+def _spot_rows(spots: SliceSpots, res: StereotaxyResult) -> list[dict[str, Any]]:
+    """The JSON ``spots`` rows: each spot's pixel position and residuals (mm) on its rod."""
+    return [
+        {
+            "rod": rid,
+            "u_px": _r(spots.uv_px[j, 0]),
+            "v_px": _r(spots.uv_px[j, 1]),
+            "residual_mm": _r(res.residuals_mm[j]),
+            "in_slice_residual_mm": _r(res.in_slice_residuals_mm[j]),
+            "lambda_mm": _r(res.lambdas_mm[j]),
+            "within_rod_bounds": bool(res.within_bounds[j]),
+        }
+        for j, rid in enumerate(spots.rod_ids)
+    ]
+
+
+def _registration_json(
+    args: argparse.Namespace,
+    rods: list[Rod],
+    spots: SliceSpots,
+    res: StereotaxyResult,
+    pixel_source: str,
+    slice_z: float,
+) -> dict[str, Any]:
+    """The printed JSON's registration part (docs): transforms, residuals (mm) and conditioning."""
     T = res.T_scanner_from_frame
-    out: dict[str, Any] = {
+    return {
         "method": res.method,
         "frame": args.frame,
         "spots_file": args.spots,
         "n_spots": len(rods),
         "pixel_mm": _rl(res.pixel_mm),
-        "pixel_mm_source": source,
+        "pixel_mm_source": pixel_source,
         "slice_z_mm": _r(slice_z),
         "T_scanner_from_frame": T.as_matrix().tolist(),
         "T_frame_from_scanner": res.T_frame_from_scanner.as_matrix().tolist(),
@@ -181,20 +233,20 @@ def run(args: argparse.Namespace) -> int:
         "singular_values": _rl(res.singular_values),
         "orthonormality_defect": _r(res.orthonormality_defect),
         "iterations": res.iterations,
-        "spots": [
-            {
-                "rod": rid,
-                "u_px": _r(spots.uv_px[j, 0]),
-                "v_px": _r(spots.uv_px[j, 1]),
-                "residual_mm": _r(res.residuals_mm[j]),
-                "in_slice_residual_mm": _r(res.in_slice_residuals_mm[j]),
-                "lambda_mm": _r(res.lambdas_mm[j]),
-                "within_rod_bounds": bool(res.within_bounds[j]),
-            }
-            for j, rid in enumerate(spots.rod_ids)
-        ],
+        "spots": _spot_rows(spots, res),
         "warnings": list(res.warnings),
     }
+
+
+def run(args: argparse.Namespace) -> int:
+    frame = load_frame(args.frame)
+    spots = load_spots(args.spots)
+    rods = _frame_rods(frame, spots, args)
+    pixel, source = _pixel_size(args, spots)
+    slice_z = args.slice_z_mm if args.slice_z_mm is not None else spots.slice_z_mm
+    res = _register(args, rods, spots, pixel, slice_z)
+    T = res.T_scanner_from_frame
+    out = _registration_json(args, rods, spots, res, source, slice_z)
     if args.target is not None:
         box = error_box_mm(
             rods,

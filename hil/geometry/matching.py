@@ -130,15 +130,51 @@ def match_markers(
     """
     measured = as_points(measured_mm, "measured")
     model = check_point_configuration(model_mm, "model")
+    margin = _check_match_parameters(tolerance_mm, min_matched, ambiguity_margin_mm, measured.shape[0])
+    hypotheses = _collect_hypotheses(model, measured, tolerance_mm)
+    valid = _valid_hypotheses_best_first(hypotheses, min_matched, tolerance_mm)
+    best = valid[0]
+    rivals = _rival_assignments(valid, margin)
+    ambiguous = bool(rivals)
+    if ambiguous and strict:
+        raise AmbiguousMatchError(
+            f"{len(rivals) + 1} assignments of {len(best.pairs)} markers fit within {margin} mm RMS "
+            "of each other; the marker layout is too symmetric to tell them apart"
+        )
+    return _marker_match(model, measured, best, ambiguous, rivals)
+
+
+def _check_match_parameters(
+    tolerance_mm: float, min_matched: int, ambiguity_margin_mm: float | None, n_measured: int
+) -> float:
+    """Validate :func:`match_markers`' parameters; return the ambiguity margin (mm RMS).
+
+    Raises:
+        GeometryError: non-positive/non-finite tolerance, ``min_matched < 3`` or fewer than
+            ``min_matched`` measured points.
+    """
     if not (math.isfinite(tolerance_mm) and tolerance_mm > 0):
         raise GeometryError(f"tolerance_mm must be a positive number, got {tolerance_mm}")
     if min_matched < 3:
         raise GeometryError(f"min_matched must be at least 3, got {min_matched}")
     margin = tolerance_mm / 2.0 if ambiguity_margin_mm is None else float(ambiguity_margin_mm)
-    n, m = model.shape[0], measured.shape[0]
-    if m < min_matched:
-        raise GeometryError(f"{m} measured point(s), fewer than the {min_matched} needed for a match")
+    if n_measured < min_matched:
+        raise GeometryError(
+            f"{n_measured} measured point(s), fewer than the {min_matched} needed for a match"
+        )
+    return margin
 
+
+def _collect_hypotheses(
+    model: FloatArray, measured: FloatArray, tolerance_mm: float
+) -> dict[tuple[tuple[int, int], ...], _Hypothesis]:
+    """Steps 1-2 of the module docs: every distinct assignment that a compatible triangle pair leads to.
+
+    Model triangles with a side shorter than ``2 * tolerance_mm`` are skipped (they cannot fix a
+    rotation reliably); at most :data:`MAX_HYPOTHESES` triangle pairs are evaluated. Keys are the
+    sorted (model, measured) pairs, in discovery order.
+    """
+    n, m = model.shape[0], measured.shape[0]
     Dn = cdist(model, model)
     Dm = cdist(measured, measured)
     sig_tol = 2.0 * tolerance_mm
@@ -158,29 +194,56 @@ def match_markers(
             evaluated += 1
             if evaluated > MAX_HYPOTHESES:
                 break
-            seed = _fit(model, measured, [(i, int(a)), (j, int(b)), (k, int(c))])
-            if seed is None:
-                continue
-            pairs = _assign(model, measured, seed[0], tolerance_mm)
-            if len(pairs) < 3:
-                continue
-            key = tuple(pairs)
-            if key in hypotheses:
-                continue
-            refined = _fit(model, measured, pairs)
-            if refined is None:
-                continue
-            pairs2 = _assign(model, measured, refined[0], tolerance_mm)
-            if pairs2 != pairs:
-                refit = _fit(model, measured, pairs2) if len(pairs2) >= 3 else None
-                if refit is None:
-                    continue
-                pairs, refined = pairs2, refit
-                key = tuple(pairs)
-            hypotheses[key] = _Hypothesis(key, refined[0], refined[1])
+            triangle = [(i, int(a)), (j, int(b)), (k, int(c))]
+            _add_hypothesis(model, measured, triangle, tolerance_mm, hypotheses)
         if evaluated > MAX_HYPOTHESES:
             break
+    return hypotheses
 
+
+def _add_hypothesis(
+    model: FloatArray,
+    measured: FloatArray,
+    triangle: list[tuple[int, int]],
+    tolerance_mm: float,
+    hypotheses: dict[tuple[tuple[int, int], ...], _Hypothesis],
+) -> None:
+    """Grow one triangle correspondence into a whole assignment and record it in ``hypotheses``.
+
+    The triangle fixes a transform, the whole model is assigned within ``tolerance_mm``, refitted
+    on all pairs and assigned once more (step 2 of the module docs). Nothing is recorded when a fit
+    is degenerate, fewer than 3 markers match, or the first assignment was already seen.
+    """
+    seed = _fit(model, measured, triangle)
+    if seed is None:
+        return
+    pairs = _assign(model, measured, seed[0], tolerance_mm)
+    if len(pairs) < 3:
+        return
+    key = tuple(pairs)
+    if key in hypotheses:
+        return
+    refined = _fit(model, measured, pairs)
+    if refined is None:
+        return
+    pairs2 = _assign(model, measured, refined[0], tolerance_mm)
+    if pairs2 != pairs:
+        refit = _fit(model, measured, pairs2) if len(pairs2) >= 3 else None
+        if refit is None:
+            return
+        pairs, refined = pairs2, refit
+        key = tuple(pairs)
+    hypotheses[key] = _Hypothesis(key, refined[0], refined[1])
+
+
+def _valid_hypotheses_best_first(
+    hypotheses: dict[tuple[tuple[int, int], ...], _Hypothesis], min_matched: int, tolerance_mm: float
+) -> list[_Hypothesis]:
+    """Hypotheses with at least ``min_matched`` markers, most markers then lowest RMS first (step 3).
+
+    Raises:
+        GeometryError: no hypothesis matches ``min_matched`` markers.
+    """
     valid = [h for h in hypotheses.values() if len(h.pairs) >= min_matched]
     if not valid:
         best_count = max((len(h.pairs) for h in hypotheses.values()), default=0)
@@ -189,18 +252,29 @@ def match_markers(
             f"(best found: {best_count})"
         )
     valid.sort(key=lambda h: (-len(h.pairs), h.rms_mm))
+    return valid
+
+
+def _rival_assignments(valid: list[_Hypothesis], margin: float) -> tuple[dict[int, int], ...]:
+    """Other assignments as large as the best (``valid[0]``) with an RMS within ``margin`` mm (step 4)."""
     best = valid[0]
     best_map = dict(best.pairs)
-    rivals = tuple(
+    return tuple(
         dict(h.pairs) for h in valid[1:]
         if len(h.pairs) == len(best.pairs) and h.rms_mm <= best.rms_mm + margin and dict(h.pairs) != best_map
     )
-    ambiguous = bool(rivals)
-    if ambiguous and strict:
-        raise AmbiguousMatchError(
-            f"{len(rivals) + 1} assignments of {len(best.pairs)} markers fit within {margin} mm RMS "
-            "of each other; the marker layout is too symmetric to tell them apart"
-        )
+
+
+def _marker_match(
+    model: FloatArray,
+    measured: FloatArray,
+    best: _Hypothesis,
+    ambiguous: bool,
+    rivals: tuple[dict[int, int], ...],
+) -> MarkerMatch:
+    """The :class:`MarkerMatch` of the chosen hypothesis: residuals, excluded and spurious points (mm)."""
+    n, m = model.shape[0], measured.shape[0]
+    best_map = dict(best.pairs)
     mapped = best.T.apply(model)
     residuals = {mi: float(np.linalg.norm(mapped[mi] - measured[me])) for mi, me in best.pairs}
     excluded = tuple(i for i in range(n) if i not in best_map)

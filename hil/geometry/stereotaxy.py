@@ -335,6 +335,59 @@ def _refine(rods: Sequence[Rod], P_s: FloatArray, T0: RigidTransform) -> tuple[R
 
 
 # ---------------------------------------------------------------------- public entry point
+def _check_slice_spots(rods: Sequence[Rod], uv_px: ArrayLike) -> tuple[FloatArray, list[str]]:
+    """Validate one slice's spots (pixels) against their rods; return ``(uv, rod ids)``.
+
+    Raises:
+        GeometryError: not finite (N, 2), a count different from the rods', N < 4, a rod used twice.
+    """
+    uv = np.asarray(uv_px, dtype=np.float64)
+    if uv.ndim != 2 or uv.shape[1] != 2 or not np.all(np.isfinite(uv)):
+        raise GeometryError(f"uv_px must be finite (N, 2) pixel positions, got shape {uv.shape}")
+    n = uv.shape[0]
+    if len(rods) != n:
+        raise GeometryError(f"{n} spots but {len(rods)} rods: give one rod per spot")
+    if n < 4:
+        raise GeometryError(f"single-slice registration needs at least 4 spots on 4 rods, got {n}")
+    ids = [r.rod_id for r in rods]
+    if len(set(ids)) != n:
+        raise GeometryError("two spots are assigned to the same rod")
+    return uv, ids
+
+
+def _check_pixel_size(pixel_mm: tuple[float, float]) -> tuple[float, float]:
+    """``(s_x, s_y)`` mm per pixel as floats.
+
+    Raises:
+        GeometryError: either is not a positive finite number.
+    """
+    sx, sy = float(pixel_mm[0]), float(pixel_mm[1])
+    if not (math.isfinite(sx) and math.isfinite(sy) and sx > 0 and sy > 0):
+        raise GeometryError(f"pixel size must be two positive numbers, got {pixel_mm!r}")
+    return sx, sy
+
+
+def _rod_bounds_check(
+    rods: Sequence[Rod], ids: list[str], P_f: FloatArray, bounds_margin_mm: float, warnings: list[str]
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Eq. 34: position of each spot along its rod (frame mm) and whether it lies within the rod.
+
+    ``P_f`` are the spots in the frame; a spot more than ``bounds_margin_mm`` outside its rod's
+    bounds adds a line to ``warnings``. Returns ``(lambdas_mm, within_bounds)``.
+    """
+    lam = np.array([float(r.direction @ p) for r, p in zip(rods, P_f, strict=True)])
+    lo = np.array([min(r.bounds_mm) for r in rods]) - bounds_margin_mm
+    hi = np.array([max(r.bounds_mm) for r in rods]) + bounds_margin_mm
+    within = (lam >= lo) & (lam <= hi)
+    for j in np.flatnonzero(~within):
+        warnings.append(
+            f"spot {j} (rod {ids[j]!r}) lies {lam[j]:.2f} mm along its rod, outside"
+            f" [{lo[j] + bounds_margin_mm:.2f}, {hi[j] - bounds_margin_mm:.2f}]:"
+            " not a relevant spot for that rod"
+        )
+    return lam, within
+
+
 def register_single_slice(
     rods: Sequence[Rod],
     uv_px: ArrayLike,
@@ -363,21 +416,9 @@ def register_single_slice(
         DegenerateConfigurationError: the rods cannot fix the pose (rank < 8, or 8 without a
             known pixel size).
     """
-    uv = np.asarray(uv_px, dtype=np.float64)
-    if uv.ndim != 2 or uv.shape[1] != 2 or not np.all(np.isfinite(uv)):
-        raise GeometryError(f"uv_px must be finite (N, 2) pixel positions, got shape {uv.shape}")
-    n = uv.shape[0]
-    if len(rods) != n:
-        raise GeometryError(f"{n} spots but {len(rods)} rods: give one rod per spot")
-    if n < 4:
-        raise GeometryError(f"single-slice registration needs at least 4 spots on 4 rods, got {n}")
-    ids = [r.rod_id for r in rods]
-    if len(set(ids)) != n:
-        raise GeometryError("two spots are assigned to the same rod")
+    uv, ids = _check_slice_spots(rods, uv_px)
     if pixel_mm is not None:
-        sx, sy = float(pixel_mm[0]), float(pixel_mm[1])
-        if not (math.isfinite(sx) and math.isfinite(sy) and sx > 0 and sy > 0):
-            raise GeometryError(f"pixel size must be two positive numbers, got {pixel_mm!r}")
+        sx, sy = _check_pixel_size(pixel_mm)
     warnings: list[str] = []
     scale_known = pixel_mm is not None
     coords = uv * np.array([sx, sy]) if pixel_mm is not None else uv.copy()
@@ -400,16 +441,7 @@ def register_single_slice(
     P_f = T.apply(P_s)
     resid = _distances(rods, P_f)
     ins = _in_slice_residuals(rods, P_s, T)
-    lam = np.array([float(r.direction @ p) for r, p in zip(rods, P_f, strict=True)])
-    lo = np.array([min(r.bounds_mm) for r in rods]) - bounds_margin_mm
-    hi = np.array([max(r.bounds_mm) for r in rods]) + bounds_margin_mm
-    within = (lam >= lo) & (lam <= hi)
-    for j in np.flatnonzero(~within):
-        warnings.append(
-            f"spot {j} (rod {ids[j]!r}) lies {lam[j]:.2f} mm along its rod, outside"
-            f" [{lo[j] + bounds_margin_mm:.2f}, {hi[j] - bounds_margin_mm:.2f}]:"
-            " not a relevant spot for that rod"
-        )
+    lam, within = _rod_bounds_check(rods, ids, P_f, bounds_margin_mm, warnings)
     return StereotaxyResult(
         T_frame_from_scanner=T,
         pixel_mm=(sx, sy),

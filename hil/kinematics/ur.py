@@ -160,6 +160,34 @@ def _nearest_equivalent(q: FloatArray, q_near: FloatArray, limits: FloatArray) -
     return out
 
 
+def _planar_solutions(
+    T_base_from_tool0: RigidTransform, p: DHParams, q1: float, q5: float, q6: float
+) -> list[FloatArray]:
+    """The elbow-up and elbow-down solutions (q2, q3, q4 of the planar 3R chain, Hawkins 2013)
+    for given q1, q5, q6 (rad), as full joint vectors wrapped to (-pi, pi]; none when the wrist
+    is out of the arm's reach. Distances in mm."""
+    d, a = p.d_mm, p.a_mm
+    d1, d5, d6 = float(d[0]), float(d[4]), float(d[5])
+    a2, a3 = float(a[1]), float(a[2])
+    T01 = _dh_matrix(q1, d1, 0.0, p.alpha_rad[0])
+    T45 = _dh_matrix(q5, d5, 0.0, p.alpha_rad[4])
+    T56 = _dh_matrix(q6, d6, 0.0, p.alpha_rad[5])
+    T14 = np.linalg.inv(T01) @ T_base_from_tool0.as_matrix() @ np.linalg.inv(T45 @ T56)
+    x, y = float(T14[0, 3]), float(T14[1, 3])
+    c3 = (x * x + y * y - a2 * a2 - a3 * a3) / (2.0 * a2 * a3)
+    if abs(c3) > 1.0 + 1e-9:
+        return []
+    c3 = max(-1.0, min(1.0, c3))
+    solutions: list[FloatArray] = []
+    for q3 in (math.acos(c3), -math.acos(c3)):
+        q2 = math.atan2(y, x) - math.atan2(a3 * math.sin(q3), a2 + a3 * math.cos(q3))
+        q234 = math.atan2(float(T14[1, 0]), float(T14[0, 0]))
+        q4 = q234 - q2 - q3
+        q = wrap_to_pi(np.array([q1, q2, q3, q4, q5, q6]))
+        solutions.append(q)
+    return solutions
+
+
 def ur_inverse(
     T_base_from_tool0: RigidTransform,
     model: str = "ur3",
@@ -187,9 +215,7 @@ def ur_inverse(
         GeometryError: unknown model, or ``q_near`` not 6 finite values.
     """
     p = dh_params(model)
-    d, a = p.d_mm, p.a_mm
-    d1, d4, d5, d6 = float(d[0]), float(d[3]), float(d[4]), float(d[5])
-    a2, a3 = float(a[1]), float(a[2])
+    d4, d6 = float(p.d_mm[3]), float(p.d_mm[5])
     near = _as_q(q_near, "q_near") if q_near is not None else None
     if q6_free_rad is None:
         q6_free_rad = float(near[5]) if near is not None else 0.0
@@ -222,21 +248,7 @@ def ur_inverse(
                 q6 = q6_free_rad
             else:
                 q6 = math.atan2(-sign * float(w[1]), sign * float(w[0]))
-            T01 = _dh_matrix(q1, d1, 0.0, p.alpha_rad[0])
-            T45 = _dh_matrix(q5, d5, 0.0, p.alpha_rad[4])
-            T56 = _dh_matrix(q6, d6, 0.0, p.alpha_rad[5])
-            T14 = np.linalg.inv(T01) @ T_base_from_tool0.as_matrix() @ np.linalg.inv(T45 @ T56)
-            x, y = float(T14[0, 3]), float(T14[1, 3])
-            c3 = (x * x + y * y - a2 * a2 - a3 * a3) / (2.0 * a2 * a3)
-            if abs(c3) > 1.0 + 1e-9:
-                continue
-            c3 = max(-1.0, min(1.0, c3))
-            for q3 in (math.acos(c3), -math.acos(c3)):
-                q2 = math.atan2(y, x) - math.atan2(a3 * math.sin(q3), a2 + a3 * math.cos(q3))
-                q234 = math.atan2(float(T14[1, 0]), float(T14[0, 0]))
-                q4 = q234 - q2 - q3
-                q = wrap_to_pi(np.array([q1, q2, q3, q4, q5, q6]))
-                solutions.append(q)
+            solutions += _planar_solutions(T_base_from_tool0, p, q1, q5, q6)
 
     checked = _verified_unique(solutions, T_base_from_tool0, model)
     if not checked:

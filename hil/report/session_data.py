@@ -278,6 +278,108 @@ def _residuals_to_reference(reference_mm: FloatArray, live_mm: FloatArray) -> li
 Progress = Callable[[str], None]
 
 
+def _time_and_event(p: Path, n: int, rec: Mapping[str, Any]) -> tuple[int, str]:
+    """A record's ``t_ns`` (integer ns) and ``event`` name.
+
+    Raises:
+        InputFileError: either is missing or of the wrong type (names the file and 1-based line ``n``).
+    """
+    t_ns = rec.get("t_ns")
+    event = rec.get("event")
+    if isinstance(t_ns, bool) or not isinstance(t_ns, int):
+        raise InputFileError(str(p), f"line {n}: record has no integer 't_ns'")
+    if not isinstance(event, str) or not event:
+        raise InputFileError(str(p), f"line {n}: record has no 'event' name")
+    return t_ns, event
+
+
+def _read_header(data: SessionData, ln: _Line) -> None:
+    """``session_started``: the header and the gate / lock tolerances (mm), from the record or,
+    for ``hil run``'s header, from its resolved procedure config."""
+    rec, p, n = ln.rec, ln.path, ln.n
+    data.header = dict(rec)
+    data.gate_tolerance_mm = ln.num("gate_tolerance_mm")
+    data.lock_tolerance_mm = ln.num("lock_tolerance_mm")
+    proc = rec.get("procedure")
+    if isinstance(proc, dict):  # hil run's header: the resolved procedure config
+        gate, lock = proc.get("gate"), proc.get("lock")
+        if data.gate_tolerance_mm is None and isinstance(gate, dict):
+            data.gate_tolerance_mm = _Line(p, n, {"event": "session_started.procedure.gate",
+                                                  **gate}).num("tolerance_mm")
+        if data.lock_tolerance_mm is None and isinstance(lock, dict):
+            data.lock_tolerance_mm = _Line(p, n, {"event": "session_started.procedure.lock",
+                                                  **lock}).num("tolerance_mm")
+
+
+def _read_state_entered(data: SessionData, ln: _Line, t: float) -> str:
+    """``state_entered`` at ``t`` (s from the first record): record it and return the new state.
+
+    Raises:
+        InputFileError: the record has no ``state``.
+    """
+    s = ln.text("state")
+    if s is None:
+        raise ln.bad("state", "is missing")
+    data.state_entries.append((t, s))
+    return s
+
+
+def _read_registration(data: SessionData, ln: _Line) -> FloatArray | None:
+    """``registration_done``: FRE / expected TRE (mm), marker count and residuals; returns the
+    reference marker positions (optical frame, mm) the live residuals are measured against."""
+    data.fre_mm = ln.num("fre_mm")
+    data.tre_expected_mm = ln.num("tre_expected_mm")
+    data.robot_fre_mm = ln.num("robot_fre_mm")
+    m = ln.num("markers")
+    data.registered_markers = None if m is None else int(m)
+    reference = ln.points("reference_optical_mm")
+    res = ln.numbers("residuals_mm")
+    if res is not None:
+        data.registration_residuals_mm = [math.nan if r is None else r for r in res]
+    return reference
+
+
+def _read_procedure_event(data: SessionData, ln: _Line, event: str, t: float, state: str) -> None:
+    """Transitions, faults and the per-state measurements (mm, deg) at ``t`` (s); ``state`` is the
+    state last entered (for truth errors that do not name theirs). Other events are ignored."""
+    if event == "transition_applied":
+        data.transitions.append((t, ln.text("transition") or "", ln.text("source") or "",
+                                 ln.text("target") or ""))
+    elif event == "fault_detected":
+        data.faults.append((t, ln.text("reason") or "(no reason given)"))
+    elif event == "gate_measured":
+        data.breathing_mm.add(t, ln.num("deviation_rms_mm"))
+        o = ln.flag("open")
+        if o is not None:
+            data.gate_samples.append((t, o))
+    elif event in ("compensation_step", "lock_measured"):
+        data.guide_error_mm.add(t, ln.num("guide_error_mm"))
+        data.breathing_mm.add(t, ln.num("gate_deviation_mm"))
+        if event == "lock_measured":
+            data.lock_guide_error_mm.add(t, ln.num("guide_error_mm"))
+    elif event == "approach_measured":
+        data.guide_error_mm.add(t, ln.num("guide_error_mm"))
+    elif event == "truth_error":
+        st = ln.text("state") or state
+        if st == "compensate":
+            data.comp_error_mm.add(t, ln.num("position_mm"))
+        elif st == "lock":
+            data.lock_truth_mm.add(t, ln.num("position_mm"))
+            data.lock_truth_deg.add(t, ln.num("direction_deg"))
+
+
+def _read_marker_residuals(data: SessionData, ln: _Line, t: float, reference: FloatArray | None) -> None:
+    """Per-marker residuals (mm) of any record: ``marker_residuals_mm`` as logged, or computed from
+    ``live_mm`` against the registration's ``reference`` (optical frame, mm)."""
+    residuals = ln.numbers("marker_residuals_mm")
+    if residuals is None and "live_mm" in ln.rec and reference is not None:
+        live = ln.points("live_mm")
+        residuals = None if live is None else _residuals_to_reference(reference, live)
+    if residuals is not None:
+        for i, r in enumerate(residuals):
+            data.marker_residuals_mm.setdefault(i, Series()).add(t, r)
+
+
 def load_session(path: str | Path, progress: Progress | None = None) -> SessionData:
     """Read a session log into :class:`SessionData`.
 
@@ -294,12 +396,7 @@ def load_session(path: str | Path, progress: Progress | None = None) -> SessionD
     last_event = ""
     commanded = Series()
     for n, rec in enumerate(read_session_log(p), 1):
-        t_ns = rec.get("t_ns")
-        event = rec.get("event")
-        if isinstance(t_ns, bool) or not isinstance(t_ns, int):
-            raise InputFileError(str(p), f"line {n}: record has no integer 't_ns'")
-        if not isinstance(event, str) or not event:
-            raise InputFileError(str(p), f"line {n}: record has no 'event' name")
+        t_ns, event = _time_and_event(p, n, rec)
         if t0 is None:
             t0 = t_ns
         t = (t_ns - t0) * 1e-9
@@ -310,69 +407,18 @@ def load_session(path: str | Path, progress: Progress | None = None) -> SessionD
             progress(f"read {n} records")
         ln = _Line(p, n, rec)
         if event == "session_started":
-            data.header = dict(rec)
-            data.gate_tolerance_mm = ln.num("gate_tolerance_mm")
-            data.lock_tolerance_mm = ln.num("lock_tolerance_mm")
-            proc = rec.get("procedure")
-            if isinstance(proc, dict):  # hil run's header: the resolved procedure config
-                gate, lock = proc.get("gate"), proc.get("lock")
-                if data.gate_tolerance_mm is None and isinstance(gate, dict):
-                    data.gate_tolerance_mm = _Line(p, n, {"event": "session_started.procedure.gate",
-                                                          **gate}).num("tolerance_mm")
-                if data.lock_tolerance_mm is None and isinstance(lock, dict):
-                    data.lock_tolerance_mm = _Line(p, n, {"event": "session_started.procedure.lock",
-                                                          **lock}).num("tolerance_mm")
+            _read_header(data, ln)
         elif event == "state_entered":
-            s = ln.text("state")
-            if s is None:
-                raise ln.bad("state", "is missing")
-            data.state_entries.append((t, s))
-            state = s
-        elif event == "transition_applied":
-            data.transitions.append((t, ln.text("transition") or "", ln.text("source") or "",
-                                     ln.text("target") or ""))
-        elif event == "fault_detected":
-            data.faults.append((t, ln.text("reason") or "(no reason given)"))
+            state = _read_state_entered(data, ln, t)
         elif event == "registration_done":
-            data.fre_mm = ln.num("fre_mm")
-            data.tre_expected_mm = ln.num("tre_expected_mm")
-            data.robot_fre_mm = ln.num("robot_fre_mm")
-            m = ln.num("markers")
-            data.registered_markers = None if m is None else int(m)
-            reference = ln.points("reference_optical_mm")
-            res = ln.numbers("residuals_mm")
-            if res is not None:
-                data.registration_residuals_mm = [math.nan if r is None else r for r in res]
-        elif event == "gate_measured":
-            data.breathing_mm.add(t, ln.num("deviation_rms_mm"))
-            o = ln.flag("open")
-            if o is not None:
-                data.gate_samples.append((t, o))
-        elif event in ("compensation_step", "lock_measured"):
-            data.guide_error_mm.add(t, ln.num("guide_error_mm"))
-            data.breathing_mm.add(t, ln.num("gate_deviation_mm"))
-            if event == "lock_measured":
-                data.lock_guide_error_mm.add(t, ln.num("guide_error_mm"))
-        elif event == "approach_measured":
-            data.guide_error_mm.add(t, ln.num("guide_error_mm"))
-        elif event == "truth_error":
-            st = ln.text("state") or state
-            if st == "compensate":
-                data.comp_error_mm.add(t, ln.num("position_mm"))
-            elif st == "lock":
-                data.lock_truth_mm.add(t, ln.num("position_mm"))
-                data.lock_truth_deg.add(t, ln.num("direction_deg"))
+            reference = _read_registration(data, ln)
         elif event == "command_sent":
             commanded.add(t, ln.num("speed_mm_s"))
+        else:
+            _read_procedure_event(data, ln, event, t, state)
         if "tcp_speed_mm_s" in rec:
             data.robot_speed_mm_s.add(t, ln.num("tcp_speed_mm_s"))
-        residuals = ln.numbers("marker_residuals_mm")
-        if residuals is None and "live_mm" in rec and reference is not None:
-            live = ln.points("live_mm")
-            residuals = None if live is None else _residuals_to_reference(reference, live)
-        if residuals is not None:
-            for i, r in enumerate(residuals):
-                data.marker_residuals_mm.setdefault(i, Series()).add(t, r)
+        _read_marker_residuals(data, ln, t, reference)
     if t0 is None:
         raise InputFileError(str(p), "empty session log (no records)")
     data.duration_s = t_last

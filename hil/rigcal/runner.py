@@ -180,7 +180,16 @@ def run_rig_calibration(setup: SetupConfig, config_path: Path, devices: Devices,
     save_rig_calibration(doc, out_path)
     _log.info(EV_WRITTEN, path=str(out_path))
     layout_flange = T_ft.apply(result.markers_tcp_mm) if result is not None else None
-    summary: dict[str, Any] = {
+    summary = _summary(out_path, result, frames_used, doc, offsets, delays)
+    summary.update(_truth(devices.world, layout_flange, offsets))
+    return RigCalibrationOutcome(summary, doc, out_path)
+
+
+def _summary(out_path: Path, result: HandEyeResult | None, frames_used: int, doc: dict[str, Any],
+             offsets: dict[str, TimeOffset], delays: dict[str, Any]) -> dict[str, Any]:
+    """The outcome's JSON summary (docs): the hand-eye fit's figures (mm, deg; empty/None without
+    a hand-eye part), frames used, per-pose rows and the time offsets / delays (ms)."""
+    return {
         "rig_calibration": str(out_path),
         "poses": len(result.poses) if result else 0,
         "poses_used": result.poses_used if result else 0,
@@ -196,8 +205,6 @@ def run_rig_calibration(setup: SetupConfig, config_path: Path, devices: Devices,
         "time_offset_sigma_ms": {k: v.sigma_ms for k, v in offsets.items()},
         "delay_vs_command": delays,
     }
-    summary.update(_truth(devices.world, layout_flange, offsets))
-    return RigCalibrationOutcome(summary, doc, out_path)
 
 
 def _document(setup: SetupConfig, config_path: Path, result: HandEyeResult | None, T_ft: RigidTransform,

@@ -218,6 +218,130 @@ def _outliers(errors: FloatArray, settings: CalibrationSettings) -> NDArray[np.b
     return np.asarray(errors > limit, dtype=np.bool_)
 
 
+#: stop criteria of the mono and stereo optimisations
+_CALIB_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-9)
+
+
+def _corner_views(
+    corners_left: Sequence[ArrayLike],
+    corners_right: Sequence[ArrayLike],
+    settings: CalibrationSettings,
+    names: Sequence[str] | None,
+) -> tuple[list[str], list[NDArray[np.float32]], list[NDArray[np.float32]]]:
+    """View names and the left/right corners (px) as OpenCV's (N, 1, 2) float32, checked.
+
+    Raises:
+        CalibrationError: different left/right counts, a wrong shape or non-finite corners
+            (naming the view), fewer than ``settings.min_pairs`` pairs.
+    """
+    n_corners = settings.board_cols * settings.board_rows
+    if len(corners_left) != len(corners_right):
+        raise CalibrationError(f"{len(corners_left)} left views but {len(corners_right)} right views")
+    views = list(names) if names is not None else [f"pair {i}" for i in range(len(corners_left))]
+    L = [_as_corners(c, n_corners, f"left view {views[i]}") for i, c in enumerate(corners_left)]
+    R = [_as_corners(c, n_corners, f"right view {views[i]}") for i, c in enumerate(corners_right)]
+    if len(L) < settings.min_pairs:
+        raise CalibrationError(
+            f"only {len(L)} pair(s) with the board found in both images; need at least {settings.min_pairs}"
+        )
+    return views, L, R
+
+
+def _calibrate_camera(
+    obj: NDArray[np.float32], pts: list[NDArray[np.float32]], image_size: tuple[int, int], flags: int
+) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+    """Zhang calibration of one camera: RMS (px), K, the 5 distortion coefficients, per-view RMS (px).
+
+    ``obj`` is the board's corners (mm, board frame), the same for every view. Raises cv2.error.
+    """
+    rms, K, d, _, _, _, _, per_view = cv2.calibrateCameraExtended(
+        [obj] * len(pts), pts, image_size, np.eye(3), np.zeros(5), flags=flags, criteria=_CALIB_CRITERIA
+    )
+    return (
+        float(rms),
+        np.asarray(K, np.float64),
+        np.asarray(d, np.float64).reshape(-1)[:5],
+        np.asarray(per_view, np.float64).reshape(-1),
+    )
+
+
+def _outlier_reasons(
+    ev_l: FloatArray, ev_r: FloatArray, bad: NDArray[np.bool_]
+) -> dict[np.signedinteger[Any], str]:
+    """View index -> why it is an outlier, for every flagged view (per-view RMS in px)."""
+    return {
+        i: f"reprojection error left {ev_l[i]:.3f} px, right {ev_r[i]:.3f} px is far above the "
+        f"median ({float(np.median(ev_l)):.3f} / {float(np.median(ev_r)):.3f} px)"
+        for i in np.nonzero(bad)[0]
+    }
+
+
+def _stereo_extrinsics(
+    obj: NDArray[np.float32],
+    L: list[NDArray[np.float32]],
+    R: list[NDArray[np.float32]],
+    left: tuple[FloatArray, FloatArray],
+    right: tuple[FloatArray, FloatArray],
+    image_size: tuple[int, int],
+) -> Any:
+    """OpenCV's stereo calibration with the intrinsics ``(K, dist)`` of each camera held fixed;
+    returns ``cv2.stereoCalibrateExtended``'s tuple unchanged. Raises cv2.error."""
+    return cv2.stereoCalibrateExtended(
+        [obj] * len(L),
+        L,
+        R,
+        left[0],
+        left[1],
+        right[0],
+        right[1],
+        image_size,
+        np.eye(3),
+        np.zeros((3, 1)),
+        flags=cv2.CALIB_FIX_INTRINSIC,
+        criteria=_CALIB_CRITERIA,
+    )
+
+
+def _first_pass_views(
+    views: list[str],
+    first_errors: list[tuple[float, float]],
+    bad: NDArray[np.bool_],
+    keep: list[int],
+    per_view_stereo: FloatArray,
+) -> tuple[dict[str, Any], ...]:
+    """:attr:`CalibrationResult.per_view`: every view of the first calibration with its mono RMS
+    (px), its stereo RMS (px, None when not used), whether it is an outlier and whether it was used."""
+    final = {k: i for i, k in enumerate(keep)}
+    return tuple(
+        {
+            "view": views[i],
+            "rms_left_px": first_errors[i][0],
+            "rms_right_px": first_errors[i][1],
+            "rms_stereo_px": (
+                [float(v) for v in per_view_stereo[final[i]]] if i in final else None
+            ),
+            "outlier": bool(bad[i]),
+            "used": i in final,
+        }
+        for i in range(len(views))
+    )
+
+
+def _used_views(
+    kept_names: list[str], ev_l: FloatArray, ev_r: FloatArray, per_view_stereo: FloatArray
+) -> list[dict[str, Any]]:
+    """The quality record's ``per_view``: each view of the final calibration with its RMS (px)."""
+    return [
+        {
+            "view": kept_names[i],
+            "rms_left_px": float(ev_l[i]),
+            "rms_right_px": float(ev_r[i]),
+            "rms_stereo_px": [float(v) for v in per_view_stereo[i]],
+        }
+        for i in range(len(kept_names))
+    ]
+
+
 def calibrate_from_corners(
     corners_left: Sequence[ArrayLike],
     corners_right: Sequence[ArrayLike],
@@ -232,45 +356,19 @@ def calibrate_from_corners(
     Raises CalibrationError for too few pairs, wrong shapes or a failed optimisation.
     """
     t0 = time.perf_counter()
-    n_corners = settings.board_cols * settings.board_rows
-    if len(corners_left) != len(corners_right):
-        raise CalibrationError(f"{len(corners_left)} left views but {len(corners_right)} right views")
-    views = list(names) if names is not None else [f"pair {i}" for i in range(len(corners_left))]
-    L = [_as_corners(c, n_corners, f"left view {views[i]}") for i, c in enumerate(corners_left)]
-    R = [_as_corners(c, n_corners, f"right view {views[i]}") for i, c in enumerate(corners_right)]
-    if len(L) < settings.min_pairs:
-        raise CalibrationError(
-            f"only {len(L)} pair(s) with the board found in both images; need at least {settings.min_pairs}"
-        )
+    views, L, R = _corner_views(corners_left, corners_right, settings, names)
     obj = chessboard_corners_mm(settings.board_cols, settings.board_rows, settings.square_mm).astype(
         np.float32
     )
     flags = cv2.CALIB_FIX_K3 if settings.fix_k3 else 0
-    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-9)
-
-    def mono(pts: list[NDArray[np.float32]]) -> tuple[float, FloatArray, FloatArray, FloatArray]:
-        rms, K, d, _, _, _, _, per_view = cv2.calibrateCameraExtended(
-            [obj] * len(pts), pts, image_size, np.eye(3), np.zeros(5), flags=flags, criteria=crit
-        )
-        return (
-            float(rms),
-            np.asarray(K, np.float64),
-            np.asarray(d, np.float64).reshape(-1)[:5],
-            np.asarray(per_view, np.float64).reshape(-1),
-        )
-
     if progress:
         progress(0, 3, "calibrating the left and right cameras")
     try:
-        rms_l, KL, dL, ev_l = mono(L)
-        rms_r, KR, dR, ev_r = mono(R)
+        rms_l, KL, dL, ev_l = _calibrate_camera(obj, L, image_size, flags)
+        rms_r, KR, dR, ev_r = _calibrate_camera(obj, R, image_size, flags)
         bad = _outliers(ev_l, settings) | _outliers(ev_r, settings)
         first_errors = [(float(ev_l[i]), float(ev_r[i])) for i in range(len(L))]
-        reasons = {
-            i: f"reprojection error left {ev_l[i]:.3f} px, right {ev_r[i]:.3f} px is far above the "
-            f"median ({float(np.median(ev_l)):.3f} / {float(np.median(ev_r)):.3f} px)"
-            for i in np.nonzero(bad)[0]
-        }
+        reasons = _outlier_reasons(ev_l, ev_r, bad)
         excluded = bad if settings.exclude_outliers else np.zeros_like(bad)
         rejected = tuple((views[i], reasons[i]) for i in np.nonzero(excluded)[0])
         keep = [i for i in range(len(L)) if not excluded[i]]
@@ -283,57 +381,22 @@ def calibrate_from_corners(
             if progress:
                 progress(1, 3, f"re-calibrating without {len(rejected)} outlier view(s)")
             L, R = [L[i] for i in keep], [R[i] for i in keep]
-            rms_l, KL, dL, ev_l = mono(L)
-            rms_r, KR, dR, ev_r = mono(R)
+            rms_l, KL, dL, ev_l = _calibrate_camera(obj, L, image_size, flags)
+            rms_r, KR, dR, ev_r = _calibrate_camera(obj, R, image_size, flags)
         if progress:
             progress(2, 3, "stereo extrinsics")
-        out = cv2.stereoCalibrateExtended(
-            [obj] * len(L),
-            L,
-            R,
-            KL,
-            dL,
-            KR,
-            dR,
-            image_size,
-            np.eye(3),
-            np.zeros((3, 1)),
-            flags=cv2.CALIB_FIX_INTRINSIC,
-            criteria=crit,
-        )
+        out = _stereo_extrinsics(obj, L, R, (KL, dL), (KR, dR), image_size)
     except cv2.error as exc:
         raise CalibrationError(f"OpenCV calibration failed: {exc.err}") from exc
     rms_s = float(out[0])
     Rm, T = np.asarray(out[5], np.float64), np.asarray(out[6], np.float64).reshape(3)
     per_view_stereo = np.asarray(out[-1], np.float64).reshape(len(L), -1)
-    kept_names = [views[i] for i in keep]
-    final = {k: i for i, k in enumerate(keep)}
-    per_view = tuple(
-        {
-            "view": views[i],
-            "rms_left_px": first_errors[i][0],
-            "rms_right_px": first_errors[i][1],
-            "rms_stereo_px": (
-                [float(v) for v in per_view_stereo[final[i]]] if i in final else None
-            ),
-            "outlier": bool(bad[i]),
-            "used": i in final,
-        }
-        for i in range(len(views))
-    )
+    per_view = _first_pass_views(views, first_errors, bad, keep, per_view_stereo)
     quality = {
         "rms_left_px": rms_l,
         "rms_right_px": rms_r,
         "rms_stereo_px": rms_s,
-        "per_view": [
-            {
-                "view": kept_names[i],
-                "rms_left_px": float(ev_l[i]),
-                "rms_right_px": float(ev_r[i]),
-                "rms_stereo_px": [float(v) for v in per_view_stereo[i]],
-            }
-            for i in range(len(L))
-        ],
+        "per_view": _used_views([views[i] for i in keep], ev_l, ev_r, per_view_stereo),
         "rejected_views": [{"view": v, "reason": r} for v, r in rejected],
         "outlier_views": [views[i] for i in np.nonzero(bad)[0]],
     }
@@ -418,6 +481,60 @@ def _pair_reason(
     return None
 
 
+def _paired_files(left_glob: str, right_glob: str) -> tuple[list[str], list[str]]:
+    """The left and right image files, sorted by name (pair ``i`` is ``(left[i], right[i])``).
+
+    Raises:
+        InputFileError: a pattern matches nothing.
+        CalibrationError: different counts (naming the first file without a partner).
+    """
+    lf, rf = _expand(left_glob, "left"), _expand(right_glob, "right")
+    if len(lf) != len(rf):
+        extra = lf[len(rf)] if len(lf) > len(rf) else rf[len(lf)]
+        raise CalibrationError(
+            f"{extra}: {len(lf)} left images but {len(rf)} right images (paired by sorted name); "
+            "this is the first one without a partner"
+        )
+    return lf, rf
+
+
+def _detect_pair(
+    a: str, b: str, images: _ImageSet, settings: CalibrationSettings
+) -> tuple[BoardDetection, BoardDetection]:
+    """Read one left/right pair, check it against the set (size, grey/colour) and look for the
+    board in each image (detection cascade within ``settings.detect_budget_s`` per image).
+
+    Raises:
+        InputFileError: an image cannot be read.
+        CalibrationError: an image differs in size or kind from the first one.
+    """
+    ia, ch_a = load_grey_image_channels(a)
+    ib, ch_b = load_grey_image_channels(b)
+    images.check(a, ia, ch_a, None)
+    images.check(b, ib, ch_b, a)
+    return (
+        detect_chessboard(ia, settings.board_cols, settings.board_rows, settings.detect_budget_s),
+        detect_chessboard(ib, settings.board_cols, settings.board_rows, settings.detect_budget_s),
+    )
+
+
+def _fail_fast_if_no_board(
+    last_file: str, n_pairs: int, records: list[dict[str, Any]], settings: CalibrationSettings
+) -> None:
+    """Stop when no image of the first ``n_pairs`` pairs (``records``) showed the board.
+
+    Raises:
+        CalibrationError: the board was found in none of them (a wrong ``--board`` size).
+    """
+    if all(r["detector"] is None for r in records):
+        per_image_ms = sum(r["ms"] for r in records) / len(records)
+        raise CalibrationError(
+            f"{last_file}: the {settings.board_cols}x{settings.board_rows} board was not found in any "
+            f"image of the first {n_pairs} pair(s) ({per_image_ms:.0f} ms per image); check --board "
+            "(inner corners, COLSxROWS)"
+        )
+
+
 def calibrate_from_files(
     left_glob: str,
     right_glob: str,
@@ -437,13 +554,7 @@ def calibrate_from_files(
             files), the board in none of the first pairs, too few usable pairs.
     """
     t0 = time.perf_counter()
-    lf, rf = _expand(left_glob, "left"), _expand(right_glob, "right")
-    if len(lf) != len(rf):
-        extra = lf[len(rf)] if len(lf) > len(rf) else rf[len(lf)]
-        raise CalibrationError(
-            f"{extra}: {len(lf)} left images but {len(rf)} right images (paired by sorted name); "
-            "this is the first one without a partner"
-        )
+    lf, rf = _paired_files(left_glob, right_glob)
     images = _ImageSet()
     cl: list[FloatArray] = []
     cr: list[FloatArray] = []
@@ -455,14 +566,7 @@ def calibrate_from_files(
     for i, (a, b) in enumerate(zip(lf, rf, strict=True)):
         if progress:
             progress(i, n, f"corners {Path(a).name} / {Path(b).name}")
-        ia, ch_a = load_grey_image_channels(a)
-        ib, ch_b = load_grey_image_channels(b)
-        images.check(a, ia, ch_a, None)
-        images.check(b, ib, ch_b, a)
-        dets = (
-            detect_chessboard(ia, settings.board_cols, settings.board_rows, settings.detect_budget_s),
-            detect_chessboard(ib, settings.board_cols, settings.board_rows, settings.detect_budget_s),
-        )
+        dets = _detect_pair(a, b, images, settings)
         records += [dets[0].to_dict(a), dets[1].to_dict(b)]
         name = f"{Path(a).name}|{Path(b).name}"
         assert images.size is not None
@@ -471,13 +575,8 @@ def calibrate_from_files(
             if dets[0].corners is None or dets[1].corners is None:
                 missing.append(name)
             left_out.append((name, reason))
-            if i + 1 == settings.fail_fast_pairs and not cl and all(r["detector"] is None for r in records):
-                per_image_ms = sum(r["ms"] for r in records) / len(records)
-                raise CalibrationError(
-                    f"{a}: the {settings.board_cols}x{settings.board_rows} board was not found in any "
-                    f"image of the first {i + 1} pair(s) ({per_image_ms:.0f} ms per image); check --board "
-                    "(inner corners, COLSxROWS)"
-                )
+            if i + 1 == settings.fail_fast_pairs and not cl:
+                _fail_fast_if_no_board(a, i + 1, records, settings)
             continue
         ca, cb = dets[0].corners, dets[1].corners
         assert ca is not None

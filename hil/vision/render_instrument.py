@@ -176,6 +176,148 @@ def _ramp(dist: FloatArray, radius: float, s: int) -> NDArray[np.float32]:
     return np.asarray(cov.reshape(ph, s, pw, s).mean(axis=(1, 3)), dtype=np.float32)
 
 
+@dataclass(frozen=True)
+class _Patch:
+    """The image region an instrument is drawn in: top-left ``(x0, y0)`` and size ``pw x ph`` (px),
+    supersampling ``s`` per pixel side, and ``pad_px`` added around every drawn part's box."""
+
+    x0: int
+    y0: int
+    pw: int
+    ph: int
+    s: int
+    pad_px: int
+
+    def window(self, u_lo: float, v_lo: float, u_hi: float, v_hi: float) -> tuple[int, int, int, int] | None:
+        """A pixel window (patch coordinates) around an image box, clipped to the patch."""
+        pad, x0, y0, pw, ph = self.pad_px, self.x0, self.y0, self.pw, self.ph
+        bx0 = int(np.clip(math.floor(u_lo) - pad - x0, 0, pw))
+        bx1 = int(np.clip(math.ceil(u_hi) + pad + 1 - x0, 0, pw))
+        by0 = int(np.clip(math.floor(v_lo) - pad - y0, 0, ph))
+        by1 = int(np.clip(math.ceil(v_hi) + pad + 1 - y0, 0, ph))
+        return None if bx1 <= bx0 or by1 <= by0 else (bx0, by0, bx1, by1)
+
+
+def _instrument_patch(
+    img_shape: tuple[int, ...],
+    uv: FloatArray,
+    z_min_mm: float,
+    K: FloatArray,
+    max_radius_mm: float,
+    options: RenderOptions,
+) -> _Patch | None:
+    """The patch around the projected instrument samples ``uv`` (px), with room for its radius
+    (seen from ``z_min_mm``, the nearest sample's depth) and the blur; None when outside the image.
+
+    The supersampling is lowered until the patch has at most ``4 * _MAX_PATCH_PX`` subsamples.
+    """
+    rad_px = float(K[0, 0]) * max_radius_mm / z_min_mm
+    margin = math.ceil(rad_px + 3.5 * options.blur_sigma_px) + 3
+    h, w = img_shape
+    x0 = max(math.floor(float(uv[:, 0].min())) - margin, 0)
+    y0 = max(math.floor(float(uv[:, 1].min())) - margin, 0)
+    x1 = min(math.ceil(float(uv[:, 0].max())) + margin + 1, w)
+    y1 = min(math.ceil(float(uv[:, 1].max())) + margin + 1, h)
+    pw, ph = x1 - x0, y1 - y0
+    if pw <= 0 or ph <= 0:
+        return None
+    s = max(1, options.supersample)
+    while pw * ph * s * s > _MAX_PATCH_PX * 4 and s > 1:
+        s -= 1
+    pad = math.ceil(rad_px + 3.5 * options.blur_sigma_px) + 3
+    return _Patch(x0, y0, pw, ph, s, pad)
+
+
+def _shaft_coverage(
+    patch: _Patch,
+    K: FloatArray,
+    dist: FloatArray,
+    a: FloatArray,
+    b: FloatArray,
+    radius_mm: float,
+    seg_px: float,
+) -> NDArray[np.float32]:
+    """Coverage (0..1, ph x pw) of the shaft from tip ``a`` to hub ``b`` (camera frame, mm).
+
+    Drawn in chunks of ~64 px (``seg_px``: the projected length) so that only a band around the
+    needle is evaluated; every chunk uses the distance to the whole segment, so the chunks join
+    seamlessly (max over overlaps).
+    """
+    length = float(np.linalg.norm(b - a))
+    r = (b - a) / length
+    shaft = np.zeros((patch.ph, patch.pw), np.float32)
+    n_chunks = max(1, math.ceil(seg_px / 64.0))
+    fs = np.linspace(0.0, 1.0, n_chunks + 1)
+    for f0, f1 in itertools.pairwise(fs):
+        ends = np.array([a + f0 * (b - a), a + f1 * (b - a)])
+        if np.any(ends[:, 2] <= 1.0):
+            ends = ends[ends[:, 2] > 1.0]
+            if len(ends) == 0:
+                continue
+        e_uv = project_points(ends, K, dist)
+        win = patch.window(
+            float(e_uv[:, 0].min()), float(e_uv[:, 1].min()), float(e_uv[:, 0].max()), float(e_uv[:, 1].max())
+        )
+        if win is None:
+            continue
+        bx0, by0, bx1, by1 = win
+        X, Y = _subsample_normalized(K, dist, patch.x0 + bx0, patch.y0 + by0, bx1 - bx0, by1 - by0, patch.s)
+        cov = _ramp(_segment_distance(X, Y, a, r, length), radius_mm, patch.s)
+        shaft[by0:by1, bx0:bx1] = np.maximum(shaft[by0:by1, bx0:bx1], cov)
+    return shaft
+
+
+def _bead_layers(
+    patch: _Patch, K: FloatArray, dist: FloatArray, beads: list[tuple[FloatArray, BeadMarker3D]]
+) -> list[tuple[NDArray[np.float32], float]]:
+    """Coverage (0..1, ph x pw) and grey level of each bead in front of the camera and in the patch;
+    ``beads`` pairs each bead's centre (camera frame, mm) with the bead."""
+    layers: list[tuple[NDArray[np.float32], float]] = []
+    for c, m in beads:
+        if c[2] <= 1.0:
+            continue
+        uc = project_points(c[None, :], K, dist)[0]
+        rb = float(K[0, 0]) * m.radius_mm / float(c[2])
+        win = patch.window(float(uc[0] - rb), float(uc[1] - rb), float(uc[0] + rb), float(uc[1] + rb))
+        if win is None:
+            continue
+        bx0, by0, bx1, by1 = win
+        X, Y = _subsample_normalized(K, dist, patch.x0 + bx0, patch.y0 + by0, bx1 - bx0, by1 - by0, patch.s)
+        alpha_b = np.zeros((patch.ph, patch.pw), np.float32)
+        alpha_b[by0:by1, bx0:bx1] = _ramp(_sphere_distance(X, Y, c), m.radius_mm, patch.s)
+        layers.append((alpha_b, m.level))
+    return layers
+
+
+def _composite(
+    img: U8Image,
+    patch: _Patch,
+    layers: list[tuple[NDArray[np.float32], float]],
+    options: RenderOptions,
+    rng: np.random.Generator,
+) -> bool:
+    """Blend the coverage ``layers`` (blurred, in order) over the patch of ``img`` (in place), with
+    noise where anything is drawn; True when any pixel changed."""
+    y0, y1, x0, x1 = patch.y0, patch.y0 + patch.ph, patch.x0, patch.x0 + patch.pw
+    base = img[y0:y1, x0:x1].astype(np.float32)
+    out = base
+    support = np.zeros((patch.ph, patch.pw), np.float32)
+    for alpha, level in layers:
+        if options.blur_sigma_px > 0:
+            alpha = np.asarray(
+                cv2.GaussianBlur(alpha, (0, 0), options.blur_sigma_px, borderType=cv2.BORDER_REPLICATE),
+                dtype=np.float32,
+            )
+        out = out * (1 - alpha) + np.float32(level) * alpha
+        support = np.maximum(support, alpha)
+    if options.noise_sigma > 0:
+        out = out + rng.normal(0.0, options.noise_sigma, out.shape).astype(np.float32) * support
+    mask = support > 1e-3
+    region = img[y0:y1, x0:x1]
+    region[mask] = np.clip(np.rint(out[mask]), 0, 255).astype(np.uint8)
+    return bool(np.any(mask))
+
+
 def draw_instrument(
     img: U8Image,
     K: FloatArray,
@@ -193,8 +335,6 @@ def draw_instrument(
     t = np.asarray(t_cam_from_optical_mm, dtype=np.float64)
     a = R @ instrument.tip_mm + t
     b = R @ instrument.hub_mm + t
-    length = float(np.linalg.norm(b - a))
-    r = (b - a) / length
     beads = [(R @ m.center_mm + t, m) for m in instrument.markers]
     # bounding box: sample the segment (with radius) and the beads
     samples = [a + f * (b - a) for f in np.linspace(0.0, 1.0, 33)] + [c for c, _ in beads]
@@ -205,83 +345,14 @@ def draw_instrument(
     uv = uv[np.all(np.isfinite(uv), axis=1)]
     if len(uv) == 0:
         return False
-    zmin = float(pts[:, 2].min())
-    rad_px = float(K[0, 0]) * max([instrument.radius_mm] + [m.radius_mm for _, m in beads]) / zmin
-    margin = math.ceil(rad_px + 3.5 * options.blur_sigma_px) + 3
-    h, w = img.shape
-    x0 = max(math.floor(float(uv[:, 0].min())) - margin, 0)
-    y0 = max(math.floor(float(uv[:, 1].min())) - margin, 0)
-    x1 = min(math.ceil(float(uv[:, 0].max())) + margin + 1, w)
-    y1 = min(math.ceil(float(uv[:, 1].max())) + margin + 1, h)
-    pw, ph = x1 - x0, y1 - y0
-    if pw <= 0 or ph <= 0:
+    max_radius_mm = max([instrument.radius_mm] + [m.radius_mm for _, m in beads])
+    patch = _instrument_patch(img.shape, uv, float(pts[:, 2].min()), K, max_radius_mm, options)
+    if patch is None:
         return False
-    s = max(1, options.supersample)
-    while pw * ph * s * s > _MAX_PATCH_PX * 4 and s > 1:
-        s -= 1
-    pad = math.ceil(rad_px + 3.5 * options.blur_sigma_px) + 3
-
-    def window(u_lo: float, v_lo: float, u_hi: float, v_hi: float) -> tuple[int, int, int, int] | None:
-        """A pixel window (patch coordinates) around an image box, clipped to the patch."""
-        bx0 = int(np.clip(math.floor(u_lo) - pad - x0, 0, pw))
-        bx1 = int(np.clip(math.ceil(u_hi) + pad + 1 - x0, 0, pw))
-        by0 = int(np.clip(math.floor(v_lo) - pad - y0, 0, ph))
-        by1 = int(np.clip(math.ceil(v_hi) + pad + 1 - y0, 0, ph))
-        return None if bx1 <= bx0 or by1 <= by0 else (bx0, by0, bx1, by1)
-
-    # the shaft, in chunks of ~64 px so that only a band around the needle is evaluated; every chunk
-    # uses the distance to the whole segment, so the chunks join seamlessly (max over overlaps)
-    shaft = np.zeros((ph, pw), np.float32)
     seg_px = float(np.linalg.norm(uv[-1] - uv[0])) if len(uv) > 1 else 0.0
-    n_chunks = max(1, math.ceil(seg_px / 64.0))
-    fs = np.linspace(0.0, 1.0, n_chunks + 1)
-    for f0, f1 in itertools.pairwise(fs):
-        ends = np.array([a + f0 * (b - a), a + f1 * (b - a)])
-        if np.any(ends[:, 2] <= 1.0):
-            ends = ends[ends[:, 2] > 1.0]
-            if len(ends) == 0:
-                continue
-        e_uv = project_points(ends, K, dist)
-        win = window(
-            float(e_uv[:, 0].min()), float(e_uv[:, 1].min()), float(e_uv[:, 0].max()), float(e_uv[:, 1].max())
-        )
-        if win is None:
-            continue
-        bx0, by0, bx1, by1 = win
-        X, Y = _subsample_normalized(K, dist, x0 + bx0, y0 + by0, bx1 - bx0, by1 - by0, s)
-        cov = _ramp(_segment_distance(X, Y, a, r, length), instrument.radius_mm, s)
-        shaft[by0:by1, bx0:bx1] = np.maximum(shaft[by0:by1, bx0:bx1], cov)
-    base = img[y0:y1, x0:x1].astype(np.float32)
-    out = base
-    layers = [(shaft, instrument.level)]
-    for c, m in beads:
-        if c[2] <= 1.0:
-            continue
-        uc = project_points(c[None, :], K, dist)[0]
-        rb = float(K[0, 0]) * m.radius_mm / float(c[2])
-        win = window(float(uc[0] - rb), float(uc[1] - rb), float(uc[0] + rb), float(uc[1] + rb))
-        if win is None:
-            continue
-        bx0, by0, bx1, by1 = win
-        X, Y = _subsample_normalized(K, dist, x0 + bx0, y0 + by0, bx1 - bx0, by1 - by0, s)
-        alpha_b = np.zeros((ph, pw), np.float32)
-        alpha_b[by0:by1, bx0:bx1] = _ramp(_sphere_distance(X, Y, c), m.radius_mm, s)
-        layers.append((alpha_b, m.level))
-    support = np.zeros((ph, pw), np.float32)
-    for alpha, level in layers:
-        if options.blur_sigma_px > 0:
-            alpha = np.asarray(
-                cv2.GaussianBlur(alpha, (0, 0), options.blur_sigma_px, borderType=cv2.BORDER_REPLICATE),
-                dtype=np.float32,
-            )
-        out = out * (1 - alpha) + np.float32(level) * alpha
-        support = np.maximum(support, alpha)
-    if options.noise_sigma > 0:
-        out = out + rng.normal(0.0, options.noise_sigma, out.shape).astype(np.float32) * support
-    mask = support > 1e-3
-    region = img[y0:y1, x0:x1]
-    region[mask] = np.clip(np.rint(out[mask]), 0, 255).astype(np.uint8)
-    return bool(np.any(mask))
+    shaft = _shaft_coverage(patch, K, dist, a, b, instrument.radius_mm, seg_px)
+    layers = [(shaft, instrument.level), *_bead_layers(patch, K, dist, beads)]
+    return _composite(img, patch, layers, options, rng)
 
 
 def _truth(

@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 U8Image = NDArray[np.uint8]
+F32Array = NDArray[np.float32]
 
 #: radial step of the profiles, px
 RAY_STEP_PX = 0.25
@@ -102,6 +103,132 @@ def ring_edges(
     return ring_edges_multi([(img, seeds)], n_rays, min_contrast, min_valid_fraction)
 
 
+def _ray_profiles(
+    parts: Sequence[tuple[U8Image, RingSeeds]],
+    seeds: RingSeeds,
+    r: FloatArray,
+    cos_t: FloatArray,
+    sin_t: FloatArray,
+) -> F32Array:
+    """Grey levels along every ray of every ring, (E, n_rays, S) float32, ring dark on light.
+
+    Ray ``k`` of ring ``e`` is sampled (bicubic, border replicated) at radii ``r`` (px) from the
+    ring's origin in direction ``theta_k``; ``seeds`` are the rings of ``parts`` stacked in order.
+    Light-on-dark rings are inverted (``255 - grey``) so that every ring is darker than its
+    background.
+    """
+    E, n, S = seeds.count, cos_t.shape[0], r.shape[0]
+    ox, oy = seeds.origin_px[:, 0], seeds.origin_px[:, 1]
+    mapx = (ox[:, None, None] + r[None, None, :] * cos_t[None, :, None]).astype(np.float32)
+    mapy = (oy[:, None, None] + r[None, None, :] * sin_t[None, :, None]).astype(np.float32)
+    rows: list[NDArray[np.uint8]] = []
+    start = 0
+    for img, sd in parts:
+        stop = start + sd.count
+        if stop > start:
+            mx = mapx[start:stop].reshape(-1, S)
+            my = mapy[start:stop].reshape(-1, S)
+            rows.append(np.asarray(cv2.remap(img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)))
+        start = stop
+    # grey levels are integers: float32 holds them and every threshold below exactly enough
+    prof = np.concatenate(rows).astype(np.float32).reshape(E, n, S)
+    dol = seeds.dark_on_light
+    if not np.all(dol):
+        prof = np.where(dol[:, None, None], prof, np.float32(255.0) - prof)
+    return prof
+
+
+def _ring_minimum(
+    prof: F32Array, r_in: FloatArray, r_out: FloatArray, jr3: NDArray[np.int64], valid3: BoolArray
+) -> tuple[NDArray[np.intp], FloatArray]:
+    """Darkest sample of each ray within the ring ``[r_in - 0.5, r_out + 0.5]`` px.
+
+    Returns its sample index (E, n_rays) and the ring's grey level (E,): the upper median of the
+    rays' minima.
+    """
+    ds = RAY_STEP_PX
+    j_ring_lo = np.ceil((r_in - 0.5) / ds - 1e-9).astype(np.int64)
+    j_ring_hi = np.floor((r_out + 0.5) / ds + 1e-9).astype(np.int64)
+    in_ring = (jr3 >= j_ring_lo[:, :, None]) & (jr3 <= j_ring_hi[:, :, None]) & valid3
+    ring_prof = np.where(in_ring, prof, np.float32(np.inf))
+    jmin = np.argmin(ring_prof, axis=2)  # (E, n)
+    ring_min = np.take_along_axis(ring_prof, jmin[:, :, None], axis=2)[:, :, 0].astype(np.float64)
+    ring_level, _ = _upper_median(ring_min, np.ones_like(ring_min, dtype=bool))
+    return jmin, ring_level
+
+
+def _background_level(
+    prof: F32Array, r_out: FloatArray, n_samples: NDArray[np.int64], jr3: NDArray[np.int64], valid3: BoolArray
+) -> FloatArray:
+    """Background grey level of each ring (E,): upper median of the tail samples ``r >= r_out + 1.8``
+    px of all its rays, or the mean of the rays' last samples when no ray reaches that far."""
+    E = prof.shape[0]
+    j_tail = np.ceil((r_out + 1.8) / RAY_STEP_PX - 1e-9).astype(np.int64)
+    t0 = max(int(j_tail.min()), 0)  # only the tail columns are sorted for the background level
+    tail = (jr3[:, :, t0:] >= j_tail[:, :, None]) & valid3[:, :, t0:]
+    bg_level, has_tail = _upper_median(prof[:, :, t0:].reshape(E, -1), tail.reshape(E, -1))
+    if not np.all(has_tail):
+        last = prof[np.arange(E), :, n_samples - 1].mean(axis=1)
+        bg_level = np.where(has_tail, bg_level, last)
+    return bg_level
+
+
+def _hole_level(prof: F32Array, r_in: FloatArray, jr: NDArray[np.int64], valid3: BoolArray) -> FloatArray:
+    """Grey level of each ring's hole (E,): upper median of the samples within
+    ``max(0.35 min(r_in), 0.3)`` px of the origin on all its rays."""
+    E, n = prof.shape[0], prof.shape[1]
+    ds = RAY_STEP_PX
+    hole_r = np.maximum(0.35 * r_in.min(axis=1), 0.3)
+    n_hole = np.floor(hole_r / ds + 1e-9).astype(np.int64) + 1  # samples with r <= hole_r
+    J = int(n_hole.max())
+    hole = np.broadcast_to(((jr[None, :J] < n_hole[:, None]) & valid3[:, 0, :J])[:, None, :], (E, n, J))
+    hole_level, _ = _upper_median(prof[:, :, :J].reshape(E, -1), hole.reshape(E, -1))
+    return hole_level
+
+
+def _outer_edge(
+    prof: F32Array,
+    t_out: FloatArray,
+    jmin: NDArray[np.intp],
+    jr3: NDArray[np.int64],
+    valid3: BoolArray,
+    r: FloatArray,
+    ee: NDArray[np.int64],
+    nn: NDArray[np.int64],
+) -> tuple[FloatArray, BoolArray]:
+    """Outer edge radius (px, sub-sample by linear interpolation) on each ray, and whether found:
+    the first sample past the ring minimum at or above the threshold ``t_out`` (E, 1, 1)."""
+    ds = RAY_STEP_PX
+    above_o = (prof >= t_out) & (jr3 > jmin[:, :, None]) & valid3
+    jo = np.argmax(above_o, axis=2)
+    ok_o = above_o[ee, nn, jo] & (jo > 0)
+    jo1 = np.maximum(jo - 1, 0)
+    p1, p0 = prof[ee, nn, jo].astype(np.float64), prof[ee, nn, jo1].astype(np.float64)
+    ro_sub = r[jo1] + ds * (t_out[:, :, 0] - p0) / np.where(p1 - p0 == 0, 1e-9, p1 - p0)
+    return ro_sub, ok_o
+
+
+def _inner_edge(
+    prof: F32Array,
+    t_in: FloatArray,
+    jmin: NDArray[np.intp],
+    jr3: NDArray[np.int64],
+    r: FloatArray,
+    ee: NDArray[np.int64],
+    nn: NDArray[np.int64],
+) -> tuple[FloatArray, BoolArray]:
+    """Inner edge radius (px, sub-sample by linear interpolation) on each ray, and whether found:
+    the last sample before the ring minimum at or above the threshold ``t_in`` (E, 1, 1)."""
+    ds, S = RAY_STEP_PX, prof.shape[2]
+    above_i = (prof >= t_in) & (jr3 < jmin[:, :, None])
+    ji = S - 1 - np.argmax(above_i[:, :, ::-1], axis=2)
+    ok_i = above_i[ee, nn, ji] & (ji < S - 1)
+    q0 = prof[ee, nn, ji].astype(np.float64)
+    q1 = prof[ee, nn, np.minimum(ji + 1, S - 1)].astype(np.float64)
+    ri_sub = r[ji] + ds * (q0 - t_in[:, :, 0]) / np.where(q0 - q1 == 0, 1e-9, q0 - q1)
+    return ri_sub, ok_i
+
+
 def ring_edges_multi(
     parts: Sequence[tuple[U8Image, RingSeeds]], n_rays: int, min_contrast: float, min_valid_fraction: float
 ) -> RingEdges:
@@ -129,62 +256,17 @@ def ring_edges_multi(
     jr = np.arange(S)
     valid3 = (jr[None, :] < n_samples[:, None])[:, None, :]  # (E, 1, S)
     ox, oy = seeds.origin_px[:, 0], seeds.origin_px[:, 1]
-    mapx = (ox[:, None, None] + r[None, None, :] * cos_t[None, :, None]).astype(np.float32)
-    mapy = (oy[:, None, None] + r[None, None, :] * sin_t[None, :, None]).astype(np.float32)
-    rows: list[NDArray[np.uint8]] = []
-    start = 0
-    for img, sd in parts:
-        stop = start + sd.count
-        if stop > start:
-            mx = mapx[start:stop].reshape(-1, S)
-            my = mapy[start:stop].reshape(-1, S)
-            rows.append(np.asarray(cv2.remap(img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)))
-        start = stop
-    # grey levels are integers: float32 holds them and every threshold below exactly enough
-    prof = np.concatenate(rows).astype(np.float32).reshape(E, n, S)
-    dol = seeds.dark_on_light
-    if not np.all(dol):
-        prof = np.where(dol[:, None, None], prof, np.float32(255.0) - prof)
-    # sample-index ranges per ray: the ring [r_in - 0.5, r_out + 0.5], the tail r >= r_out + 1.8
-    j_ring_lo = np.ceil((r_in - 0.5) / ds - 1e-9).astype(np.int64)
-    j_ring_hi = np.floor((r_out + 0.5) / ds + 1e-9).astype(np.int64)
-    j_tail = np.ceil((r_out + 1.8) / ds - 1e-9).astype(np.int64)
+    prof = _ray_profiles(parts, seeds, r, cos_t, sin_t)
     jr3 = jr[None, None, :]
-    in_ring = (jr3 >= j_ring_lo[:, :, None]) & (jr3 <= j_ring_hi[:, :, None]) & valid3
-    ring_prof = np.where(in_ring, prof, np.float32(np.inf))
-    jmin = np.argmin(ring_prof, axis=2)  # (E, n)
-    ring_min = np.take_along_axis(ring_prof, jmin[:, :, None], axis=2)[:, :, 0].astype(np.float64)
-    ring_level, _ = _upper_median(ring_min, np.ones_like(ring_min, dtype=bool))
-    t0 = max(int(j_tail.min()), 0)  # only the tail columns are sorted for the background level
-    tail = (jr3[:, :, t0:] >= j_tail[:, :, None]) & valid3[:, :, t0:]
-    bg_level, has_tail = _upper_median(prof[:, :, t0:].reshape(E, -1), tail.reshape(E, -1))
-    if not np.all(has_tail):
-        last = prof[np.arange(E), :, n_samples - 1].mean(axis=1)
-        bg_level = np.where(has_tail, bg_level, last)
-    hole_r = np.maximum(0.35 * r_in.min(axis=1), 0.3)
-    n_hole = np.floor(hole_r / ds + 1e-9).astype(np.int64) + 1  # samples with r <= hole_r
-    J = int(n_hole.max())
-    hole = np.broadcast_to(((jr[None, :J] < n_hole[:, None]) & valid3[:, 0, :J])[:, None, :], (E, n, J))
-    hole_level, _ = _upper_median(prof[:, :, :J].reshape(E, -1), hole.reshape(E, -1))
+    jmin, ring_level = _ring_minimum(prof, r_in, r_out, jr3, valid3)
+    bg_level = _background_level(prof, r_out, n_samples, jr3, valid3)
+    hole_level = _hole_level(prof, r_in, jr, valid3)
     contrast_ok = (bg_level - ring_level >= min_contrast) & (hole_level - ring_level >= 0.35 * min_contrast)
     t_out = (0.5 * (bg_level + ring_level))[:, None, None]
     t_in = (0.5 * (hole_level + ring_level))[:, None, None]
-    ridx = jr3
     ee, nn = np.arange(E)[:, None], np.arange(n)[None, :]
-    # outer edge: first sample past the ring minimum at or above t_out
-    above_o = (prof >= t_out) & (ridx > jmin[:, :, None]) & valid3
-    jo = np.argmax(above_o, axis=2)
-    ok_o = above_o[ee, nn, jo] & (jo > 0)
-    jo1 = np.maximum(jo - 1, 0)
-    p1, p0 = prof[ee, nn, jo].astype(np.float64), prof[ee, nn, jo1].astype(np.float64)
-    ro_sub = r[jo1] + ds * (t_out[:, :, 0] - p0) / np.where(p1 - p0 == 0, 1e-9, p1 - p0)
-    # inner edge: last sample before the ring minimum at or above t_in
-    above_i = (prof >= t_in) & (ridx < jmin[:, :, None])
-    ji = S - 1 - np.argmax(above_i[:, :, ::-1], axis=2)
-    ok_i = above_i[ee, nn, ji] & (ji < S - 1)
-    q0 = prof[ee, nn, ji].astype(np.float64)
-    q1 = prof[ee, nn, np.minimum(ji + 1, S - 1)].astype(np.float64)
-    ri_sub = r[ji] + ds * (q0 - t_in[:, :, 0]) / np.where(q0 - q1 == 0, 1e-9, q0 - q1)
+    ro_sub, ok_o = _outer_edge(prof, t_out, jmin, jr3, valid3, r, ee, nn)
+    ri_sub, ok_i = _inner_edge(prof, t_in, jmin, jr3, r, ee, nn)
     ok_o &= np.abs(ro_sub - r_out) < 1.5 + 0.15 * r_out
     ok_i &= np.abs(ri_sub - r_in) < 1.5 + 0.25 * r_in
     frac = np.count_nonzero(ok_o & ok_i, axis=1) / n
@@ -198,5 +280,5 @@ def ring_edges_multi(
         ok_i,
         frac,
         ok,
-        dol.copy(),
+        seeds.dark_on_light.copy(),
     )
