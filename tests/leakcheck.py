@@ -28,6 +28,10 @@ _GRACE_S = 5.0
 #: started once, by the first shared-memory block, and ends by itself when this process exits
 #: (its pipe closes). Nothing else is allowed.
 _INTERPRETER_CHILDREN = ("from multiprocessing.resource_tracker import main",)
+#: Threads that belong to a library, not to a test: distributed's offload pool is one
+#: module-global single-thread executor, started on first use and kept to the interpreter's exit
+#: (it cannot be shut down without breaking every later Dask client in the process).
+_LIBRARY_THREADS = ("Dask-Offload",)
 
 
 def _children() -> dict[int, str]:
@@ -106,7 +110,8 @@ def _sockets() -> dict[str, str]:
 
 def _threads() -> dict[int, threading.Thread]:
     main = threading.main_thread()
-    return {t.ident: t for t in threading.enumerate() if t.ident is not None and t is not main}
+    return {t.ident: t for t in threading.enumerate()
+            if t.ident is not None and t is not main and not t.name.startswith(_LIBRARY_THREADS)}
 
 
 @dataclass

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import logging
+import socket
 import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -145,6 +146,26 @@ def _import_distributed() -> Any:
     return distributed
 
 
+def _probe_scheduler(scheduler: str, timeout_s: float) -> None:
+    """A plain TCP connection to ``scheduler`` (``tcp://host:port`` or ``host:port``) within
+    ``timeout_s``, before any Dask client exists: an unreachable address is a one-line error
+    in bounded time, and no client (with its event-loop thread) is left half-started.
+
+    Raises:
+        ExecutorError: the address is malformed or nothing accepts a connection there.
+    """
+    address = scheduler.split("://", 1)[1] if "://" in scheduler else scheduler
+    host, sep, port_text = address.rpartition(":")
+    if not sep or not host or not port_text.isdigit():
+        raise ExecutorError(f"--scheduler {scheduler}: expected tcp://HOST:PORT")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port_text)), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise ExecutorError(f"--scheduler {scheduler}: no Dask scheduler answered within "
+                            f"{timeout_s:g} s ({exc.strerror or type(exc).__name__})") from None
+
+
 class DaskExecutor(Executor):
     """Each run submitted to a ``distributed.Client``: the scheduler at ``scheduler``
     (``tcp://host:port``), or a LocalCluster of ``workers`` single-threaded worker processes bound
@@ -171,6 +192,7 @@ class DaskExecutor(Executor):
         self._done: Any = None  # distributed.as_completed of every submitted future
         self._token = uuid.uuid4().hex[:12]
         if scheduler is not None:
+            _probe_scheduler(scheduler, connect_timeout_s)
             with dask.config.set({"distributed.comm.timeouts.connect": f"{connect_timeout_s}s"}):
                 try:
                     self._client = distributed.Client(scheduler, timeout=connect_timeout_s,

@@ -269,7 +269,8 @@ def test_transport_fault_refused_without_an_emulator_channel(tmp_path: Path) -> 
 
 def test_mixed_setup_on_a_simulated_clock_is_refused(tmp_path: Path) -> None:
     """The emulated arm lives in real time: a simulated clock for the rest would be nonsense."""
-    config = write_config(tmp_path, "192.0.2.10")
+    # loopback, and nothing listens there: the refusal comes before any connection is tried
+    config = write_config(tmp_path, "127.0.0.1")
     config.write_text(config.read_text().replace("real_time = true", "real_time = false"))
     setup = load_setup(config)
     with pytest.raises(ConfigError, match="real_time = true"):

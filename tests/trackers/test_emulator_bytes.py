@@ -7,7 +7,7 @@ import serial
 from drivers.tracker_serial import aurora_protocol as ap
 from drivers.tracker_serial import fob_protocol as fp
 
-from .conftest import AuroraFactory, FobFactory
+from .conftest import AuroraFactory, FobFactory, wait_until
 
 
 def _exchange(ser: serial.Serial, data: bytes, n: int) -> bytes:
@@ -63,6 +63,8 @@ def test_aurora_command_replies(aurora_emulator: AuroraFactory) -> None:
         ser.reset_input_buffer()
         ser.write(b"COMM:500000048\r")
         assert ser.read_until(b"\r") == b"OKAYA896\r"  # still at 9600
-        assert dev.baud == 115200
+        # the device switches after its reply has gone out (the driver waits 100 ms for it, as the
+        # manual says); asserting at once raced the emulator's thread
+        wait_until(lambda: dev.baud == 115200, timeout_s=5.0, what="the emulator at 115200 baud")
         ser.baudrate = 115200
         assert _exchange(ser, b"BEEP 1\r", 6) == ap.frame_reply("1")
