@@ -14,7 +14,7 @@ import json
 import select
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import Any, TextIO
 
 from hil.clock import Clock, ManualClock, MonotonicClock
 from hil.config import build_devices, default_setup_path, load_setup
@@ -28,9 +28,6 @@ from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import HilError, InputFileError
 from hil.rigcal.apply import rig_calibration_sha256
 from hil.session.log import SessionLog, file_sha256
-
-if TYPE_CHECKING:
-    pass
 
 
 def add_parser(sub: Any) -> None:

@@ -9,7 +9,7 @@ import abc
 import collections
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -63,9 +63,6 @@ from hil.log import get_logger
 from hil.safety.layer import SafetyLayer
 from hil.safety.watchdog import WatchdogSet
 from hil.session.log import SessionLog
-
-if TYPE_CHECKING:
-    pass
 
 _log = get_logger(__name__)
 
