@@ -19,7 +19,14 @@ from typing import Any, TextIO
 from hil.clock import Clock, ManualClock, MonotonicClock
 from hil.config import build_devices, default_setup_path, load_setup
 from hil.config.setup import SetupConfig
-from hil.controller.assembly import RobotWrapper, build_controller, runtime_plugins, start_igtl, wrap_robot
+from hil.controller.assembly import (
+    RobotWrapper,
+    build_controller,
+    runtime_plugins,
+    start_igtl,
+    with_servo_process,
+    wrap_robot,
+)
 from hil.controller.fsm import Event, State
 from hil.controller.metrics import RunSummary
 from hil.controller.operator_input import AutoOperator, Operator, OperatorView
@@ -144,6 +151,8 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
     devices = build_devices(setup, clock)
     if robot_wrapper is not None:
         devices = wrap_robot(devices, robot_wrapper)
+    else:
+        devices = with_servo_process(setup, devices, clock)  # [servo] process: on the wall clock
     world = devices.world
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
     header: dict[str, Any] = {

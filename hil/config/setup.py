@@ -7,7 +7,7 @@ the driver registry holds for their ``driver``; :func:`hil.config.loader.load_se
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field, PrivateAttr, field_validator, model_validator
 
@@ -91,6 +91,21 @@ class CalibrationConfig(BaseModel):
         None, description="rig calibration JSON (hil rig-calibrate): flange-marker layout and time offsets")
 
 
+class ServoConfig(BaseModel):
+    """Where the servo loop runs (docs/architecture.md, "The servo loop")."""
+
+    model_config = STRICT
+
+    process: Literal["auto", "on", "off"] = Field(
+        "auto", description="run the servo loop in its own process owning the robot driver: auto = "
+                            "whenever the setup runs on the wall clock (hil run, console, soak); off = "
+                            "in the supervisor's process (simulated runs on the manual clock always are)")
+    realtime: bool = Field(True, description="ask for SCHED_FIFO, a pinned CPU and locked memory for the "
+                                             "servo process (granted as root; reported either way)")
+    priority: int = Field(80, ge=1, le=99, description="SCHED_FIFO priority of the servo process")
+    cpu: int | None = Field(None, ge=0, description="CPU to pin the servo process to (default: the last)")
+
+
 class SetupConfig(BaseModel):
     """A whole hardware setup. Build it with :func:`hil.config.load_setup` (TOML file) or
     :func:`hil.config.parse_setup` (a mapping): device sections need the driver registry.
@@ -113,6 +128,7 @@ class SetupConfig(BaseModel):
     fault_channel: FaultChannelConfig | None = Field(
         None, description="the UR emulator's fault channel, for [[faults]] with transport (tools/ursim only)")
     igtl: IgtlConfig = Field(IgtlConfig(), description="OpenIGTLink streaming to 3D Slicer (docs/igtl.md)")
+    servo: ServoConfig = Field(ServoConfig(), description="the servo loop's process and real-time set-up")
     rig_calibration: RigCalibrationConfig = Field(
         RigCalibrationConfig(), description="hil rig-calibrate: poses, bounds, temporal motion")
     _config_dir: Path = PrivateAttr(default_factory=Path.cwd)

@@ -15,8 +15,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from drivers.interfaces.robot import Robot
-from hil.clock import Clock
+from hil.clock import Clock, MonotonicClock
 from hil.config import Devices
+from hil.config.build import RobotFollower
 from hil.config.setup import SetupConfig
 from hil.controller.controller import Controller
 from hil.controller.observers import HookCaller, TickObserver
@@ -27,7 +28,7 @@ from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import RigGeometry
 from hil.controller.tracker_use import TrackerUse
 from hil.controller.truth import BreathHoldCoach, GroundTruth
-from hil.errors import InputFileError
+from hil.errors import ConfigError, InputFileError
 from hil.geometry.transform import RigidTransform
 from hil.rigcal.apply import flange_markers_mm, with_rig_time_offsets
 from hil.session.log import SessionLog
@@ -91,6 +92,39 @@ def wrap_robot(devices: Devices, wrapper: RobotWrapper) -> Devices:
     """``devices`` (not opened) with the robot replaced by ``wrapper(devices.robot)``; open and
     close the result (``open_all``/``close_all``) instead of the original."""
     return dataclasses.replace(devices, robot=wrapper(devices.robot))
+
+
+def with_servo_process(setup: SetupConfig, devices: Devices, clock: Clock) -> Devices:
+    """``devices`` (not opened) with the robot replaced by the servo process's
+    :class:`~hil.servo.client.ServoRobot` when ``[servo] process`` asks for it (``auto``: on the
+    wall clock), else unchanged (the controller then steps the servo loop in its own process).
+    Opening the result starts the servo process (it builds and opens its own robot from the setup;
+    the robot in ``devices`` is never opened); closing it stops the arm and ends the process. A
+    simulated world then sees the arm the servo process reports.
+
+    Raises:
+        ConfigError: ``[servo] process = "on"`` on a simulated clock (a deterministic simulation
+            steps its loop in-process).
+    """
+    mode = setup.servo.process
+    if mode == "off" or (mode == "auto" and not isinstance(clock, MonotonicClock)):
+        return devices
+    if not isinstance(clock, MonotonicClock):
+        raise ConfigError("setup", ['servo.process: "on" needs the wall clock; set [simulation] real_time '
+                                    '= true, or use "auto"'])
+    from hil.servo.client import ServoRobot
+    from hil.servo.process import ServoProcess, ServoSpec
+
+    c, sv = setup.procedure.compensation, setup.servo
+    spec = ServoSpec(setup, (c.max_speed_mm_s, c.max_accel_mm_s2, c.max_angular_speed_rad_s),
+                     realtime=sv.realtime, priority=sv.priority, cpu=sv.cpu)
+    inner = devices.robot
+    tcp = getattr(inner, "T_flange_from_tcp", None)
+    T_tcp = tcp if isinstance(tcp, RigidTransform) else RigidTransform.identity()
+    robot = ServoRobot(ServoProcess(spec, inner.name, T_tcp), inner.limits)
+    if isinstance(devices.world, RobotFollower):
+        devices.world.follow_robot(robot)
+    return dataclasses.replace(devices, robot=robot)
 
 
 def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, *, clock: Clock,

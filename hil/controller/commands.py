@@ -3,7 +3,7 @@ safety layer (every motion command is checked there), after the phase's step and
 are processed.
 
 - :class:`MoveLinear`: a linear move to a TCP pose (robot frame) at a speed and acceleration.
-- :class:`Track`: one servo set-point (robot frame) held for ``dt_s`` (COMPENSATE's stream).
+- :class:`Track`: a tracking setpoint for the servo loop (COMPENSATE, once per pair).
 - :class:`Hold`: nothing new: keep the last command (the robot holds or finishes its move).
 - :class:`Stop`: stop the arm; a stop that cannot be delivered is retried every tick until it is.
 """
@@ -11,6 +11,9 @@ are processed.
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
 
 from hil.geometry.transform import RigidTransform
 
@@ -24,8 +27,20 @@ class MoveLinear:
 
 @dataclass(frozen=True)
 class Track:
-    setpoint: RigidTransform  # T_robot_from_tcp, mm
-    dt_s: float
+    """A tracking setpoint (see :class:`hil.servo.shm.Setpoint`): the TCP pose ``T_robot_from_tcp``
+    (mm) at ``t_ref_ns`` and its velocity (mm/s, rad/s; robot frame); valid until
+    ``valid_until_ns`` (controller clock)."""
+
+    setpoint: RigidTransform
+    v_mm_s: NDArray[np.float64]
+    w_rad_s: NDArray[np.float64]
+    t_ref_ns: int
+    valid_until_ns: int
+    exposure_t_ns: int
+    frame_seq: int
+    speed_scale: float
+    max_horizon_s: float
+    lead_s: float
 
 
 @dataclass(frozen=True)

@@ -137,8 +137,6 @@ class CompensationConfig(BaseModel):
     max_correction_mm: float = Field(25.0, gt=0, description="beyond this change: pause, ask the operator")
     max_correction_deg: float = Field(10.0, gt=0)
     predict_latency: bool = Field(True, description="extrapolate the motion over the measured latency")
-    servo_at_robot_rate: bool = Field(True, description="stream servo targets at the robot's control rate "
-                                                        "between frames (else one per frame)")
     max_prediction_s: float = Field(0.15, ge=0, description="never extrapolate further than this")
     actuation_lag_s: float = Field(0.03, ge=0, description="robot servo lag added to the prediction")
     bias_gain: float = Field(0.1, ge=0, le=1, description="closed-loop optical correction gain per frame")

@@ -111,7 +111,10 @@ class Controller(ControllerParts):
         if isinstance(cmd, MoveLinear):
             self.safety.move_linear(cmd.target, cmd.speed_mm_s, cmd.accel_mm_s2)
         elif isinstance(cmd, Track):
-            self.safety.servo(cmd.setpoint, cmd.dt_s)
+            self.safety.track(cmd.setpoint, cmd.v_mm_s, cmd.w_rad_s, t_ref_ns=cmd.t_ref_ns,
+                              valid_until_ns=cmd.valid_until_ns, exposure_t_ns=cmd.exposure_t_ns,
+                              frame_seq=cmd.frame_seq, speed_scale=cmd.speed_scale,
+                              max_horizon_s=cmd.max_horizon_s, lead_s=cmd.lead_s)
         elif isinstance(cmd, Stop):
             self.supervisor.stop_robot(cmd.reason)
         else:

@@ -62,6 +62,9 @@ from hil.geometry.transform import RigidTransform
 from hil.log import get_logger
 from hil.safety.layer import SafetyLayer
 from hil.safety.watchdog import WatchdogSet
+from hil.servo.client import ServoRobot, in_process_servo, servo_event_logger
+from hil.servo.limiter import RateLimiter
+from hil.servo.link import InProcessLink
 from hil.session.log import SessionLog
 
 _log = get_logger(__name__)
@@ -105,6 +108,7 @@ class ControllerParts(abc.ABC):
         tracker_use: TrackerUse | None = None,
         hooks: HookCaller | None = None,
     ) -> None:
+        robot = self._servo_robot(robot, limits, procedure, clock, session)
         self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
         self.locate, self.plan, self.rig, self.cfg = locate, plan, rig, procedure
         self.session, self.operator, self.coach, self.truth = session, operator, coach, truth
@@ -131,7 +135,8 @@ class ControllerParts(abc.ABC):
         self.ctx = PhaseContext(
             cfg=procedure, est=self.est, clock=clock, session=session, safety=self.safety, robot=robot,
             roles=self.roles, needle=self.needle, coach=coach, frame_period_s=self.frame_period_s,
-            pending=self._pending_name, execute=self.execute, servo_timing=self._servo_timing)
+            pending=self._pending_name, execute=self.execute, servo_timing=self._servo_timing,
+            step_servo=robot.link.step if isinstance(robot.link, InProcessLink) else None)
         forward: list[Phase] = [cls(self.ctx) for cls in (RegisterPhase, PlanPhase, ApproachPhase, GatePhase,
                                                           CompensatePhase, LockPhase, RetractPhase)]
         self.phases: dict[State, Phase] = {p.state: p for p in forward}
@@ -177,6 +182,20 @@ class ControllerParts(abc.ABC):
 
     def view(self) -> OperatorView:
         return OperatorView(self.state, self._pending_name(), self._last_reason, self.t_s(), self._started)
+
+    @staticmethod
+    def _servo_robot(robot: Robot, limits: MotionLimits, procedure: ProcedureConfig, clock: Clock,
+                     session: SessionLog) -> ServoRobot:
+        """The robot behind its servo loop: a :class:`ServoRobot` as given (the servo process,
+        started by the assembly), else ``robot`` behind a loop stepped in this process."""
+        if isinstance(robot, ServoRobot):
+            if robot.on_event is None:
+                robot.on_event = servo_event_logger(session)
+            return robot
+        c = procedure.compensation
+        return in_process_servo(robot, limits, RateLimiter(c.max_speed_mm_s, c.max_accel_mm_s2,
+                                                           c.max_angular_speed_rad_s), clock,
+                                servo_event_logger(session))
 
     def _servo_timing(self) -> ServoTiming:
         ready = self.pipeline.next_pair_ready

@@ -12,14 +12,30 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+from numpy.typing import NDArray
 
 from drivers.interfaces.robot import MotionLimits, Robot, RobotState, SafetyStatus
 from hil.clock import Clock
 from hil.errors import HilError
 from hil.geometry.transform import RigidTransform
+from hil.safety.servo_check import servo_step_violation
+
+FloatArray = NDArray[np.float64]
+
+
+@runtime_checkable
+class TrackingRobot(Protocol):
+    """A robot driven by a servo loop (hil.servo.client.ServoRobot): it takes tracking setpoints."""
+
+    def start_tracking(self) -> int: ...
+
+    def track(self, T_robot_from_tcp: RigidTransform, v_mm_s: FloatArray, w_rad_s: FloatArray, *,
+              t_ref_ns: int, valid_until_ns: int, exposure_t_ns: int, frame_seq: int,
+              speed_scale: float, max_horizon_s: float, lead_s: float) -> None: ...
+
 
 #: ``(event, fields)`` — e.g. ``("command_sent", {...})`` or ``("command_refused", {...})``.
 CommandLog = Callable[[str, dict[str, Any]], None]
@@ -113,34 +129,27 @@ class SafetyLayer:
                                        "speed_mm_s": speed_mm_s, "accel_mm_s2": accel_mm_s2})
 
     def servo(self, T_robot_from_tcp: RigidTransform, period_s: float) -> None:
-        """Stream one servo target after the checks: box, implied speed, angular speed and
-        acceleration relative to the previous servo target (or the actual pose for the first).
+        """Stream one servo target after the checks: state freshness and safety, then the merged
+        step check of :mod:`hil.safety.servo_check` (box, implied speed, angular speed and
+        acceleration relative to the previous servo target, or the actual pose for the first) —
+        the same check the servo loop (hil/servo) applies every period.
 
         Raises:
             SafetyViolationError: refused (nothing sent).
             DriverError: the driver refused or failed.
         """
-        if not (math.isfinite(period_s) and period_s > 0):
-            raise self._refuse("servo", "period", f"servo period {period_s} s must be > 0")
-        self._check_box("servo", T_robot_from_tcp)
-        state = self._fresh_state("servo")
-        prev = self._last_servo if self._last_servo is not None else state.T_robot_from_tcp
-        v = (T_robot_from_tcp.t - prev.t) / period_s
-        speed = float(np.linalg.norm(v))
-        if speed > self.limits.max_speed_mm_s:
-            raise self._refuse("servo", "speed",
-                               f"step implies {speed:.1f} mm/s > {self.limits.max_speed_mm_s} mm/s")
-        w = (prev.inverse() @ T_robot_from_tcp).rotation_angle_rad() / period_s
-        if w > self.limits.max_angular_speed_rad_s:
-            raise self._refuse("servo", "angular_speed",
-                               f"step implies {w:.3f} rad/s > {self.limits.max_angular_speed_rad_s} rad/s")
+        state = self._fresh_state("servo") if math.isfinite(period_s) and period_s > 0 else None
+        prev = self._last_servo if self._last_servo is not None else (
+            state.T_robot_from_tcp if state is not None else T_robot_from_tcp)
         v_prev = self._last_servo_velocity_mm_s
         if v_prev is None:
             v_prev = np.zeros(3)  # the first step starts from rest (or a ramp after a stop)
-        accel = float(np.linalg.norm(v - v_prev)) / period_s
-        if accel > self.limits.max_accel_mm_s2:
-            raise self._refuse("servo", "acceleration",
-                               f"step implies {accel:.0f} mm/s^2 > {self.limits.max_accel_mm_s2} mm/s^2")
+        why = servo_step_violation(self.limits, prev.R, prev.t, v_prev, T_robot_from_tcp.R,
+                                   T_robot_from_tcp.t, period_s)
+        if why is not None:
+            raise self._refuse("servo", *why)
+        v = (T_robot_from_tcp.t - prev.t) / period_s
+        speed = float(np.linalg.norm(v))
         self.robot.servo(T_robot_from_tcp, period_s)
         self._last_servo = T_robot_from_tcp
         self._last_servo_velocity_mm_s = v
@@ -148,6 +157,43 @@ class SafetyLayer:
         if self._log is not None:
             self._log("command_sent", {"command": "servo", "target_mm": T_robot_from_tcp.t,
                                        "period_s": period_s, "speed_mm_s": speed})
+
+    def start_tracking(self) -> None:
+        """A new tracking session: the servo loop restarts from the actual pose, at rest."""
+        self.forget_stream()
+        robot = self.robot
+        if not isinstance(robot, TrackingRobot):
+            raise TypeError(f"{type(robot).__name__} has no servo loop (wrap it in hil.servo's ServoRobot)")
+        robot.start_tracking()
+
+    def track(self, T_robot_from_tcp: RigidTransform, v_mm_s: FloatArray, w_rad_s: FloatArray, *,
+              t_ref_ns: int, valid_until_ns: int, exposure_t_ns: int, frame_seq: int,
+              speed_scale: float, max_horizon_s: float, lead_s: float) -> None:
+        """Publish a tracking setpoint to the servo loop after the checks: the target inside the
+        box, a finite velocity, a fresh robot state in NORMAL safety. (The velocity is the patient's
+        and may exceed the arm's limits: the loop's rate limiter bounds what is commanded.) The
+        loop applies the merged step check (:mod:`hil.safety.servo_check`) to every command it
+        derives. Logged once per setpoint (``command_sent``, command ``track``), not per period.
+
+        Raises:
+            SafetyViolationError: refused (nothing published).
+            DriverError: the servo loop is gone.
+        """
+        self._check_box("track", T_robot_from_tcp)
+        if not (np.all(np.isfinite(v_mm_s)) and np.all(np.isfinite(w_rad_s))):
+            raise self._refuse("track", "velocity", "setpoint velocity is not finite")
+        self._fresh_state("track")
+        robot = self.robot
+        if not isinstance(robot, TrackingRobot):
+            raise TypeError(f"{type(robot).__name__} has no servo loop (wrap it in hil.servo's ServoRobot)")
+        robot.track(T_robot_from_tcp, v_mm_s, w_rad_s, t_ref_ns=t_ref_ns, valid_until_ns=valid_until_ns,
+                    exposure_t_ns=exposure_t_ns, frame_seq=frame_seq, speed_scale=speed_scale,
+                    max_horizon_s=max_horizon_s, lead_s=lead_s)
+        self.commands_sent += 1
+        if self._log is not None:
+            self._log("command_sent", {"command": "track", "target_mm": T_robot_from_tcp.t,
+                                       "v_mm_s": v_mm_s, "frame_seq": frame_seq,
+                                       "speed_scale": speed_scale})
 
     def stop(self, reason: str) -> None:
         """Stop the robot (never refused). Forgets the servo history so a later stream restarts

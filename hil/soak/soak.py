@@ -168,7 +168,7 @@ def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float) -> SetupConfi
     robot = setup.robot.model_copy(update={"control_rate_hz": rate_hz})
     proc = setup.procedure
     comp = proc.compensation.model_copy(
-        update={"settle_s": 1e6, "timeout_s": 1e6, "servo_at_robot_rate": True}
+        update={"settle_s": 1e6, "timeout_s": 1e6}
     )
     gate = proc.gate.model_copy(update={"timeout_s": 1e6})
     procedure = proc.model_copy(

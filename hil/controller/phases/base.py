@@ -86,7 +86,9 @@ class PhaseContext:
     pending: Callable[[], str | None]
     execute: Callable[[Command], None]
     servo_timing: Callable[[], ServoTiming]
-    #: latency of each frame's first servo command (exposure -> command sent), ms
+    #: steps the in-process servo loop at a time, ns (None: the servo process runs its own loop)
+    step_servo: Callable[[int], None] | None = None
+    #: latency of each frame's setpoint (exposure -> setpoint published), ms
     latency_ms: list[float] = field(default_factory=list)
     servo_deadlines_missed: int = 0
 

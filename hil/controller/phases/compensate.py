@@ -1,23 +1,28 @@
 """COMPENSATE: follow the patient to the corrected entry. Each pair: the filtered rigid change of
-the patient (about the entry point), bounded (beyond the bounds the operator decides), predicted
-over the latency, rate-limited, streamed to the arm as servo set-points at the robot's rate until
-the next pair is due; a slow optical bias correction (seed 001 §2.3); ALIGNED once the guide is
-within the lock tolerance for the settle time with the gate open (and the needle check passed).
+the patient (about the entry point), bounded (beyond the bounds the operator decides), turned into
+a tracking setpoint for the servo loop (the TCP pose at the pair's exposure and its velocity; the
+loop extrapolates it over the measured latency, rate-limits and commands it at the robot's rate,
+hil/servo); a slow optical bias correction (seed 001 §2.3); ALIGNED once the guide is within the
+lock tolerance for the settle time with the gate open (and the needle check passed).
 
-The sub-frame servo stream is the one place a phase commands the arm from inside its step (each
-set-point must go out on its own deadline); it uses the context's command sink, so it still goes
-through the safety layer like every other command.
+The setpoint goes through the safety layer (the context's command sink) like every other command.
+With the servo loop in this process (a simulated run: ``PhaseContext.step_servo``), the phase
+steps the loop at the robot's rate until the next pair is due; with the servo process it only
+publishes.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from hil.controller import events as ev
 from hil.controller.commands import Track
-from hil.controller.compensation import RateLimiter, correction_out_of_bounds, interpolate_pose
+from hil.controller.compensation import correction_out_of_bounds, interpolate_pose
 from hil.controller.deadline import DeadlineTimer
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
@@ -26,6 +31,10 @@ from hil.geometry.transform import RigidTransform
 if TYPE_CHECKING:
     from drivers.interfaces.camera import StereoFrame
     from hil.controller.inputs import TickInputs
+
+
+#: time step of the setpoint velocity's finite difference, s
+_VELOCITY_STEP_S = 0.01
 
 
 class CompensateSub(Enum):
@@ -46,8 +55,6 @@ class CompensatePhase(Phase):
 
     def __init__(self, ctx: PhaseContext) -> None:
         super().__init__(ctx)
-        comp = ctx.cfg.compensation
-        self.limiter = RateLimiter(comp.max_speed_mm_s, comp.max_accel_mm_s2, comp.max_angular_speed_rad_s)
         self.s = _Scratch()
 
     @property
@@ -56,9 +63,7 @@ class CompensatePhase(Phase):
 
     def on_enter(self, transition: str) -> PhaseResult:
         self.s = _Scratch()
-        st = self.ctx.robot.state_now()
-        self.limiter.reset(st.T_robot_from_tcp)
-        self.ctx.safety.forget_stream()
+        self.ctx.safety.start_tracking()   # the loop restarts from the actual pose, at rest
         return PhaseResult()
 
     def step(self, inputs: TickInputs) -> PhaseResult:
@@ -77,9 +82,6 @@ class CompensatePhase(Phase):
         if why is not None:
             ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=why, T_change=change)
             return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, why + "; operator decision needed")
-        servo_dt = 1.0 / ctx.robot.control_rate_hz if c.servo_at_robot_rate else ctx.frame_period_s
-        dt = servo_dt if s.last_cmd_ns is None else \
-            min(max((now - s.last_cmd_ns) * 1e-9, servo_dt), 2.0 * ctx.frame_period_s)
         # slow closed-loop correction from the optical measurement of the flange (seed 001 2.3)
         st = est.last_state
         if (c.bias_gain > 0 and est.filter.speed_mm_s < c.bias_max_speed_mm_s and st is not None
@@ -87,13 +89,12 @@ class CompensatePhase(Phase):
             D = est.bias_measurement(frame)
             if D is not None:
                 est.T_bias = interpolate_pose(est.T_bias, D, c.bias_gain)
-        hold_s = servo_dt if c.servo_at_robot_rate else ctx.frame_period_s
-        t_send = ctx.clock.now_ns()  # the stream's deadlines count from this command's slot
-        horizon_s, cmd = self._servo_once(frame, dt, hold_s)
+        t_send = ctx.clock.now_ns()  # the in-process stream's deadlines count from this slot
+        horizon_s, cmd = self._publish(frame, inputs.t_ns)
         t_cmd = ctx.clock.now_ns()
         ctx.latency_ms.append((t_cmd - frame.left.t_ns) * 1e-6)
-        if c.servo_at_robot_rate:
-            self._stream(frame, now, t_send, servo_dt)
+        if ctx.step_servo is not None:
+            self._stream(frame, now, t_send, ctx.step_servo)
         err = est.guide_error_optical_mm()
         dev = est.gate_deviation_mm()
         ctx.session.write(ev.COMPENSATION_STEP, exposure_t_ns=frame.left.t_ns,
@@ -116,14 +117,17 @@ class CompensatePhase(Phase):
             s.sub = CompensateSub.TRACKING
         return out
 
-    def _stream(self, frame: StereoFrame, now: int, t_send: int, servo_dt: float) -> None:
-        """Stream at the robot's rate until the next pair is due, on the predicted motion, on
-        absolute deadlines one servo period apart from the pair's command (the work per command
-        does not stretch the period; a slot missed by more than a period is skipped)."""
+    def _stream(self, frame: StereoFrame, now: int, t_send: int, step: Callable[[int], None]) -> None:
+        """The in-process servo loop (a simulated run): step it at the robot's rate until the next
+        pair is due, on absolute deadlines one period apart from the setpoint's slot (a slot missed
+        by more than a period is skipped). The servo process needs none of this: its loop runs on
+        its own clock."""
         ctx = self.ctx
+        servo_dt = 1.0 / ctx.robot.control_rate_hz
         timer = DeadlineTimer(ctx.clock, servo_dt)
         timer.start(t_send)
         half_ns = timer.period_ns // 2
+        step(t_send)
         timing = ctx.servo_timing()
         ready = timing.next_pair_ready
         if ready is None:  # the next grab blocks this thread: stop half a period before it is due
@@ -144,23 +148,36 @@ class CompensatePhase(Phase):
             if skipped:
                 ctx.servo_deadlines_missed += 1
                 ctx.session.write(ev.SERVO_DEADLINE_MISSED, slots_skipped=skipped, period_s=servo_dt)
-            self._servo_once(frame, servo_dt, servo_dt)
+            step(ctx.clock.now_ns())
 
-    def _servo_once(self, frame: StereoFrame, dt: float, hold_s: float) -> tuple[float, RigidTransform]:
-        """One rate-limited servo command on the motion predicted for when it takes effect:
-        now + half the time it is held + the robot's actuation lag (capped). Returns (prediction
-        horizon after the frame, s; the command)."""
+    def _publish(self, frame: StereoFrame, now_ns: int) -> tuple[float, RigidTransform]:
+        """Publish the frame's tracking setpoint: the TCP pose that keeps the guide on the plan for
+        the filtered patient change at the pair's exposure, and its velocity (the change's, through
+        the same frame chain, by a 10 ms difference of the filter's linear extrapolation). The
+        servo loop extrapolates it to each command time: horizon = time since the exposure (the
+        measured latency) + half a period + the actuation lag, capped at ``max_prediction_s``.
+        Returns (the horizon at publication, s; the pose at publication)."""
         ctx, c, est = self.ctx, self.ctx.cfg.compensation, self.ctx.est
-        now = ctx.clock.now_ns()
-        horizon_ns = 0
-        if c.predict_latency:
-            lead_s = (now - frame.left.t_ns) * 1e-9 + 0.5 * hold_s + c.actuation_lag_s
-            horizon_ns = round(min(lead_s, c.max_prediction_s) * 1e9)
-        T_pred = est.global_(est.filter.estimate(frame.left.t_ns + horizon_ns, c.max_prediction_s))
-        cmd = self.limiter.step(est.desired_tcp_robot(T_pred), dt, self._ramp_scale())
-        ctx.execute(Track(cmd, dt))
+        t_exp = frame.left.t_ns
+        D0 = est.desired_tcp_robot(est.global_(est.filter.estimate(t_exp, c.max_prediction_s)))
+        if c.predict_latency and c.max_prediction_s > 0:
+            dt_s = _VELOCITY_STEP_S
+            D1 = est.desired_tcp_robot(est.global_(
+                est.filter.estimate(t_exp + round(dt_s * 1e9), c.max_prediction_s)))
+            v = (D1.t - D0.t) / dt_s
+            w = (D1 @ D0.inverse()).as_rotvec() / dt_s
+            servo_dt = 1.0 / ctx.robot.control_rate_hz
+            lead_s, max_h = 0.5 * servo_dt + c.actuation_lag_s, c.max_prediction_s
+        else:
+            v, w, lead_s, max_h = np.zeros(3), np.zeros(3), 0.0, 0.0
+        timing = ctx.servo_timing()
+        valid_until = t_exp + round(timing.camera_max_age_s * 1e9)
+        ctx.execute(Track(D0, v, w, t_ref_ns=t_exp, valid_until_ns=valid_until, exposure_t_ns=t_exp,
+                          frame_seq=frame.left.seq, speed_scale=self._ramp_scale(),
+                          max_horizon_s=max_h, lead_s=lead_s))
         self.s.last_cmd_ns = ctx.clock.now_ns()
-        return horizon_ns * 1e-9, cmd
+        h = min(max((now_ns - t_exp) * 1e-9 + lead_s, 0.0), max_h)
+        return h, RigidTransform(D0.R, D0.t + v * h)
 
     def _ramp_scale(self) -> float:
         """Speed scale of the servo stream: ramps from ``initial_speed_fraction`` to 1 over

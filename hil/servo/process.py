@@ -1,0 +1,367 @@
+"""The servo loop in its own real-time process, owning the robot driver.
+
+Parent side: :class:`ServoProcess` (a :class:`~hil.servo.link.ServoLink`). It creates the shared
+regions, starts the child (``python -m hil.servo.child``: a fresh interpreter, so nothing of the
+supervisor's threads, locks or heap comes along, and the caller's main module is never re-run),
+sends it the spec over a socket pair, waits for it to report ready (the real-time grant, the
+robot's rate and TCP), and answers the channel commands.
+
+Child side: :func:`servo_main`. It builds the setup's robot through the driver registry on the
+wall clock and opens it, starts a command thread (channel commands such as a moveL or a reconnect
+may block for tens of ms; the loop never waits for them), asks for real time for the loop's thread
+(:func:`~hil.servo.rt.apply_realtime`), and then every period: waits for the deadline (sleep, then
+spin) and steps the :class:`~hil.servo.loop.ServoLoop`. A period missed by more than one is
+skipped (never bunched), and counted by the loop.
+
+Shutdown and crashes — the arm is stopped on every path:
+
+- ``close``: the child stops the arm, closes the robot and exits (the parent waits, then
+  terminates, then kills a child that does not exit);
+- the parent dies (Ctrl-C, a crash, SIGKILL): the child's channel ends (or its parent changes,
+  checked every 50 periods), it stops the arm, closes the robot and exits;
+- the child crashes: it stops the arm if it still can and reports the traceback; the parent's
+  :meth:`ServoProcess.gone` says why, and the supervisor's robot then raises DisconnectedError
+  (the controller faults, the run ends and the session log says why). A UR arm also stops by
+  itself when servo commands stop arriving (the RTDE control script's own timeout).
+
+The child ignores SIGINT: Ctrl-C goes to the whole process group, and the parent decides.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import traceback
+from collections import deque
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError
+from hil.clock import MonotonicClock
+from hil.config.setup import SetupConfig
+from hil.geometry.transform import RigidTransform
+from hil.servo.limiter import RateLimiter
+from hil.servo.link import Regions
+from hil.servo.loop import ServoLoop
+from hil.servo.rt import RtGranted, apply_realtime, wait_until
+from hil.servo.wire import error_from_wire, error_to_wire
+
+#: How long the child may take to start (a fresh interpreter importing numpy and the driver).
+START_TIMEOUT_S = 60.0
+#: Periods between two checks that the parent is still alive.
+PARENT_CHECK_PERIODS = 50
+
+
+@dataclass(frozen=True)
+class ServoSpec:
+    """What the child needs (picklable).
+
+    Attributes:
+        setup: the validated setup (its robot section is built in the child).
+        limiter: max speed mm/s, max acceleration mm/s², max angular speed rad/s of the tracking.
+        realtime: ask for SCHED_FIFO / pinning / mlockall.
+        priority: the SCHED_FIFO priority (1-99).
+        cpu: the CPU to pin to (None: the last one).
+    """
+
+    setup: SetupConfig
+    limiter: tuple[float, float, float]
+    realtime: bool = True
+    priority: int = 80
+    cpu: int | None = None
+
+
+@dataclass(frozen=True)
+class ServoReady:
+    """What the child reports once running."""
+
+    robot_name: str
+    control_rate_hz: float
+    T_flange_from_tcp: RigidTransform
+    rt: RtGranted
+    pid: int
+
+
+class ServoProcess:
+    """Parent side of the servo process (module doc). ``start`` blocks until the child is ready.
+
+    Raises (start): DriverError from building or opening the robot in the child (same class,
+    device and message); DeviceTimeoutError when the child does not start in time.
+    """
+
+    in_process = False
+
+    def __init__(self, spec: ServoSpec, robot_name: str, T_flange_from_tcp: RigidTransform) -> None:
+        self.spec = spec
+        self._name, self._T_flange_from_tcp = robot_name, T_flange_from_tcp
+        self._events: deque[tuple[str, dict[str, Any]]] = deque()
+        self._crash: str | None = None
+        self._next_id = 0
+        self.ready: ServoReady | None = None
+        self._closed = False
+        self._started = False
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> ServoReady:
+        """Create the shared regions and the channel, start the child, wait until it is ready."""
+        self.regions = Regions.create(shared=True)
+        ours, theirs = socket.socketpair()
+        self._conn = Connection(ours.detach())
+        try:
+            self._proc = subprocess.Popen(
+                [sys.executable, "-m", "hil.servo.child", str(theirs.fileno()), str(os.getpid())],
+                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
+        finally:
+            theirs.close()
+        self._started = True
+        try:
+            self._conn.send((self.spec, self.regions.names()))
+            msg = self._wait_for(lambda m: m[0] in ("ready", "failed"), START_TIMEOUT_S)
+        except BaseException:
+            self.close()
+            raise
+        if msg[0] == "failed":
+            self.close()
+            raise error_from_wire(*msg[1])
+        info = msg[1]
+        self.ready = ServoReady(info["robot_name"], float(info["control_rate_hz"]),
+                                RigidTransform.from_matrix(np.asarray(info["T_flange_from_tcp"])),
+                                RtGranted.from_dict(info["rt"]), int(info["pid"]))
+        return self.ready
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop the arm and end the child (module doc). Idempotent; never raises."""
+        if self._closed:
+            return
+        self._closed = True
+        if not self._started:
+            return
+        if self._proc.poll() is None:
+            with contextlib.suppress(OSError, ValueError):
+                self._conn.send(("close", -1, ()))
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self._proc.wait(timeout_s)
+        if self._proc.poll() is None:
+            self._proc.terminate()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self._proc.wait(2.0)
+        if self._proc.poll() is None:
+            self._proc.kill()
+            self._proc.wait()
+        self._conn.close()
+        self.regions.close()
+
+    @property
+    def exitcode(self) -> int | None:
+        return self._proc.poll() if self._started else None
+
+    # ------------------------------------------------------------------ link contract
+    @property
+    def robot_name(self) -> str:
+        return self._name
+
+    @property
+    def control_rate_hz(self) -> float:
+        assert self.ready is not None, "start() first"
+        return self.ready.control_rate_hz
+
+    @property
+    def T_flange_from_tcp(self) -> RigidTransform:
+        return self.ready.T_flange_from_tcp if self.ready is not None else self._T_flange_from_tcp
+
+    def request(self, command: str, *args: Any, timeout_s: float = 5.0) -> Any:
+        why = self.gone()
+        if why is not None:
+            raise DisconnectedError(self.robot_name, why)
+        self._next_id += 1
+        rid = self._next_id
+        try:
+            self._conn.send((command, rid, args))
+        except (OSError, ValueError) as exc:
+            raise DisconnectedError(self.robot_name, f"servo process channel: {exc}") from exc
+        msg = self._wait_for(lambda m: m[0] == "reply" and m[1] == rid, timeout_s)
+        ok, payload = msg[2], msg[3]
+        if not ok:
+            raise error_from_wire(*payload)
+        return payload
+
+    def take_events(self) -> list[tuple[str, dict[str, Any]]]:
+        self._pump(0.0, None)
+        out = list(self._events)
+        self._events.clear()
+        return out
+
+    def gone(self) -> str | None:
+        if self._crash is not None:
+            return self._crash
+        if self._closed:
+            return "servo process closed"
+        if not self._started:
+            return "servo process not started"
+        if self._proc.poll() is not None:
+            self._pump(0.0, None)
+            return self._exit_reason()
+        return None
+
+    def _exit_reason(self) -> str:
+        return self._crash or f"servo process exited (code {self._proc.poll()})"
+
+    def kick(self) -> None:
+        """Nothing: the process loop reads the block every period."""
+
+    # ------------------------------------------------------------------ channel
+    def _pump(self, timeout_s: float, want: Any) -> Any:
+        """Receive messages for up to ``timeout_s``; events are queued; returns the first message
+        ``want`` accepts (None: none)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            remaining = max(deadline - time.monotonic(), 0.0)
+            try:
+                if not self._conn.poll(remaining):
+                    return None
+                msg = self._conn.recv()
+            except (EOFError, OSError):
+                self._crash = self._crash or f"servo process exited (code {self._proc.poll()})"
+                return None
+            if msg[0] == "event":
+                self._events.append((msg[1], msg[2]))
+            elif msg[0] == "crashed":
+                self._crash = f"servo process crashed: {msg[1]}"
+            if want is not None and want(msg):
+                return msg
+            if remaining <= 0 and not self._conn.poll(0):
+                return None
+
+    def _wait_for(self, want: Any, timeout_s: float) -> Any:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise DeviceTimeoutError(self.robot_name,
+                                         f"servo process did not answer within {timeout_s} s")
+            msg = self._pump(min(remaining, 0.05), want)
+            if msg is not None:
+                return msg
+            if self._crash is not None or self._proc.poll() is not None:
+                self._pump(0.0, None)
+                raise DisconnectedError(self.robot_name, self._exit_reason())
+
+
+# ---------------------------------------------------------------------------- child
+def servo_main(conn: Connection, parent_pid: int) -> None:
+    """The servo process (module doc): receives ``(spec, region names)`` first.
+
+    Order matters: the robot is built and opened, and the command thread started, *before* the
+    loop's thread asks for real time, so the driver's own threads (ur-rtde's receivers) and the
+    command thread stay on the normal scheduler: a SCHED_FIFO thread that polls would otherwise
+    starve the loop on its CPU. Threads the driver starts later (a reconnect in ``recover``) are
+    started from the command thread, so they are normal too.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from hil.log import configure_logging
+
+    configure_logging(level="warning")
+    spec, names = conn.recv()
+    closing = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: closing.set())
+    regions = Regions.attach(names)
+    clock = MonotonicClock()
+    from hil.config.build import build_devices  # the registry, in the child only
+
+    try:
+        robot = build_devices(spec.setup, clock).robot
+        robot.open()
+    except DriverError as exc:
+        conn.send(("failed", error_to_wire(exc)))
+        regions.close()
+        return
+    except Exception as exc:  # noqa: BLE001 - a config the parent validated; report, never hang it
+        conn.send(("failed", ("DeviceFaultError", "robot", f"{type(exc).__name__}: {exc}")))
+        regions.close()
+        return
+    send_lock = threading.Lock()
+
+    def send(msg: Any) -> None:
+        with send_lock, contextlib.suppress(OSError, ValueError):
+            conn.send(msg)
+
+    loop = ServoLoop(robot, spec.setup.safety.motion_limits(), clock, regions.block, regions.ring,
+                     regions.stats, period_s=1.0 / robot.control_rate_hz, limiter=RateLimiter(*spec.limiter),
+                     report=lambda kind, fields: send(("event", kind, fields)))
+    commands = threading.Thread(target=_serve, args=(conn, robot, send, closing), name="servo-commands",
+                                daemon=True)
+    commands.start()
+    sys.setswitchinterval(0.0005)   # the loop thread gets the interpreter back within 0.5 ms
+    rt = apply_realtime(spec.priority, spec.cpu) if spec.realtime else RtGranted()
+    tcp = getattr(robot, "T_flange_from_tcp", None)
+    T_tcp = tcp if isinstance(tcp, RigidTransform) else RigidTransform.identity()
+    send(("ready", {"robot_name": robot.name, "control_rate_hz": robot.control_rate_hz,
+                    "T_flange_from_tcp": T_tcp.as_matrix().tolist(), "rt": rt.to_dict(), "pid": os.getpid()}))
+    try:
+        _run(loop, parent_pid, closing)
+    except BaseException:  # noqa: BLE001 - a crash: stop the arm, say why, exit non-zero
+        detail = traceback.format_exc(limit=6)
+        _stop_quietly(robot)
+        send(("crashed", detail))
+        robot.close()
+        os._exit(1)
+    _stop_quietly(robot)
+    robot.close()
+    regions.close()
+
+
+def _stop_quietly(robot: Any) -> None:
+    with contextlib.suppress(DriverError):
+        robot.stop()
+
+
+def _run(loop: ServoLoop, parent_pid: int, closing: threading.Event) -> None:
+    period_ns = loop.period_ns
+    next_ns = time.monotonic_ns() + period_ns
+    k = 0
+    while not closing.is_set():
+        now = wait_until(next_ns)
+        loop.step(now)
+        k += 1
+        if k % PARENT_CHECK_PERIODS == 0 and os.getppid() != parent_pid:
+            return   # the supervisor is gone: stop the arm (the caller) and exit
+        next_ns += period_ns
+        late = time.monotonic_ns() - next_ns
+        if late > period_ns:   # missed more than one period: skip the slots, never bunch them
+            next_ns += (late // period_ns) * period_ns
+
+
+def _serve(conn: Connection, robot: Any, send: Any, closing: threading.Event) -> None:
+    """The command thread: serve channel commands until ``close`` or the channel ends (the
+    supervisor is gone); then tell the loop to end."""
+    try:
+        while not closing.is_set():
+            command, rid, args = conn.recv()
+            if command == "close":
+                break
+            try:
+                if command == "move_linear":
+                    M, speed, accel = args
+                    robot.move_linear(RigidTransform.from_matrix(np.asarray(M)), speed, accel, blocking=False)
+                    result: Any = None
+                elif command == "recover":
+                    robot.recover()
+                    result = None
+                else:
+                    raise ValueError(f"unknown servo command {command!r}")
+                send(("reply", rid, True, result))
+            except DriverError as exc:
+                send(("reply", rid, False, error_to_wire(exc)))
+    except (EOFError, OSError):
+        pass   # the supervisor is gone
+    finally:
+        closing.set()

@@ -1,0 +1,407 @@
+"""Shared memory between the supervisor and the servo loop: the setpoint block (supervisor ->
+servo), the state ring and the loop statistics (servo -> everyone).
+
+One writer per region, any number of readers, no locks:
+
+- :class:`SetpointBlock` is a *seqlock*: the writer makes the sequence word odd, writes the
+  fields, makes it even again; a reader copies the fields between two reads of the sequence word
+  and retries when the word was odd or changed. A reader therefore never sees half a setpoint.
+- :class:`StateRing` is a ring of per-period records (robot state, what was commanded). The
+  writer fills slot ``head % N`` and then increments ``head``; a reader copies slot ``head - 1``
+  and accepts it when ``head`` did not move by ``N - 1`` or more meanwhile (the slot was not
+  overwritten under it).
+- :class:`LoopStats` are counters and histograms only the servo loop writes.
+
+Ordering: the fields are plain 8-byte words (numpy views over one buffer). On x86-64 (total store
+order, the machines this runs on) stores become visible in program order and loads are not
+reordered with older loads, which is what the seqlock needs; a port to a weakly ordered CPU needs
+explicit fences here.
+
+Buffers: :meth:`ShmRegion.create` makes a named ``multiprocessing.shared_memory`` segment (the
+servo process attaches it by name); :meth:`ShmRegion.local` makes a plain in-process buffer of the
+same layout (the in-process loop of a simulated run). Nothing here allocates on the read and write
+paths except the caller-provided output arrays' first creation.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import mmap
+import os
+from dataclasses import dataclass, field
+from enum import IntEnum
+from multiprocessing import shared_memory
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+WORD = 8
+
+
+class ServoMode(IntEnum):
+    """What the supervisor asks of the servo loop."""
+
+    IDLE = 0    # no servo command (the arm holds, or runs a move started by a command)
+    TRACK = 1   # follow the setpoint (extrapolated, rate- and acceleration-limited)
+    STOP = 2    # stop the arm on the next period, retry until delivered, keep reading it
+
+
+class ShmRegion:
+    """A zero-initialised buffer of ``words`` 8-byte words with int64 and float64 views.
+
+    Use :meth:`create` (owner), :meth:`attach` (another process) or :meth:`local`.
+    """
+
+    def __init__(self, buf: Any, words: int, shm: shared_memory.SharedMemory | None, owner: bool) -> None:
+        self.words = words
+        self._shm = shm
+        self._owner = owner
+        self._mmap: mmap.mmap | None = None
+        self.i: IntArray = np.ndarray((words,), dtype=np.int64, buffer=buf)
+        self.f: FloatArray = np.ndarray((words,), dtype=np.float64, buffer=buf)
+
+    @classmethod
+    def create(cls, words: int) -> ShmRegion:
+        shm = shared_memory.SharedMemory(create=True, size=words * WORD)
+        region = cls(shm.buf, words, shm, owner=True)
+        region.i[:] = 0
+        return region
+
+    @classmethod
+    def attach(cls, name: str, words: int) -> ShmRegion:
+        """Map the segment ``name`` another process created (POSIX shared memory under /dev/shm,
+        mapped directly: no resource tracker in this process, which would unlink the segment when
+        this process exits)."""
+        fd = os.open(os.path.join("/dev/shm", name.lstrip("/")), os.O_RDWR)
+        try:
+            mm = mmap.mmap(fd, words * WORD)
+        finally:
+            os.close(fd)
+        region = cls(mm, words, None, owner=False)
+        region._mmap = mm
+        return region
+
+    @classmethod
+    def local(cls, words: int) -> ShmRegion:
+        return cls(bytearray(words * WORD), words, None, owner=False)
+
+    @property
+    def name(self) -> str | None:
+        """The shared segment's name (None for a local buffer)."""
+        return None if self._shm is None else self._shm.name
+
+    def close(self) -> None:
+        """Release the views and the segment (the owner also unlinks it). Idempotent."""
+        shm, self._shm = self._shm, None
+        mm, self._mmap = self._mmap, None
+        self.i = np.zeros(0, dtype=np.int64)
+        self.f = np.zeros(0, dtype=np.float64)
+        # views other objects still hold keep a mapping alive (BufferError): it is released with
+        # them; the owner's unlink removes the segment's name either way
+        if mm is not None:
+            with contextlib.suppress(BufferError):
+                mm.close()
+        if shm is not None:
+            with contextlib.suppress(BufferError):
+                shm.close()
+            if self._owner:
+                shm.unlink()
+
+
+# ---------------------------------------------------------------------------- setpoint block
+# word offsets
+_SEQ, _MODE, _TRACK_ID, _T_REF, _VALID_UNTIL, _EXPOSURE, _STOP_ID, _FRAME_SEQ = range(8)
+_POSE = 8          # 12 words: R (row-major 9), t (3)
+_VEL = 20          # 6 words: v (mm/s, robot frame), w (rad/s, robot frame)
+_SCALE, _HORIZON, _LEAD = 26, 27, 28
+SETPOINT_WORDS = 32
+
+
+@dataclass
+class Setpoint:
+    """A copy of the setpoint block (one reader's reusable buffer).
+
+    Attributes:
+        seq: the block's sequence number when copied (even; grows with every write).
+        mode: :class:`ServoMode`.
+        track_id: grows when a new tracking session starts (the loop then restarts its rate limiter
+            from the arm's actual pose at rest).
+        t_ref_ns: the time the pose is valid at (the stereo pair's exposure), controller clock.
+        valid_until_ns: after this the setpoint is stale (the loop ramps down to hold).
+        exposure_t_ns: the exposure the setpoint was computed from (for the latency figure).
+        stop_id: grows with every stop request (the loop acknowledges each in the stats).
+        frame_seq: the stereo pair's sequence number.
+        R, t_mm: the target TCP pose ``T_robot_from_tcp`` at ``t_ref_ns`` (mm).
+        v_mm_s, w_rad_s: its linear and angular velocity (robot frame).
+        speed_scale: (0, 1]: scales the speed limit (resume ramp).
+        max_horizon_s: the loop never extrapolates further than this past ``t_ref_ns``.
+        lead_s: the arm's actuation lag added to the extrapolation.
+    """
+
+    seq: int = 0
+    mode: int = ServoMode.IDLE
+    track_id: int = 0
+    t_ref_ns: int = 0
+    valid_until_ns: int = 0
+    exposure_t_ns: int = 0
+    stop_id: int = 0
+    frame_seq: int = 0
+    R: FloatArray = field(default_factory=lambda: np.eye(3))
+    t_mm: FloatArray = field(default_factory=lambda: np.zeros(3))
+    v_mm_s: FloatArray = field(default_factory=lambda: np.zeros(3))
+    w_rad_s: FloatArray = field(default_factory=lambda: np.zeros(3))
+    speed_scale: float = 1.0
+    max_horizon_s: float = 0.0
+    lead_s: float = 0.0
+
+
+class SetpointBlock:
+    """The supervisor's setpoint for the servo loop (seqlock, module doc). One writer."""
+
+    def __init__(self, region: ShmRegion) -> None:
+        if region.words < SETPOINT_WORDS:
+            raise ValueError(f"setpoint block needs {SETPOINT_WORDS} words, region has {region.words}")
+        self.region = region
+        self._pose = np.zeros(12)
+
+    # ------------------------------------------------------------------ writer
+    def _begin(self) -> None:
+        self.region.i[_SEQ] += 1   # odd: a write is in progress
+
+    def _end(self) -> None:
+        self.region.i[_SEQ] += 1   # even: consistent
+
+    def write_track(self, *, track_id: int, R: FloatArray, t_mm: FloatArray, v_mm_s: FloatArray,
+                    w_rad_s: FloatArray, t_ref_ns: int, valid_until_ns: int, exposure_t_ns: int,
+                    frame_seq: int, speed_scale: float, max_horizon_s: float, lead_s: float) -> None:
+        """Publish a tracking setpoint (see :class:`Setpoint` for the fields)."""
+        i, f = self.region.i, self.region.f
+        self._begin()
+        i[_MODE] = ServoMode.TRACK
+        i[_TRACK_ID] = track_id
+        i[_T_REF] = t_ref_ns
+        i[_VALID_UNTIL] = valid_until_ns
+        i[_EXPOSURE] = exposure_t_ns
+        i[_FRAME_SEQ] = frame_seq
+        f[_POSE:_POSE + 9] = np.asarray(R, dtype=np.float64).reshape(9)
+        f[_POSE + 9:_POSE + 12] = t_mm
+        f[_VEL:_VEL + 3] = v_mm_s
+        f[_VEL + 3:_VEL + 6] = w_rad_s
+        f[_SCALE] = speed_scale
+        f[_HORIZON] = max_horizon_s
+        f[_LEAD] = lead_s
+        self._end()
+
+    def write_mode(self, mode: ServoMode) -> int:
+        """Switch to IDLE or STOP (a STOP gets a new stop id, returned; else the current one)."""
+        i = self.region.i
+        self._begin()
+        i[_MODE] = mode
+        if mode is ServoMode.STOP:
+            i[_STOP_ID] += 1
+        stop_id = int(i[_STOP_ID])
+        self._end()
+        return stop_id
+
+    # ------------------------------------------------------------------ reader
+    def read(self, out: Setpoint) -> Setpoint:
+        """Copy the block into ``out`` (consistent: retried while a write is in progress)."""
+        i, f = self.region.i, self.region.f
+        while True:
+            s1 = int(i[_SEQ])
+            if s1 & 1:
+                continue
+            mode, track_id, t_ref = int(i[_MODE]), int(i[_TRACK_ID]), int(i[_T_REF])
+            valid, exposure, stop_id, frame_seq = (int(i[_VALID_UNTIL]), int(i[_EXPOSURE]),
+                                                   int(i[_STOP_ID]), int(i[_FRAME_SEQ]))
+            self._pose[:] = f[_POSE:_POSE + 12]
+            out.v_mm_s[:] = f[_VEL:_VEL + 3]
+            out.w_rad_s[:] = f[_VEL + 3:_VEL + 6]
+            scale, horizon, lead = float(f[_SCALE]), float(f[_HORIZON]), float(f[_LEAD])
+            if int(i[_SEQ]) == s1:
+                break
+        out.seq, out.mode, out.track_id, out.t_ref_ns = s1, mode, track_id, t_ref
+        out.valid_until_ns, out.exposure_t_ns = valid, exposure
+        out.stop_id, out.frame_seq = stop_id, frame_seq
+        out.R[:] = self._pose[:9].reshape(3, 3)
+        out.t_mm[:] = self._pose[9:]
+        out.speed_scale, out.max_horizon_s, out.lead_s = scale, horizon, lead
+        return out
+
+
+# ---------------------------------------------------------------------------- state ring
+# slot word offsets
+_S_T, _S_CMD_T, _S_SAFETY, _S_MODE, _S_PERIOD, _S_SERVO_MODE = range(6)
+_S_POSE = 8        # 12 words
+_S_Q = 20          # 6 words
+_S_SPEED = 26
+SLOT_WORDS = 28
+_HEAD = 0
+_RING_HEADER = 4
+
+
+@dataclass
+class RingRecord:
+    """One period's record (a reader's reusable buffer). Codes are the indices in the robot
+    interface's enums' declaration order (see :mod:`hil.servo.codes`)."""
+
+    t_ns: int = 0             # the robot state's sample time
+    cmd_t_ns: int = 0         # when this period's command was sent (0: none)
+    safety_code: int = 0
+    mode_code: int = 0
+    period: int = 0           # the loop's period index
+    servo_mode: int = 0       # the ServoMode the loop was in
+    pose: FloatArray = field(default_factory=lambda: np.zeros(12))   # R row-major, t mm
+    q_rad: FloatArray = field(default_factory=lambda: np.zeros(6))
+    tcp_speed_mm_s: float = 0.0
+
+
+class StateRing:
+    """Per-period records (module doc). One writer: the servo loop."""
+
+    def __init__(self, region: ShmRegion, slots: int) -> None:
+        if region.words < ring_words(slots):
+            raise ValueError(f"ring of {slots} slots needs {ring_words(slots)} words")
+        self.region = region
+        self.slots = slots
+        self._slot = np.zeros(SLOT_WORDS)
+
+    @property
+    def head(self) -> int:
+        """Records written so far."""
+        return int(self.region.i[_HEAD])
+
+    def _base(self, k: int) -> int:
+        return _RING_HEADER + (k % self.slots) * SLOT_WORDS
+
+    def write(self, *, t_ns: int, cmd_t_ns: int, safety_code: int, mode_code: int, period: int,
+              servo_mode: int, pose: FloatArray, q_rad: FloatArray, tcp_speed_mm_s: float) -> None:
+        i, f = self.region.i, self.region.f
+        head = int(i[_HEAD])
+        b = self._base(head)
+        i[b + _S_T], i[b + _S_CMD_T], i[b + _S_SAFETY] = t_ns, cmd_t_ns, safety_code
+        i[b + _S_MODE], i[b + _S_PERIOD], i[b + _S_SERVO_MODE] = mode_code, period, servo_mode
+        f[b + _S_POSE:b + _S_POSE + 12] = pose
+        f[b + _S_Q:b + _S_Q + 6] = q_rad
+        f[b + _S_SPEED] = tcp_speed_mm_s
+        i[_HEAD] = head + 1
+
+    def read_latest(self, out: RingRecord) -> RingRecord | None:
+        """The newest record copied into ``out``; None before the first."""
+        return self.read_back(0, out)
+
+    def read_back(self, back: int, out: RingRecord) -> RingRecord | None:
+        """The record ``back`` periods before the newest (0: the newest) into ``out``; None when
+        it does not exist (yet) or was overwritten while being read."""
+        i, f = self.region.i, self.region.f
+        if not 0 <= back < self.slots - 1:
+            return None
+        while True:
+            h1 = int(i[_HEAD])
+            k = h1 - 1 - back
+            if k < 0:
+                return None
+            b = self._base(k)
+            self._slot[:] = f[b:b + SLOT_WORDS]
+            h2 = int(i[_HEAD])
+            if h2 - h1 < self.slots - 1 - back:
+                break
+        raw = self._slot.view(np.int64)
+        out.t_ns, out.cmd_t_ns, out.safety_code = int(raw[_S_T]), int(raw[_S_CMD_T]), int(raw[_S_SAFETY])
+        out.mode_code, out.period = int(raw[_S_MODE]), int(raw[_S_PERIOD])
+        out.servo_mode = int(raw[_S_SERVO_MODE])
+        out.pose[:] = self._slot[_S_POSE:_S_POSE + 12]
+        out.q_rad[:] = self._slot[_S_Q:_S_Q + 6]
+        out.tcp_speed_mm_s = float(self._slot[_S_SPEED])
+        return out
+
+
+def ring_words(slots: int) -> int:
+    return _RING_HEADER + slots * SLOT_WORDS
+
+
+# ---------------------------------------------------------------------------- loop statistics
+class Stat(IntEnum):
+    """Counter words of :class:`LoopStats` (servo loop writes, anyone reads)."""
+
+    PERIODS = 0               # periods stepped
+    COMMANDS = 1              # servo commands sent
+    LATE = 2                  # intervals longer than two periods
+    MAX_INTERVAL_NS = 3
+    STOPS_SENT = 4            # stop commands delivered to the driver
+    STOP_ACK_ID = 5           # the last stop request id delivered
+    STOP_ACK_T_NS = 6         # when it was delivered (controller clock)
+    REFUSALS = 7              # setpoints the merged limit check refused (the loop then stops)
+    STALE = 8                 # periods on a stale setpoint (ramping down to hold)
+    READ_ERRORS = 9           # robot state reads that raised
+    COMMAND_ERRORS = 10       # servo / stop commands the driver raised on
+    INTERVALS = 11            # intervals measured (histogram total)
+    LATENCY_SAMPLES = 12      # setpoints whose first command was measured
+    LAST_PERIOD_T_NS = 13
+    WORST_OVERRUN_NS = 14     # longest time a period's work took past its deadline
+    STEP_NS_MAX = 15          # longest step() work, ns
+    STOP_ISSUE_ID = 16        # the last stop request the loop began to send
+    STOP_ISSUE_T_NS = 17      # when it began (the driver's stop call may then block until rest)
+
+
+STAT_WORDS = 32
+#: interval histogram: bins of 10 µs over 0..20 ms (the last bin counts everything longer)
+INTERVAL_BIN_NS = 10_000
+INTERVAL_BINS = 2000
+#: latency histogram (exposure -> first command on that setpoint): bins of 0.1 ms over 0..500 ms
+LATENCY_BIN_NS = 100_000
+LATENCY_BINS = 5000
+
+
+def stats_words() -> int:
+    return STAT_WORDS + INTERVAL_BINS + LATENCY_BINS
+
+
+class LoopStats:
+    """Counters and histograms of the servo loop (module doc)."""
+
+    def __init__(self, region: ShmRegion, offset: int = 0) -> None:
+        self.region = region
+        self.offset = offset
+        self.c: IntArray = region.i[offset:offset + STAT_WORDS]
+        self.interval_hist: IntArray = region.i[offset + STAT_WORDS:offset + STAT_WORDS + INTERVAL_BINS]
+        lo = offset + STAT_WORDS + INTERVAL_BINS
+        self.latency_hist: IntArray = region.i[lo:lo + LATENCY_BINS]
+
+    def get(self, stat: Stat) -> int:
+        return int(self.c[stat])
+
+    def add_interval(self, interval_ns: int, period_ns: int) -> None:
+        c = self.c
+        k = interval_ns // INTERVAL_BIN_NS
+        self.interval_hist[k if k < INTERVAL_BINS else INTERVAL_BINS - 1] += 1
+        c[Stat.INTERVALS] += 1
+        if interval_ns > 2 * period_ns:
+            c[Stat.LATE] += 1
+        if interval_ns > c[Stat.MAX_INTERVAL_NS]:
+            c[Stat.MAX_INTERVAL_NS] = interval_ns
+
+    def add_latency(self, latency_ns: int) -> None:
+        k = max(latency_ns, 0) // LATENCY_BIN_NS
+        self.latency_hist[k if k < LATENCY_BINS else LATENCY_BINS - 1] += 1
+        self.c[Stat.LATENCY_SAMPLES] += 1
+
+    def reset(self) -> None:
+        """Zero every counter and histogram (a soak's warm-up is left out this way)."""
+        self.c[:] = 0
+        self.interval_hist[:] = 0
+        self.latency_hist[:] = 0
+
+
+def histogram_percentile_ms(hist: IntArray, bin_ns: int, q: float) -> float | None:
+    """The ``q`` (0..100) percentile of a histogram, ms (the upper edge of its bin; None: empty)."""
+    total = int(hist.sum())
+    if total == 0:
+        return None
+    rank = q / 100.0 * total
+    k = int(np.searchsorted(np.cumsum(hist), rank, side="left"))
+    return (min(k, hist.size - 1) + 1) * bin_ns * 1e-6
