@@ -1,8 +1,11 @@
-"""``hil soak --minutes M [--rate 125|500] [--json]``: real-time soak of the simulated procedure
-in compensation at the robot's servo rate; reports servo period jitter (p50/p99/max), missed
-deadlines, frame-to-command latency and memory growth (definitions in hil/soak/soak.py and
-docs/benchmarks.md). Stdout: the figures (``--json``: one object). Exit code 0 when the run stayed
-in compensation without faults, 1 otherwise.
+"""``hil soak --minutes M [--rate 125|500] [--no-rt] [--json]``: real-time soak of the simulated
+procedure in compensation, with the servo loop in its own process at the robot's rate; reports
+what the OS granted that process (SCHED_FIFO, CPU, locked memory), servo period jitter
+(p50/p99/max), late periods, frame-to-command latency, operator stop -> stop command, and memory
+growth of both processes (definitions in hil/soak/soak.py and docs/benchmarks.md). ``--no-rt``
+runs the same soak without asking for real-time scheduling (the comparison). Stdout: the figures
+(``--json``: one object). Exit code 0 when the run stayed in compensation without faults or
+refused steps, 1 otherwise.
 """
 
 from __future__ import annotations
@@ -19,9 +22,11 @@ def add_parser(sub: Any) -> None:
         "soak",
         help="real-time soak of the simulated procedure in compensation (jitter, deadlines, memory)",
         description="Run the simulated procedure on the wall clock, keep it compensating for M minutes "
-        "while servo targets stream at the robot's rate, and report servo period jitter, "
-        "missed deadlines, frame-to-command latency and memory growth.",
+        "with the servo loop in its own (real-time) process at the robot's rate, and report what the OS "
+        "granted, servo period jitter, late periods, frame-to-command latency and memory growth.",
     )
+    p.add_argument("--no-rt", action="store_true",
+                   help="do not ask for real-time scheduling for the servo process (the comparison run)")
     p.add_argument("--minutes", type=float, default=1.0, help="minutes of compensation (default 1)")
     p.add_argument(
         "--rate",
@@ -51,13 +56,17 @@ def run(args: argparse.Namespace) -> int:
         config=config,
         plan=args.plan,
         session_dir=Path(args.session_dir),
+        realtime=not args.no_rt,
         progress=lambda m: print(f"hil soak: {m}", file=sys.stderr, flush=True),
     )
     if args.json:
         sys.stdout.write(json.dumps(res.to_dict()) + "\n")
     else:
         out = sys.stdout
+        from hil.servo.rt import RtGranted
+
         out.write(f"servo rate           {res.rate_hz:g} Hz (period {1e3 / res.rate_hz:.3f} ms)\n")
+        out.write(f"servo process        {RtGranted.from_dict(res.rt_granted).summary()}\n")
         out.write(
             f"compensation         {res.compensate_s:.1f} s, {res.servo_commands} servo commands, "
             f"{res.resumes} resume(s)\n"
@@ -68,19 +77,18 @@ def run(args: argparse.Namespace) -> int:
             f"missed deadlines     {res.missed_deadlines} of {res.intervals} intervals "
             f"({100 * res.missed_fraction:.2f} %), longest gap {res.longest_gap_ms} ms\n"
         )
-        out.write(
-            f"frame boundaries     {res.frame_boundary_missed} of {res.frame_boundaries} over two periods, "
-            f"interval p50/p99/max {_fmt(res.frame_boundary_ms)} ms; {res.compensation_frames} frames "
-            f"in compensation, {res.frames_overwritten} overwritten\n"
-        )
+        out.write(f"frames               {res.compensation_frames} in compensation, "
+                  f"{res.frames_overwritten} overwritten; {res.stale_periods} period(s) on a stale "
+                  "setpoint\n")
         out.write(f"frame->command       {_fmt(res.frame_to_command_ms)} ms (p50/p99/max)\n")
-        r = res.rss_mb
-        out.write(
-            f"memory (RSS)         {r.get('after_warmup')} -> {r.get('end')} MB, "
-            f"growth {r.get('growth')} MB, slope {r.get('slope_mb_per_min')} MB/min\n"
-        )
-        out.write(f"limit violations     {res.limit_violations} command(s) outside the limits "
-                  "reached the driver\n")
+        out.write(f"stop->command        {_fmt(res.stop_to_command_ms)} ms (p50/p99/max)\n")
+        for label, r in (("memory supervisor", res.rss_mb), ("memory servo proc.", res.servo_rss_mb)):
+            out.write(
+                f"{label:<21}{r.get('after_warmup')} -> {r.get('end')} MB, "
+                f"growth {r.get('growth')} MB, slope {r.get('slope_mb_per_min')} MB/min\n"
+            )
+        out.write(f"refused steps        {res.limit_violations} (the loop's limit check; none reached "
+                  "the driver)\n")
         out.write(f"final state          {res.final_state}; faults: {'; '.join(res.faults) or 'none'}\n")
         out.write(f"session log          {res.session_log}\n")
     return 0 if res.compensate_s > 0 and not res.faults and not res.limit_violations else 1

@@ -18,6 +18,7 @@ from __future__ import annotations
 import collections
 import itertools
 import threading
+import time
 
 from hil.controller.fsm import OPERATOR_EVENTS, Event
 from hil.controller.operator_input import CommandResult, OperatorCommand, OperatorView
@@ -62,7 +63,7 @@ class ConsoleOperator:
         if event not in OPERATOR_EVENTS:
             raise HilError(f"{event.value} is not an operator command")
         with self._lock:
-            cmd = OperatorCommand(event, next(self._seq), origin, confirms, decline)
+            cmd = OperatorCommand(event, next(self._seq), origin, confirms, decline, time.monotonic_ns())
             why = ""
             if self._quit.is_set():
                 why = "the console is closing (the procedure is being aborted)"
@@ -103,6 +104,10 @@ class ConsoleOperator:
 
     def finished(self, view: OperatorView) -> bool:
         return self._quit.is_set()
+
+    def input_waiting(self) -> bool:
+        """WakingOperator: a command is queued, or the console is closing."""
+        return bool(self._queue) or self._quit.is_set()
 
     # ---------------------------------------------------------- AcknowledgingOperator
     def acknowledge(self, result: CommandResult) -> None:

@@ -123,7 +123,7 @@ def with_servo_process(setup: SetupConfig, devices: Devices, clock: Clock) -> De
     T_tcp = tcp if isinstance(tcp, RigidTransform) else RigidTransform.identity()
     robot = ServoRobot(ServoProcess(spec, inner.name, T_tcp), inner.limits)
     if isinstance(devices.world, RobotFollower):
-        devices.world.follow_robot(robot)
+        devices.world.follow_robot(robot.state_view())
     return dataclasses.replace(devices, robot=robot)
 
 

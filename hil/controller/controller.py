@@ -18,6 +18,7 @@ rate limiter from the actual pose at rest, with a speed ramp; no stored target i
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 from drivers.interfaces.errors import DriverError
 from hil.controller import events as ev
@@ -25,7 +26,7 @@ from hil.controller.commands import Command, Hold, MoveLinear, Stop, Track
 from hil.controller.fsm import HALT_STATES, RECOVERY, Event, FireResult, State
 from hil.controller.inputs import TickInputs
 from hil.controller.metrics import RunSummary
-from hil.controller.operator_input import as_command
+from hil.controller.operator_input import WakingOperator, as_command
 from hil.controller.parts import ControllerParts
 from hil.controller.phases.halt import HaltPhase
 from hil.errors import HilError
@@ -168,11 +169,13 @@ class Controller(ControllerParts):
         if command is not None:
             self._handle_operator(command)
         try:
-            st = self.pipeline.read(self.est)
+            st = self.pipeline.read(self.est, self._wake)
         except DriverError as exc:
             self.clock.sleep(self.frame_period_s)  # time moves on even when a device is gone
             self.fault(f"{exc.device}: {exc.message}")
             return
+        if st is None:
+            return  # an operator input waits: the next tick takes it before waiting for a pair
         self.fire(Event.ROBOT_STATE_RECEIVED)
         if self.est.tracker_samples:
             self.fire(Event.TRACKER_SAMPLE_RECEIVED)
@@ -197,6 +200,11 @@ class Controller(ControllerParts):
                 self.execute(cmd)
             self._queue.extend(out.events)
             self._drain()
+
+    @property
+    def _wake(self) -> Callable[[], bool] | None:
+        op = self.operator
+        return op.input_waiting if isinstance(op, WakingOperator) else None
 
     #: States whose phase steps each pair (the halts only wait for the operator).
     STEPPED = frozenset({State.REGISTER, State.PLAN, State.APPROACH, State.GATE, State.COMPENSATE,

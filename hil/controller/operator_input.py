@@ -48,6 +48,8 @@ class OperatorCommand:
             confirmation (``""``: none shown); None: confirm whatever is pending (scripts).
         decline: the operator answered *no* to the prompt for ``confirms``: nothing changes,
             the confirmation stays pending, and the answer is logged.
+        posted_ns: when the operator gave it (``time.monotonic_ns``; 0: not recorded), for the
+            input -> action latency in the session log.
     """
 
     event: Event
@@ -55,6 +57,7 @@ class OperatorCommand:
     origin: str = "operator"
     confirms: str | None = None
     decline: bool = False
+    posted_ns: int = 0
 
 
 @dataclass(frozen=True)
@@ -88,6 +91,16 @@ class Operator(Protocol):
 
     def finished(self, view: OperatorView) -> bool:
         """True when the run should end (nothing more will be asked)."""
+        ...
+
+
+@runtime_checkable
+class WakingOperator(Protocol):
+    """An operator whose inputs arrive asynchronously (the console): the controller's wait for the
+    next stereo pair ends as soon as one is waiting, so a stop or abort is acted on at once."""
+
+    def input_waiting(self) -> bool:
+        """Whether a command waits to be polled. Never blocks; any thread."""
         ...
 
 

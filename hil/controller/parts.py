@@ -237,7 +237,7 @@ class ControllerParts(abc.ABC):
         which an acknowledging operator is also handed. Never raises for a refused command."""
         event = cmd.event
         self.session.write(ev.OPERATOR_COMMAND, input=event, command_seq=cmd.seq, origin=cmd.origin,
-                           confirms=cmd.confirms, decline=cmd.decline)
+                           confirms=cmd.confirms, decline=cmd.decline, posted_ns=cmd.posted_ns or None)
         if event is Event.START_REQUESTED and not cmd.decline:
             self._started = True
         state = self.state

@@ -97,12 +97,15 @@ class DevicePipeline:
             self.metrics.frames_overwritten += pf.overwritten
             self.session.write(ev.FRAME_PREFETCH_STOPPED, pairs=pf.produced, overwritten=pf.overwritten)
 
-    def read(self, est: Estimate) -> RobotState:
+    def read(self, est: Estimate, wake: Callable[[], bool] | None = None) -> RobotState | None:
         """The next pair, the robot state and the tracker samples into ``est`` (module doc);
-        feeds the watchdogs. Returns the robot state."""
+        feeds the watchdogs. Returns the robot state, or None when ``wake`` (an operator input
+        waits) ended the wait for the pair first (real time, with the prefetcher; nothing read)."""
         self.prefetched = None
         if self.prefetch is not None:
-            got = self.prefetch.take(self.grab_timeout_s())
+            got = self.prefetch.take(self.grab_timeout_s(), wake)
+            if got is None:
+                return None
             self.prefetched, frame = got, got.frame
         else:
             frame = self.camera.grab(timeout_s=self.grab_timeout_s())

@@ -44,6 +44,7 @@ from __future__ import annotations
 import contextlib
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -57,6 +58,9 @@ from hil.log import get_logger
 
 FloatArray = NDArray[np.float64]
 _log = get_logger(__name__)
+
+#: How often a waiting :meth:`FramePrefetcher.take` checks its ``wake`` condition, s.
+WAKE_POLL_S = 0.001
 
 #: GIL switch interval while the prefetcher runs in real time, s (see the module doc).
 REALTIME_SWITCH_INTERVAL_S = 0.0005
@@ -141,10 +145,12 @@ class FramePrefetcher:
         with self._cond:
             return self._slot is not None
 
-    def take(self, timeout_s: float) -> Prefetched:
+    def take(self, timeout_s: float, wake: Callable[[], bool] | None = None) -> Prefetched | None:
         """The newest result, waiting up to ``timeout_s`` for a pair to *arrive* (blocking; the
         consumer thread): the grab's timeout semantics. A pair that arrived in time but is still in
         ``locate`` is waited for (``locate`` is bounded CPU work, as it is on the direct path).
+        With ``wake``, it is checked every :data:`WAKE_POLL_S` while waiting: once it returns
+        True (an operator input waits), ``take`` returns None at once, without a pair.
 
         Once the worker has ended (after :meth:`stop`, or the camera was closed) this is a direct
         ``camera.grab(timeout_s)`` plus ``locate``, so a closed camera raises its own
@@ -154,8 +160,15 @@ class FramePrefetcher:
             DriverError (or whatever ``grab`` raised in the worker): that same exception object.
             DeviceTimeoutError: nothing arrived within ``timeout_s`` (names the camera).
         """
+        deadline = time.monotonic() + timeout_s
         with self._cond:
-            self._cond.wait_for(lambda: self._slot is not None or self._ended, timeout_s)
+            while self._slot is None and not self._ended:
+                if wake is not None and wake():
+                    return None
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._cond.wait(min(remaining, WAKE_POLL_S) if wake is not None else remaining)
             if self._slot is None and self._locating:
                 self._cond.wait_for(lambda: self._slot is not None or self._ended)
             item, self._slot = self._slot, None

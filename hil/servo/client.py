@@ -185,6 +185,12 @@ class ServoRobot(Robot):
         self._pending = None
         self.link.request("recover", timeout_s=30.0)
 
+    def state_view(self) -> Robot:
+        """A read-only robot for observers (a simulated world following the arm): its
+        ``state_now`` reads the loop's newest record and never takes the loop's events (those are
+        the controller's to raise); its commands raise LifecycleError."""
+        return _StateView(self)
+
     # ------------------------------------------------------------------ events
     def _drain_events(self) -> None:
         """Hand the loop's events to ``on_event``; keep the error to raise at the next read (a
@@ -220,3 +226,56 @@ def servo_event_logger(session: Any) -> Callable[[str, dict[str, Any]], None]:
     def log(kind: str, fields: dict[str, Any]) -> None:
         session.write(kind, **{k: v for k, v in fields.items() if k != "wire"})
     return log
+
+
+class _StateView(Robot):
+    """See :meth:`ServoRobot.state_view`."""
+
+    def __init__(self, owner: ServoRobot) -> None:
+        super().__init__(owner.name, owner.limits)
+        self.owner = owner
+        self._rec = RingRecord()
+
+    @property
+    def state(self) -> DeviceState:
+        return self.owner.state
+
+    def require_active(self, operation: str) -> None:
+        self.owner.require_active(operation)
+
+    @property
+    def T_flange_from_tcp(self) -> RigidTransform:
+        return self.owner.T_flange_from_tcp
+
+    @property
+    def control_rate_hz(self) -> float:
+        return self.owner.control_rate_hz
+
+    def _open(self) -> None:
+        raise LifecycleError(self.name, "a state view is opened with its robot")
+
+    def _close(self) -> None:
+        """Nothing: the view ends with its robot."""
+
+    def _state_now(self) -> RobotState:
+        link = self.owner.link
+        if link.in_process:
+            st: RobotState = link.request("state")
+            return st
+        why = link.gone()
+        if why is not None:
+            raise DisconnectedError(self.name, why)
+        rec = link.regions.ring.read_latest(self._rec)
+        if rec is None:
+            raise DeviceTimeoutError(self.name, "servo loop has not read the robot yet")
+        return record_to_state(rec)
+
+    def _move_linear(self, T_robot_from_tcp: RigidTransform, speed_mm_s: float, accel_mm_s2: float,
+                     blocking: bool) -> None:
+        raise LifecycleError(self.name, "a state view does not command the arm")
+
+    def _servo(self, T_robot_from_tcp: RigidTransform, period_s: float) -> None:
+        raise LifecycleError(self.name, "a state view does not command the arm")
+
+    def _stop(self, decel_mm_s2: float) -> None:
+        raise LifecycleError(self.name, "a state view does not command the arm")

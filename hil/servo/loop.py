@@ -166,7 +166,8 @@ class ServoLoop:
         c[Stat.STOP_ACK_T_NS] = t
         c[Stat.STOP_ACK_ID] = stop_id
         self._stop_done_id = stop_id
-        self.report(EV_STOP_DELIVERED, {"stop_id": stop_id, "delivered_ns": t})
+        self.report(EV_STOP_DELIVERED, {"stop_id": stop_id, "issued_ns": int(c[Stat.STOP_ISSUE_T_NS]),
+                                        "delivered_ns": t})
 
     def _track(self, sp: Setpoint, st: RobotState, now_ns: int) -> int:
         if sp.track_id != self._track_id:   # a new tracking session: from the actual pose, at rest

@@ -109,6 +109,8 @@ class ServoProcess:
         self.ready: ServoReady | None = None
         self._closed = False
         self._started = False
+        #: one reader of the channel at a time (the controller's thread, observers' threads)
+        self._channel_lock = threading.RLock()
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> ServoReady:
@@ -179,6 +181,10 @@ class ServoProcess:
         return self.ready.T_flange_from_tcp if self.ready is not None else self._T_flange_from_tcp
 
     def request(self, command: str, *args: Any, timeout_s: float = 5.0) -> Any:
+        with self._channel_lock:
+            return self._request(command, args, timeout_s)
+
+    def _request(self, command: str, args: tuple[Any, ...], timeout_s: float) -> Any:
         why = self.gone()
         if why is not None:
             raise DisconnectedError(self.robot_name, why)
@@ -195,10 +201,11 @@ class ServoProcess:
         return payload
 
     def take_events(self) -> list[tuple[str, dict[str, Any]]]:
-        self._pump(0.0, None)
-        out = list(self._events)
-        self._events.clear()
-        return out
+        with self._channel_lock:
+            self._pump(0.0, None)
+            out = list(self._events)
+            self._events.clear()
+            return out
 
     def gone(self) -> str | None:
         if self._crash is not None:
@@ -208,7 +215,8 @@ class ServoProcess:
         if not self._started:
             return "servo process not started"
         if self._proc.poll() is not None:
-            self._pump(0.0, None)
+            with self._channel_lock:
+                self._pump(0.0, None)
             return self._exit_reason()
         return None
 

@@ -1,30 +1,25 @@
-"""``hil soak``: run the simulated procedure in real time and keep it in compensation, streaming
-servo targets at the robot's rate (125 Hz CB3, 500 Hz e-Series), and measure the servo stream:
-period jitter, missed deadlines, frame-to-command latency and memory growth.
+"""``hil soak``: run the simulated procedure in real time, keep it in compensation, and measure
+the servo loop that commands the arm at the robot's rate (125 Hz CB3, 500 Hz e-Series) in its own
+process (hil/servo): period jitter, late periods, frame-to-command latency, memory growth, and what
+the OS granted the loop (``rt_granted``).
 
-Definitions (all on the monotonic wall clock):
+Definitions (the servo loop's own wake-up times on the monotonic clock; hil/servo/figures.py):
 
-- *servo interval*: time between two consecutive servo commands reaching the robot driver while
-  in COMPENSATE; nominal ``T = 1 / rate``.
-- *jitter*: ``|interval - T|`` of the intervals of at most ``2 T`` (longer ones are counted as
-  missed deadlines instead). On the wall clock the next pair is grabbed and located in the
-  controller's prefetch thread (hil/controller/prefetch.py), so the stream goes on across frames.
-- *missed deadline*: an interval longer than ``2 T`` (at least one servo period passed without a
-  command); ``longest_gap_ms`` is the worst.
-- *stream deadlines missed*: the controller's count of servo commands of a frame's stream that
-  were late by more than a period (the stream keeps absolute deadlines and skips those slots).
-- *frame-to-command latency*: exposure time of a stereo frame -> the first servo command computed
-  from it (the controller's own measurement).
-- *frame boundaries*: servo intervals during which a control tick started (the operator is
-  polled once per tick, before the tick takes the next pair); *frame-boundary misses*: those
-  longer than ``2 T``; ``frame_boundary_ms``: their p50/p99/max. A controller that stops the
-  stream to grab and process a pair misses about one per frame; one that streams on while the
-  pair is prefetched only when the tick's own work is longer than two periods.
-- *compensation frames*: stereo pairs the controller processed in COMPENSATE (each restarts the
-  stream on a new estimate); *frames overwritten*: pairs the prefetcher replaced by a newer one
-  before the control thread took them.
-- *memory growth*: resident set size (``/proc/self/statm``) at the end minus after the warm-up
-  (the first quarter of the compensation time, at most 30 s), and its least-squares slope.
+- *servo interval*: time between two consecutive periods of the loop, counted from the first
+  entry into COMPENSATE to the end (the warm-up before is left out); nominal ``T = 1 / rate``.
+- *jitter*: ``|interval - T|`` over all those intervals (10 µs histogram bins, ±5 µs).
+- *missed deadline*: an interval longer than ``2 T`` (a period passed without the loop running);
+  ``longest_gap_ms`` is the worst.
+- *frame-to-command latency*: exposure time of a stereo pair -> the first servo command the loop
+  computed from that pair's setpoint.
+- *memory growth*: resident set size of the supervisor (``rss_mb``) and of the servo process
+  (``servo_rss_mb``) at the end minus after the warm-up (the first quarter of the compensation
+  time, at most 30 s), and the least-squares slope.
+- ``stream_deadlines_missed``, ``frame_boundaries``, ``frame_boundary_missed``,
+  ``frame_boundary_ms``: figures of the former in-thread stream, kept in the JSON for comparison
+  with older runs; with the servo process the loop never waits for a frame, and they are 0 / empty.
+- ``limit_violations``: servo steps the loop's merged limit check refused (none reaches the driver;
+  the controller faults on each).
 """
 
 from __future__ import annotations
@@ -39,7 +34,6 @@ from typing import Any
 
 import numpy as np
 
-from hil.campaign.recorder import RecordingRobot
 from hil.clock import MonotonicClock
 from hil.config import build_devices, load_setup
 from hil.config.setup import SetupConfig
@@ -48,16 +42,18 @@ from hil.controller.fsm import Event, State
 from hil.controller.operator_input import OperatorView
 from hil.controller.plan_file import load_plan
 from hil.errors import InputFileError
+from hil.servo.client import ServoRobot
+from hil.servo.figures import LoopFigures, StatsCopy, loop_figures
 from hil.session.log import SessionLog
 
 Progress = Callable[[str], None]
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
 
-def rss_mb() -> float:
-    """Resident set size of this process, MB (Linux /proc; 0 where unavailable)."""
+def rss_mb(pid: int | None = None) -> float:
+    """Resident set size of this process (or ``pid``), MB (Linux /proc; 0 where unavailable)."""
     try:
-        with open("/proc/self/statm") as fh:
+        with open(f"/proc/{pid or 'self'}/statm") as fh:
             return int(fh.read().split()[1]) * _PAGE / 2**20
     except (OSError, ValueError, IndexError):
         return 0.0
@@ -102,6 +98,15 @@ class SoakResult:
     faults: list[str] = field(default_factory=list)
     resumes: int = 0
     session_log: str = ""
+    #: what the OS granted the servo process (hil.servo.rt.RtGranted as a dict)
+    rt_granted: dict[str, Any] = field(default_factory=dict)
+    servo_rss_mb: dict[str, float | None] = field(default_factory=dict)
+    #: periods the loop ran on a stale setpoint (bringing the arm to rest), and other loop counts
+    stale_periods: int = 0
+    read_errors: int = 0
+    command_errors: int = 0
+    #: stop requested by the supervisor -> the loop issued it, ms (every stop of the run)
+    stop_to_command_ms: dict[str, float | None] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -111,7 +116,9 @@ class SoakOperator:
     """Starts, confirms, resumes after a pause or fault, and ends the run ``soak_s`` of wall time
     after the procedure first entered COMPENSATE (or after ``give_up_s`` without reaching it)."""
 
-    def __init__(self, soak_s: float, give_up_s: float, sample: Callable[[], None]) -> None:
+    def __init__(self, soak_s: float, give_up_s: float, sample: Callable[[], None],
+                 on_compensate: Callable[[], None] | None = None) -> None:
+        self.on_compensate = on_compensate
         self.soak_s = soak_s
         self.give_up_s = give_up_s
         self.sample = sample
@@ -129,6 +136,8 @@ class SoakOperator:
         now = time.monotonic()
         if view.state is State.COMPENSATE and self.t_comp is None:
             self.t_comp = now
+            if self.on_compensate is not None:
+                self.on_compensate()
         self.sample()
         if not self._started and view.state is State.IDLE:
             self._started = True
@@ -163,19 +172,20 @@ class SoakOperator:
         return view.state is State.DONE or now - self.t_start > self.give_up_s
 
 
-def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float) -> SetupConfig:
-    """The setup in real time, at ``rate_hz``, staying in compensation (never settles into lock)."""
+def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: bool = True) -> SetupConfig:
+    """The setup in real time, at ``rate_hz``, staying in compensation (never settles into lock),
+    with the servo loop in its own process (real-time scheduling asked for when ``realtime``)."""
     robot = setup.robot.model_copy(update={"control_rate_hz": rate_hz})
     proc = setup.procedure
-    comp = proc.compensation.model_copy(
-        update={"settle_s": 1e6, "timeout_s": 1e6}
-    )
+    comp = proc.compensation.model_copy(update={"settle_s": 1e6, "timeout_s": 1e6})
     gate = proc.gate.model_copy(update={"timeout_s": 1e6})
     procedure = proc.model_copy(
         update={"compensation": comp, "gate": gate, "max_duration_s": minutes * 60.0 + 600.0}
     )
     sim = setup.simulation.model_copy(update={"real_time": True})
-    return setup.model_copy(update={"robot": robot, "procedure": procedure, "simulation": sim, "faults": ()})
+    servo = setup.servo.model_copy(update={"process": "on", "realtime": realtime})
+    return setup.model_copy(update={"robot": robot, "procedure": procedure, "simulation": sim, "faults": (),
+                                    "servo": servo})
 
 
 def run_soak(
@@ -185,12 +195,15 @@ def run_soak(
     config: Path,
     plan: str | None,
     session_dir: Path,
+    realtime: bool = True,
     progress: Progress | None = None,
 ) -> SoakResult:
-    """Run the soak (blocking, ``minutes`` of compensation plus the time to reach it).
+    """Run the soak (blocking, ``minutes`` of compensation plus the time to reach it). The servo
+    process is started and stopped here (the arm is stopped on every path).
 
     Raises:
-        InputFileError: a bad argument; ConfigError / InputFileError from the config and plan.
+        InputFileError: a bad argument; ConfigError / InputFileError from the config and plan;
+        DriverError when the servo process cannot start.
     """
     if not minutes > 0:
         raise InputFileError("--minutes", f"must be > 0, got {minutes}")
@@ -198,70 +211,90 @@ def run_soak(
         raise InputFileError("--rate", f"must be 125 (CB3) or 500 (e-Series), got {rate_hz:g}")
     say = progress or (lambda _m: None)
     base = load_setup(config)
-    setup = soak_setup(base, rate_hz, minutes)
+    setup = soak_setup(base, rate_hz, minutes, realtime)
     plan_path = Path(plan) if plan else config.resolve().parent / "plans" / f"{config.stem}_plan.json"
     procedure_plan = load_plan(plan_path)
     clock = MonotonicClock()
-    from hil.controller.assembly import build_controller, wrap_robot  # the controller `hil run` builds
+    from hil.controller.assembly import build_controller, with_servo_process  # what `hil run` builds
 
-    limits = setup.safety.motion_limits()
-    devices = wrap_robot(build_devices(setup, clock),
-                         lambda robot: RecordingRobot(robot, limits, clock, compact=True))
-    recorder = devices.robot
-    assert isinstance(recorder, RecordingRobot)
+    devices = with_servo_process(setup, build_devices(setup, clock), clock)
+    robot = devices.robot
+    assert isinstance(robot, ServoRobot)
     session = SessionLog(
         session_dir / f"soak_{time.strftime('%Y%m%dT%H%M%S')}_{os.getpid()}.jsonl",
         clock,
-        {"setup": str(config), "soak_minutes": minutes, "rate_hz": rate_hz},
+        {"setup": str(config), "soak_minutes": minutes, "rate_hz": rate_hz, "realtime": realtime},
     )
-    rss: list[tuple[float, float]] = []
+    rss: list[tuple[float, float, float]] = []
     last = [0.0]
+    copies: dict[str, StatsCopy] = {}
 
     def sample() -> None:
         now = time.monotonic()
         if now - last[0] >= 1.0:
             last[0] = now
-            rss.append((now, rss_mb()))
+            ready = getattr(robot.link, "ready", None)
+            rss.append((now, rss_mb(), rss_mb(ready.pid) if ready is not None else 0.0))
+
+    def on_compensate() -> None:
+        copies["start"] = StatsCopy.of(robot.link.regions.stats)
 
     soak_s = minutes * 60.0
-    operator = SoakOperator(soak_s, give_up_s=120.0, sample=sample)
+    operator = SoakOperator(soak_s, give_up_s=120.0, sample=sample, on_compensate=on_compensate)
     devices.open_all()
-    say(f"soak: {minutes:g} min of compensation at {rate_hz:g} Hz (real time)")
     try:
+        say(f"soak: {minutes:g} min of compensation at {rate_hz:g} Hz (real time); servo process: "
+            f"{robot.rt.summary() if robot.rt else 'n/a'}")
         ctl = build_controller(setup, procedure_plan, devices, clock=clock, session=session,
                                operator=operator)
         summary = ctl.run()
+        end = StatsCopy.of(robot.link.regions.stats)
     finally:
         devices.close_all()
     session.close(final_state=summary.final_state)
-    return analyse(
-        rate_hz,
-        minutes,
-        recorder,
-        ctl,
-        operator,
-        rss,
-        summary.final_state,
-        summary.states,
-        summary.faults,
-        str(session.path),
-    )
+    figs = loop_figures(copies.get("start", end), end, 1.0 / rate_hz)
+    res = analyse(rate_hz, minutes, figs, ctl, operator, rss, summary.final_state, summary.states,
+                  summary.faults, str(session.path))
+    res.rt_granted = robot.rt.to_dict() if robot.rt is not None else {}
+    res.stop_to_command_ms = _stats([x * 1e-6 for x in robot.stop_latency_ns])
+    return res
+
+
+def _rss_figures(rss: list[tuple[float, float]], t_comp: float | None,
+                 minutes: float) -> dict[str, float | None]:
+    if not rss:
+        return {}
+    t0 = t_comp or rss[0][0]
+    warm = t0 + min(30.0, 0.25 * minutes * 60.0)
+    after = [(t, m) for t, m in rss if t >= warm] or rss[-1:]
+    slope = None
+    if len(after) >= 3:
+        ts = np.array([t for t, _ in after]) / 60.0
+        ms = np.array([m for _, m in after])
+        slope = round(float(np.polyfit(ts - ts[0], ms, 1)[0]), 4)
+    return {
+        "start": round(rss[0][1], 2),
+        "after_warmup": round(after[0][1], 2),
+        "end": round(rss[-1][1], 2),
+        "growth": round(rss[-1][1] - after[0][1], 2),
+        "slope_mb_per_min": slope,
+    }
 
 
 def analyse(
     rate_hz: float,
     minutes: float,
-    recorder: RecordingRobot,
+    figs: LoopFigures,
     ctl: Controller,
     operator: SoakOperator,
-    rss: list[tuple[float, float]],
+    rss: list[tuple[float, float, float]],
     final_state: str,
     states: list[str],
     faults: list[str],
     session_log: str,
 ) -> SoakResult:
-    """Turn the recorded servo commands into the soak figures (see module doc)."""
-    T_ms = 1e3 / rate_hz
+    """The soak figures from the servo loop's figures of the compensation window (module doc);
+    ``rss``: (monotonic s, supervisor MB, servo process MB) samples."""
     res = SoakResult(
         rate_hz,
         minutes,
@@ -271,53 +304,22 @@ def analyse(
         resumes=operator.resumes,
         session_log=session_log,
     )
-    servo_ns = list(recorder.servo_t_ns)
-    res.servo_commands = len(servo_ns)
-    res.limit_violations = len(recorder.recording.violations_reached())
     if operator.t_comp is not None:
         res.compensate_s = round(time.monotonic() - operator.t_comp, 3)
-    t_ns = np.asarray(servo_ns, dtype=np.int64)
-    iv: np.ndarray[Any, np.dtype[np.float64]] = (
-        np.diff(t_ns).astype(np.float64) * 1e-6 if len(servo_ns) > 1 else np.zeros(0)
-    )
-    # intervals longer than a few frames are pauses between compensation phases, not deadlines
-    frame_ms = 1e3 * ctl.frame_period_s
-    keep = iv < 4 * frame_ms
-    ticks = np.asarray(operator.tick_ns, dtype=np.int64)
-    if iv.size:
-        spans_tick = (np.searchsorted(ticks, t_ns[1:], side="right")
-                      - np.searchsorted(ticks, t_ns[:-1], side="right")) > 0
-        boundary = spans_tick[keep]
-        res.frame_boundaries = int(boundary.sum())
-        res.frame_boundary_missed = int((boundary & (iv[keep] > 2 * T_ms)).sum())
-        res.frame_boundary_ms = _stats([float(x) for x in iv[keep][boundary]])
-    iv = iv[keep]
-    res.intervals = int(iv.size)
-    inside = iv[iv <= 2 * T_ms]
-    res.period_ms = _stats([float(x) for x in inside])
-    res.jitter_ms = _stats([float(abs(x - T_ms)) for x in inside])
-    missed = iv[iv > 2 * T_ms]
-    res.missed_deadlines = int(missed.size)
-    res.missed_fraction = round(float(missed.size) / max(iv.size, 1), 5)
-    res.longest_gap_ms = round(float(iv.max()), 3) if iv.size else None
+    res.servo_commands = figs.commands
+    res.limit_violations = figs.refusals
+    res.intervals = figs.intervals
+    res.period_ms = figs.period_ms
+    res.jitter_ms = figs.jitter_ms
+    res.missed_deadlines = figs.late
+    res.missed_fraction = figs.late_fraction
+    res.longest_gap_ms = figs.longest_ms
+    res.frame_to_command_ms = figs.latency_ms
+    res.stale_periods, res.read_errors, res.command_errors = figs.stale_periods, figs.read_errors, \
+        figs.command_errors
     res.stream_deadlines_missed = ctl.servo_deadlines_missed
-    res.frame_to_command_ms = _stats([float(x) for x in ctl.latency_ms])
     res.compensation_frames = len(ctl.latency_ms)
     res.frames_overwritten = ctl.frames_overwritten
-    if rss:
-        t0 = operator.t_comp or rss[0][0]
-        warm = t0 + min(30.0, 0.25 * minutes * 60.0)
-        after = [(t, m) for t, m in rss if t >= warm] or rss[-1:]
-        slope = None
-        if len(after) >= 3:
-            ts = np.array([t for t, _ in after]) / 60.0
-            ms = np.array([m for _, m in after])
-            slope = round(float(np.polyfit(ts - ts[0], ms, 1)[0]), 4)
-        res.rss_mb = {
-            "start": round(rss[0][1], 2),
-            "after_warmup": round(after[0][1], 2),
-            "end": round(rss[-1][1], 2),
-            "growth": round(rss[-1][1] - after[0][1], 2),
-            "slope_mb_per_min": slope,
-        }
+    res.rss_mb = _rss_figures([(t, m) for t, m, _ in rss], operator.t_comp, minutes)
+    res.servo_rss_mb = _rss_figures([(t, m) for t, _, m in rss], operator.t_comp, minutes)
     return res

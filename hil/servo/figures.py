@@ -1,0 +1,102 @@
+"""Figures of the servo loop over a window: from two copies of its statistics (start and end of
+the window), so a soak leaves its warm-up out without touching the loop's own counters.
+
+Definitions (the loop's own clock readings, each period's wake-up time):
+
+- *interval*: time between two consecutive periods' wake-ups; nominal ``T`` = the robot's period.
+- *jitter*: ``|interval - T|``; its percentiles come from the 10 µs interval histogram (a value is
+  the centre of its bin, so figures are good to ±5 µs).
+- *late*: intervals over ``2 T`` (a period passed without the loop running).
+- *latency*: a stereo pair's exposure -> the first servo command the loop computed from the
+  setpoint of that pair (0.1 ms bins).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from hil.servo.shm import INTERVAL_BIN_NS, LATENCY_BIN_NS, LoopStats, Stat
+
+
+@dataclass(frozen=True)
+class StatsCopy:
+    """A copy of the loop statistics at one moment."""
+
+    counters: tuple[int, ...]
+    interval_hist: Any   # np.ndarray (int64)
+    latency_hist: Any
+
+    @classmethod
+    def of(cls, stats: LoopStats) -> StatsCopy:
+        return cls(tuple(int(x) for x in stats.c), stats.interval_hist.copy(), stats.latency_hist.copy())
+
+    def get(self, stat: Stat) -> int:
+        return self.counters[stat]
+
+
+@dataclass(frozen=True)
+class LoopFigures:
+    """What the loop did in a window (module doc). Durations in ms, rounded to the µs."""
+
+    periods: int
+    commands: int
+    intervals: int
+    late: int
+    late_fraction: float
+    longest_ms: float | None
+    period_ms: dict[str, float | None]
+    jitter_ms: dict[str, float | None]
+    latency_ms: dict[str, float | None]
+    refusals: int
+    stale_periods: int
+    read_errors: int
+    command_errors: int
+    stops_sent: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _weighted_stats(values_ms: Any, counts: Any) -> dict[str, float | None]:
+    total = int(counts.sum())
+    if total == 0:
+        return {"p50": None, "p99": None, "max": None}
+    order = np.argsort(values_ms, kind="stable")
+    v, c = values_ms[order], np.cumsum(counts[order])
+
+    def pct(q: float) -> float:
+        k = int(np.searchsorted(c, q / 100.0 * total, side="left"))
+        return round(float(v[min(k, v.size - 1)]), 3)
+
+    nz = counts[order] > 0
+    return {"p50": pct(50), "p99": pct(99), "max": round(float(v[nz].max()), 3)}
+
+
+def loop_figures(before: StatsCopy, after: StatsCopy, period_s: float) -> LoopFigures:
+    """The figures of the window between two copies (module doc)."""
+    d = [a - b for a, b in zip(after.counters, before.counters, strict=True)]
+    hist = after.interval_hist - before.interval_hist
+    lat = after.latency_hist - before.latency_hist
+    centres_ms = (np.arange(hist.size) + 0.5) * INTERVAL_BIN_NS * 1e-6
+    period_ms = period_s * 1e3
+    intervals = int(hist.sum())
+    top = int(np.nonzero(hist)[0].max()) if intervals else -1
+    longest: float | None = None
+    if top == hist.size - 1:   # the overflow bin: the loop's own maximum is the best figure
+        longest = after.get(Stat.MAX_INTERVAL_NS) * 1e-6
+    elif top >= 0:
+        longest = (top + 1) * INTERVAL_BIN_NS * 1e-6
+    period_stats = _weighted_stats(centres_ms, hist)
+    jitter_stats = _weighted_stats(np.abs(centres_ms - period_ms), hist)
+    lat_centres = (np.arange(lat.size) + 0.5) * LATENCY_BIN_NS * 1e-6
+    late = d[Stat.LATE]
+    return LoopFigures(
+        periods=d[Stat.PERIODS], commands=d[Stat.COMMANDS], intervals=intervals, late=late,
+        late_fraction=round(late / intervals, 6) if intervals else 0.0,
+        longest_ms=None if longest is None else round(longest, 3),
+        period_ms=period_stats, jitter_ms=jitter_stats, latency_ms=_weighted_stats(lat_centres, lat),
+        refusals=d[Stat.REFUSALS], stale_periods=d[Stat.STALE], read_errors=d[Stat.READ_ERRORS],
+        command_errors=d[Stat.COMMAND_ERRORS], stops_sent=d[Stat.STOPS_SENT])
