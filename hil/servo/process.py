@@ -135,6 +135,12 @@ class ServoProcess:
             self.close()
             raise error_from_wire(*msg[1])
         info = msg[1]
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while self.regions.ring.head == 0:   # the first period's record: state reads work from here
+            if self._proc.poll() is not None or time.monotonic() > deadline:
+                self.close()
+                raise DeviceTimeoutError(self._name, "servo loop did not read the robot after starting")
+            time.sleep(0.001)
         self.ready = ServoReady(info["robot_name"], float(info["control_rate_hz"]),
                                 RigidTransform.from_matrix(np.asarray(info["T_flange_from_tcp"])),
                                 RtGranted.from_dict(info["rt"]), int(info["pid"]))

@@ -1,0 +1,36 @@
+"""Loop figures from two copies of the statistics: exact on a known interval stream."""
+
+from __future__ import annotations
+
+from hil.servo.figures import StatsCopy, loop_figures
+from hil.servo.shm import LoopStats, ShmRegion, Stat, stats_words
+
+
+def test_figures_of_a_known_window() -> None:
+    stats = LoopStats(ShmRegion.local(stats_words()))
+    period_ns = 2_000_000
+    for _ in range(50):                       # warm-up, left out of the window
+        stats.add_interval(9_000_000, period_ns)
+    before = StatsCopy.of(stats)
+    for iv in [2_000_000] * 97 + [2_100_000, 4_500_000, 30_000_000]:   # 100 intervals
+        stats.add_interval(iv, period_ns)
+    stats.c[Stat.COMMANDS] += 100
+    stats.add_latency(41_230_000)
+    stats.add_latency(60_000_000)
+    figs = loop_figures(before, StatsCopy.of(stats), 0.002)
+    assert figs.intervals == 100
+    assert figs.commands == 100
+    assert figs.late == 2                      # 4.5 ms and 30 ms are over two periods
+    assert figs.late_fraction == 0.02
+    assert figs.longest_ms == 30.0             # the overflow bin: the loop's own maximum
+    assert figs.period_ms == {"p50": 2.005, "p99": 4.505, "max": 19.995}   # bin centres
+    assert figs.jitter_ms == {"p50": 0.005, "p99": 2.505, "max": 17.995}
+    assert figs.latency_ms == {"p50": 41.25, "p99": 60.05, "max": 60.05}
+
+
+def test_an_empty_window_has_no_figures() -> None:
+    stats = LoopStats(ShmRegion.local(stats_words()))
+    c = StatsCopy.of(stats)
+    figs = loop_figures(c, c, 0.008)
+    assert figs.intervals == 0 and figs.longest_ms is None
+    assert figs.period_ms == {"p50": None, "p99": None, "max": None}

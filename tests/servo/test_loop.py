@@ -1,0 +1,180 @@
+"""The servo loop's period, stepped in-process on a manual clock against an in-memory robot: the
+stop is issued once per request and retried every period until delivered, tracking follows the
+extrapolated setpoint within the limits, a stale setpoint brings the arm to rest and holds it, and a
+step the merged check refuses never reaches the driver (the arm is stopped instead)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivers.interfaces.errors import DisconnectedError
+from drivers.interfaces.robot import MotionLimits
+from hil.clock import ManualClock
+from hil.geometry.transform import RigidTransform
+from hil.servo.limiter import RateLimiter
+from hil.servo.loop import EV_REFUSED, EV_STALE, EV_STOP_DELIVERED, EV_STOP_FAILED, ServoLoop
+from hil.servo.shm import ServoMode, SetpointBlock, ShmRegion, Stat
+from hil.servo.link import Regions
+from tests.controller.fakes import FakeRobot
+
+PERIOD_S = 0.008
+LIMITS = MotionLimits(max_speed_mm_s=100.0, max_accel_mm_s2=500.0, max_angular_speed_rad_s=1.0)
+
+
+class DroppingRobot(FakeRobot):
+    """Its stop raises while ``down`` (a lost link)."""
+
+    down = False
+
+    def _stop(self, decel_mm_s2: float) -> None:
+        if self.down:
+            raise DisconnectedError(self.name, "link lost (test)")
+        super()._stop(decel_mm_s2)
+
+
+@pytest.fixture
+def rig() -> Any:
+    clock = ManualClock(10**9)
+    robot = DroppingRobot(clock, LIMITS)
+    robot.open()
+    regions = Regions.create(shared=False)
+    events: list[tuple[str, dict[str, Any]]] = []
+    loop = ServoLoop(robot, LIMITS, clock, regions.block, regions.ring, regions.stats, period_s=PERIOD_S,
+                     limiter=RateLimiter(60.0, 400.0, 0.5), report=lambda k, f: events.append((k, f)))
+    yield clock, robot, regions, loop, events
+    regions.close()
+    robot.close()
+
+
+def _run(clock: ManualClock, loop: ServoLoop, n: int) -> None:
+    for _ in range(n):
+        loop.step(clock.now_ns())
+        clock.advance(PERIOD_S)
+
+
+def _track(block: SetpointBlock, clock: ManualClock, t_mm: Any, v_mm_s: Any = (0.0, 0.0, 0.0), *,
+           track_id: int = 1, valid_s: float = 1.0, max_horizon_s: float = 5.0) -> None:
+    now = clock.now_ns()
+    block.write_track(track_id=track_id, R=np.eye(3), t_mm=np.asarray(t_mm, float), v_mm_s=np.asarray(v_mm_s, float),
+                      w_rad_s=np.zeros(3), t_ref_ns=now, valid_until_ns=now + round(valid_s * 1e9),
+                      exposure_t_ns=now - 30_000_000, frame_seq=1, speed_scale=1.0, max_horizon_s=max_horizon_s,
+                      lead_s=0.0)
+
+
+def test_idle_reads_the_robot_every_period_and_commands_nothing(rig: Any) -> None:
+    clock, robot, regions, loop, _ = rig
+    _run(clock, loop, 5)
+    assert robot.calls == []
+    assert regions.ring.head == 5
+    assert regions.stats.get(Stat.PERIODS) == 5
+    assert regions.stats.get(Stat.INTERVALS) == 4
+    assert regions.stats.get(Stat.LATE) == 0
+
+
+def test_a_stop_is_issued_once_per_request(rig: Any) -> None:
+    clock, robot, regions, loop, events = rig
+    sid = regions.block.write_mode(ServoMode.STOP)
+    _run(clock, loop, 4)
+    assert robot.calls == [("stop", None)]
+    assert regions.stats.get(Stat.STOP_ACK_ID) == sid
+    sid2 = regions.block.write_mode(ServoMode.STOP)
+    _run(clock, loop, 3)
+    assert robot.calls == [("stop", None), ("stop", None)]
+    assert regions.stats.get(Stat.STOP_ACK_ID) == sid2
+    assert [k for k, _ in events] == [EV_STOP_DELIVERED, EV_STOP_DELIVERED]
+
+
+def test_an_undelivered_stop_is_retried_every_period_until_delivered(rig: Any) -> None:
+    clock, robot, regions, loop, events = rig
+    robot.down = True
+    sid = regions.block.write_mode(ServoMode.STOP)
+    _run(clock, loop, 5)
+    assert robot.calls == []
+    assert regions.stats.get(Stat.COMMAND_ERRORS) == 5          # one attempt per period
+    assert regions.stats.get(Stat.STOP_ACK_ID) == 0
+    assert regions.ring.head == 5                               # the arm is read every period
+    robot.down = False
+    _run(clock, loop, 3)
+    assert robot.calls == [("stop", None)]
+    assert regions.stats.get(Stat.STOP_ACK_ID) == sid
+    assert [k for k, _ in events] == [EV_STOP_FAILED, EV_STOP_DELIVERED]   # the failure reported once
+
+
+def test_extrapolation_stops_at_the_horizon_cap(rig: Any) -> None:
+    clock, robot, regions, loop, _ = rig
+    start = robot.pose.t.copy()
+    _track(regions.block, clock, start, v_mm_s=(10.0, 0.0, 0.0), max_horizon_s=0.1)
+    _run(clock, loop, 250)
+    last = [T for kind, T in robot.calls if kind == "servo"][-1]
+    assert last.t[0] == pytest.approx(start[0] + 1.0, abs=1e-9)   # 10 mm/s x 0.1 s, then held
+
+
+def test_tracking_follows_the_extrapolated_setpoint_within_the_limits(rig: Any) -> None:
+    clock, robot, regions, loop, _ = rig
+    start = robot.pose.t.copy()
+    _track(regions.block, clock, start, v_mm_s=(10.0, 0.0, 0.0), valid_s=10.0)
+    _run(clock, loop, 250)   # 2 s
+    servo = [T for kind, T in robot.calls if kind == "servo"]
+    assert len(servo) == 250
+    # the target moves at 10 mm/s from the setpoint's time: after 2 s the arm follows it (rate
+    # limited from rest, so it lags by less than a few periods' travel)
+    expected_x = start[0] + 10.0 * (clock.now_ns() - PERIOD_S * 1e9 - 10**9) * 1e-9
+    assert servo[-1].t[0] == pytest.approx(expected_x, abs=0.2)
+    steps = np.diff(np.array([T.t for T in servo]), axis=0) / PERIOD_S
+    assert float(np.linalg.norm(steps, axis=1).max()) <= 60.0 + 1e-6   # the tracking speed limit
+    assert regions.stats.get(Stat.REFUSALS) == 0
+    assert regions.stats.get(Stat.LATENCY_SAMPLES) == 1   # one setpoint: its first command measured
+
+
+def test_a_stale_setpoint_brings_the_arm_to_rest_and_holds(rig: Any) -> None:
+    clock, robot, regions, loop, events = rig
+    _track(regions.block, clock, robot.pose.t, v_mm_s=(40.0, 0.0, 0.0), valid_s=0.5)
+    _run(clock, loop, 125)   # 1 s: stale after 0.5 s
+    servo = np.array([T.t for kind, T in robot.calls if kind == "servo"])
+    speed = np.linalg.norm(np.diff(servo, axis=0), axis=1) / PERIOD_S
+    stale_from = round(0.5 / PERIOD_S)
+    # at rest within max_speed / max_accel (40 / 400 = 0.1 s) of going stale, then held
+    assert float(speed[stale_from + 13:].max()) == pytest.approx(0.0, abs=1e-9)
+    assert float(speed[stale_from - 5]) == pytest.approx(40.0, abs=0.5)
+    assert regions.stats.get(Stat.STALE) > 0
+    assert [k for k, _ in events].count(EV_STALE) == 1
+
+
+def test_a_step_outside_the_workspace_is_refused_and_the_arm_stopped(rig: Any) -> None:
+    clock, robot, regions, loop, events = rig
+    far = robot.pose.t + np.array([0.0, 0.0, 10_000.0])   # far outside the box: the limiter heads there
+    _track(regions.block, clock, far, valid_s=10.0)
+    _run(clock, loop, 800)   # 300 mm to the box's top at 60 mm/s: 5 s
+    servo = [T for kind, T in robot.calls if kind == "servo"]
+    assert all(float(T.t[2]) <= LIMITS.workspace_max_mm[2] for T in servo)
+    assert ("stop", None) in robot.calls
+    refused = [f for k, f in events if k == EV_REFUSED]
+    assert refused and refused[0]["check"] == "workspace"
+
+
+def test_a_non_finite_setpoint_is_refused_never_sent(rig: Any) -> None:
+    clock, robot, regions, loop, events = rig
+    _track(regions.block, clock, (np.nan, 0.0, 300.0))
+    _run(clock, loop, 3)
+    assert [kind for kind, _ in robot.calls if kind == "servo"] == []
+    assert [f["check"] for k, f in events if k == EV_REFUSED][0] == "setpoint"
+
+
+def test_a_new_track_id_restarts_from_the_actual_pose_at_rest(rig: Any) -> None:
+    clock, robot, regions, loop, _ = rig
+    _track(regions.block, clock, robot.pose.t + np.array([20.0, 0.0, 0.0]))
+    _run(clock, loop, 10)
+    regions.block.write_mode(ServoMode.IDLE)
+    robot.move_linear(RigidTransform.from_translation((5.0, 5.0, 250.0)), 50.0, 200.0)   # moved meanwhile
+    _track(regions.block, clock, robot.pose.t, track_id=2)
+    _run(clock, loop, 1)
+    last = [T for kind, T in robot.calls if kind == "servo"][-1]
+    assert np.allclose(last.t, (5.0, 5.0, 250.0))
+
+
+def test_region_layouts_refuse_a_short_buffer() -> None:
+    with pytest.raises(ValueError, match="words"):
+        SetpointBlock(ShmRegion.local(4))

@@ -1,0 +1,161 @@
+"""The servo loop in its own process, with the simulated robot (and the real ur_rtde driver where
+its transport is named): start-up and its report, tracking and stop through the supervisor's
+robot, and the arm stopped and the process gone on every way out (close, the child killed, the
+parent killed, a robot that cannot be opened)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.interfaces.errors import DisconnectedError
+from hil.config import default_setup_path, load_setup
+from hil.geometry.transform import RigidTransform
+from hil.servo.client import ServoRobot
+from hil.servo.process import ServoProcess, ServoSpec
+from hil.servo.shm import Stat
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _spec(realtime: bool = False) -> ServoSpec:
+    return ServoSpec(load_setup(default_setup_path()), (60.0, 400.0, 0.5), realtime=realtime)
+
+
+def _wait(cond: object, what: str, timeout_s: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():  # type: ignore[operator]
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.01)
+
+
+@pytest.fixture
+def robot() -> Iterator[ServoRobot]:
+    r = ServoRobot(ServoProcess(_spec(), "robot", RigidTransform.identity()), load_setup(
+        default_setup_path()).safety.motion_limits())
+    r.open()
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+def test_start_reports_the_robot_and_what_the_os_granted(robot: ServoRobot) -> None:
+    link = robot.link
+    assert isinstance(link, ServoProcess) and link.ready is not None
+    assert robot.control_rate_hz == 125.0           # configs/sim.toml's simulated UR3
+    assert robot.rt is not None and robot.rt.requested is False   # realtime=False: not asked for
+    _wait(lambda: link.regions.stats.get(Stat.PERIODS) > 10, "the loop to run")
+    st = robot.state_now()
+    assert st.t_ns > 0 and np.isfinite(st.T_robot_from_tcp.t).all()
+
+
+def test_tracking_moves_the_arm_and_stop_is_delivered(robot: ServoRobot) -> None:
+    link = robot.link
+    assert isinstance(link, ServoProcess)
+    start = robot.state_now().T_robot_from_tcp
+    now = time.monotonic_ns()
+    target = RigidTransform(start.R, start.t + np.array([0.0, 0.0, 5.0]))
+    robot.start_tracking()
+    robot.track(target, np.zeros(3), np.zeros(3), t_ref_ns=now, valid_until_ns=now + 5_000_000_000,
+                exposure_t_ns=now, frame_seq=1, speed_scale=1.0, max_horizon_s=0.0, lead_s=0.0)
+    _wait(lambda: float(np.linalg.norm(robot.state_now().T_robot_from_tcp.t - target.t)) < 0.05,
+          "the arm to reach the setpoint")
+    assert link.regions.stats.get(Stat.COMMANDS) > 0
+    robot.stop()
+    assert link.regions.stats.get(Stat.STOP_ACK_ID) == 1
+    assert len(robot.stop_latency_ns) == 1 and robot.stop_latency_ns[0] >= 0
+
+
+def test_close_stops_the_arm_and_ends_the_process() -> None:
+    proc = ServoProcess(_spec(), "robot", RigidTransform.identity())
+    proc.start()
+    proc.close()
+    assert proc.exitcode == 0
+    proc.close()   # idempotent
+
+
+def test_a_killed_servo_process_makes_the_robot_disconnected(robot: ServoRobot) -> None:
+    link = robot.link
+    assert isinstance(link, ServoProcess) and link.ready is not None
+    os.kill(link.ready.pid, signal.SIGKILL)
+    _wait(lambda: link.gone() is not None, "the parent to see the child gone")
+    with pytest.raises(DisconnectedError, match="servo process"):
+        robot.state_now()
+
+
+_PARENT = textwrap.dedent("""
+    import sys
+    from hil.config import default_setup_path, load_setup
+    from hil.geometry.transform import RigidTransform
+    from hil.servo.process import ServoProcess, ServoSpec
+    p = ServoProcess(ServoSpec(load_setup(default_setup_path()), (60.0, 400.0, 0.5), realtime=False),
+                     "robot", RigidTransform.identity())
+    ready = p.start()
+    print("PID", ready.pid, flush=True)
+    sys.stdin.read()   # until the test kills this process
+""")
+
+
+def test_the_servo_process_exits_when_its_supervisor_is_killed() -> None:
+    parent = subprocess.Popen([sys.executable, "-c", _PARENT], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              cwd=ROOT, text=True)
+    child_pid = 0
+    try:
+        assert parent.stdout is not None
+        line = ""
+        while not line.startswith("PID "):
+            line = parent.stdout.readline()
+            assert line, "the parent ended before starting the servo process"
+        child_pid = int(line.split()[1])
+        parent.kill()
+        parent.wait()
+
+        def gone() -> bool:
+            try:
+                os.kill(child_pid, 0)
+            except ProcessLookupError:
+                return True
+            # a zombie of the killed parent is reaped by init; /proc says whether it still runs
+            try:
+                return Path(f"/proc/{child_pid}/stat").read_text().split()[2] == "Z"
+            except OSError:
+                return True
+        _wait(gone, "the orphaned servo process to stop the arm and exit")
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
+        if parent.stdin is not None:
+            parent.stdin.close()
+        if parent.stdout is not None:
+            parent.stdout.close()
+        if child_pid:
+            try:
+                os.kill(child_pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+def test_a_robot_that_cannot_be_opened_fails_the_start_with_its_own_error(tmp_path: Path) -> None:
+    text = (ROOT / "configs" / "sim_ursim.toml").read_text()
+    text = text.replace('host = "127.0.0.1"', 'host = "127.0.0.9"')   # loopback, nothing listening
+    text = text.replace('stereo = "calibration/sim_stereo.json"',
+                        f'stereo = "{ROOT / "configs" / "calibration" / "sim_stereo.json"}"', 1)
+    cfg = tmp_path / "u.toml"
+    cfg.write_text(text)
+    proc = ServoProcess(ServoSpec(load_setup(cfg), (60.0, 400.0, 0.5), realtime=False), "robot",
+                        RigidTransform.identity())
+    with pytest.raises(DisconnectedError, match="127.0.0.9"):
+        proc.start()
+    assert proc.exitcode is not None   # reaped
