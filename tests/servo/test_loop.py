@@ -15,9 +15,9 @@ from drivers.interfaces.robot import MotionLimits
 from hil.clock import ManualClock
 from hil.geometry.transform import RigidTransform
 from hil.servo.limiter import RateLimiter
+from hil.servo.link import Regions
 from hil.servo.loop import EV_REFUSED, EV_STALE, EV_STOP_DELIVERED, EV_STOP_FAILED, ServoLoop
 from hil.servo.shm import ServoMode, SetpointBlock, ShmRegion, Stat
-from hil.servo.link import Regions
 from tests.controller.fakes import FakeRobot
 
 PERIOD_S = 0.008
@@ -58,10 +58,10 @@ def _run(clock: ManualClock, loop: ServoLoop, n: int) -> None:
 def _track(block: SetpointBlock, clock: ManualClock, t_mm: Any, v_mm_s: Any = (0.0, 0.0, 0.0), *,
            track_id: int = 1, valid_s: float = 1.0, max_horizon_s: float = 5.0) -> None:
     now = clock.now_ns()
-    block.write_track(track_id=track_id, R=np.eye(3), t_mm=np.asarray(t_mm, float), v_mm_s=np.asarray(v_mm_s, float),
-                      w_rad_s=np.zeros(3), t_ref_ns=now, valid_until_ns=now + round(valid_s * 1e9),
-                      exposure_t_ns=now - 30_000_000, frame_seq=1, speed_scale=1.0, max_horizon_s=max_horizon_s,
-                      lead_s=0.0)
+    block.write_track(track_id=track_id, R=np.eye(3), t_mm=np.asarray(t_mm, float),
+                      v_mm_s=np.asarray(v_mm_s, float), w_rad_s=np.zeros(3), t_ref_ns=now,
+                      valid_until_ns=now + round(valid_s * 1e9), exposure_t_ns=now - 30_000_000, frame_seq=1,
+                      speed_scale=1.0, max_horizon_s=max_horizon_s, lead_s=0.0)
 
 
 def test_idle_reads_the_robot_every_period_and_commands_nothing(rig: Any) -> None:
@@ -152,7 +152,8 @@ def test_a_step_outside_the_workspace_is_refused_and_the_arm_stopped(rig: Any) -
     assert all(float(T.t[2]) <= LIMITS.workspace_max_mm[2] for T in servo)
     assert ("stop", None) in robot.calls
     refused = [f for k, f in events if k == EV_REFUSED]
-    assert refused and refused[0]["check"] == "workspace"
+    assert refused
+    assert refused[0]["check"] == "workspace"
 
 
 def test_a_non_finite_setpoint_is_refused_never_sent(rig: Any) -> None:
@@ -160,7 +161,7 @@ def test_a_non_finite_setpoint_is_refused_never_sent(rig: Any) -> None:
     _track(regions.block, clock, (np.nan, 0.0, 300.0))
     _run(clock, loop, 3)
     assert [kind for kind, _ in robot.calls if kind == "servo"] == []
-    assert [f["check"] for k, f in events if k == EV_REFUSED][0] == "setpoint"
+    assert next(f["check"] for k, f in events if k == EV_REFUSED) == "setpoint"
 
 
 def test_a_new_track_id_restarts_from_the_actual_pose_at_rest(rig: Any) -> None:

@@ -24,21 +24,28 @@ from hil.servo.shm import (
 
 finite = st.floats(-1e6, 1e6, allow_nan=False)
 vec3 = st.tuples(finite, finite, finite)
+Vec3 = tuple[float, float, float]
 
 
 @settings(max_examples=60, deadline=None)
-@given(t=vec3, v=vec3, w=vec3, t_ref=st.integers(0, 2**62), scale=st.floats(0.0, 1.0), track_id=st.integers(1, 2**40))
-def test_a_setpoint_reads_back_exactly(t: tuple[float, float, float], v: tuple[float, float, float],
-                                       w: tuple[float, float, float], t_ref: int, scale: float, track_id: int) -> None:
+@given(t=vec3, v=vec3, w=vec3, t_ref=st.integers(0, 2**62), scale=st.floats(0.0, 1.0),
+       track_id=st.integers(1, 2**40))
+def test_a_setpoint_reads_back_exactly(t: Vec3, v: Vec3, w: Vec3, t_ref: int, scale: float,
+                                       track_id: int) -> None:
     block = SetpointBlock(ShmRegion.local(SETPOINT_WORDS))
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     block.write_track(track_id=track_id, R=R, t_mm=np.array(t), v_mm_s=np.array(v), w_rad_s=np.array(w),
                       t_ref_ns=t_ref, valid_until_ns=t_ref + 5, exposure_t_ns=t_ref - 7, frame_seq=3,
                       speed_scale=scale, max_horizon_s=0.15, lead_s=0.03)
     sp = block.read(Setpoint())
-    assert sp.mode == ServoMode.TRACK and sp.track_id == track_id
-    assert (sp.t_ref_ns, sp.valid_until_ns, sp.exposure_t_ns, sp.frame_seq) == (t_ref, t_ref + 5, t_ref - 7, 3)
-    assert np.array_equal(sp.R, R) and tuple(sp.t_mm) == t and tuple(sp.v_mm_s) == v and tuple(sp.w_rad_s) == w
+    assert sp.mode == ServoMode.TRACK
+    assert sp.track_id == track_id
+    assert (sp.t_ref_ns, sp.valid_until_ns) == (t_ref, t_ref + 5)
+    assert (sp.exposure_t_ns, sp.frame_seq) == (t_ref - 7, 3)
+    assert np.array_equal(sp.R, R)
+    assert tuple(sp.t_mm) == t
+    assert tuple(sp.v_mm_s) == v
+    assert tuple(sp.w_rad_s) == w
     assert (sp.speed_scale, sp.max_horizon_s, sp.lead_s) == (scale, 0.15, 0.03)
     assert sp.seq % 2 == 0
 
@@ -62,9 +69,11 @@ def test_the_ring_returns_the_newest_and_older_records_until_overwritten() -> No
         ring.write(t_ns=1000 + k, cmd_t_ns=0, safety_code=0, mode_code=1, period=k, servo_mode=0,
                    pose=pose, q_rad=np.full(6, float(k)), tcp_speed_mm_s=float(k))
     got = ring.read_latest(rec)
-    assert got is not None and (got.t_ns, got.period, got.pose[9], got.q_rad[0]) == (1019, 19, 19.0, 19.0)
+    assert got is not None
+    assert (got.t_ns, got.period, got.pose[9], got.q_rad[0]) == (1019, 19, 19.0, 19.0)
     older = ring.read_back(3, RingRecord())
-    assert older is not None and older.period == 16
+    assert older is not None
+    assert older.period == 16
     assert ring.read_back(7, RingRecord()) is None   # the slot being written next: never handed out
 
 
@@ -93,7 +102,9 @@ def test_no_torn_read_while_another_process_writes() -> None:
             distinct.add(k)
             # every field of one write carries the same k: a torn read would mix two writes
             assert sp.t_ref_ns == sp.valid_until_ns == sp.exposure_t_ns == sp.frame_seq == k
-            assert np.all(sp.t_mm == float(k)) and np.all(sp.v_mm_s == float(k)) and np.all(sp.w_rad_s == float(k))
+            assert np.all(sp.t_mm == float(k))
+            assert np.all(sp.v_mm_s == float(k))
+            assert np.all(sp.w_rad_s == float(k))
             assert sp.speed_scale == sp.max_horizon_s == sp.lead_s == (float(k) if k else 0.0)
         assert proc.returncode == 0
         assert len(distinct) > 10   # the reads really interleaved with the writes
