@@ -1,14 +1,14 @@
-"""Benchmark the control loop in real time: the simulated procedure kept in compensation while
-servo targets stream at the robot's rate, measured at the robot driver boundary.
+"""Benchmark the servo loop in real time: the simulated procedure kept in compensation with the
+servo loop in its own process at the robot's rate (hil/servo), measured by the loop itself.
 
-Run: ``tools/bench loop [--seconds S] [--rate 125|500] [--json]``
+Run: ``tools/bench loop [--seconds S] [--rate 125|500] [--no-rt] [--json]``
 
-Printed: servo period p50/p99/max and its jitter against the robot's period (8 ms CB3 / 2 ms
-e-Series), missed deadlines (intervals > 2 periods; on the wall clock the next stereo pair is
-grabbed and located in the controller's prefetch thread while the stream goes on), the longest
-gap, frame-to-command latency (exposure -> first servo command from that frame) against the
-camera frame period, and RSS growth. Wall-clock figures: they depend on the machine and on its
-load (this is a shared 2-core machine).
+Printed: what the OS granted the servo process (``rt_granted``), servo period p50/p99/max and its
+jitter against the robot's period (8 ms CB3 / 2 ms e-Series), late periods (intervals > 2
+periods), the longest interval, frame-to-command latency (exposure -> the first servo command
+computed from that pair's setpoint), operator stop -> stop command, and RSS growth of both
+processes. ``--no-rt`` runs the same without asking for real-time scheduling (the comparison).
+Wall-clock figures: they depend on the machine and on its load (this is a shared 2-core machine).
 Definitions: hil/soak/soak.py and docs/benchmarks.md.
 """
 
@@ -22,6 +22,7 @@ from pathlib import Path
 
 from hil.config import default_setup_path
 from hil.log import configure_logging
+from hil.servo.rt import RtGranted
 from hil.soak.soak import run_soak
 
 
@@ -30,6 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=60.0, help="seconds of compensation (default 60)")
     ap.add_argument("--rate", type=float, default=125.0, help="servo rate, Hz: 125 (CB3) or 500 (e-Series)")
     ap.add_argument("--config", help="simulated setup TOML (default: configs/sim.toml)")
+    ap.add_argument("--no-rt", action="store_true", help="do not ask for real-time scheduling (comparison)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
     configure_logging(level="error")
@@ -40,6 +42,7 @@ def main(argv: list[str] | None = None) -> int:
             config=Path(args.config) if args.config else default_setup_path(),
             plan=None,
             session_dir=Path(d),
+            realtime=not args.no_rt,
         )
     period_ms = 1e3 / args.rate
     out = {
@@ -59,7 +62,11 @@ def main(argv: list[str] | None = None) -> int:
         "missed_fraction": res.missed_fraction,
         "longest_gap_ms": res.longest_gap_ms,
         "frame_to_command_ms": res.frame_to_command_ms,
+        "stop_to_command_ms": res.stop_to_command_ms,
+        "stale_periods": res.stale_periods,
         "rss_mb": res.rss_mb,
+        "servo_rss_mb": res.servo_rss_mb,
+        "rt_granted": res.rt_granted,
         "faults": res.faults,
         "final_state": res.final_state,
     }
@@ -82,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     f = res.frame_to_command_ms
     print(f"frame->command            {f.get('p50')} / {f.get('p99')} / {f.get('max')} ms (p50/p99/max)")
-    print(f"RSS                       {res.rss_mb}")
+    print(f"RSS supervisor / servo    {res.rss_mb} / {res.servo_rss_mb}")
+    print(f"servo process             {RtGranted.from_dict(res.rt_granted).summary()}")
     if res.faults:
         print(f"faults                    {'; '.join(res.faults)}", file=sys.stderr)
     return 0
