@@ -53,7 +53,9 @@ class UrRtdeRobotConfig(BaseModel):
         state_max_age_s: ``state_now`` raises DeviceTimeoutError when the controller timestamp has
             not advanced for this long (a stalled stream).
         rtde_watchdog_min_hz: arm the controller's RTDE input watchdog at this minimum rate (the
-            driver kicks it at 3x); 0 leaves it off.
+            driver kicks it at 3x); 0 leaves it off. The driver arms it lower when its window
+            would not outlast a blocking stop (1.5 x (max speed / max acceleration + 50 ms)):
+            the kicker cannot run while the library waits for a stop to complete.
         reconnect_attempts, reconnect_backoff_s: how ``recover()`` rebuilds lost interfaces.
         T_flange_from_tcp: the tool (needle guide) offset; the controller's own TCP stays at the
             flange and the driver applies this offset on the host.

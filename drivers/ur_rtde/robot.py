@@ -184,11 +184,13 @@ class UrRtdeRobot(Robot):
                 raise
             self._servoing = False
             self._stream_age.reset()
-            if cfg.rtde_watchdog_min_hz > 0 and not self._ctrl.setWatchdog(cfg.rtde_watchdog_min_hz):
+            hz = self._watchdog_hz()
+            if hz > 0 and not self._ctrl.setWatchdog(hz):
                 self._teardown()
                 raise DeviceFaultError(self.name, "the control script refused setWatchdog")
-        if cfg.rtde_watchdog_min_hz > 0:
-            self._start_kicker(cfg.rtde_watchdog_min_hz)
+        hz = self._watchdog_hz()
+        if hz > 0:
+            self._start_kicker(hz)
         _log.info("robot_connected", device=self.name, host=cfg.host, controller=cfg.controller,
                   polyscope=version, rate_hz=cfg.rate_hz)
 
@@ -215,6 +217,25 @@ class UrRtdeRobot(Robot):
         self._servoing = False
 
     # ------------------------------------------------------------------ the RTDE watchdog
+    def _watchdog_hz(self) -> float:
+        """The watchdog rate armed: ``rtde_watchdog_min_hz``, lowered when its window would not
+        outlast a blocking stop. A stop (servoStop / stopL) blocks the library until the arm is at
+        rest, up to ``max_speed / max_accel`` plus the controller's reply (50 ms here), and the
+        kicker cannot call the library meanwhile; the stop's own command write feeds the watchdog,
+        and the kicker's next kick comes at most one kicker period (a third of the window) after the
+        stop returns. So the window must be >= 1.5 x the longest stop. (Seen: a servoStop at the
+        acceleration limit from following speed outlasting a 200 ms window on the UR emulator, which
+        then stopped the program.)"""
+        want = self.cfg.rtde_watchdog_min_hz
+        if want <= 0:
+            return 0.0
+        longest_stop_s = self.limits.max_speed_mm_s / self.limits.max_accel_mm_s2 + 0.05
+        hz = min(want, 1.0 / (1.5 * longest_stop_s))
+        if hz < want:
+            _log.info("rtde_watchdog_lowered", device=self.name, configured_hz=want, armed_hz=round(hz, 3),
+                      longest_stop_s=round(longest_stop_s, 3))
+        return hz
+
     def _start_kicker(self, min_hz: float) -> None:
         self._kicker_stop.clear()
         period_s = 1.0 / (3.0 * min_hz)

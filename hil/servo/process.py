@@ -52,7 +52,7 @@ from hil.geometry.transform import RigidTransform
 from hil.servo.limiter import RateLimiter
 from hil.servo.link import Regions
 from hil.servo.loop import ServoLoop
-from hil.servo.rt import RtGranted, apply_realtime, wait_until
+from hil.servo.rt import RtGranted, apply_realtime, default_cpu, wait_until
 from hil.servo.wire import error_from_wire, error_to_wire
 
 #: How long the child may take to start (a fresh interpreter importing numpy and the driver).
@@ -274,11 +274,13 @@ class ServoProcess:
 def servo_main(conn: Connection, parent_pid: int) -> None:
     """The servo process (module doc): receives ``(spec, region names)`` first.
 
-    Order matters: the robot is built and opened, and the command thread started, *before* the
-    loop's thread asks for real time, so the driver's own threads (ur-rtde's receivers) and the
-    command thread stay on the normal scheduler: a SCHED_FIFO thread that polls would otherwise
-    starve the loop on its CPU. Threads the driver starts later (a reconnect in ``recover``) are
-    started from the command thread, so they are normal too.
+    Order matters: the process first moves off the loop's CPU, then the robot is built and opened
+    and the command thread started, and only then the loop's thread takes its CPU and SCHED_FIFO.
+    So the driver's own threads (ur-rtde's receivers, the watchdog kicker) and the command thread
+    run on the normal scheduler on the other CPUs: when the loop waits inside a driver call for one
+    of them (a stop waits for the controller's reply), its own priority cannot starve them (seen as
+    an RTDE watchdog expiry after a servoStop before this order). Threads the driver starts later
+    (a reconnect in ``recover``) are started from the command thread, so they are normal too.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from hil.log import configure_logging
@@ -289,6 +291,8 @@ def servo_main(conn: Connection, parent_pid: int) -> None:
     signal.signal(signal.SIGTERM, lambda *_: closing.set())
     regions = Regions.attach(names)
     clock = MonotonicClock()
+    if spec.realtime:
+        _keep_off_the_loop_cpu(spec.cpu)
     from hil.config.build import build_devices  # the registry, in the child only
 
     try:
@@ -331,6 +335,19 @@ def servo_main(conn: Connection, parent_pid: int) -> None:
     _stop_quietly(robot)
     robot.close()
     regions.close()
+
+
+def _keep_off_the_loop_cpu(cpu: int | None) -> None:
+    """Move this (still single) thread off the loop's CPU, so every thread started from here on —
+    the driver's receivers and watchdog kicker, the command thread — runs on the other CPUs. The
+    loop thread then pins itself to that CPU at SCHED_FIFO: a driver call it makes that waits for
+    one of those threads (a stop waiting for the controller's reply) is never starved by the loop's
+    own priority on a shared CPU."""
+    target = default_cpu() if cpu is None else cpu
+    others = os.sched_getaffinity(0) - {target}
+    if others:
+        with contextlib.suppress(OSError):
+            os.sched_setaffinity(0, others)
 
 
 def _stop_quietly(robot: Any) -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +31,7 @@ from hil.clock import MonotonicClock
 from hil.config import load_setup
 from hil.controller.fsm import Event, State
 from hil.controller.metrics import RunSummary
-from hil.controller.operator_input import OperatorView
+from hil.controller.operator_input import OperatorCommand, OperatorView
 from hil.controller.plan_file import load_plan
 from hil.errors import ConfigError
 from tests.ur_rtde.conftest import Ursim, start_ursim, wait_for
@@ -62,8 +63,10 @@ def fresh(ursim: Ursim) -> Iterator[Ursim]:
     ursim.control.reset()
 
 
-def write_config(tmp: Path, host: str, *, faults: str = "", confirm: tuple[str, ...] | None = None) -> Path:
-    """configs/sim_ursim.toml pointed at ``host``, with a fault schedule and confirmations."""
+def write_config(tmp: Path, host: str, *, faults: str = "", confirm: tuple[str, ...] | None = None,
+                 servo_process: str = "auto") -> Path:
+    """configs/sim_ursim.toml pointed at ``host``, with a fault schedule, confirmations and where
+    the servo loop runs (``auto``: its own process, as ``hil run`` does on the wall clock)."""
     text = CONFIG.read_text()
     text = text.replace('host = "127.0.0.1"', f'host = "{host}"')  # the robot and its fault channel
     text = text.replace('stereo = "calibration/sim_stereo.json"',
@@ -79,7 +82,7 @@ def write_config(tmp: Path, host: str, *, faults: str = "", confirm: tuple[str, 
     text = text.replace("[procedure]\nmax_duration_s = 180.0\n", procedure, 1)
     assert procedure in text
     path = tmp / "sim_ursim.toml"
-    path.write_text(text + "\n" + faults)
+    path.write_text(text + "\n" + faults + f'\n[servo]\nprocess = "{servo_process}"\n')
     return path
 
 
@@ -151,39 +154,22 @@ def _schedule_after_compensate(clean: RunSummary) -> float:
 
 
 def _ramp_checks(records: list[dict[str, Any]], t_recover_ns: int, setup_path: Path) -> int:
-    """No command after the recovery targets a point further from the actual pose than the ramp
-    allows: the resumed approach move runs at the reduced resume speed, and every servo target is
-    within the rate limit of the previous one (the first one after each COMPENSATE entry within the
-    rate limit of the actual pose there). Returns how many commands were checked."""
+    """No command after the recovery asks for more than the ramp allows: the resumed approach move
+    runs at the reduced resume speed, and every tracking setpoint carries a speed scale within the
+    resume ramp (the servo loop limits every period's step to the tracking speed times that scale:
+    tests/servo/test_loop.py). Returns how many commands were checked."""
     proc = load_setup(setup_path).procedure
-    v_max = proc.compensation.max_speed_mm_s
     after = [r for r in records if r["t_ns"] > t_recover_ns]
     commands = [r for r in after if r["event"] == "command_sent"]
     assert commands, "no command after the recovery"
     first = commands[0]
     assert first["command"] == "move_linear"
     assert first["speed_mm_s"] <= proc.approach.speed_mm_s * proc.resume.initial_speed_fraction + 1e-9
-    actual_mm: list[float] | None = None
-    prev_servo: dict[str, Any] | None = None
-    for r in after:
-        if r["event"] == "frame_measured" and r.get("robot_tcp_mm") is not None:
-            actual_mm = r["robot_tcp_mm"]
-        elif r["event"] == "state_entered" or (r["event"] == "command_sent" and r["command"] != "servo"):
-            prev_servo = None
-        elif r["event"] == "command_sent":
+    f0 = proc.resume.initial_speed_fraction
+    for r in commands:
+        if r["command"] == "track":
             since_s = (r["t_ns"] - t_recover_ns) * 1e-9
-            f0 = proc.resume.initial_speed_fraction
-            scale = min(1.0, f0 + (1.0 - f0) * since_s / proc.resume.ramp_s)
-            allowed_mm = v_max * scale * r["period_s"] + 1e-6
-            if prev_servo is None:
-                assert actual_mm is not None
-                # first target of a stream: from the actual pose (the arm is at rest there)
-                jump_mm = float(np.linalg.norm(np.subtract(r["target_mm"], actual_mm)))
-                assert jump_mm <= allowed_mm + 0.3, (r, actual_mm)
-            else:
-                step_mm = float(np.linalg.norm(np.subtract(r["target_mm"], prev_servo["target_mm"])))
-                assert step_mm <= allowed_mm, (r, prev_servo)
-            prev_servo = r
+            assert r["speed_scale"] <= min(1.0, f0 + (1.0 - f0) * since_s / proc.resume.ramp_s) + 1e-9, r
     return len(commands)
 
 
@@ -237,8 +223,11 @@ def test_drop_connection_fault_recover_rebuilds_the_interfaces(
     start_s = _schedule_after_compensate(clean_run)
     faults = (f'[[faults]]\nkind = "robot_disconnect"\nstart_s = {start_s}\nduration_s = 1.0\n'
               'transport = true\n')
+    # the driver is counted in this process: the servo loop runs here (the same loop code, stepped
+    # by the controller); the other tests here run it in its own process
     config = write_config(tmp_path, fresh.host, faults=faults,
-                          confirm=("plan_to_approach", "compensate_to_lock", "lock_to_done"))
+                          confirm=("plan_to_approach", "compensate_to_lock", "lock_to_done"),
+                          servo_process="off")
     operator = RecoveringOperator(resume_after_s=start_s + 1.5)
     s = run(config, tmp_path / "sessions", operator)
 
@@ -251,6 +240,60 @@ def test_drop_connection_fault_recover_rebuilds_the_interfaces(
     states = [row["state"] for row in s.timeline]
     assert states[-3:] == ["compensate", "lock", "done"]
     assert s.final_state == "done"
+
+
+@dataclass
+class AbortingOperator:
+    """Starts, confirms, and ``abort_after_s`` into COMPENSATE presses abort (a console-style input:
+    posted from outside the control loop, with its time, and announced through ``input_waiting``)."""
+
+    abort_after_s: float
+    started: bool = False
+    t_comp_s: float | None = None
+    posted_ns: int = 0
+    taken: bool = False
+
+    def input_waiting(self) -> bool:
+        return self.posted_ns != 0 and not self.taken
+
+    def poll(self, view: OperatorView) -> Event | OperatorCommand | None:
+        if not self.started and view.state is State.IDLE:
+            self.started = True
+            return Event.START_REQUESTED
+        if view.state is State.COMPENSATE and self.t_comp_s is None:
+            self.t_comp_s = view.t_s
+        if self.posted_ns and not self.taken:
+            self.taken = True
+            return OperatorCommand(Event.ABORT_REQUESTED, 1, "test", posted_ns=self.posted_ns)
+        if (self.t_comp_s is not None and not self.posted_ns
+                and view.t_s >= self.t_comp_s + self.abort_after_s):
+            self.posted_ns = time.monotonic_ns()
+            return None   # the input arrives between ticks, as a key press does
+        if view.pending is not None and view.pending != "compensate_to_lock":
+            return Event.CONFIRM_REQUESTED
+        return None
+
+    def finished(self, view: OperatorView) -> bool:
+        return self.taken and view.state is State.SAFE_STOP
+
+
+def test_operator_abort_in_compensate_stops_the_arm_through_the_servo_process(
+        fresh: Ursim, tmp_path: Path) -> None:
+    """Abort while the servo process tracks the patient on the UR emulator: the arm is stopped, and
+    the session log measures abort -> stop command (the figure `hil soak` reports as p99)."""
+    config = write_config(tmp_path, fresh.host, confirm=("plan_to_approach", "compensate_to_lock"))
+    operator = AbortingOperator(abort_after_s=1.0)
+    s = run(config, tmp_path / "sessions", operator)
+    assert s.final_state == "safe_stop", s.timeline
+    records = session_records(s)
+    abort = next(r for r in records if r["event"] == "operator_command" and r["input"] == "abort_requested")
+    assert abort["posted_ns"] == operator.posted_ns
+    delivered = [r for r in records if r["event"] == "servo_stop_delivered" and r["t_ns"] >= abort["t_ns"]]
+    assert delivered, "no stop delivered by the servo loop after the abort"
+    latency_ms = (delivered[0]["issued_ns"] - abort["posted_ns"]) * 1e-6
+    assert latency_ms > 0
+    print(f"abort -> stop command {latency_ms:.2f} ms")   # the figure; a benchmark's job to bound it
+    wait_for(lambda: fresh.control.status()["motion"] is None, what="the emulated arm at rest")
 
 
 def test_transport_fault_refused_without_an_emulator_channel(tmp_path: Path) -> None:
@@ -289,27 +332,23 @@ def test_pose_follower_interpolates_between_samples() -> None:
     assert _interpolate((0, a), (100, b), 500).is_close(b)
 
 
-def _records(first_servo_mm: tuple[float, float, float],
-             resume_speed_mm_s: float = 5.0) -> list[dict[str, Any]]:
+def _records(first_scale: float, resume_speed_mm_s: float = 5.0) -> list[dict[str, Any]]:
     return [
         {"t_ns": 1_000, "event": "state_entered", "state": "approach", "transition": "recover"},
         {"t_ns": 2_000, "event": "command_sent", "command": "move_linear", "speed_mm_s": resume_speed_mm_s},
-        {"t_ns": 3_000_000_000, "event": "frame_measured", "robot_tcp_mm": [10.0, 0.0, 0.0]},
-        {"t_ns": 3_000_000_001, "event": "state_entered", "state": "compensate", "transition": "x"},
-        {"t_ns": 3_000_000_002, "event": "command_sent", "command": "servo", "period_s": 0.008,
-         "target_mm": list(first_servo_mm)},
-        {"t_ns": 3_008_000_000, "event": "command_sent", "command": "servo", "period_s": 0.008,
-         "target_mm": [first_servo_mm[0] + 0.4, first_servo_mm[1], first_servo_mm[2]]},
+        {"t_ns": 200_000_001, "event": "state_entered", "state": "compensate", "transition": "x"},
+        {"t_ns": 200_000_002, "event": "command_sent", "command": "track", "speed_scale": first_scale},
+        {"t_ns": 266_000_000, "event": "command_sent", "command": "track", "speed_scale": first_scale},
     ]
 
 
-def test_ramp_check_accepts_a_stream_from_the_actual_pose() -> None:
-    assert _ramp_checks(_records((10.2, 0.0, 0.0)), 1_000, CONFIG) == 3
+def test_ramp_check_accepts_setpoints_within_the_ramp() -> None:
+    assert _ramp_checks(_records(0.2), 1_000, CONFIG) == 3
 
 
 @pytest.mark.parametrize(("records", "what"), [
-    (_records((16.0, 0.0, 0.0)), "a servo stream starting 6 mm from the actual pose (stale target)"),
-    (_records((10.2, 0.0, 0.0), resume_speed_mm_s=50.0), "a resumed approach at full speed"),
+    (_records(1.0), "tracking at full speed right after the recovery"),
+    (_records(0.2, resume_speed_mm_s=50.0), "a resumed approach at full speed"),
 ])
 def test_ramp_check_catches(records: list[dict[str, Any]], what: str) -> None:
     with pytest.raises(AssertionError):
