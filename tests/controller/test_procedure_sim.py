@@ -228,7 +228,7 @@ def test_an_internal_error_in_a_tick_becomes_a_fault(tmp_path: Path) -> None:
     try:
         with SessionLog(tmp_path / "s.jsonl", clock) as log:
             ctl = Controller(camera=dev.camera, robot=dev.robot, tracker=None, clock=clock, locate=broken,
-                             plan=PLAN, rig=_rig(setup), procedure=setup.procedure,
+                             plan=PLAN, rig=_rig(setup, dev.robot), procedure=setup.procedure,
                              limits=setup.safety.motion_limits(),
                              watchdog_ages_s={"camera": 0.25, "robot": 0.05}, session=log,
                              operator=AutoOperator())
