@@ -19,7 +19,14 @@ from typing import Any, TextIO
 from hil.clock import Clock, ManualClock, MonotonicClock
 from hil.config import build_devices, default_setup_path, load_setup
 from hil.config.setup import SetupConfig
-from hil.controller.assembly import RobotWrapper, build_controller, runtime_plugins, start_igtl, wrap_robot
+from hil.controller.assembly import (
+    RobotWrapper,
+    build_controller,
+    runtime_plugins,
+    start_igtl,
+    stereo_calibration,
+    wrap_robot,
+)
 from hil.controller.fsm import Event, State
 from hil.controller.metrics import RunSummary
 from hil.controller.operator_input import AutoOperator, Operator, OperatorView
@@ -142,6 +149,7 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
         fast = simulated and not setup.simulation.real_time
         clock = ManualClock(1_000_000_000) if fast else MonotonicClock()
     devices = build_devices(setup, clock)
+    stereo_calibration(setup, devices.camera)  # none anywhere: refused before any device opens
     if robot_wrapper is not None:
         devices = wrap_robot(devices, robot_wrapper)
     world = devices.world
