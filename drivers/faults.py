@@ -45,6 +45,7 @@ from hil.config.faults import DEFAULT_FAULT_CHANNEL_PORT, FaultChannelConfig, Fa
 from hil.errors import ConfigError
 from hil.geometry.transform import RigidTransform
 from hil.log import get_logger
+from hil.vision.camera_model import StereoCalibration
 
 _log = get_logger(__name__)
 
@@ -87,7 +88,9 @@ class _Schedule:
 
 
 class _Delegating:
-    """Attributes the wrapper does not have (e.g. a simulator's ground truth) come from ``inner``."""
+    """Attributes the wrapper does not have (a simulator's extras such as ``world`` or
+    ``last_truth``) come from ``inner``. What the core needs (a camera's ``calibration``, a
+    robot's ``T_flange_from_tcp``) is part of the interface and delegated explicitly below."""
 
     def __getattr__(self, name: str) -> object:
         inner = self.__dict__.get("inner")
@@ -126,6 +129,11 @@ class FaultyStereoCamera(_Delegating, StereoCamera):
     @property
     def image_size(self) -> tuple[int, int]:
         return self.inner.image_size
+
+    @property
+    def calibration(self) -> StereoCalibration | None:
+        """The inner camera's stereo calibration (None when it knows none), never a default."""
+        return self.inner.calibration
 
     def grab(self, timeout_s: float) -> StereoFrame:
         self.require_active("grab")
@@ -254,7 +262,7 @@ class FaultyRobot(_Delegating, Robot):
     def __init__(self, inner: Robot, faults: Sequence[FaultSpec], clock: Clock,
                  channel: FaultChannel | None = None,
                  fault_channel: FaultChannelConfig | None = None) -> None:
-        super().__init__(inner.name, inner.limits)
+        super().__init__(inner.name, inner.limits, T_flange_from_tcp=inner.T_flange_from_tcp)
         self.inner = inner
         simulated = [f for f in faults if f.transport_command is None]
         sent = [(i, f) for i, f in enumerate(faults) if f.transport_command is not None]
@@ -281,6 +289,11 @@ class FaultyRobot(_Delegating, Robot):
     @property
     def control_rate_hz(self) -> float:
         return self.inner.control_rate_hz
+
+    @property
+    def T_flange_from_tcp(self) -> RigidTransform:
+        """The inner robot's TCP in the flange frame (mm), never a default of its own."""
+        return self.inner.T_flange_from_tcp
 
     def _check_connected(self) -> None:
         f = self.schedule.active(FaultKind.ROBOT_DISCONNECT)

@@ -46,7 +46,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from drivers.camera.config import AravisCameraConfig
 from drivers.camera.pairing import FrameIdUnwrapper, PairRule, Side, StereoPairer
@@ -55,6 +55,9 @@ from drivers.interfaces.camera import Frame, FrameTime, StereoCamera, StereoFram
 from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError
 from hil.clock import Clock
 from hil.log import get_logger
+
+if TYPE_CHECKING:
+    from hil.vision.camera_model import StereoCalibration
 
 log = get_logger(__name__)
 
@@ -170,6 +173,11 @@ class AravisStereoCamera(StereoCamera):
     @property
     def frame_rate_hz(self) -> float:
         return self.config.frame_rate_hz
+
+    @property
+    def calibration(self) -> StereoCalibration | None:
+        """None: two GigE cameras know no stereo calibration; ``[calibration] stereo`` gives it."""
+        return None
 
     @property
     def exposure_us(self) -> float:

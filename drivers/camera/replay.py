@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -23,6 +24,9 @@ from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError
 from hil.clock import Clock
 from hil.errors import InputFileError
 from hil.log import get_logger
+
+if TYPE_CHECKING:
+    from hil.vision.camera_model import StereoCalibration
 
 log = get_logger(__name__)
 
@@ -56,6 +60,11 @@ class ReplayStereoCamera(StereoCamera):
     @property
     def frame_rate_hz(self) -> float:
         return self.info.frame_rate_hz
+
+    @property
+    def calibration(self) -> StereoCalibration | None:
+        """None: a recording holds no stereo calibration: the setup's ``[calibration] stereo`` gives it."""
+        return None
 
     @property
     def exposure_us(self) -> float:

@@ -30,7 +30,7 @@ import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import cv2
 import numpy as np
@@ -41,6 +41,9 @@ from drivers.interfaces.camera import Frame, FrameTime, StereoCamera, StereoFram
 from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError
 from hil.clock import Clock
 from hil.log import get_logger
+
+if TYPE_CHECKING:
+    from hil.vision.camera_model import StereoCalibration
 
 log = get_logger(__name__)
 
@@ -115,6 +118,11 @@ class V4l2StereoCamera(StereoCamera):
     @property
     def frame_rate_hz(self) -> float:
         return self.config.frame_rate_hz
+
+    @property
+    def calibration(self) -> StereoCalibration | None:
+        """None: two UVC cameras know no stereo calibration: the setup's ``[calibration] stereo`` gives it."""
+        return None
 
     @property
     def exposure_us(self) -> float:

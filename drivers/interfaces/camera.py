@@ -5,11 +5,15 @@ from __future__ import annotations
 from abc import abstractmethod
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from drivers.interfaces.lifecycle import Device
+
+if TYPE_CHECKING:
+    from hil.vision.camera_model import StereoCalibration
 
 
 class FrameTime(StrEnum):
@@ -59,9 +63,23 @@ class StereoFrame:
 
 
 class StereoCamera(Device):
-    """A calibrated stereo source. A sensor: it has no command that moves anything."""
+    """A calibrated stereo source. A sensor: it has no command that moves anything.
+
+    Every driver says whether it knows its stereo calibration (:attr:`calibration`); one that
+    does not needs the setup's ``[calibration] stereo`` file.
+    """
 
     kind = "camera"
+
+    @property
+    @abstractmethod
+    def calibration(self) -> StereoCalibration | None:
+        """The stereo calibration the device itself knows (intrinsics, distortion, left-to-right
+        pose, mm), or None when it knows none (a plain camera pair): the setup must then give
+        ``[calibration] stereo``, and the controller's assembly raises a ConfigError naming that
+        key when neither does. A wrapper returns its inner device's. Never blocks, never raises,
+        available in every lifecycle state.
+        """
 
     @abstractmethod
     def grab(self, timeout_s: float) -> StereoFrame:

@@ -120,14 +120,25 @@ class Robot(Device):
     Args:
         name: role name for errors.
         limits: the hard limits.
+        T_flange_from_tcp: the tool centre point the driver reports and commands, in the flange
+            frame (mm); keyword-only and required, so a driver with a configured TCP cannot forget
+            to pass it. A driver without one passes ``RigidTransform.identity()`` (TCP = flange).
     """
 
     kind = "robot"
 
-    def __init__(self, name: str, limits: MotionLimits) -> None:
+    def __init__(self, name: str, limits: MotionLimits, *, T_flange_from_tcp: RigidTransform) -> None:
         super().__init__(name)
         self.limits = limits
+        self._T_flange_from_tcp = T_flange_from_tcp
         self._last_servo_target: RigidTransform | None = None
+
+    @property
+    def T_flange_from_tcp(self) -> RigidTransform:
+        """The TCP in the flange frame (mm): poses in :class:`RobotState` and motion commands are
+        this point's. Fixed for the device's life; a wrapper returns its inner robot's. Never
+        blocks, never raises, available in every lifecycle state."""
+        return self._T_flange_from_tcp
 
     # ------------------------------------------------------------ public, checked API
     def move_linear(

@@ -85,7 +85,7 @@ class SimStereoCamera(StereoCamera):
         self.cfg = cfg
         self.clock = clock
         self.world = world
-        self.calibration = calibration  # what the controller is told
+        self._calibration = calibration  # what the controller is told
         errors = world.rig_errors
         self.true_calibration = true_calibration(calibration, errors.camera_calibration_error_px,
                                                  world.rng("camera_calibration_error"))
@@ -111,6 +111,12 @@ class SimStereoCamera(StereoCamera):
 
     def _close(self) -> None:
         pass
+
+    @property
+    def calibration(self) -> StereoCalibration:
+        """What the controller is told: ``[calibration] stereo`` when given, else the synthetic rig
+        (the images are rendered through :attr:`true_calibration`, which differs by the rig errors)."""
+        return self._calibration
 
     @property
     def frame_rate_hz(self) -> float:

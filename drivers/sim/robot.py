@@ -165,11 +165,10 @@ class SimRobot(Robot):
 
     def __init__(self, name: str, limits: MotionLimits, cfg: SimRobotConfig, clock: Clock,
                  world: SimWorld | None = None) -> None:
-        super().__init__(name, limits)
+        super().__init__(name, limits, T_flange_from_tcp=cfg.T_flange_from_tcp.as_transform())
         self.cfg = cfg
         self.clock = clock
         self.world = world
-        self.T_flange_from_tcp = cfg.T_flange_from_tcp.as_transform()
         self.T_tcp_from_flange = self.T_flange_from_tcp.inverse()
         self.joint_limits_rad: FloatArray = np.asarray(UR3_JOINT_LIMITS_RAD, dtype=np.float64)
         q0 = np.asarray(cfg.initial_q_rad, dtype=np.float64)

@@ -116,16 +116,14 @@ class RobotPoseFollower:
     after it, the oldest before it). While the driver cannot report (lost connection, recovery),
     the last known pose stands: the physical arm is somewhere, and the world keeps seeing it
     there. The thread ends when the robot is closed (also one built and never opened).
-    ``T_flange_from_tcp`` of the driver (its attribute, identity without one) turns the reported
-    TCP pose into the flange pose.
+    The driver's :attr:`~drivers.interfaces.robot.Robot.T_flange_from_tcp` turns the reported TCP
+    pose into the flange pose.
     """
 
     def __init__(self, robot: Robot, period_s: float = 0.01, history: int = 300) -> None:
         self.robot = robot
         self.period_s = period_s
-        tcp = getattr(robot, "T_flange_from_tcp", None)
-        self.T_tcp_from_flange = (tcp.inverse() if isinstance(tcp, RigidTransform)
-                                  else RigidTransform.identity())
+        self.T_tcp_from_flange = robot.T_flange_from_tcp.inverse()
         self._samples: deque[tuple[int, RigidTransform]] = deque(maxlen=history)
         self._lock = threading.Lock()
         self._stop = threading.Event()

@@ -122,10 +122,9 @@ class UrRtdeRobot(Robot):
     """
 
     def __init__(self, name: str, limits: MotionLimits, cfg: UrRtdeRobotConfig, clock: Clock) -> None:
-        super().__init__(name, limits)
+        super().__init__(name, limits, T_flange_from_tcp=cfg.T_flange_from_tcp.as_transform())
         self.cfg = cfg
         self.clock = clock
-        self.T_flange_from_tcp = cfg.T_flange_from_tcp.as_transform()
         self.T_tcp_from_flange = self.T_flange_from_tcp.inverse()
         self._io = threading.RLock()
         self._ctrl: Any = None

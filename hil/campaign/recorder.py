@@ -71,7 +71,7 @@ class RecordingRobot(Robot):
     """
 
     def __init__(self, inner: Robot, limits: MotionLimits, clock: Clock, *, compact: bool = False) -> None:
-        super().__init__(inner.name, inner.limits)
+        super().__init__(inner.name, inner.limits, T_flange_from_tcp=inner.T_flange_from_tcp)
         self.inner = inner
         self.check_limits = limits
         self.clock = clock
@@ -92,6 +92,11 @@ class RecordingRobot(Robot):
     @property
     def control_rate_hz(self) -> float:
         return self.inner.control_rate_hz
+
+    @property
+    def T_flange_from_tcp(self) -> RigidTransform:
+        """The inner robot's TCP in the flange frame (mm), never a default of its own."""
+        return self.inner.T_flange_from_tcp
 
     # ------------------------------------------------------------------ checks
     def _box(self, T: RigidTransform) -> list[str]:

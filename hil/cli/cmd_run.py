@@ -24,6 +24,7 @@ from hil.controller.assembly import (
     build_controller,
     runtime_plugins,
     start_igtl,
+    stereo_calibration,
     with_servo_process,
     wrap_robot,
 )
@@ -149,6 +150,7 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
         fast = simulated and not setup.simulation.real_time
         clock = ManualClock(1_000_000_000) if fast else MonotonicClock()
     devices = build_devices(setup, clock)
+    stereo_calibration(setup, devices.camera)  # none anywhere: refused before any device opens
     if robot_wrapper is not None:
         devices = wrap_robot(devices, robot_wrapper)
     else:

@@ -21,6 +21,7 @@ from textual.widgets import Button, DataTable, Footer, Header, Label, Sparkline,
 from hil.console.panels import (
     banner_text,
     gate_text,
+    markers_title,
     plan_text,
     registration_text,
     robot_text,
@@ -303,6 +304,7 @@ class ConsoleApp(App[dict[str, Any]]):
 
     def _render_markers(self, v: ConsoleView) -> None:
         table = self.query_one("#markers", DataTable)
+        table.border_title = markers_title(v.located_counts)
         table.clear()
         for m in v.markers:
             name = f"{m.kind} {m.index}"

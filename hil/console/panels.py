@@ -38,6 +38,16 @@ def workflow_text(v: ConsoleView) -> Text:
     return wf
 
 
+def markers_title(located_counts: tuple[int | None, int | None, int] | None) -> str:
+    """The marker table's title with the markers located in the latest pair
+    (:attr:`ConsoleView.located_counts`: left image, right image, triangulated)."""
+    title = "Markers (optical frame)"
+    if located_counts is None:
+        return title
+    left, right, points = ("—" if x is None else str(x) for x in located_counts)
+    return f"{title} — located: left {left}, right {right}, 3-D {points}"
+
+
 def registration_text(v: ConsoleView) -> Text:
     return Text(
         f"FRE            {mm(v.fre_mm)}\n"

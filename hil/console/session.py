@@ -18,7 +18,7 @@ from hil.config.build import Devices, clock_for
 from hil.config.setup import SetupConfig
 from hil.console.operator import ConsoleOperator
 from hil.console.runner import ControllerRunner
-from hil.controller.assembly import build_controller, runtime_plugins
+from hil.controller.assembly import build_controller, runtime_plugins, stereo_calibration
 from hil.controller.controller import Controller
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import InputFileError
@@ -115,6 +115,12 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
         igtl = IgtlServer(igtl_cfg, clk)
         igtl.start()
     devices = build_devices(setup, clk)
+    try:
+        stereo_calibration(setup, devices.camera)  # none anywhere: refused before any device opens
+    except BaseException:
+        if igtl is not None:
+            igtl.close()
+        raise
     world = devices.world
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
     header: dict[str, Any] = {

@@ -78,6 +78,9 @@ class ConsoleView:
     igtl: str
     ended: bool = False
     error: str = ""
+    #: markers located in the latest pair: (left image, right image, triangulated); None before
+    #: a pair, or a camera's count None when the locator does not say
+    located_counts: tuple[int | None, int | None, int] | None = None
 
 
 def hint_for(state: State, pending: str | None, gate_tol_mm: float, gate_dwell_s: float) -> str:
@@ -179,4 +182,5 @@ def build_view(snap: ControllerSnapshot, vs: ViewSetup, *, breathing_mm: Sequenc
         commands_refused=snap.commands_refused,
         operator_commands_decided=snap.operator_commands_decided,
         session_log=session_log, igtl=igtl, ended=ended, error=error,
+        located_counts=None if snap.located is None else snap.located.counts,
     )

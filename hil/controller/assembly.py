@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from drivers.interfaces.camera import StereoCamera
 from drivers.interfaces.robot import Robot
 from hil.clock import Clock, MonotonicClock
 from hil.config import Devices
@@ -29,7 +30,6 @@ from hil.controller.planning import RigGeometry
 from hil.controller.tracker_use import TrackerUse
 from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.errors import ConfigError, InputFileError
-from hil.geometry.transform import RigidTransform
 from hil.rigcal.apply import flange_markers_mm, with_rig_time_offsets
 from hil.session.log import SessionLog
 from hil.tracking.session import load_tracker_calibration
@@ -41,27 +41,38 @@ if TYPE_CHECKING:
     from hil.igtl.server import IgtlServer
 
 
-def rig_geometry(setup: SetupConfig) -> RigGeometry:
-    tcp_cfg = getattr(setup.robot, "T_flange_from_tcp", None)
-    T_flange_from_tcp = tcp_cfg.as_transform() if tcp_cfg is not None else RigidTransform.identity()
+def rig_geometry(setup: SetupConfig, robot: Robot) -> RigGeometry:
+    """The end effector: the guide on the flange (``[frames]``), the flange markers (``[calibration]
+    rig``, else the CAD layout) and the TCP the robot driver reports (its ``T_flange_from_tcp``)."""
     return RigGeometry(setup.frames.T_flange_from_guide.as_transform(),
-                       flange_markers_mm(setup), T_flange_from_tcp)  # [calibration] rig, else CAD
+                       flange_markers_mm(setup), robot.T_flange_from_tcp)
 
 
-def _calibration(setup: SetupConfig, camera: object) -> StereoCalibration:
+def stereo_calibration(setup: SetupConfig, camera: StereoCamera | None) -> StereoCalibration:
+    """The stereo calibration perception uses: the setup's ``[calibration] stereo`` file when
+    given, else the one the camera knows (:attr:`StereoCamera.calibration`; the simulator's).
+
+    Raises:
+        InputFileError: the calibration file cannot be read or is invalid.
+        ConfigError: neither gives one (a camera driver that knows no calibration, and no
+            ``[calibration] stereo`` in the setup).
+    """
     if setup.calibration.stereo is not None:
         return load_calibration(setup.calibration.stereo)
-    cal = getattr(camera, "calibration", None)
-    if isinstance(cal, StereoCalibration):
+    cal = None if camera is None else camera.calibration
+    if cal is not None:
         return cal
-    return StereoCalibration.synthetic()
+    driver = str(setup.camera.driver)
+    raise ConfigError("setup", [
+        f"calibration.stereo: missing, and the camera driver {driver!r} does not know its stereo "
+        "calibration; set [calibration] stereo to a calibration file (hil calibrate writes one)"])
 
 
-def marker_locator(setup: SetupConfig, camera: object) -> StereoMarkerLocator:
+def marker_locator(setup: SetupConfig, camera: StereoCamera | None) -> StereoMarkerLocator:
     """The controller's marker locator on the setup's calibration: region-of-interest tracking
     when ``[procedure.vision] roi_tracking`` (the default), else a full-frame search per pair."""
     v = setup.procedure.vision
-    loc = StereoMarkerLocator(_calibration(setup, camera))
+    loc = StereoMarkerLocator(stereo_calibration(setup, camera))
     if v.roi_tracking and isinstance(loc, _Locator):  # (tests may substitute their own locator)
         loc.use_tracking(TrackingParams(window_margin_px=v.window_margin_px,
                                         reacquire_every=v.reacquire_every_frames,
@@ -70,16 +81,16 @@ def marker_locator(setup: SetupConfig, camera: object) -> StereoMarkerLocator:
 
 
 def _needle_checker(setup: SetupConfig,
-                    camera: object) -> StereoNeedleChecker | CollinearNeedleChecker | None:
+                    camera: StereoCamera) -> StereoNeedleChecker | CollinearNeedleChecker | None:
     """The seed-004 needle-axis check when ``[procedure.lock.needle_check]`` is set, else None:
     contour lines (``method = "cylinder"``) or collinear beads (``method = "collinear"``)."""
     nc = setup.procedure.lock.needle_check
     if nc is None:
         return None
     if nc.method == "collinear":
-        return CollinearNeedleChecker(_calibration(setup, camera), nc.bead_positions_mm(),
+        return CollinearNeedleChecker(stereo_calibration(setup, camera), nc.bead_positions_mm(),
                                       nc.max_mono_stereo_deg)
-    return StereoNeedleChecker(_calibration(setup, camera), nc.radius_mm)
+    return StereoNeedleChecker(stereo_calibration(setup, camera), nc.radius_mm)
 
 
 #: Takes the robot driver the setup built (CONFIGURED, not opened) and returns the robot the
@@ -119,9 +130,7 @@ def with_servo_process(setup: SetupConfig, devices: Devices, clock: Clock) -> De
     spec = ServoSpec(setup, (c.max_speed_mm_s, c.max_accel_mm_s2, c.max_angular_speed_rad_s),
                      realtime=sv.realtime, priority=sv.priority, cpu=sv.cpu)
     inner = devices.robot
-    tcp = getattr(inner, "T_flange_from_tcp", None)
-    T_tcp = tcp if isinstance(tcp, RigidTransform) else RigidTransform.identity()
-    robot = ServoRobot(ServoProcess(spec, inner.name, T_tcp), inner.limits)
+    robot = ServoRobot(ServoProcess(spec, inner.name, inner.T_flange_from_tcp), inner.limits)
     if isinstance(devices.world, RobotFollower):
         devices.world.follow_robot(robot.state_view())
     return dataclasses.replace(devices, robot=robot)
@@ -141,7 +150,7 @@ def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, 
     world = devices.world
     return Controller(
         camera=devices.camera, robot=devices.robot, tracker=devices.tracker, clock=clock,
-        locate=marker_locator(setup, devices.camera), plan=plan, rig=rig_geometry(setup),
+        locate=marker_locator(setup, devices.camera), plan=plan, rig=rig_geometry(setup, devices.robot),
         procedure=setup.procedure, limits=sf.motion_limits(),
         watchdog_ages_s={"camera": sf.camera_frame_max_age_ms / 1e3,
                          "robot": sf.robot_state_max_age_ms / 1e3,

@@ -401,7 +401,8 @@ class ControllerParts(abc.ABC):
             robot=est.last_state, tracker=dict(est.tracker_samples), faults=tuple(self.faults),
             frames=self.metrics.frames, commands_sent=self.safety.commands_sent,
             commands_refused=self.safety.commands_refused,
-            operator_commands_decided=self.operator_commands_decided, truth_error_mm=truth)
+            operator_commands_decided=self.operator_commands_decided, truth_error_mm=truth,
+            located=self.pipeline.last_located)
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> RunSummary:

@@ -6,13 +6,16 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from drivers.interfaces.camera import StereoFrame
+from hil.controller.located import LocatedMarkers
 from hil.vision.beads import BeadAxisMeasurement, measure_bead_axis
 from hil.vision.camera_model import StereoCalibration
+from hil.vision.detect import RingDetection
 from hil.vision.lines import NeedleAxisMeasurement, measure_needle_axis
 from hil.vision.pipeline import locate_markers
 from hil.vision.tracking import MarkerTracker, TrackingParams
@@ -22,6 +25,11 @@ FloatArray = NDArray[np.float64]
 
 #: locate-time samples kept for the summary (the newest; ~1 h at 30 pairs/s)
 LOCATE_SAMPLES = 100_000
+
+
+def _centres_px(detections: Sequence[RingDetection]) -> FloatArray:
+    """The detections' centres (N, 2), px."""
+    return np.array([d.center_px for d in detections], dtype=np.float64).reshape(-1, 2)
 
 
 class StereoMarkerLocator:
@@ -53,6 +61,12 @@ class StereoMarkerLocator:
             self.tracker = None if tracking is None else MarkerTracker(self.calibration, tracking)
 
     def __call__(self, frame: StereoFrame) -> FloatArray:
+        """The triangulated marker centres of ``frame`` (M, 3), optical frame, mm, any order."""
+        return np.array(self.locate_pair(frame).points_mm, dtype=np.float64)
+
+    def locate_pair(self, frame: StereoFrame) -> LocatedMarkers:
+        """The markers of ``frame``: the ring centres detected in each image (px) and the
+        triangulated centres (optical frame, mm), any order (:class:`LocatedMarkers`)."""
         with self._lock:
             t0 = time.perf_counter_ns()
             if self.tracker is None:
@@ -60,8 +74,8 @@ class StereoMarkerLocator:
             else:
                 res = self.tracker.locate(frame.left.image, frame.right.image, frame.left.t_ns * 1e-9)
             self._locate_ms.append((time.perf_counter_ns() - t0) * 1e-6)
-        pts: FloatArray = np.asarray(res.points_mm, dtype=np.float64).reshape(-1, 3)
-        return pts
+        return LocatedMarkers.of(frame, res.points_mm, _centres_px(res.detections_left),
+                                 _centres_px(res.detections_right))
 
     def locate_ms(self) -> dict[str, float | None]:
         """p50 and p95 of the time per call so far (ms, wall clock; None before the first call)."""

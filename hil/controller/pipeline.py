@@ -20,6 +20,7 @@ from drivers.interfaces.tracker import PoseTracker
 from hil.clock import Clock, MonotonicClock
 from hil.controller import events as ev
 from hil.controller.estimate import Estimate, FloatArray
+from hil.controller.located import LocatedMarkers, locate_in
 from hil.controller.metrics import RunMetrics
 from hil.controller.prefetch import FramePrefetcher, Prefetched, realtime_switch_interval
 from hil.log import get_logger
@@ -46,6 +47,9 @@ class DevicePipeline:
         self.primed = False   # the camera pipeline's first (late) pair has been consumed
         self.prefetch: FramePrefetcher | None = None
         self.prefetched: Prefetched | None = None   # the result the current tick perceives
+        #: the markers located in the latest pair perceived (None before one, or when locating it
+        #: raised): what snapshots show per camera
+        self.last_located: LocatedMarkers | None = None
 
     def grab_timeout_s(self) -> float:
         return max(4 * self.frame_period_s, 0.2)
@@ -125,16 +129,19 @@ class DevicePipeline:
         return st
 
     def located(self, frame: StereoFrame) -> FloatArray:
-        """The marker centres of ``frame``: the prefetcher's (or the error ``locate`` raised on
-        it, raised here), else located now."""
+        """The marker centres of ``frame`` (M, 3), optical frame, mm (a fresh array): the
+        prefetcher's (or the error ``locate`` raised on it, raised here), else located now. The
+        whole result, per camera too, is kept in :attr:`last_located`."""
+        self.last_located = None
         got = self.prefetched
         if got is not None and got.frame is frame:
             if got.error is not None:
                 raise got.error
-            located = got.points_mm if got.points_mm is not None else np.zeros((0, 3))
+            found = got.located if got.located is not None else LocatedMarkers.of(frame, np.zeros((0, 3)))
         else:
-            located = self.locate(frame)
-        return np.asarray(located, dtype=np.float64).reshape(-1, 3)
+            found = locate_in(self.locate, frame)
+        self.last_located = found
+        return np.array(found.points_mm, dtype=np.float64)
 
     def next_pair_ready(self) -> bool | None:
         """None without a prefetcher, else whether it has the next pair (or error) ready."""

@@ -54,6 +54,7 @@ from numpy.typing import NDArray
 from drivers.interfaces.camera import StereoCamera, StereoFrame
 from drivers.interfaces.errors import DeviceTimeoutError, LifecycleError
 from drivers.interfaces.lifecycle import DeviceState
+from hil.controller.located import LocatedMarkers, locate_in
 from hil.log import get_logger
 
 FloatArray = NDArray[np.float64]
@@ -85,15 +86,23 @@ class Prefetched:
 
     Attributes:
         frame: the pair as ``camera.grab`` returned it.
-        points_mm: ``locate(frame)``: marker centres (M, 3), optical frame, mm; None when it raised.
+        located: what ``locate`` found in it (:func:`~hil.controller.located.locate_in`: the
+            triangulated centres, optical frame, mm, and the per-camera centres, px, when the
+            locator gives them); None when it raised.
         error: what ``locate`` raised (raise it where perception happens), else None.
         seq: 1, 2, ... in the order the worker produced the results.
     """
 
     frame: StereoFrame
-    points_mm: FloatArray | None
+    located: LocatedMarkers | None
     error: Exception | None
     seq: int
+
+    @property
+    def points_mm(self) -> FloatArray | None:
+        """The triangulated marker centres (M, 3), optical frame, mm (read-only); None when
+        ``locate`` raised."""
+        return None if self.located is None else self.located.points_mm
 
 
 class FramePrefetcher:
@@ -206,12 +215,15 @@ class FramePrefetcher:
     # ------------------------------------------------------------------ worker side
     def _direct(self, timeout_s: float) -> Prefetched:
         frame = self.camera.grab(timeout_s=timeout_s)
-        try:
-            pts, err = self.locate(frame), None
-        except Exception as exc:  # noqa: BLE001 - raised by the consumer where it perceives
-            pts, err = None, exc
+        found, err = self._locate(frame)
         self.produced += 1
-        return Prefetched(frame, pts, err, self.produced)
+        return Prefetched(frame, found, err, self.produced)
+
+    def _locate(self, frame: StereoFrame) -> tuple[LocatedMarkers | None, Exception | None]:
+        try:
+            return locate_in(self.locate, frame), None
+        except Exception as exc:  # noqa: BLE001 - raised by the consumer where it perceives
+            return None, exc
 
     def _closed(self) -> bool:
         return self._stopping or self.camera.state is not DeviceState.ACTIVE
@@ -235,23 +247,20 @@ class FramePrefetcher:
                     break
                 with self._cond:
                     self._locating = True
-                try:
-                    pts, err = self.locate(frame), None
-                except Exception as exc:  # noqa: BLE001 - raised by the consumer where it perceives
-                    pts, err = None, exc
-                self._post(frame, pts, err)
+                found, err = self._locate(frame)
+                self._post(frame, found, err)
         finally:
             with self._cond:
                 self._ended = True
                 self._locating = False
                 self._cond.notify_all()
 
-    def _post(self, frame: StereoFrame, pts: FloatArray | None, err: Exception | None) -> None:
+    def _post(self, frame: StereoFrame, found: LocatedMarkers | None, err: Exception | None) -> None:
         with self._cond:
             if isinstance(self._slot, Prefetched):
                 self.overwritten += 1
             self.produced += 1
-            self._slot = Prefetched(frame, pts, err, self.produced)
+            self._slot = Prefetched(frame, found, err, self.produced)
             self._locating = False
             self._cond.notify_all()
 

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from drivers.interfaces.robot import RobotState
 from drivers.interfaces.tracker import TrackerSample
 from hil.controller.estimate import Estimate
+from hil.controller.located import LocatedMarkers
 from hil.geometry.transform import RigidTransform
 
 FloatArray = NDArray[np.float64]
@@ -87,6 +88,10 @@ class ControllerSnapshot:
     operator_commands_decided: int = 0
     #: the simulator's truth: the latest guide error in COMPENSATE or LOCK (None on a rig)
     truth_error_mm: float | None = None
+    #: the markers located in the latest pair, before identification: the ring centres per camera
+    #: (``left_px``, ``right_px``; image px) and triangulated (``points_mm``; optical frame), with
+    #: the pair's ``frame_seq``; None before the first pair or when locating it failed
+    located: LocatedMarkers | None = None
 
 
 def guide_in_image(est: Estimate) -> RigidTransform | None:

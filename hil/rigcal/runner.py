@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from hil.clock import Clock
 from hil.config.build import Devices
 from hil.config.setup import SetupConfig
+from hil.controller.assembly import stereo_calibration
 from hil.controller.perception import StereoMarkerLocator
 from hil.errors import InputFileError
 from hil.geometry.transform import RigidTransform
@@ -33,7 +34,7 @@ from hil.rigcal.rigfile import (
 )
 from hil.rigcal.temporal import TemporalRecorder, offsets_from_recording
 from hil.rigcal.truth import RigTruthSource
-from hil.vision.camera_model import StereoCalibration, load_calibration
+from hil.vision.camera_model import StereoCalibration
 
 FloatArray = NDArray[np.float64]
 _log = get_logger(__name__)
@@ -49,25 +50,12 @@ class RigCalibrationOutcome:
     path: Path | None = None
 
 
-def _stereo_calibration(setup: SetupConfig, camera: object) -> StereoCalibration:
-    if setup.calibration.stereo is not None:
-        return load_calibration(setup.calibration.stereo)
-    cal = getattr(camera, "calibration", None)
-    return cal if isinstance(cal, StereoCalibration) else StereoCalibration.synthetic()
-
-
 def _depth_weight(stereo: StereoCalibration, samples: list[PoseSample]) -> float:
     """Baseline over the markers' mean distance: how much better a stereo rig measures across
     than in depth (the weight of the depth residuals)."""
     pts = np.concatenate([s.markers_optical_mm for s in samples])
     z = float(np.nanmean(pts[:, 2]))
     return min(1.0, stereo.baseline_mm / z) if z > 0 else 1.0
-
-
-def flange_from_tcp(setup: SetupConfig) -> RigidTransform:
-    """The robot driver's TCP on the flange (identity when it has none)."""
-    tcp = getattr(setup.robot, "T_flange_from_tcp", None)
-    return tcp.as_transform() if tcp is not None else RigidTransform.identity()
 
 
 def _matrix(T: RigidTransform) -> list[list[float]]:
@@ -133,12 +121,13 @@ def run_rig_calibration(setup: SetupConfig, config_path: Path, devices: Devices,
     Raises:
         RigCalibrationError: any refusal or failure (one line; the arm stopped, nothing written).
         InputFileError: the stereo calibration is unreadable; the file cannot be written.
+        ConfigError: no stereo calibration (the camera knows none and no ``[calibration] stereo``).
         DriverError: a device cannot be opened.
     """
     cfg = setup.rig_calibration
-    T_ft = flange_from_tcp(setup)
+    T_ft = devices.robot.T_flange_from_tcp
     cad_tcp = T_ft.inverse().apply(np.asarray(setup.frames.flange_markers_mm, dtype=np.float64))
-    stereo = _stereo_calibration(setup, devices.camera)
+    stereo = stereo_calibration(setup, devices.camera)
     locate = StereoMarkerLocator(stereo)
     tol = setup.procedure.registration.match_tolerance_mm
     planning = setup.procedure.planning

@@ -19,6 +19,7 @@ from drivers.interfaces.robot import Robot, RobotState
 from drivers.interfaces.tracker import PoseTracker, TrackerSample
 from hil.geometry.transform import RigidTransform
 from hil.rigcal.rigfile import RigCalibration
+from hil.vision.camera_model import StereoCalibration
 
 
 class _Delegating:
@@ -47,8 +48,8 @@ class _Delegating:
 
 
 def _inner_attr(wrapper: object, name: str) -> object:
-    """An attribute the wrapper lacks, from the wrapped device (driver extras such as a simulated
-    camera's ``calibration`` or a robot's ``T_flange_from_tcp``)."""
+    """An attribute the wrapper lacks, from the wrapped device (a driver's extras, such as the
+    simulator's ``world``). What the core needs is part of the interface and delegated explicitly."""
     inner = wrapper.__dict__.get("inner")
     if inner is None or name.startswith("__"):
         raise AttributeError(name)
@@ -64,7 +65,7 @@ class TimeAlignedCamera(_Delegating, StereoCamera):
         super().__init__(inner.name)
         self.inner, self.offset_ns = inner, offset_ns
 
-    def __getattr__(self, name: str) -> object:  # driver extras (calibration, world, ...)
+    def __getattr__(self, name: str) -> object:  # driver extras (world, true_calibration, ...)
         return _inner_attr(self, name)
 
     def grab(self, timeout_s: float) -> StereoFrame:
@@ -86,6 +87,11 @@ class TimeAlignedCamera(_Delegating, StereoCamera):
     def image_size(self) -> tuple[int, int]:
         return self.inner.image_size
 
+    @property
+    def calibration(self) -> StereoCalibration | None:
+        """The inner camera's stereo calibration (None when it knows none), never a default."""
+        return self.inner.calibration
+
 
 class TimeAlignedRobot(_Delegating, Robot):
     """A robot whose states are stamped ``offset_ns`` earlier (the time the pose was the arm's).
@@ -94,15 +100,20 @@ class TimeAlignedRobot(_Delegating, Robot):
     inner: Robot
 
     def __init__(self, inner: Robot, offset_ns: int) -> None:
-        super().__init__(inner.name, inner.limits)
+        super().__init__(inner.name, inner.limits, T_flange_from_tcp=inner.T_flange_from_tcp)
         self.inner, self.offset_ns = inner, offset_ns
 
-    def __getattr__(self, name: str) -> object:  # driver extras (T_flange_from_tcp, ...)
+    def __getattr__(self, name: str) -> object:  # driver extras (world, q_at, ...)
         return _inner_attr(self, name)
 
     @property
     def control_rate_hz(self) -> float:
         return self.inner.control_rate_hz
+
+    @property
+    def T_flange_from_tcp(self) -> RigidTransform:
+        """The inner robot's TCP in the flange frame (mm), never a default of its own."""
+        return self.inner.T_flange_from_tcp
 
     def _move_linear(self, T_robot_from_tcp: RigidTransform, speed_mm_s: float, accel_mm_s2: float,
                      blocking: bool) -> None:

@@ -56,7 +56,7 @@ class ServoRobot(Robot):
 
     def __init__(self, link: ServoLink, limits: MotionLimits,
                  on_event: Any = None) -> None:
-        super().__init__(link.robot_name, limits)
+        super().__init__(link.robot_name, limits, T_flange_from_tcp=link.T_flange_from_tcp)
         self.link = link
         self.on_event = on_event
         self._rec = RingRecord()
@@ -232,7 +232,7 @@ class _StateView(Robot):
     """See :meth:`ServoRobot.state_view`."""
 
     def __init__(self, owner: ServoRobot) -> None:
-        super().__init__(owner.name, owner.limits)
+        super().__init__(owner.name, owner.limits, T_flange_from_tcp=owner.T_flange_from_tcp)
         self.owner = owner
         self._rec = RingRecord()
 

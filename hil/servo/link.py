@@ -123,8 +123,7 @@ class InProcessLink:
 
     @property
     def T_flange_from_tcp(self) -> RigidTransform:
-        tcp = getattr(self.robot, "T_flange_from_tcp", None)
-        return tcp if isinstance(tcp, RigidTransform) else RigidTransform.identity()
+        return self.robot.T_flange_from_tcp
 
     def step(self, now_ns: int) -> None:
         """One period of the loop at ``now_ns``."""

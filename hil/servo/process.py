@@ -320,8 +320,7 @@ def servo_main(conn: Connection, parent_pid: int) -> None:
     commands.start()
     sys.setswitchinterval(0.0005)   # the loop thread gets the interpreter back within 0.5 ms
     rt = apply_realtime(spec.priority, spec.cpu) if spec.realtime else RtGranted()
-    tcp = getattr(robot, "T_flange_from_tcp", None)
-    T_tcp = tcp if isinstance(tcp, RigidTransform) else RigidTransform.identity()
+    T_tcp = robot.T_flange_from_tcp
     send(("ready", {"robot_name": robot.name, "control_rate_hz": robot.control_rate_hz,
                     "T_flange_from_tcp": T_tcp.as_matrix().tolist(), "rt": rt.to_dict(), "pid": os.getpid()}))
     try:

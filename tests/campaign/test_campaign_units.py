@@ -90,7 +90,8 @@ class _PermissiveRobot(Robot):
     """Accepts anything (its own limits are huge): what a buggy driver would do."""
 
     def __init__(self) -> None:
-        super().__init__("robot", MotionLimits((-1e9,) * 3, (1e9,) * 3, 1e9, 1e9, 1e9))
+        super().__init__("robot", MotionLimits((-1e9,) * 3, (1e9,) * 3, 1e9, 1e9, 1e9),
+                         T_flange_from_tcp=RigidTransform.identity())
         self.clock = ManualClock()
         self.sent: list[str] = []
 

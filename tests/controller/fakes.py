@@ -8,13 +8,16 @@ from drivers.interfaces.camera import StereoCamera
 from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
 from hil.clock import ManualClock
 from hil.geometry.transform import RigidTransform
+from hil.vision.camera_model import StereoCalibration
 
 
 class FakeRobot(Robot):
     """Records every command that reaches the driver; the pose jumps to each target."""
 
-    def __init__(self, clock: ManualClock, limits: MotionLimits | None = None) -> None:
-        super().__init__("robot", limits or MotionLimits())
+    def __init__(self, clock: ManualClock, limits: MotionLimits | None = None,
+                 T_flange_from_tcp: RigidTransform | None = None) -> None:
+        super().__init__("robot", limits or MotionLimits(),
+                         T_flange_from_tcp=T_flange_from_tcp or RigidTransform.identity())
         self.clock = clock
         self.pose = RigidTransform.from_translation((0.0, 0.0, 300.0))
         self.calls: list[tuple[str, RigidTransform | None]] = []
@@ -49,18 +52,24 @@ class FakeRobot(Robot):
 
 class StubCamera(StereoCamera):
     """A stereo camera with no device behind it (open/close do nothing); subclasses write
-    ``grab``."""
+    ``grab``. ``calibration``: what it says it knows (default: none)."""
 
-    def __init__(self, frame_rate_hz: float = 30.0, image_size: tuple[int, int] = (8, 8)) -> None:
+    def __init__(self, frame_rate_hz: float = 30.0, image_size: tuple[int, int] = (8, 8),
+                 calibration: StereoCalibration | None = None) -> None:
         super().__init__("camera")
         self._frame_rate_hz = frame_rate_hz
         self._image_size = image_size
+        self._calibration = calibration
 
     def _open(self) -> None:
         pass
 
     def _close(self) -> None:
         pass
+
+    @property
+    def calibration(self) -> StereoCalibration | None:
+        return self._calibration
 
     @property
     def frame_rate_hz(self) -> float:

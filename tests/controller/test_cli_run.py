@@ -38,6 +38,22 @@ def test_bad_config_names_the_key(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert "procedure.gate.tolerance_mm" in capsys.readouterr().err
 
 
+def test_a_setup_without_any_stereo_calibration_is_refused_before_opening(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A replay camera knows no calibration and the setup gives none: one line, exit 2, and no
+    device opened (the recording directory does not even exist; no session log is written)."""
+    cfg = tmp_path / "nocal.toml"
+    cfg.write_text('[camera]\ndriver = "replay"\nrecording_dir = "rec"\n\n[robot]\ndriver = "sim"\n')
+    code = main(["run", str(cfg), "--plan", "configs/plans/sim_plan.json", "--auto",
+                 "--session-dir", str(tmp_path / "s")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err == ("hil run: error: setup: calibration.stereo: missing, and the camera driver 'replay' does "
+                   "not know its stereo calibration; set [calibration] stereo to a calibration file "
+                   "(hil calibrate writes one)\n")
+    assert not (tmp_path / "s").exists()
+
+
 def test_negative_seed_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["run", "--seed", "-3"]) == 2
     assert "--seed: must be >= 0" in capsys.readouterr().err

@@ -361,7 +361,7 @@ class SlowServo(Robot):
     of clock time (inverse kinematics, I/O) -- what stretched the old stream's period."""
 
     def __init__(self, inner: Robot, clock: Clock, work_s: float) -> None:
-        super().__init__(inner.name, inner.limits)
+        super().__init__(inner.name, inner.limits, T_flange_from_tcp=inner.T_flange_from_tcp)
         self.inner, self.clock, self.work_s = inner, clock, work_s
         self.servo_t_ns: list[int] = []
 

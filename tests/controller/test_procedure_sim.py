@@ -92,6 +92,11 @@ def test_breathing_patient_is_gated_and_compensated(tmp_path: Path) -> None:
     assert s.lock_error_mm < 0.5
     assert s.latency_ms["p50"] is not None
     assert "breath_hold_requested" in _events(s)
+    # entering GATE: the arm is told to hold first, then the patient is asked to hold the breath
+    recs = list(read_session_log(s.session_log))
+    i_gate = next(i for i, r in enumerate(recs) if r["event"] == "state_entered" and r["state"] == "gate")
+    entry = [r["event"] for r in recs[i_gate:] if r["event"] in ("stop_sent", "breath_hold_requested")]
+    assert entry[:2] == ["stop_sent", "breath_hold_requested"]
 
 
 @pytest.mark.slow
@@ -228,7 +233,7 @@ def test_an_internal_error_in_a_tick_becomes_a_fault(tmp_path: Path) -> None:
     try:
         with SessionLog(tmp_path / "s.jsonl", clock) as log:
             ctl = Controller(camera=dev.camera, robot=dev.robot, tracker=None, clock=clock, locate=broken,
-                             plan=PLAN, rig=_rig(setup), procedure=setup.procedure,
+                             plan=PLAN, rig=_rig(setup, dev.robot), procedure=setup.procedure,
                              limits=setup.safety.motion_limits(),
                              watchdog_ages_s={"camera": 0.25, "robot": 0.05}, session=log,
                              operator=AutoOperator())

@@ -281,7 +281,7 @@ def test_every_fault_kind_is_tested_here() -> None:
 
 def test_wrappers_pass_simulator_attributes_through(clock: ManualClock, world: SimWorld) -> None:
     cam = _camera(clock, world, fault("glare"))
-    assert cam.calibration is CAL  # type: ignore[attr-defined]
+    assert cam.calibration is CAL
     assert cam.frames_rendered == 0  # type: ignore[attr-defined]
     with pytest.raises(AttributeError):
         _ = cam.no_such_attribute  # type: ignore[attr-defined]

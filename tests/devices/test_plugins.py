@@ -35,6 +35,10 @@ class NullCamera(StereoCamera):
         raise NotImplementedError
 
     @property
+    def calibration(self) -> None:
+        return None
+
+    @property
     def frame_rate_hz(self) -> float:
         return self.cfg.frame_rate_hz
 
@@ -101,6 +105,23 @@ def test_third_party_plugin_adds_a_driver_usable_in_a_setup(tmp_path: object) ->
     assert isinstance(devs.camera, NullCamera)
     assert devs.camera.frame_rate_hz == 5.0
     assert devs.world is not None  # the sim robot needs the world
+
+
+def test_a_camera_without_calibration_needs_the_setup_file() -> None:
+    """The null camera knows no stereo calibration: without ``[calibration] stereo`` the
+    controller's assembly refuses with one line naming the key and the driver."""
+    from hil.controller.assembly import marker_locator
+    from hil.errors import ConfigError
+
+    reg = HilPlugins(plugins=[("acme", ThirdPartyPlugin())]).driver_registry()
+    setup = parse_setup({"camera": {"driver": "null"}, "robot": {"driver": "sim"}},
+                        source="mem.toml", config_dir=__import__("pathlib").Path("."), registry=reg)
+    devs = build_devices(setup, ManualClock(), reg)
+    assert devs.camera.calibration is None
+    expected = (r"^setup: calibration.stereo: missing, and the camera driver 'null' does not know its "
+                r"stereo calibration; set \[calibration\] stereo")
+    with pytest.raises(ConfigError, match=expected):
+        marker_locator(setup, devs.camera)
 
 
 def test_plugin_with_an_unknown_hook_is_refused() -> None:

@@ -202,7 +202,7 @@ class StubRobot(Robot):
     """A robot that does nothing (the wrapper's own checks are under test)."""
 
     def __init__(self) -> None:
-        super().__init__("robot", MotionLimits())
+        super().__init__("robot", MotionLimits(), T_flange_from_tcp=RigidTransform.identity())
         self.recovered = 0
 
     @property

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import threading
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from textual.widgets import DataTable, Static
 
 from hil.console.app import ConfirmScreen, ConsoleApp
 from hil.console.operator import ConsoleOperator
+from hil.console.panels import markers_title
 from hil.console.session import ConsoleSession
 from hil.controller.fsm import Event
 from hil.errors import HilError
@@ -43,6 +45,12 @@ def _transitions(log: Path) -> list[str]:
 
 def _text(app: ConsoleApp, wid: str) -> str:
     return str(app.query_one(wid, Static).render())
+
+
+def test_marker_table_title_counts_per_camera() -> None:
+    assert markers_title(None) == "Markers (optical frame)"
+    assert markers_title((10, 9, 8)) == "Markers (optical frame) — located: left 10, right 9, 3-D 8"
+    assert markers_title((None, None, 3)) == "Markers (optical frame) — located: left —, right —, 3-D 3"
 
 
 def test_operator_queue_takes_only_operator_commands() -> None:
@@ -101,6 +109,8 @@ async def _full_procedure_by_key_presses(tmp_path: Path, open_session: SessionOp
                     assert f"{session.ctl.patient_reg.fre_rms_mm:.3f} mm" in _text(app, "#registration")  # type: ignore[union-attr]
                     table = app.query_one("#markers", DataTable)
                     assert table.row_count == 6 + 4  # skin markers of the plan + flange markers
+                    assert re.fullmatch(r"Markers \(optical frame\) — located: left \d+, right \d+, 3-D \d+",
+                                        str(table.border_title))
                     assert "OPEN" in _text(app, "#gate")
                     app.save_screenshot(filename="console_lock.svg", path=str(tmp_path))
                     _check_igtl_stream(client, session)

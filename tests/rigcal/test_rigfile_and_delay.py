@@ -91,7 +91,7 @@ def test_adapters_subtract_the_offsets(realistic: SetupConfig, registry: DriverR
         assert abs(pair.left.t_ns - exposure) <= 3_000_000        # the jitter only
         assert pair.left.time_source is FrameTime.EXPOSURE
         assert rob.state_now().t_ns == clock.now_ns() - 8_000_000
-        assert getattr(rob, "T_flange_from_tcp", None) is not None  # driver extras pass through
+        assert rob.T_flange_from_tcp is raw.robot.T_flange_from_tcp  # the interface passes through
         s = trk.latest()["reference"]
         assert s.t_ns == raw.tracker.latest()["reference"].t_ns - 20_000_000
     finally:

@@ -24,9 +24,11 @@ class GatePhase(Phase):
         if est.gate is None:
             est.gate = BreathHoldGate(cfg.gate, est.patient_reg.reference_optical_mm)
         est.gate.restart(self.entered_ns)
-        out = PhaseResult().command(Stop("gate: hold position while waiting for the breath-hold"))
+        # the arm holds before the patient is asked to (the log shows stop_sent first); a stop
+        # that fails raises here, the entry faults, and no breath-hold is requested
+        self.ctx.execute(Stop("gate: hold position while waiting for the breath-hold"))
         self.request_hold("gate", cfg.gate.hold_request_s)
-        return out
+        return PhaseResult()
 
     def step(self, inputs: TickInputs) -> PhaseResult:
         est, out = self.ctx.est, PhaseResult()
