@@ -133,6 +133,37 @@ def test_marker_that_outruns_its_window_is_found_by_the_full_frame_search(cal: S
     assert tracker.stats.reacquisitions == 4
 
 
+@pytest.mark.parametrize(("shift_mm", "in_window"), [(8.0, True), (12.0, False)])
+def test_marker_inside_its_window_is_the_full_frame_one_and_crossing_its_edge_is_lost(
+    cal: StereoCalibration, shift_mm: float, in_window: bool
+) -> None:
+    """Marker 0 (outer semi-axis ~4.9 px, window half-side 18.6 px) moves between two pairs while
+    its prediction stays put: by 8 mm (~11 px) its ring is still inside the window and is found
+    there, at the full-frame centre of the same image; by 12 mm (~17 px) the ring crosses the
+    window edge: reported lost in both images (never fitted clipped), and the same pair's
+    full-frame search finds it where it is."""
+    rng = np.random.default_rng(4)
+    ms = random_marker_layout(rng, 6, distance_mm=1000.0, max_tilt_deg=20.0)
+    tracker = MarkerTracker(cal, TrackingParams(reacquire_every=0))
+    first = render_stereo(cal, ms, RenderOptions(), np.random.default_rng(4))
+    tracker.locate(first.left, first.right, 0.0)
+    moved = [
+        RingMarker3D(m.center_mm + (np.array([shift_mm, 0.0, 0.0]) if i == 0 else 0.0), m.normal, marker_id=i)
+        for i, m in enumerate(ms)
+    ]
+    pair = render_stereo(cal, moved, RenderOptions(), np.random.default_rng(5))
+    res = tracker.locate(pair.left, pair.right, 1 / FPS)
+    truth = np.array([m.center_mm for m in moved])
+    assert len(res.points_mm) == 6
+    assert np.all(_nearest_mm(res.points_mm, truth) < 0.3)
+    assert tracker.stats.losses == (0 if in_window else 2)
+    assert tracker.stats.reacquisitions == (2 if in_window else 4)
+    for trk, img in ((tracker.left, pair.left), (tracker.right, pair.right)):
+        full = np.array([d.center_px for d in detect_rings(img)])
+        for d in trk.markers:
+            assert float(np.min(np.linalg.norm(full - d.center_px, axis=1))) <= 0.01
+
+
 def test_request_reacquire(cal: StereoCalibration) -> None:
     seq = _sequence(cal, 3)
     tracker = MarkerTracker(cal, TrackingParams(reacquire_every=0))
