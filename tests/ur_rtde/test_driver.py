@@ -196,8 +196,10 @@ def _state_ok(robot: UrRtdeRobot) -> bool:
 
 def test_rtde_watchdog_keeps_an_idle_program_running(robot: UrRtdeRobot, ursim: Ursim) -> None:
     status = ursim.control.status()
-    assert status["watchdog_hz"] == 5.0
-    time.sleep(0.8)  # four watchdog periods with no motion command: the kicker feeds it
+    # configured 5 Hz, armed lower so the window outlasts a stop from 100 mm/s at 500 mm/s^2:
+    # 1 / (1.5 x (0.2 s + 0.05 s)) = 2.667 Hz
+    assert status["watchdog_hz"] == pytest.approx(1.0 / 0.375)
+    time.sleep(4 * 0.375)  # four watchdog windows with no motion command: the kicker feeds it
     assert ursim.control.status()["runtime_state"] == "PLAYING"
 
 
