@@ -1,4 +1,6 @@
-"""The Controller: one tick per stereo pair, on an injected clock, through interfaces only.
+"""The Controller: one tick per stereo pair (or per operator input that ends the wait for one), on
+an injected clock, through interfaces only. The arm is commanded at its own rate by the servo loop
+(hil/servo; docs/architecture.md): the controller publishes setpoints and stops to it.
 
 A tick (docs/architecture.md draws it): the owed stop is retried and the operator's command is
 decided -> the devices are read (:mod:`~hil.controller.pipeline`) -> the supervisor checks the
@@ -162,6 +164,9 @@ class Controller(ControllerParts):
         self._notify_observers()
 
     def _tick(self) -> None:
+        stats = self.servo_stats.due(self.clock.now_ns())
+        if stats is not None:
+            self.session.write(ev.SERVO_STATS, **stats)
         self.supervisor.retry_stop()
         self.log_refused_inputs()
         polled = self.operator.poll(self.view())

@@ -43,6 +43,9 @@ GATE_TIMED_OUT: Final = "gate_timed_out"
 CORRECTION_OUT_OF_BOUNDS: Final = "correction_out_of_bounds"
 COMPENSATION_STEP: Final = "compensation_step"
 SERVO_DEADLINE_MISSED: Final = "servo_deadline_missed"
+#: the servo loop's counters, once per second of controller time (hil/servo/figures.py); the loop's
+#: own events (servo_stop_delivered, servo_refused, ...) are named in hil/servo/loop.py
+SERVO_STATS: Final = "servo_stats"
 LOCK_MEASURED: Final = "lock_measured"
 DRIFT_ALARM: Final = "drift_alarm"
 # needle and tracker

@@ -63,6 +63,7 @@ from hil.log import get_logger
 from hil.safety.layer import SafetyLayer
 from hil.safety.watchdog import WatchdogSet
 from hil.servo.client import ServoRobot, in_process_servo, servo_event_logger
+from hil.servo.figures import StatsEverySecond
 from hil.servo.limiter import RateLimiter
 from hil.servo.link import InProcessLink
 from hil.session.log import SessionLog
@@ -110,6 +111,7 @@ class ControllerParts(abc.ABC):
     ) -> None:
         robot = self._servo_robot(robot, limits, procedure, clock, session)
         self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
+        self.servo_stats = StatsEverySecond(lambda: robot.link.regions.stats)
         self.locate, self.plan, self.rig, self.cfg = locate, plan, rig, procedure
         self.session, self.operator, self.coach, self.truth = session, operator, coach, truth
         self.observing = Observers(observers, hooks, session)

@@ -13,6 +13,7 @@ Definitions (the loop's own clock readings, each period's wake-up time):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -100,3 +101,35 @@ def loop_figures(before: StatsCopy, after: StatsCopy, period_s: float) -> LoopFi
         period_ms=period_stats, jitter_ms=jitter_stats, latency_ms=_weighted_stats(lat_centres, lat),
         refusals=d[Stat.REFUSALS], stale_periods=d[Stat.STALE], read_errors=d[Stat.READ_ERRORS],
         command_errors=d[Stat.COMMAND_ERRORS], stops_sent=d[Stat.STOPS_SENT])
+
+
+class StatsEverySecond:
+    """The loop's counters as one aggregated session-log record per second of controller time
+    (``servo_stats``): the audit trail of the periods without a record per period.
+
+    :meth:`due` returns the record's fields when a second has passed since the last one (else
+    None): periods, commands, late, stale periods, refusals, read / command errors in that second,
+    and the longest interval so far (ms).
+    """
+
+    def __init__(self, stats: Callable[[], LoopStats], every_s: float = 1.0) -> None:
+        self.stats = stats   # read when due: the servo process creates its regions when it starts
+        self.every_ns = round(every_s * 1e9)
+        self._last: tuple[int, ...] | None = None
+        self._last_ns: int | None = None
+
+    def due(self, now_ns: int) -> dict[str, Any] | None:
+        if self._last_ns is not None and now_ns - self._last_ns < self.every_ns:
+            return None
+        c = tuple(int(x) for x in self.stats().c)
+        prev, self._last, first = self._last, c, self._last_ns is None
+        self._last_ns = now_ns
+        if first or prev is None:
+            return None
+
+        def d(stat: Stat) -> int:
+            return c[stat] - prev[stat]
+        return {"periods": d(Stat.PERIODS), "commands": d(Stat.COMMANDS), "late": d(Stat.LATE),
+                "stale_periods": d(Stat.STALE), "refusals": d(Stat.REFUSALS),
+                "read_errors": d(Stat.READ_ERRORS), "command_errors": d(Stat.COMMAND_ERRORS),
+                "longest_interval_ms": round(c[Stat.MAX_INTERVAL_NS] * 1e-6, 3)}
