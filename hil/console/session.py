@@ -18,7 +18,7 @@ from hil.config.build import Devices, clock_for
 from hil.config.setup import SetupConfig
 from hil.console.operator import ConsoleOperator
 from hil.console.runner import ControllerRunner
-from hil.controller.assembly import build_controller, runtime_plugins, stereo_calibration
+from hil.controller.assembly import build_controller, runtime_plugins, stereo_calibration, with_servo_process
 from hil.controller.controller import Controller
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import InputFileError
@@ -117,6 +117,7 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
     devices = build_devices(setup, clk)
     try:
         stereo_calibration(setup, devices.camera)  # none anywhere: refused before any device opens
+        devices = with_servo_process(setup, devices, clk)  # [servo] process: on the wall clock
     except BaseException:
         if igtl is not None:
             igtl.close()
@@ -148,8 +149,15 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
         raise
     operator = ConsoleOperator()
     # The very controller `hil run` builds (locator, rig, limits, watchdogs, needle check, tracker use).
-    ctl = build_controller(setup, the_plan, devices, clock=clk, session=session, operator=operator,
-                           hooks=runtime_plugins(igtl, the_plan))
+    try:
+        ctl = build_controller(setup, the_plan, devices, clock=clk, session=session, operator=operator,
+                               hooks=runtime_plugins(igtl, the_plan))
+    except BaseException:   # the servo process and every opened device are closed, the log says why
+        devices.close_all()
+        session.close(final_state="idle", error="the controller could not be built")
+        if igtl is not None:
+            igtl.close()
+        raise
     runner = ControllerRunner(ctl, operator, pace=isinstance(clk, ManualClock) and not fast, igtl=igtl,
                               session_log=str(session.path))
     runner.start()

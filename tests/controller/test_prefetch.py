@@ -158,6 +158,29 @@ def test_nothing_within_the_timeout_is_a_device_timeout_naming_the_camera(
     assert info.value.message == "no stereo pair within 0.02 s"
 
 
+def test_an_operator_input_ends_the_wait_without_a_pair(cam: ScriptedCamera, pf: FramePrefetcher) -> None:
+    """The supervisor never waits out a frame for an operator: take() returns None as soon as the
+    wake condition holds, and the pair that then arrives is taken by the next call."""
+    pf.start()
+    _wait_call(cam, 1)   # the worker waits in grab; no pair yet
+    waiting = threading.Event()
+    threading.Timer(0.01, waiting.set).start()
+    assert pf.take(timeout_s=WAIT_S, wake=waiting.is_set) is None
+    cam.script.put(_pair(1))
+    got = pf.take(timeout_s=WAIT_S)
+    assert got is not None
+    assert got.frame.left.seq == 1
+
+
+def test_a_ready_pair_is_taken_even_with_an_input_waiting(cam: ScriptedCamera, pf: FramePrefetcher) -> None:
+    pf.start()
+    cam.script.put(_pair(1))
+    _wait_call(cam, 2)   # the pair was posted and the worker waits for the next
+    got = pf.take(timeout_s=WAIT_S, wake=lambda: True)
+    assert got is not None
+    assert got.frame.left.seq == 1
+
+
 def test_a_locate_error_travels_with_its_frame(cam: ScriptedCamera) -> None:
     boom = VisionError("left image 4x4 does not fit the calibration (1920x1080)")
 

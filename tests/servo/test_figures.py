@@ -35,3 +35,22 @@ def test_an_empty_window_has_no_figures() -> None:
     assert figs.intervals == 0
     assert figs.longest_ms is None
     assert figs.period_ms == {"p50": None, "p99": None, "max": None}
+
+
+def test_one_stats_record_per_second_of_controller_time() -> None:
+    from hil.servo.figures import StatsEverySecond
+
+    stats = LoopStats(ShmRegion.local(stats_words()))
+    every = StatsEverySecond(lambda: stats)
+    assert every.due(0) is None                 # the first call starts the window
+    stats.c[Stat.PERIODS] += 125
+    stats.c[Stat.COMMANDS] += 120
+    stats.add_interval(17_000_000, 8_000_000)   # one late interval
+    assert every.due(999_999_999) is None       # not a second yet
+    rec = every.due(1_000_000_000)
+    assert rec == {"periods": 125, "commands": 120, "late": 1, "stale_periods": 0, "refusals": 0,
+                   "read_errors": 0, "command_errors": 0, "longest_interval_ms": 17.0}
+    assert every.due(1_500_000_000) is None
+    assert every.due(2_000_000_000) == {"periods": 0, "commands": 0, "late": 0, "stale_periods": 0,
+                                        "refusals": 0, "read_errors": 0, "command_errors": 0,
+                                        "longest_interval_ms": 17.0}
