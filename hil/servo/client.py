@@ -25,7 +25,7 @@ import numpy as np
 
 from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError, LifecycleError
 from drivers.interfaces.lifecycle import DeviceState
-from drivers.interfaces.robot import MotionLimits, Robot, RobotState
+from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState
 from hil.clock import Clock
 from hil.geometry.transform import RigidTransform
 from hil.safety.layer import SafetyViolationError
@@ -41,10 +41,6 @@ from hil.servo.wire import error_from_wire
 #: once the arm is at rest: a fraction of a second from following speed).
 STOP_ACK_TIMEOUT_S = 2.0
 
-#: (kind, fields) of a loop event
-LoopEvent = tuple[str, dict[str, Any]]
-
-
 class ServoRobot(Robot):
     """The robot as the supervisor sees it (module doc).
 
@@ -55,7 +51,7 @@ class ServoRobot(Robot):
     """
 
     def __init__(self, link: ServoLink, limits: MotionLimits,
-                 on_event: Any = None) -> None:
+                 on_event: Callable[[str, dict[str, Any]], None] | None = None) -> None:
         super().__init__(link.robot_name, limits, T_flange_from_tcp=link.T_flange_from_tcp)
         self.link = link
         self.on_event = on_event
@@ -133,7 +129,22 @@ class ServoRobot(Robot):
     def _move_linear(self, T_robot_from_tcp: RigidTransform, speed_mm_s: float, accel_mm_s2: float,
                      blocking: bool) -> None:
         self.idle()
-        self.link.request("move_linear", T_robot_from_tcp.as_matrix().tolist(), speed_mm_s, accel_mm_s2)
+        start = self._state_now().T_robot_from_tcp
+        self.link.request("move_linear", T_robot_from_tcp.as_matrix().tolist(), speed_mm_s, accel_mm_s2,
+                          blocking and self.link.in_process)
+        if blocking and not self.link.in_process:
+            # the arm reports rest near the target (bounded by the profile time x 1.5 + 5 s)
+            dist_mm = float(np.linalg.norm(T_robot_from_tcp.t - start.t))
+            deadline = time.monotonic() + 1.5 * (dist_mm / speed_mm_s + speed_mm_s / accel_mm_s2) + 5.0
+            while True:
+                st = self._state_now()
+                if (st.mode is not RobotMode.MOVING and st.tcp_speed_mm_s < 0.5
+                        and float(np.linalg.norm(st.T_robot_from_tcp.t - T_robot_from_tcp.t)) < 0.5):
+                    return
+                if time.monotonic() > deadline:
+                    where = np.round(T_robot_from_tcp.t, 1).tolist()
+                    raise DeviceTimeoutError(self.name, f"move to {where} mm did not finish in time")
+                time.sleep(0.005)
 
     def _servo(self, T_robot_from_tcp: RigidTransform, period_s: float) -> None:
         now = time.monotonic_ns() if not self.link.in_process else self._state_now().t_ns
@@ -215,7 +226,7 @@ class ServoRobot(Robot):
 
 
 def in_process_servo(robot: Robot, limits: MotionLimits, limiter: RateLimiter, clock: Clock,
-                     on_event: Any = None) -> ServoRobot:
+                     on_event: Callable[[str, dict[str, Any]], None] | None = None) -> ServoRobot:
     """``robot`` (opened and closed by its owner) behind a servo loop stepped in this process."""
     return ServoRobot(InProcessLink(robot, limits, clock, limiter), robot.limits, on_event)
 

@@ -131,8 +131,8 @@ class InProcessLink:
 
     def request(self, command: str, *args: Any, timeout_s: float = 5.0) -> Any:
         if command == "move_linear":
-            M, speed, accel = args
-            self.robot.move_linear(RigidTransform.from_matrix(np.asarray(M)), speed, accel, blocking=False)
+            M, speed, accel, blocking = args
+            self.robot.move_linear(RigidTransform.from_matrix(np.asarray(M)), speed, accel, blocking=blocking)
             return None
         if command == "recover":
             self.robot.recover()

@@ -380,7 +380,7 @@ def _serve(conn: Connection, robot: Any, send: Any, closing: threading.Event) ->
                 break
             try:
                 if command == "move_linear":
-                    M, speed, accel = args
+                    M, speed, accel, _blocking = args   # the supervisor waits for rest itself
                     robot.move_linear(RigidTransform.from_matrix(np.asarray(M)), speed, accel, blocking=False)
                     result: Any = None
                 elif command == "recover":
