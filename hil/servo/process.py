@@ -391,6 +391,9 @@ def _serve(conn: Connection, robot: Any, send: Any, closing: threading.Event) ->
                 send(("reply", rid, True, result))
             except DriverError as exc:
                 send(("reply", rid, False, error_to_wire(exc)))
+            except Exception as exc:  # noqa: BLE001 - a bad command is the supervisor's fault, not the loop's
+                why = f"servo process could not run {command!r}: {type(exc).__name__}: {exc}"
+                send(("reply", rid, False, ("DeviceFaultError", robot.name, why)))
     except (EOFError, OSError):
         pass   # the supervisor is gone
     finally:
