@@ -160,7 +160,6 @@ class Controller(ControllerParts):
             _log.exception("tick_failed", state=self.state.value)
             self.fault(f"internal error: {type(exc).__name__}: {exc}")
         self.metrics.processing_ms.append((time.perf_counter_ns() - t_start_wall) * 1e-6)
-        self.truth_meter.after_tick(self.state, self._phase.elapsed_s())
         self._notify_observers()
 
     def _tick(self) -> None:

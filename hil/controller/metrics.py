@@ -6,18 +6,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from drivers.interfaces.errors import DriverError
-from drivers.interfaces.robot import Robot
-from hil.clock import Clock
 from hil.controller import events as ev
 from hil.controller.estimate import Estimate
 from hil.controller.fsm import State
 from hil.controller.truth import GroundTruth
 from hil.session.log import SessionLog
+
+if TYPE_CHECKING:
+    from hil.controller.planning import RigGeometry
+    from hil.controller.snapshot import ControllerSnapshot
 
 
 @dataclass
@@ -94,50 +95,51 @@ class RunMetrics:
 
 
 class TruthMeter:
-    """Simulation only: after each tick in COMPENSATE or LOCK, the real guide's error against the
-    real moving path (``truth_error``), from the simulator's truth and the arm's pose read at
-    the same instant. Never used for control."""
+    """Simulation only, an observer of the controller's snapshots (never used for control): after
+    each tick in COMPENSATE or LOCK, the real guide's error against the real moving path
+    (``truth_error``), from the simulator's truth and the arm's pose the snapshot read when it was
+    built (``ControllerSnapshot.robot_now``, at ``t_ns``). Its lists feed the run summary."""
 
-    def __init__(self, truth: GroundTruth | None, robot: Robot, est: Estimate, session: SessionLog,
-                 clock: Clock) -> None:
-        self.truth, self.robot, self.est, self.session, self.clock = truth, robot, est, session, clock
+    def __init__(self, truth: GroundTruth | None, rig: RigGeometry, session: SessionLog) -> None:
+        self.truth, self.rig, self.session = truth, rig, session
         self.comp_errors_mm: list[float] = []
         self.comp_error_age_s: list[float] = []   # time since COMPENSATE was entered, per sample
         self.lock_errors: list[tuple[float, float]] = []
+        self.__name__ = "truth_meter"   # how the observer is named in an observer_failed record
 
-    def errors(self) -> tuple[float, float] | None:
-        """(position error mm, direction error deg) of the guide, or None without truth/plan."""
-        gp = self.est.guide_plan
-        if self.truth is None or gp is None:
-            return None
-        try:
-            state = self.robot.state_now()  # the arm now, at the same instant as the truth
-        except DriverError:
+    def errors(self, snap: ControllerSnapshot) -> tuple[float, float] | None:
+        """(position error mm, direction error deg) of the guide, or None without a plan or a
+        robot state."""
+        state, standoff_mm = snap.robot_now, snap.standoff_mm
+        if self.truth is None or state is None or standoff_mm is None:
             return None
         now = state.t_ns
-        T_robot_from_guide = state.T_robot_from_tcp @ self.est.rig.T_tcp_from_guide
+        T_robot_from_guide = state.T_robot_from_tcp @ self.rig.T_tcp_from_guide
         T_guide = self.truth.T_optical_from_robot @ T_robot_from_guide
         # a simulator with a real rig's errors knows the real arm, not only its (late, imprecise) report
         true_flange = getattr(self.truth, "T_optical_from_flange", None)
-        if callable(true_flange) and (T_of := true_flange(now := self.clock.now_ns())) is not None:
-            T_guide = T_of @ self.est.rig.T_flange_from_guide
+        if callable(true_flange) and (T_of := true_flange(now := snap.t_ns)) is not None:
+            T_guide = T_of @ self.rig.T_flange_from_guide
         entry = np.asarray(self.truth.entry_optical(now), dtype=np.float64)
         target = np.asarray(self.truth.target_optical(now), dtype=np.float64)
         u = (target - entry) / np.linalg.norm(target - entry)
-        ideal = entry - gp.standoff_mm * u
+        ideal = entry - standoff_mm * u
         pos = float(np.linalg.norm(T_guide.t - ideal))
         cosang = float(np.clip(T_guide.R[:, 2] @ u, -1.0, 1.0))
         return pos, math.degrees(math.acos(cosang))
 
-    def after_tick(self, state: State, phase_elapsed_s: float) -> None:
+    def __call__(self, snap: ControllerSnapshot) -> None:
+        """Observe one snapshot (the controller's thread, after the tick)."""
+        state = State(snap.state)
         if state not in (State.COMPENSATE, State.LOCK):
             return
-        errs = self.errors()
+        errs = self.errors(snap)
         if errs is None:
             return
         if state is State.COMPENSATE:
+            entered_s = snap.timeline[-1].t_s if snap.timeline else 0.0
             self.comp_errors_mm.append(errs[0])
-            self.comp_error_age_s.append(phase_elapsed_s)
+            self.comp_error_age_s.append(snap.t_s - entered_s)
         else:
             self.lock_errors.append(errs)
         self.session.write(ev.TRUTH_ERROR, state=state, position_mm=errs[0], direction_deg=errs[1])

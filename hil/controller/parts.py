@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from drivers.interfaces.camera import StereoCamera, StereoFrame
+from drivers.interfaces.errors import DriverError
 from drivers.interfaces.robot import MotionLimits, Robot, RobotState
 from drivers.interfaces.tracker import PoseTracker
 from hil.clock import Clock
@@ -112,9 +113,13 @@ class ControllerParts(abc.ABC):
         robot = self._servo_robot(robot, limits, procedure, clock, session)
         self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
         self.servo_stats = StatsEverySecond(lambda: robot.link.regions.stats)
+        self._robot_view = robot.state_view()   # the arm for snapshots: never takes the loop's events
         self.locate, self.plan, self.rig, self.cfg = locate, plan, rig, procedure
         self.session, self.operator, self.coach, self.truth = session, operator, coach, truth
-        self.observing = Observers(observers, hooks, session)
+        #: the simulator's truth meter: the first observer of the snapshots (never used for control)
+        self.truth_meter = TruthMeter(truth, rig, session)
+        self.observing = Observers(([self.truth_meter] if truth is not None else []) + list(observers),
+                                   hooks, session)
         self.tracker_use = tracker_use if tracker is not None else None
         self.fsm = Fsm(procedure.confirm, listener=self._on_fire)
         self.safety = SafetyLayer(robot, limits, clock,
@@ -133,7 +138,6 @@ class ControllerParts(abc.ABC):
         self.roles = TrackerRoles(self.tracker_use, session)
         self.needle = NeedleCheck(procedure.lock.needle_check, needle_check, session)
         self.needle_check = needle_check
-        self.truth_meter = TruthMeter(truth, robot, self.est, session, clock)
         self.ctx = PhaseContext(
             cfg=procedure, est=self.est, clock=clock, session=session, safety=self.safety, robot=robot,
             roles=self.roles, needle=self.needle, coach=coach, frame_period_s=self.frame_period_s,
@@ -378,10 +382,15 @@ class ControllerParts(abc.ABC):
         if state in (State.APPROACH, State.GATE, State.COMPENSATE, State.LOCK):
             guide_err = _finite(est.guide_error_optical_mm())
         truth: float | None = None
-        if state is State.COMPENSATE and self.truth_meter.comp_errors_mm:
-            truth = self.truth_meter.comp_errors_mm[-1]
-        elif state is State.LOCK and self.truth_meter.lock_errors:
-            truth = self.truth_meter.lock_errors[-1][0]
+        tm = self.truth_meter
+        if state is State.COMPENSATE and tm.comp_errors_mm:
+            truth = tm.comp_errors_mm[-1]
+        elif state is State.LOCK and tm.lock_errors:
+            truth = tm.lock_errors[-1][0]
+        try:
+            robot_now: RobotState | None = self._robot_view.state_now()
+        except DriverError:
+            robot_now = None
         preg, rreg = est.patient_reg, est.robot_reg
         return ControllerSnapshot(
             t_ns=self.clock.now_ns(), t_s=self.t_s(), state=state.value, sub_state=self.sub_state,
@@ -404,7 +413,8 @@ class ControllerParts(abc.ABC):
             frames=self.metrics.frames, commands_sent=self.safety.commands_sent,
             commands_refused=self.safety.commands_refused,
             operator_commands_decided=self.operator_commands_decided, truth_error_mm=truth,
-            located=self.pipeline.last_located)
+            located=self.pipeline.last_located, robot_now=robot_now,
+            standoff_mm=None if est.guide_plan is None else est.guide_plan.standoff_mm)
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> RunSummary:

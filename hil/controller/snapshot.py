@@ -86,8 +86,13 @@ class ControllerSnapshot:
     commands_sent: int = 0
     commands_refused: int = 0
     operator_commands_decided: int = 0
-    #: the simulator's truth: the latest guide error in COMPENSATE or LOCK (None on a rig)
+    #: the simulator's truth: the guide error the truth meter (an observer of these snapshots)
+    #: measured on the previous snapshot in COMPENSATE or LOCK (None on a rig)
     truth_error_mm: float | None = None
+    #: the arm as read when this snapshot was built (at ``t_ns``; ``robot`` is the tick's input)
+    robot_now: RobotState | None = None
+    #: the plan's stand-off of the guide from the entry, mm (None before a plan)
+    standoff_mm: float | None = None
     #: the markers located in the latest pair, before identification: the ring centres per camera
     #: (``left_px``, ``right_px``; image px) and triangulated (``points_mm``; optical frame), with
     #: the pair's ``frame_seq``; None before the first pair or when locating it failed

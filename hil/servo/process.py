@@ -291,8 +291,9 @@ def servo_main(conn: Connection, parent_pid: int) -> None:
     signal.signal(signal.SIGTERM, lambda *_: closing.set())
     regions = Regions.attach(names)
     clock = MonotonicClock()
+    loop_cpu = default_cpu() if spec.cpu is None else spec.cpu   # chosen once, before moving off it
     if spec.realtime:
-        _keep_off_the_loop_cpu(spec.cpu)
+        _keep_off_the_loop_cpu(loop_cpu)
     from hil.config.build import build_devices  # the registry, in the child only
 
     try:
@@ -319,7 +320,7 @@ def servo_main(conn: Connection, parent_pid: int) -> None:
                                 daemon=True)
     commands.start()
     sys.setswitchinterval(0.0005)   # the loop thread gets the interpreter back within 0.5 ms
-    rt = apply_realtime(spec.priority, spec.cpu) if spec.realtime else RtGranted()
+    rt = apply_realtime(spec.priority, loop_cpu) if spec.realtime else RtGranted()
     T_tcp = robot.T_flange_from_tcp
     send(("ready", {"robot_name": robot.name, "control_rate_hz": robot.control_rate_hz,
                     "T_flange_from_tcp": T_tcp.as_matrix().tolist(), "rt": rt.to_dict(), "pid": os.getpid()}))
@@ -336,14 +337,13 @@ def servo_main(conn: Connection, parent_pid: int) -> None:
     regions.close()
 
 
-def _keep_off_the_loop_cpu(cpu: int | None) -> None:
+def _keep_off_the_loop_cpu(cpu: int) -> None:
     """Move this (still single) thread off the loop's CPU, so every thread started from here on —
     the driver's receivers and watchdog kicker, the command thread — runs on the other CPUs. The
     loop thread then pins itself to that CPU at SCHED_FIFO: a driver call it makes that waits for
     one of those threads (a stop waiting for the controller's reply) is never starved by the loop's
     own priority on a shared CPU."""
-    target = default_cpu() if cpu is None else cpu
-    others = os.sched_getaffinity(0) - {target}
+    others = os.sched_getaffinity(0) - {cpu}
     if others:
         with contextlib.suppress(OSError):
             os.sched_setaffinity(0, others)

@@ -117,8 +117,12 @@ class SoakOperator:
     after the procedure first entered COMPENSATE (or after ``give_up_s`` without reaching it)."""
 
     def __init__(self, soak_s: float, give_up_s: float, sample: Callable[[], None],
-                 on_compensate: Callable[[], None] | None = None) -> None:
+                 on_compensate: Callable[[], None] | None = None,
+                 progress: Callable[[str], None] | None = None, progress_every_s: float = 30.0) -> None:
         self.on_compensate = on_compensate
+        self.progress = progress
+        self.progress_every_s = progress_every_s
+        self._last_progress = time.monotonic()
         self.soak_s = soak_s
         self.give_up_s = give_up_s
         self.sample = sample
@@ -138,6 +142,11 @@ class SoakOperator:
             self.t_comp = now
             if self.on_compensate is not None:
                 self.on_compensate()
+        if self.progress is not None and now - self._last_progress >= self.progress_every_s:
+            self._last_progress = now
+            done = 0.0 if self.t_comp is None else now - self.t_comp
+            self.progress(f"soak: {done:.0f} of {self.soak_s:.0f} s in compensation; "
+                          f"state {view.state.value}, {self.resumes} resume(s)")
         self.sample()
         if not self._started and view.state is State.IDLE:
             self._started = True
@@ -240,7 +249,7 @@ def run_soak(
         copies["start"] = StatsCopy.of(robot.link.regions.stats)
 
     soak_s = minutes * 60.0
-    operator = SoakOperator(soak_s, give_up_s=120.0, sample=sample, on_compensate=on_compensate)
+    operator = SoakOperator(soak_s, give_up_s=120.0, sample=sample, on_compensate=on_compensate, progress=say)
     devices.open_all()
     try:
         say(f"soak: {minutes:g} min of compensation at {rate_hz:g} Hz (real time); servo process: "

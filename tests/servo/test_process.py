@@ -172,3 +172,20 @@ def test_a_blocking_move_returns_with_the_arm_at_rest_on_the_target(robot: Servo
     st = robot.state_now()
     assert float(np.linalg.norm(st.T_robot_from_tcp.t - target.t)) < 0.5
     assert st.tcp_speed_mm_s < 0.5
+
+
+def test_real_time_pins_the_loop_to_the_last_cpu_and_reports_what_was_granted() -> None:
+    proc = ServoProcess(_spec(realtime=True), "robot", RigidTransform.identity())
+    try:
+        ready = proc.start()
+        rt = ready.rt
+        assert rt.requested
+        if rt.cpu is not None:       # granted (root here and in CI): the last CPU this process may use
+            assert rt.cpu == max(os.sched_getaffinity(0))
+        else:
+            assert "affinity" in rt.errors
+        if rt.fifo_priority is None:
+            assert "fifo" in rt.errors
+    finally:
+        proc.close()
+    assert proc.exitcode == 0
