@@ -5,6 +5,8 @@
 from __future__ import annotations
 
 import math
+from array import array
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -67,16 +69,22 @@ class RunSummary:
         return d
 
 
-def percentile(values: list[float], q: float) -> float | None:
-    return float(np.percentile(values, q)) if values else None
+def percentile(values: Sequence[float], q: float) -> float | None:
+    return float(np.percentile(np.asarray(values, dtype=np.float64), q)) if len(values) else None
+
+
+def samples() -> array[float]:
+    """A per-frame sample series: 8 bytes a value (a long run's figures must not grow the process
+    by a Python object per frame: 32 bytes)."""
+    return array("d")
 
 
 @dataclass
 class RunMetrics:
     """Figures collected during the run (ms on the controller clock unless said)."""
 
-    detect_ms: list[float] = field(default_factory=list)       # exposure -> markers perceived
-    processing_ms: list[float] = field(default_factory=list)   # tick work, wall clock (profiling)
+    detect_ms: array[float] = field(default_factory=samples)       # exposure -> markers perceived
+    processing_ms: array[float] = field(default_factory=samples)   # tick work, wall clock (profiling)
     gate_samples: int = 0
     gate_open_samples: int = 0
     lock_time_s: float | None = None
@@ -102,8 +110,8 @@ class TruthMeter:
 
     def __init__(self, truth: GroundTruth | None, rig: RigGeometry, session: SessionLog) -> None:
         self.truth, self.rig, self.session = truth, rig, session
-        self.comp_errors_mm: list[float] = []
-        self.comp_error_age_s: list[float] = []   # time since COMPENSATE was entered, per sample
+        self.comp_errors_mm = samples()
+        self.comp_error_age_s = samples()   # time since COMPENSATE was entered, per sample
         self.lock_errors: list[tuple[float, float]] = []
         self.__name__ = "truth_meter"   # how the observer is named in an observer_failed record
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import abc
 import collections
 import math
+from array import array
 from collections.abc import Sequence
 from typing import Any
 
@@ -353,7 +354,7 @@ class ControllerParts(abc.ABC):
         return self.metrics.frames_overwritten
 
     @property
-    def latency_ms(self) -> list[float]:
+    def latency_ms(self) -> array[float]:
         return self.ctx.latency_ms
 
     @property
@@ -361,7 +362,7 @@ class ControllerParts(abc.ABC):
         return self.ctx.servo_deadlines_missed
 
     @property
-    def comp_errors_mm(self) -> list[float]:
+    def comp_errors_mm(self) -> array[float]:
         return self.truth_meter.comp_errors_mm
 
     @property

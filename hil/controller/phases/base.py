@@ -15,6 +15,7 @@ servo stream's command sink in COMPENSATE).
 
 from __future__ import annotations
 
+from array import array
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
@@ -89,7 +90,7 @@ class PhaseContext:
     #: steps the in-process servo loop at a time, ns (None: the servo process runs its own loop)
     step_servo: Callable[[int], None] | None = None
     #: latency of each frame's setpoint (exposure -> setpoint published), ms
-    latency_ms: list[float] = field(default_factory=list)
+    latency_ms: array[float] = field(default_factory=lambda: array("d"))
     servo_deadlines_missed: int = 0
 
 
