@@ -23,7 +23,7 @@ from drivers.interfaces.robot import MotionLimits, Robot
 from hil.clock import Clock
 from hil.geometry.transform import RigidTransform
 from hil.servo.limiter import RateLimiter
-from hil.servo.loop import Report, ServoLoop
+from hil.servo.loop import ServoLoop
 from hil.servo.shm import SETPOINT_WORDS as SETPOINT_WORDS
 from hil.servo.shm import LoopStats, SetpointBlock, ShmRegion, StateRing, ring_words, stats_words
 
@@ -109,9 +109,8 @@ class InProcessLink:
         self.robot, self.clock = robot, clock
         self.regions = Regions.create(shared=False)
         self._events: list[tuple[str, dict[str, Any]]] = []
-        report: Report = lambda kind, fields: self._events.append((kind, fields))  # noqa: E731
         self.loop = ServoLoop(robot, limits, clock, self.regions.block, self.regions.ring, self.regions.stats,
-                              period_s=1.0 / robot.control_rate_hz, limiter=limiter, report=report)
+                              period_s=1.0 / robot.control_rate_hz, limiter=limiter, report=self._report)
 
     @property
     def robot_name(self) -> str:
@@ -124,6 +123,10 @@ class InProcessLink:
     @property
     def T_flange_from_tcp(self) -> RigidTransform:
         return self.robot.T_flange_from_tcp
+
+    def _report(self, kind: str, fields: dict[str, Any]) -> None:
+        """The loop's events, kept until :meth:`take_events` (the same thread: no lock)."""
+        self._events.append((kind, fields))
 
     def step(self, now_ns: int) -> None:
         """One period of the loop at ``now_ns``."""

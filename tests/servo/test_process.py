@@ -12,7 +12,7 @@ import subprocess
 import sys
 import textwrap
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -32,9 +32,9 @@ def _spec(realtime: bool = False) -> ServoSpec:
     return ServoSpec(load_setup(default_setup_path()), (60.0, 400.0, 0.5), realtime=realtime)
 
 
-def _wait(cond: object, what: str, timeout_s: float = 20.0) -> None:
+def _wait(cond: Callable[[], bool], what: str, timeout_s: float = 20.0) -> None:
     deadline = time.monotonic() + timeout_s
-    while not cond():  # type: ignore[operator]
+    while not cond():
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(0.01)
