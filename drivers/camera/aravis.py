@@ -117,6 +117,9 @@ class _Side:
     frames: int = 0
     failed_buffers: int = 0
     dead: bool = False  # control lost / a command failed: teardown does not talk to it
+    # Set by Aravis' heartbeat thread on this side object only: a late emission from a camera
+    # already handed to a reconnection marks the old object, never the cameras that replaced it.
+    lost_reason: str = ""
     key_offset: int | None = None  # trigger id (or 1) of this side's first frame
     # reception (controller clock) minus device timestamp of the last frames: the clock mapping
     clock_offsets_ns: deque[int] = field(default_factory=lambda: deque(maxlen=_OFFSET_WINDOW))
@@ -160,8 +163,7 @@ class AravisStereoCamera(StereoCamera):
         self._rule = resolve_pair_rule(config)
         self._pairer = StereoPairer(self._rule, round(1e9 / config.frame_rate_hz))
         self._sides: dict[Side, _Side] = {}
-        self._lost = threading.Event()
-        self._lost_reason = ""
+        self._stream_lost_reason = ""  # set by grab() after timeouts in a row: the next grab reconnects
         self._trigger_id = 0
         self._timeouts = 0  # grabs in a row that timed out
         self._reconnect: _Reconnect | None = None
@@ -280,15 +282,16 @@ class AravisStereoCamera(StereoCamera):
     def _on_control_lost(self, device: Any, side: str, device_id: str) -> None:
         # Called from Aravis' heartbeat thread. A device already handed to a reconnection (its
         # handler disconnected while this emission waited for the GIL) or not in use yet is not
-        # the current camera: ignored.
+        # the current camera: ignored. The mark goes on this side's object only: if the grab
+        # thread hands it to a reconnection meanwhile (``get_device`` releases the GIL), the mark
+        # lands on the old object and the new cameras are not reconnected a second time.
         state = self._sides.get(side)  # type: ignore[call-overload]
         camera = None if state is None else state.camera
-        if camera is None or camera.get_device() != device:
+        if state is None or camera is None or camera.get_device() != device:
             log.info("aravis_control_lost_ignored", device=self.name, side=side, why="not the camera in use")
             return
-        self._lost_reason = f"{side} camera {device_id!r}: control channel lost (no heartbeat answer)"
         state.dead = True
-        self._lost.set()
+        state.lost_reason = f"{side} camera {device_id!r}: control channel lost (no heartbeat answer)"
 
     def _close(self) -> None:
         stats = self.stats
@@ -349,7 +352,7 @@ class AravisStereoCamera(StereoCamera):
             if s.lost_handler is not None and s.camera is not None:
                 s.camera.get_device().disconnect(s.lost_handler)
                 s.lost_handler = None
-        self._lost.clear()
+        self._stream_lost_reason = ""
         job = _Reconnect(reason)
         # A daemon: it retries until close() stops it, and must not keep a process that forgot
         # close() alive forever.
@@ -421,8 +424,7 @@ class AravisStereoCamera(StereoCamera):
         except DeviceTimeoutError as exc:
             self._timeouts += 1
             if self._timeouts >= _TIMEOUTS_BEFORE_LOST:
-                self._lost_reason = f"stream lost: {exc.message} ({self._timeouts} grabs in a row)"
-                self._lost.set()  # the next grab reconnects
+                self._stream_lost_reason = f"stream lost: {exc.message} ({self._timeouts} grabs in a row)"
             raise
         self._timeouts = 0
         return pair
@@ -463,9 +465,11 @@ class AravisStereoCamera(StereoCamera):
         return f"no stereo pair within {timeout_s:g} s{trig}: no frame from {what}"
 
     def _check_lost(self) -> None:
-        """Raise DisconnectedError (and start reconnecting) when a camera was lost."""
-        if self._lost.is_set():
-            reason = self._lost_reason
+        """Raise DisconnectedError (and start reconnecting) when a camera in use was lost: its
+        control channel (marked on its side object) or the stream (timeouts in a row)."""
+        reason = self._stream_lost_reason or next(
+            (s.lost_reason for s in self._sides.values() if s.lost_reason), "")
+        if reason:
             self._start_reconnect(reason)
             raise DisconnectedError(self.name, reason)
 

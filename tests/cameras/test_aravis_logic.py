@@ -312,6 +312,45 @@ def test_cameras_that_come_back_are_reconnected(stub_aravis: type[StubAravis]) -
     assert "stop_acquisition()" in new_left.calls
 
 
+def test_a_late_heartbeat_from_a_camera_being_replaced_does_not_reconnect_again(
+        stub_aravis: type[StubAravis]) -> None:
+    """Both cameras stop answering; the right's heartbeat loss starts the reconnection while the
+    left's emission is inside ``get_device()`` (PyGObject releases the GIL there, so the grab thread
+    runs). The left's mark must land on the camera handed away, not on the ones that replace it:
+    one outage, one reconnection (the flake seen in the fake-GigE stream-loss test)."""
+    left, right = StubCamera(one_per_trigger(1)), StubCamera(one_per_trigger(1))
+    cam = make(stub_aravis, left, right)
+    cam.open()
+    cam.grab(1.0)
+    stub_aravis.cameras = {"L": StubCamera(one_per_trigger(1, value0=10)),
+                           "R": StubCamera(one_per_trigger(1, value0=20))}
+    right.device.lose_control()
+    raised: list[str] = []
+
+    class GrabWhileInGetDevice(StubDevice):
+        armed = True
+
+        def __eq__(self, other: object) -> bool:  # the handler's comparison: the grab thread runs here
+            if GrabWhileInGetDevice.armed:
+                GrabWhileInGetDevice.armed = False
+                with pytest.raises(DisconnectedError) as info:
+                    cam.grab(1.0)
+                raised.append(info.value.message)
+            return other is self
+
+        __hash__ = object.__hash__
+
+    late = GrabWhileInGetDevice(handlers=left.device.handlers)
+    left.device = late
+    late.lose_control()
+    assert raised == ["right camera 'R': control channel lost (no heartbeat answer)"]
+    pair = cam.grab(5.0)  # the reconnection's new cameras
+    assert (int(pair.left.image[0, 0]), int(pair.right.image[0, 0])) == (11, 21)
+    assert int(cam.grab(1.0).left.image[0, 0]) == 12  # no second "control channel lost"
+    assert cam.stats["reconnections"] == 1
+    cam.close()
+
+
 def test_grabs_timing_out_in_a_row_count_as_a_lost_stream(stub_aravis: type[StubAravis]) -> None:
     silent = StubCamera(lambda k: [])
     cam = make(stub_aravis, StubCamera(one_per_trigger(1)), silent)
