@@ -38,7 +38,7 @@ from drivers.interfaces.errors import (
     SafetyStopError,
 )
 from drivers.interfaces.lifecycle import Device
-from drivers.interfaces.robot import Robot, RobotMode, RobotState, SafetyStatus
+from drivers.interfaces.robot import FollowingModel, Robot, RobotMode, RobotState, SafetyStatus
 from drivers.interfaces.tracker import PoseTracker, TrackerSample
 from hil.clock import Clock
 from hil.config.faults import DEFAULT_FAULT_CHANNEL_PORT, FaultChannelConfig, FaultKind, FaultSpec
@@ -289,6 +289,11 @@ class FaultyRobot(_Delegating, Robot):
     @property
     def control_rate_hz(self) -> float:
         return self.inner.control_rate_hz
+
+    @property
+    def following_model(self) -> FollowingModel:
+        """The inner robot's."""
+        return self.inner.following_model
 
     @property
     def T_flange_from_tcp(self) -> RigidTransform:

@@ -6,6 +6,7 @@ radians. A driver converts to its device's units (UR: metres, axis-angle) at its
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from abc import abstractmethod
 from dataclasses import dataclass, field
@@ -55,6 +56,47 @@ class RobotState:
     tcp_speed_mm_s: float = 0.0
 
 
+#: Following-error bounds of a UR3 / UR3e-class arm servoing at breathing-compensation speeds
+#: (docs/safety.md, "Following error"): 2 mm / 1.5 deg held for 0.1 s. At the compensation speed
+#: limit (60 mm/s by default) a 10 ms mismatch between the lag model and the arm costs 0.6 mm, so a
+#: healthy arm stays inside; an arm that stops following a breathing target (5-10 mm/s) leaves the
+#: bound within about 0.2-0.4 s.
+UR_FOLLOWING_ERROR_MM = 2.0
+UR_FOLLOWING_ERROR_DEG = 1.5
+UR_FOLLOWING_ERROR_DURATION_S = 0.1
+
+
+@dataclass(frozen=True)
+class FollowingModel:
+    """How an arm follows a stream of servo targets, and the bounds of its following-error
+    supervision (:mod:`hil.safety.following`; docs/safety.md, "Following error").
+
+    The arm's expected pose is the commanded pose through a first-order lag of
+    ``time_constant_s``; the arm is *not following* when its reported pose stays farther than
+    ``max_error_mm`` (or turned more than ``max_error_deg``) from that expectation for
+    ``max_duration_s`` or longer.
+
+    Attributes:
+        time_constant_s: first-order servo tracking lag of the arm, s (>= 0).
+        max_error_mm: translation bound, mm (> 0).
+        max_error_deg: rotation bound, degrees (> 0).
+        max_duration_s: how long a divergence beyond a bound is tolerated, s (> 0).
+        source: who chose these values (shown with the figures: "UR servoL lookahead 0.05 s, gain
+            500", "[safety] following_error_mm", ...).
+    """
+
+    time_constant_s: float = 0.05
+    max_error_mm: float = 3.0
+    max_error_deg: float = 2.0
+    max_duration_s: float = 0.1
+    source: str = "generic robot default"
+
+    def __post_init__(self) -> None:
+        values = (self.time_constant_s, self.max_error_mm, self.max_error_deg, self.max_duration_s)
+        if not all(math.isfinite(v) for v in values) or self.time_constant_s < 0 or min(values[1:]) <= 0:
+            raise ValueError(f"following model needs a finite time constant >= 0 and bounds > 0, got {self}")
+
+
 @dataclass(frozen=True)
 class MotionLimits:
     """Hard limits every command is checked against before it reaches a driver.
@@ -72,7 +114,21 @@ class MotionLimits:
     max_speed_mm_s: float = 100.0
     max_accel_mm_s2: float = 500.0
     max_angular_speed_rad_s: float = 1.0
+    #: following-error bounds that override the robot model's (None: the robot's own,
+    #: :attr:`Robot.following_model`)
+    following_error_mm: float | None = None
+    following_error_deg: float | None = None
+    following_error_duration_s: float | None = None
     _eps: float = field(default=1e-9, repr=False)
+
+    def following(self, model: FollowingModel) -> FollowingModel:
+        """The robot model's following bounds with this limit set's overrides applied."""
+        overrides = {k: v for k, v in (("max_error_mm", self.following_error_mm),
+                                       ("max_error_deg", self.following_error_deg),
+                                       ("max_duration_s", self.following_error_duration_s)) if v is not None}
+        if not overrides:
+            return model
+        return dataclasses.replace(model, **overrides, source=f"{model.source}; bounds from [safety]")
 
     def check_position(self, device: str, p_mm: NDArray[np.float64]) -> None:
         lo = np.asarray(self.workspace_min_mm)
@@ -206,6 +262,13 @@ class Robot(Device):
             raise SafetyStopError(self.name, f"arm is in {s.safety}; motion refused")
         if s.mode is RobotMode.STOPPED:
             raise SafetyStopError(self.name, "arm program is not running (mode stopped); motion refused")
+
+    @property
+    def following_model(self) -> FollowingModel:
+        """How this arm follows servo targets and the default bounds of its following-error
+        supervision (:class:`FollowingModel`). Drivers that know their arm's servo response
+        override it; a wrapper returns its inner robot's. Never blocks, never raises."""
+        return FollowingModel()
 
     # ------------------------------------------------------------ driver implementation
     @property

@@ -34,7 +34,17 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, Field
 
 from drivers.interfaces.errors import SafetyStopError
-from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
+from drivers.interfaces.robot import (
+    UR_FOLLOWING_ERROR_DEG,
+    UR_FOLLOWING_ERROR_DURATION_S,
+    UR_FOLLOWING_ERROR_MM,
+    FollowingModel,
+    MotionLimits,
+    Robot,
+    RobotMode,
+    RobotState,
+    SafetyStatus,
+)
 from drivers.sim.rig_errors import joint_offsets
 from drivers.sim.world import SimWorld
 from hil.clock import Clock
@@ -195,6 +205,14 @@ class SimRobot(Robot):
     @property
     def control_rate_hz(self) -> float:
         return self.cfg.control_rate_hz
+
+    @property
+    def following_model(self) -> FollowingModel:
+        """The simulated arm's own first-order servo lag (``servo_time_constant_s``) and the
+        UR defaults' bounds (docs/safety.md, "Following error")."""
+        return FollowingModel(self.cfg.servo_time_constant_s, UR_FOLLOWING_ERROR_MM, UR_FOLLOWING_ERROR_DEG,
+                              UR_FOLLOWING_ERROR_DURATION_S,
+                              f"simulated arm, servo lag {self.cfg.servo_time_constant_s:g} s")
 
     # ------------------------------------------------------------------ kinematic state
     def _segment_at(self, t_ns: int) -> _Segment:

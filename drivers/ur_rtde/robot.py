@@ -34,7 +34,17 @@ from drivers.interfaces.errors import (
     ProtocolError,
     SafetyStopError,
 )
-from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
+from drivers.interfaces.robot import (
+    UR_FOLLOWING_ERROR_DEG,
+    UR_FOLLOWING_ERROR_DURATION_S,
+    UR_FOLLOWING_ERROR_MM,
+    FollowingModel,
+    MotionLimits,
+    Robot,
+    RobotMode,
+    RobotState,
+    SafetyStatus,
+)
 from drivers.ur_rtde.config import UrRtdeRobotConfig
 from drivers.ur_rtde.stream_age import StreamAge
 from drivers.ur_rtde.wire import (
@@ -140,6 +150,18 @@ class UrRtdeRobot(Robot):
     @property
     def control_rate_hz(self) -> float:
         return self.cfg.rate_hz
+
+    @property
+    def following_model(self) -> FollowingModel:
+        """A UR arm following servoL: a first-order lag of ``0.3 * lookahead + 1 / gain`` s (the
+        fit used by tools/ursim, ~33 ms at UR's defaults 0.1 s / 300), the UR bounds of
+        docs/safety.md ("Following error")."""
+        c = self.cfg
+        tau_s = 0.3 * c.servo_lookahead_time_s + 1.0 / c.servo_gain
+        return FollowingModel(tau_s, UR_FOLLOWING_ERROR_MM, UR_FOLLOWING_ERROR_DEG,
+                              UR_FOLLOWING_ERROR_DURATION_S,
+                              f"UR {c.controller} servoL lookahead {c.servo_lookahead_time_s:g} s, "
+                              f"gain {c.servo_gain:g}")
 
     def _open(self) -> None:
         self._connect()

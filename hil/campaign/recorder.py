@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from drivers.interfaces.errors import LimitViolationError
-from drivers.interfaces.robot import MotionLimits, Robot, RobotState
+from drivers.interfaces.robot import FollowingModel, MotionLimits, Robot, RobotState
 from hil.clock import Clock
 from hil.geometry.transform import RigidTransform
 
@@ -92,6 +92,11 @@ class RecordingRobot(Robot):
     @property
     def control_rate_hz(self) -> float:
         return self.inner.control_rate_hz
+
+    @property
+    def following_model(self) -> FollowingModel:
+        """The inner robot's."""
+        return self.inner.following_model
 
     @property
     def T_flange_from_tcp(self) -> RigidTransform:

@@ -44,6 +44,16 @@ class SafetyConfig(BaseModel):
                                       description="watchdog: newest tracker sample")
     robot_state_max_age_ms: float = Field(50.0, gt=0, le=MAX_ROBOT_STATE_AGE_MS,
                                           description="watchdog: newest robot state")
+    # Following-error supervision (docs/safety.md): unset = the robot model's own bounds.
+    following_error_mm: float | None = Field(
+        None, gt=0, le=50, description="following error: translation bound, mm (unset: the robot model's; "
+                                       "UR3/UR3e and the simulated arm: 2 mm)")
+    following_error_deg: float | None = Field(
+        None, gt=0, le=30, description="following error: rotation bound, degrees (unset: the robot model's; "
+                                       "UR3/UR3e and the simulated arm: 1.5 deg)")
+    following_error_duration_s: float | None = Field(
+        None, gt=0, le=2, description="following error: how long a divergence beyond a bound is tolerated, s "
+                                      "(unset: the robot model's; UR3/UR3e and the simulated arm: 0.1 s)")
 
     @model_validator(mode="after")
     def _box(self) -> SafetyConfig:
@@ -57,6 +67,8 @@ class SafetyConfig(BaseModel):
             workspace_min_mm=self.workspace_min_mm, workspace_max_mm=self.workspace_max_mm,
             max_speed_mm_s=self.max_speed_mm_s, max_accel_mm_s2=self.max_accel_mm_s2,
             max_angular_speed_rad_s=self.max_angular_speed_rad_s,
+            following_error_mm=self.following_error_mm, following_error_deg=self.following_error_deg,
+            following_error_duration_s=self.following_error_duration_s,
         )
 
 

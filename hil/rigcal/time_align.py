@@ -15,7 +15,7 @@ import dataclasses
 
 from drivers.interfaces.camera import FrameTime, StereoCamera, StereoFrame
 from drivers.interfaces.lifecycle import Device, DeviceState
-from drivers.interfaces.robot import Robot, RobotState
+from drivers.interfaces.robot import FollowingModel, Robot, RobotState
 from drivers.interfaces.tracker import PoseTracker, TrackerSample
 from hil.geometry.transform import RigidTransform
 from hil.rigcal.rigfile import RigCalibration
@@ -109,6 +109,11 @@ class TimeAlignedRobot(_Delegating, Robot):
     @property
     def control_rate_hz(self) -> float:
         return self.inner.control_rate_hz
+
+    @property
+    def following_model(self) -> FollowingModel:
+        """The inner robot's."""
+        return self.inner.following_model
 
     @property
     def T_flange_from_tcp(self) -> RigidTransform:

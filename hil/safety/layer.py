@@ -46,7 +46,8 @@ class SafetyViolationError(HilError):
 
     Attributes:
         check: ``workspace``, ``speed``, ``acceleration``, ``angular_speed``, ``state_age``,
-            ``robot_safety``, ``period``.
+            ``robot_safety``, ``period``, ``setpoint``, ``following_error`` (the servo loop's
+            :mod:`hil.safety.following`: the arm did not follow).
         detail: what exactly.
     """
 

@@ -10,9 +10,10 @@ the servo loop that owns the arm (:mod:`hil.servo.link`).
   zero-velocity setpoint valid for two periods.
 - ``state_now`` is the loop's newest ring record (process link; never blocks) or the robot's own
   state (in-process link). The loop's events are drained here: a refused step raises
-  SafetyViolationError naming the check, a failed stop, command or read raises the driver's own
-  error, and a servo process that is gone raises DisconnectedError, so the controller faults on
-  them at its next read.
+  SafetyViolationError naming the check, an arm that does not follow its targets raises
+  SafetyViolationError ``following_error`` stating the figures, a failed stop, command or read
+  raises the driver's own error, and a servo process that is gone raises DisconnectedError, so
+  the controller faults on them at its next read.
 """
 
 from __future__ import annotations
@@ -31,7 +32,14 @@ from hil.geometry.transform import RigidTransform
 from hil.safety.layer import SafetyViolationError
 from hil.servo.limiter import RateLimiter
 from hil.servo.link import InProcessLink, ServoLink
-from hil.servo.loop import EV_COMMAND_FAILED, EV_READ_FAILED, EV_REFUSED, EV_STOP_FAILED, record_to_state
+from hil.servo.loop import (
+    EV_COMMAND_FAILED,
+    EV_FOLLOWING,
+    EV_READ_FAILED,
+    EV_REFUSED,
+    EV_STOP_FAILED,
+    record_to_state,
+)
 from hil.servo.process import ServoProcess
 from hil.servo.rt import RtGranted
 from hil.servo.shm import RingRecord, ServoMode, Stat
@@ -212,6 +220,9 @@ class ServoRobot(Robot):
             if kind == EV_REFUSED:
                 self._pending = SafetyViolationError(str(fields.get("check")),
                                                      f"servo loop: {fields.get('detail')}")
+            elif kind == EV_FOLLOWING:
+                self._pending = SafetyViolationError("following_error",
+                                                     f"servo loop: {fields.get('message')}")
             elif kind == EV_STOP_FAILED:   # raised by the waiting stop (the supervisor retries it)
                 self._stop_error = error_from_wire(*fields["wire"])
             elif kind in (EV_COMMAND_FAILED, EV_READ_FAILED) and not self.link.in_process:

@@ -56,6 +56,9 @@ class LoopFigures:
     read_errors: int
     command_errors: int
     stops_sent: int
+    following_faults: int = 0
+    #: the largest following error (hil.safety.following) seen since the counters were reset, mm
+    following_peak_mm: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -100,7 +103,8 @@ def loop_figures(before: StatsCopy, after: StatsCopy, period_s: float) -> LoopFi
         longest_ms=None if longest is None else round(longest, 3),
         period_ms=period_stats, jitter_ms=jitter_stats, latency_ms=_weighted_stats(lat_centres, lat),
         refusals=d[Stat.REFUSALS], stale_periods=d[Stat.STALE], read_errors=d[Stat.READ_ERRORS],
-        command_errors=d[Stat.COMMAND_ERRORS], stops_sent=d[Stat.STOPS_SENT])
+        command_errors=d[Stat.COMMAND_ERRORS], stops_sent=d[Stat.STOPS_SENT],
+        following_faults=d[Stat.FOLLOWING_FAULTS], following_peak_mm=after.get(Stat.FOLLOWING_PEAK_UM) * 1e-3)
 
 
 class StatsEverySecond:
@@ -132,4 +136,6 @@ class StatsEverySecond:
         return {"periods": d(Stat.PERIODS), "commands": d(Stat.COMMANDS), "late": d(Stat.LATE),
                 "stale_periods": d(Stat.STALE), "refusals": d(Stat.REFUSALS),
                 "read_errors": d(Stat.READ_ERRORS), "command_errors": d(Stat.COMMAND_ERRORS),
+                "following_faults": d(Stat.FOLLOWING_FAULTS),
+                "following_peak_mm": round(c[Stat.FOLLOWING_PEAK_UM] * 1e-3, 3),
                 "longest_interval_ms": round(c[Stat.MAX_INTERVAL_NS] * 1e-6, 3)}

@@ -13,8 +13,11 @@ process, or stepped in-process by a simulated run on the manual clock — the sa
      ``max_horizon_s``); a setpoint past ``valid_until_ns`` is *stale*: the target becomes the
      last command, so the rate limiter brings the arm to rest at its acceleration limit (bounded:
      ``max_speed / max_accel``) and holds it there; rate- and acceleration-limit; the merged step
-     check (:mod:`hil.safety.servo_check`); ``robot.servo``. A refused step stops the arm and is
-     reported;
+     check (:mod:`hil.safety.servo_check`); ``robot.servo``; the following-error supervision
+     (:mod:`hil.safety.following`) compares the arm's reported pose with the pose the commands
+     should have brought it to. A refused step or an arm that does not follow stops the arm and is
+     reported, and that tracking session is over: the loop holds until the supervisor starts a
+     new one (a new ``track_id``) — it never resumes on its own after a refusal;
    - IDLE: no command (the arm holds, or runs a move a command started);
 4. write the period's record to the state ring and the counters (:class:`~hil.servo.shm.LoopStats`).
 
@@ -38,6 +41,7 @@ from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState,
 from hil.clock import Clock
 from hil.errors import GeometryError
 from hil.geometry.transform import RigidTransform, rotvec_to_matrix
+from hil.safety.following import FollowingMonitor
 from hil.safety.servo_check import servo_step_violation
 from hil.servo.limiter import RateLimiter
 from hil.servo.shm import LoopStats, RingRecord, ServoMode, Setpoint, SetpointBlock, Stat, StateRing
@@ -59,6 +63,7 @@ EV_STOP_FAILED = "servo_stop_failed"
 EV_READ_FAILED = "servo_state_read_failed"
 EV_COMMAND_FAILED = "servo_command_failed"
 EV_STALE = "servo_setpoint_stale"
+EV_FOLLOWING = "servo_following_error"
 
 
 def record_to_state(rec: RingRecord) -> RobotState:
@@ -73,7 +78,8 @@ class ServoLoop:
 
     Args:
         robot: the ACTIVE robot this loop owns (no one else commands it while the loop runs).
-        limits: the safety layer's limits (the merged check).
+        limits: the safety layer's limits (the merged check; their following-error overrides
+            applied to the robot's :attr:`~drivers.interfaces.robot.Robot.following_model`).
         clock: the controller clock (``now_ns`` of the command and the delivered stop).
         block, ring, stats: the shared regions (:mod:`hil.servo.shm`).
         period_s: the robot's control period (1 / control rate).
@@ -94,6 +100,8 @@ class ServoLoop:
         self.report = report
         self._sp = Setpoint()
         self._track_id: int | None = None
+        self._halted_track_id: int | None = None   # a session ended by a refusal: never resumed
+        self.following = FollowingMonitor(limits.following(robot.following_model))
         self._v_prev = np.zeros(3)
         self._stop_done_id = 0
         self._last_step_ns: int | None = None
@@ -123,10 +131,13 @@ class ServoLoop:
             self._track_id = None
             self._do_stop(sp.stop_id)
         elif sp.mode == ServoMode.TRACK:
-            if st is not None and st.safety is SafetyStatus.NORMAL:
+            if st is not None and st.safety is SafetyStatus.NORMAL and sp.track_id != self._halted_track_id:
                 cmd_t_ns = self._track(sp, st, now_ns)
+            else:
+                self.following.stop()
         else:
             self._track_id = None
+            self.following.stop()
         self._publish(st, cmd_t_ns, int(sp.mode))
         self._period += 1
 
@@ -175,6 +186,7 @@ class ServoLoop:
             self.limiter.reset(st.T_robot_from_tcp)
             self._v_prev[:] = 0.0
             self._stale = False
+            self.following.start(st.T_robot_from_tcp.R, st.T_robot_from_tcp.t)
         prev = self.limiter.command
         assert prev is not None
         if now_ns > sp.valid_until_ns:
@@ -205,8 +217,18 @@ class ServoLoop:
                 self.report(EV_COMMAND_FAILED, {"error": type(exc).__name__, "detail": str(exc),
                                                 "wire": error_to_wire(exc)})
             self._track_id = None   # restart from the actual pose once it works again
+            self.following.stop()
             return 0
         self._cmd_failing = False
+        T_act = st.T_robot_from_tcp
+        fault = self.following.update(now_ns, self.period_s, cmd.R, cmd.t, T_act.R, T_act.t)
+        if fault is not None:
+            self.stats.c[Stat.FOLLOWING_FAULTS] += 1
+            self._halt(sp)
+            self.report(EV_FOLLOWING, {"message": fault.message(), "frame_seq": sp.frame_seq,
+                                       **fault.fields()})
+            return 0
+        self._note_peak()
         v = self.limiter.velocity_mm_s
         if v is not None:
             self._v_prev[:] = v
@@ -230,12 +252,25 @@ class ServoLoop:
 
     def _refuse(self, sp: Setpoint, why: tuple[str, str]) -> None:
         self.stats.c[Stat.REFUSALS] += 1
-        self._track_id = None
+        self._halt(sp)
         self.report(EV_REFUSED, {"check": why[0], "detail": why[1], "frame_seq": sp.frame_seq})
+
+    def _halt(self, sp: Setpoint) -> None:
+        """End the tracking session ``sp`` belongs to for good and stop the arm."""
+        self._track_id = None
+        self._halted_track_id = sp.track_id
+        self.following.stop()
         try:
             self.robot.stop()
         except DriverError:
             self.stats.c[Stat.COMMAND_ERRORS] += 1
+
+    def _note_peak(self) -> None:
+        """The largest following error since the counters were reset, in µm (the loop's figures)."""
+        c = self.stats.c
+        peak_um = int(self.following.last_error_mm * 1000.0)
+        if peak_um > c[Stat.FOLLOWING_PEAK_UM]:
+            c[Stat.FOLLOWING_PEAK_UM] = peak_um
 
     def _publish(self, st: RobotState | None, cmd_t_ns: int, servo_mode: int) -> None:
         st = st if st is not None else self._last_state

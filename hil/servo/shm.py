@@ -346,6 +346,8 @@ class Stat(IntEnum):
     STEP_NS_MAX = 15          # longest step() work, ns
     STOP_ISSUE_ID = 16        # the last stop request the loop began to send
     STOP_ISSUE_T_NS = 17      # when it began (the driver's stop call may then block until rest)
+    FOLLOWING_FAULTS = 18     # tracking sessions ended because the arm did not follow
+    FOLLOWING_PEAK_UM = 19    # the largest following error seen, µm (hil.safety.following)
 
 
 STAT_WORDS = 32

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.interfaces.camera import StereoCamera
-from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
+from drivers.interfaces.robot import FollowingModel, MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
 from hil.clock import ManualClock
 from hil.geometry.transform import RigidTransform
 from hil.vision.camera_model import StereoCalibration
@@ -23,6 +23,7 @@ class FakeRobot(Robot):
         self.calls: list[tuple[str, RigidTransform | None]] = []
         self.safety_status = SafetyStatus.NORMAL
         self.state_delay_ns = 0
+        self.stall = False   # servo targets are accepted but the pose no longer moves
 
     def _open(self) -> None:
         pass
@@ -34,13 +35,19 @@ class FakeRobot(Robot):
     def control_rate_hz(self) -> float:
         return 125.0
 
+    @property
+    def following_model(self) -> FollowingModel:
+        """The pose jumps to each target: no lag (``stall`` makes it stop following)."""
+        return FollowingModel(0.0, 2.0, 1.5, 0.1, "fake robot")
+
     def _move_linear(self, T: RigidTransform, speed_mm_s: float, accel_mm_s2: float, blocking: bool) -> None:
         self.calls.append(("move_linear", T))
         self.pose = T
 
     def _servo(self, T: RigidTransform, period_s: float) -> None:
         self.calls.append(("servo", T))
-        self.pose = T
+        if not self.stall:
+            self.pose = T
 
     def _stop(self, decel_mm_s2: float) -> None:
         self.calls.append(("stop", None))

@@ -46,11 +46,15 @@ def test_one_stats_record_per_second_of_controller_time() -> None:
     stats.c[Stat.PERIODS] += 125
     stats.c[Stat.COMMANDS] += 120
     stats.add_interval(17_000_000, 8_000_000)   # one late interval
+    stats.c[Stat.FOLLOWING_PEAK_UM] = 412
     assert every.due(999_999_999) is None       # not a second yet
     rec = every.due(1_000_000_000)
     assert rec == {"periods": 125, "commands": 120, "late": 1, "stale_periods": 0, "refusals": 0,
-                   "read_errors": 0, "command_errors": 0, "longest_interval_ms": 17.0}
+                   "read_errors": 0, "command_errors": 0, "following_faults": 0, "following_peak_mm": 0.412,
+                   "longest_interval_ms": 17.0}
     assert every.due(1_500_000_000) is None
+    stats.c[Stat.FOLLOWING_FAULTS] += 1
     assert every.due(2_000_000_000) == {"periods": 0, "commands": 0, "late": 0, "stale_periods": 0,
                                         "refusals": 0, "read_errors": 0, "command_errors": 0,
+                                        "following_faults": 1, "following_peak_mm": 0.412,
                                         "longest_interval_ms": 17.0}

@@ -16,7 +16,7 @@ from hil.clock import ManualClock
 from hil.geometry.transform import RigidTransform
 from hil.servo.limiter import RateLimiter
 from hil.servo.link import Regions
-from hil.servo.loop import EV_REFUSED, EV_STALE, EV_STOP_DELIVERED, EV_STOP_FAILED, ServoLoop
+from hil.servo.loop import EV_FOLLOWING, EV_REFUSED, EV_STALE, EV_STOP_DELIVERED, EV_STOP_FAILED, ServoLoop
 from hil.servo.shm import ServoMode, SetpointBlock, ShmRegion, Stat
 from tests.controller.fakes import FakeRobot
 
@@ -174,6 +174,42 @@ def test_a_new_track_id_restarts_from_the_actual_pose_at_rest(rig: Any) -> None:
     _run(clock, loop, 1)
     last = [T for kind, T in robot.calls if kind == "servo"][-1]
     assert np.allclose(last.t, (5.0, 5.0, 250.0))
+
+
+def test_an_arm_that_stops_following_is_stopped_and_the_session_ends(rig: Any) -> None:
+    clock, robot, regions, loop, events = rig
+    start = robot.pose.t.copy()
+    _track(regions.block, clock, start, v_mm_s=(10.0, 0.0, 0.0), valid_s=10.0)   # a target moving at 10 mm/s
+    _run(clock, loop, 25)
+    assert not [k for k, _ in events if k == EV_FOLLOWING]   # follows (the fake robot has no lag)
+    robot.stall = True
+    _run(clock, loop, 100)
+    fe = [f for k, f in events if k == EV_FOLLOWING]
+    assert len(fe) == 1
+    assert fe[0]["error_mm"] > fe[0]["bound_mm"] == 2.0
+    assert fe[0]["duration_ms"] == pytest.approx(104.0)   # the first period >= 100 ms (8 ms periods)
+    assert "arm not following its servo targets" in str(fe[0]["message"])
+    assert regions.stats.get(Stat.FOLLOWING_FAULTS) == 1
+    assert regions.stats.get(Stat.FOLLOWING_PEAK_UM) > 2000
+    k_stop = max(i for i, (kind, _) in enumerate(robot.calls) if kind == "stop")
+    assert [kind for kind, _ in robot.calls[k_stop:]] == ["stop"]   # nothing sent after the stop
+    robot.stall = False
+    _track(regions.block, clock, robot.pose.t, track_id=2)   # the supervisor starts a new session
+    _run(clock, loop, 3)
+    assert [kind for kind, _ in robot.calls[k_stop + 1:]] == ["servo"] * 3
+
+
+def test_a_refused_session_is_never_resumed_by_the_loop(rig: Any) -> None:
+    clock, robot, regions, loop, events = rig
+    _track(regions.block, clock, (np.nan, 0.0, 300.0), valid_s=10.0)
+    _run(clock, loop, 1)
+    now = clock.now_ns()   # the same session's next setpoint is fine, but the session was refused
+    regions.block.write_track(track_id=1, R=np.eye(3), t_mm=robot.pose.t, v_mm_s=np.zeros(3),
+                              w_rad_s=np.zeros(3), t_ref_ns=now, valid_until_ns=now + 10**9,
+                              exposure_t_ns=now, frame_seq=2, speed_scale=1.0, max_horizon_s=1.0, lead_s=0.0)
+    _run(clock, loop, 5)
+    assert [kind for kind, _ in robot.calls] == ["stop"]
+    assert [k for k, _ in events if k == EV_REFUSED] == [EV_REFUSED]
 
 
 def test_region_layouts_refuse_a_short_buffer() -> None:

@@ -1,0 +1,152 @@
+"""Following-error supervision: is the arm following the servo targets it is sent?
+
+The servo loop (:mod:`hil.servo.loop`) feeds every period's command and the arm's reported pose
+to a :class:`FollowingMonitor`. The monitor keeps the pose the arm is *expected* at: the commands
+through the arm's first-order servo lag (:class:`~drivers.interfaces.robot.FollowingModel`,
+``time_constant_s`` = tau), advanced each period ``dt`` by
+
+    expected += (command - expected) * (1 - exp(-dt / tau))
+
+(translation; the rotation matrix is blended the same way, entry by entry: the per-period
+rotation is small, so the blend stays a rotation to second order and the angle read from its trace
+is exact to that order). The *following error* is the distance between the expected and the
+reported TCP pose: translation in mm, rotation in degrees. A healthy arm stays within a fraction of
+a millimetre of its expectation at any speed (the lag is modelled, not bounded); an arm that stalls,
+answers late or drifts leaves it. A divergence beyond ``max_error_mm`` or ``max_error_deg`` held
+for ``max_duration_s`` is a :class:`FollowingFault` that states the figures.
+
+Hot path: :meth:`FollowingMonitor.update` works in preallocated arrays (a few Python floats
+aside); a fault (rare) builds its report. Frames: every pose is ``T_robot_from_tcp`` (robot base frame, mm).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.interfaces.robot import FollowingModel
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class FollowingFault:
+    """An arm that did not follow: the figures of the divergence.
+
+    Attributes:
+        error_mm, error_deg: the following error when the fault was declared.
+        max_error_mm, max_error_deg: the largest during the divergence.
+        duration_s: how long it had been beyond a bound.
+        model: the bounds and lag in force (and where they came from).
+        expected_mm, actual_mm: expected and reported TCP positions (robot frame, mm).
+    """
+
+    error_mm: float
+    error_deg: float
+    max_error_mm: float
+    max_error_deg: float
+    duration_s: float
+    model: FollowingModel
+    expected_mm: tuple[float, float, float]
+    actual_mm: tuple[float, float, float]
+
+    def message(self) -> str:
+        """One line for the FAULT reason and the session log."""
+        m = self.model
+        return (f"arm not following its servo targets: {self.error_mm:.2f} mm / {self.error_deg:.2f} deg "
+                f"from the expected pose for {self.duration_s * 1e3:.0f} ms (max {self.max_error_mm:.2f} mm "
+                f"/ {self.max_error_deg:.2f} deg; bound {m.max_error_mm:g} mm / {m.max_error_deg:g} deg for "
+                f"{m.max_duration_s * 1e3:.0f} ms, servo lag {m.time_constant_s * 1e3:.0f} ms: {m.source})")
+
+    def fields(self) -> dict[str, object]:
+        """The figures as session-log fields."""
+        m = self.model
+        return {"error_mm": round(self.error_mm, 3), "error_deg": round(self.error_deg, 3),
+                "max_error_mm": round(self.max_error_mm, 3), "max_error_deg": round(self.max_error_deg, 3),
+                "duration_ms": round(self.duration_s * 1e3, 1), "bound_mm": m.max_error_mm,
+                "bound_deg": m.max_error_deg, "bound_ms": m.max_duration_s * 1e3,
+                "lag_ms": round(m.time_constant_s * 1e3, 2), "bounds_from": m.source,
+                "expected_mm": [round(v, 3) for v in self.expected_mm],
+                "actual_mm": [round(v, 3) for v in self.actual_mm]}
+
+
+class FollowingMonitor:
+    """The expected pose and the divergence timer (module doc).
+
+    Args:
+        model: the arm's lag and the bounds (:meth:`MotionLimits.following` applied).
+    """
+
+    def __init__(self, model: FollowingModel) -> None:
+        self.model = model
+        self._R = np.eye(3)
+        self._t = np.zeros(3)
+        self._dR = np.zeros((3, 3))   # scratch: no allocation per period
+        self._dt = np.zeros(3)
+        self._active = False
+        self._beyond_since_ns: int | None = None
+        self._max_mm = 0.0
+        self._max_deg = 0.0
+        #: the following error of the latest :meth:`update` (mm, degrees)
+        self.last_error_mm = 0.0
+        self.last_error_deg = 0.0
+
+    @property
+    def active(self) -> bool:
+        return self._active
+
+    def start(self, R_actual: FloatArray, t_actual_mm: FloatArray) -> None:
+        """Begin a tracking session at the arm's actual pose (it is at rest there)."""
+        self._R[:] = R_actual
+        self._t[:] = t_actual_mm
+        self._active = True
+        self._beyond_since_ns = None
+
+    def stop(self) -> None:
+        """No servo targets any more (idle, stop, a refused step): nothing to follow."""
+        self._active = False
+        self._beyond_since_ns = None
+
+    def update(self, now_ns: int, dt_s: float, R_cmd: FloatArray, t_cmd_mm: FloatArray,
+               R_actual: FloatArray, t_actual_mm: FloatArray) -> FollowingFault | None:
+        """One period: compare the reported pose with the expectation, then advance the
+        expectation toward the command just sent over ``dt_s``. Returns the fault once the
+        divergence has lasted ``max_duration_s`` (then the monitor stops), else None."""
+        if not self._active:
+            self.start(R_actual, t_actual_mm)
+        e, a = self._t, t_actual_mm
+        dx, dy, dz = float(e[0] - a[0]), float(e[1] - a[1]), float(e[2] - a[2])
+        err_mm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        cos = (float(np.vdot(self._R, R_actual)) - 1.0) * 0.5   # (trace(R_actual^T R_expected) - 1) / 2
+        err_deg = math.degrees(math.acos(1.0 if cos > 1.0 else (-1.0 if cos < -1.0 else cos)))
+        self.last_error_mm, self.last_error_deg = err_mm, err_deg
+        m = self.model
+        fault: FollowingFault | None = None
+        if err_mm > m.max_error_mm or err_deg > m.max_error_deg:
+            if self._beyond_since_ns is None:
+                self._beyond_since_ns = now_ns
+                self._max_mm, self._max_deg = err_mm, err_deg
+            else:
+                self._max_mm = max(self._max_mm, err_mm)
+                self._max_deg = max(self._max_deg, err_deg)
+            held_s = (now_ns - self._beyond_since_ns) * 1e-9
+            if held_s >= m.max_duration_s:
+                fault = FollowingFault(err_mm, err_deg, self._max_mm, self._max_deg, held_s, m,
+                                       (float(e[0]), float(e[1]), float(e[2])),
+                                       (float(a[0]), float(a[1]), float(a[2])))
+                self.stop()
+                return fault
+        else:
+            self._beyond_since_ns = None
+        tau = m.time_constant_s
+        alpha = 1.0 if tau <= 0.0 else 1.0 - math.exp(-dt_s / tau)
+        np.subtract(t_cmd_mm, self._t, out=self._dt)
+        self._dt *= alpha
+        self._t += self._dt
+        np.subtract(R_cmd, self._R, out=self._dR)
+        self._dR *= alpha
+        self._R += self._dR
+        return None
