@@ -44,6 +44,15 @@ class SafetyConfig(BaseModel):
                                       description="watchdog: newest tracker sample")
     robot_state_max_age_ms: float = Field(50.0, gt=0, le=MAX_ROBOT_STATE_AGE_MS,
                                           description="watchdog: newest robot state")
+    # Camera cross-check of the robot's reported pose (docs/safety.md; GATE, COMPENSATE, LOCK).
+    camera_discrepancy_mm: float = Field(
+        2.0, gt=0, le=50,
+        description="camera cross-check: camera-measured vs robot-reported TCP, translation bound, mm")
+    camera_discrepancy_deg: float = Field(2.0, gt=0, le=30,
+                                          description="camera cross-check: rotation bound, degrees")
+    camera_discrepancy_s: float = Field(
+        0.3, gt=0, le=5,
+        description="camera cross-check: how long a discrepancy beyond a bound is tolerated, s")
     # Following-error supervision (docs/safety.md): unset = the robot model's own bounds.
     following_error_mm: float | None = Field(
         None, gt=0, le=50, description="following error: translation bound, mm (unset: the robot model's; "

@@ -21,6 +21,7 @@ from hil.config import Devices
 from hil.config.build import RobotFollower
 from hil.config.setup import SetupConfig
 from hil.controller.controller import Controller
+from hil.controller.crosscheck import CrossCheckBounds
 from hil.controller.observers import HookCaller, TickObserver
 from hil.controller.operator_input import Operator
 from hil.controller.perception import CollinearNeedleChecker, StereoMarkerLocator, StereoNeedleChecker
@@ -161,6 +162,8 @@ def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, 
         needle_check=_needle_checker(setup, devices.camera),
         observers=observers, hooks=hooks,
         tracker_use=_tracker_use(setup, world is not None),
+        crosscheck=CrossCheckBounds(sf.camera_discrepancy_mm, sf.camera_discrepancy_deg,
+                                    sf.camera_discrepancy_s),
     )
 
 

@@ -142,7 +142,13 @@ class Controller(ControllerParts):
 
     def prime(self, timeout_s: float = 2.0) -> None:
         """Consume the camera pipeline's first (late) pair, once (see
-        :meth:`~hil.controller.pipeline.DevicePipeline.prime`)."""
+        :meth:`~hil.controller.pipeline.DevicePipeline.prime`); the first time, record the
+        following-error bounds the servo loop supervises with (``servo_following_bounds``)."""
+        if not self.pipeline.primed:
+            m = self.robot.following_model
+            self.session.write(ev.SERVO_FOLLOWING_BOUNDS, lag_ms=round(m.time_constant_s * 1e3, 3),
+                               bound_mm=m.max_error_mm, bound_deg=m.max_error_deg,
+                               bound_ms=round(m.max_duration_s * 1e3, 3), bounds_from=m.source)
         self.pipeline.prime(timeout_s)
 
     def tick(self) -> None:
@@ -193,6 +199,10 @@ class Controller(ControllerParts):
         points = self.pipeline.located(frame)
         self.markers.update(self.est, points, frame.left.t_ns,
                             lambda: self.roles.reference_sensor(self.est, self.state))
+        reason = self.crosscheck.check(self.est, frame, self.state)
+        if reason is not None:
+            self.fault(reason)
+            return
         self.metrics.on_frame(self.est, self.state, self.cfg.gate.tolerance_mm)
         self.metrics.detect_ms.append((self.clock.now_ns() - frame.left.t_ns) * 1e-6)
         self._log_frame(frame, st)

@@ -46,6 +46,8 @@ SERVO_DEADLINE_MISSED: Final = "servo_deadline_missed"
 #: the servo loop's counters, once per second of controller time (hil/servo/figures.py); the loop's
 #: own events (servo_stop_delivered, servo_refused, ...) are named in hil/servo/loop.py
 SERVO_STATS: Final = "servo_stats"
+#: the following-error supervision in force (hil/safety/following.py): lag, bounds, their source
+SERVO_FOLLOWING_BOUNDS: Final = "servo_following_bounds"
 LOCK_MEASURED: Final = "lock_measured"
 DRIFT_ALARM: Final = "drift_alarm"
 # needle and tracker

@@ -22,6 +22,7 @@ from hil.clock import Clock
 from hil.controller import events as ev
 from hil.controller.commands import Command
 from hil.controller.config import ProcedureConfig
+from hil.controller.crosscheck import CameraCrossCheck, CrossCheckBounds
 from hil.controller.estimate import Estimate, FloatArray, count_seen
 from hil.controller.fsm import Event, FireResult, Fsm, State
 from hil.controller.markers import MarkerTracker
@@ -110,6 +111,7 @@ class ControllerParts(abc.ABC):
         observers: Sequence[TickObserver] = (),
         tracker_use: TrackerUse | None = None,
         hooks: HookCaller | None = None,
+        crosscheck: CrossCheckBounds | None = None,
     ) -> None:
         robot = self._servo_robot(robot, limits, procedure, clock, session)
         self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
@@ -136,6 +138,7 @@ class ControllerParts(abc.ABC):
                                        self.metrics)
         self.supervisor = Supervisor(robot, self.safety, self.watchdogs, session)
         self.markers = MarkerTracker(procedure.registration.match_tolerance_mm)
+        self.crosscheck = CameraCrossCheck(crosscheck or CrossCheckBounds())
         self.roles = TrackerRoles(self.tracker_use, session)
         self.needle = NeedleCheck(procedure.lock.needle_check, needle_check, session)
         self.needle_check = needle_check
@@ -222,10 +225,12 @@ class ControllerParts(abc.ABC):
 
     def _log_frame(self, frame: StereoFrame, st: RobotState) -> None:
         est = self.est
+        cc = self.crosscheck.last
         self.session.write(ev.FRAME_MEASURED, frame_seq=frame.left.seq, exposure_t_ns=frame.left.t_ns,
                            skin_markers=count_seen(est.live_mm), flange_markers=count_seen(est.flange_mm),
                            gate_deviation_mm=est.gate_deviation_mm(), robot_tcp_mm=st.T_robot_from_tcp.t,
-                           tcp_speed_mm_s=st.tcp_speed_mm_s, live_mm=est.live_mm)
+                           tcp_speed_mm_s=st.tcp_speed_mm_s, live_mm=est.live_mm,
+                           camera_discrepancy_mm=None if cc is None else round(cc[0], 4))
 
     def _notify_observers(self) -> None:
         """After the tick (whatever it did): the observers and ``hil_on_tick`` get a snapshot."""

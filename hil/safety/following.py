@@ -3,9 +3,10 @@
 The servo loop (:mod:`hil.servo.loop`) feeds every period's command and the arm's reported pose
 to a :class:`FollowingMonitor`. The monitor keeps the pose the arm is *expected* at: the commands
 through the arm's first-order servo lag (:class:`~drivers.interfaces.robot.FollowingModel`,
-``time_constant_s`` = tau), advanced each period ``dt`` by
+``time_constant_s`` = tau): at each update, over the time ``dt`` since the previous one (the
+actual interval, so a late period or a loop stepped at the camera rate is modelled right),
 
-    expected += (command - expected) * (1 - exp(-dt / tau))
+    expected += (previous command - expected) * (1 - exp(-dt / tau))
 
 (translation; the rotation matrix is blended the same way, entry by entry: the per-period
 rotation is small, so the blend stays a rotation to second order and the angle read from its trace
@@ -86,6 +87,9 @@ class FollowingMonitor:
         self._t = np.zeros(3)
         self._dR = np.zeros((3, 3))   # scratch: no allocation per period
         self._dt = np.zeros(3)
+        self._R_cmd = np.eye(3)       # the previous command, and when it was sent
+        self._t_cmd = np.zeros(3)
+        self._cmd_ns: int | None = None
         self._active = False
         self._beyond_since_ns: int | None = None
         self._max_mm = 0.0
@@ -104,19 +108,26 @@ class FollowingMonitor:
         self._t[:] = t_actual_mm
         self._active = True
         self._beyond_since_ns = None
+        self._cmd_ns = None
 
     def stop(self) -> None:
         """No servo targets any more (idle, stop, a refused step): nothing to follow."""
         self._active = False
         self._beyond_since_ns = None
 
-    def update(self, now_ns: int, dt_s: float, R_cmd: FloatArray, t_cmd_mm: FloatArray,
+    def update(self, now_ns: int, R_cmd: FloatArray, t_cmd_mm: FloatArray,
                R_actual: FloatArray, t_actual_mm: FloatArray) -> FollowingFault | None:
-        """One period: compare the reported pose with the expectation, then advance the
-        expectation toward the command just sent over ``dt_s``. Returns the fault once the
-        divergence has lasted ``max_duration_s`` (then the monitor stops), else None."""
+        """One period at ``now_ns``: advance the expectation toward the previous command over
+        the time since it was sent, compare the pose the arm reported this period with it, and
+        keep ``(R_cmd, t_cmd_mm)`` (the command sent now) for the next update. Returns the fault
+        once the divergence has lasted ``max_duration_s`` (then the monitor stops), else None."""
         if not self._active:
             self.start(R_actual, t_actual_mm)
+        if self._cmd_ns is not None:
+            self._advance((now_ns - self._cmd_ns) * 1e-9)
+        self._R_cmd[:] = R_cmd
+        self._t_cmd[:] = t_cmd_mm
+        self._cmd_ns = now_ns
         e, a = self._t, t_actual_mm
         dx, dy, dz = float(e[0] - a[0]), float(e[1] - a[1]), float(e[2] - a[2])
         err_mm = math.sqrt(dx * dx + dy * dy + dz * dz)
@@ -141,12 +152,14 @@ class FollowingMonitor:
                 return fault
         else:
             self._beyond_since_ns = None
-        tau = m.time_constant_s
-        alpha = 1.0 if tau <= 0.0 else 1.0 - math.exp(-dt_s / tau)
-        np.subtract(t_cmd_mm, self._t, out=self._dt)
+        return None
+
+    def _advance(self, dt_s: float) -> None:
+        tau = self.model.time_constant_s
+        alpha = 1.0 if tau <= 0.0 else 1.0 - math.exp(-max(dt_s, 0.0) / tau)
+        np.subtract(self._t_cmd, self._t, out=self._dt)
         self._dt *= alpha
         self._t += self._dt
-        np.subtract(R_cmd, self._R, out=self._dR)
+        np.subtract(self._R_cmd, self._R, out=self._dR)
         self._dR *= alpha
         self._R += self._dR
-        return None

@@ -26,7 +26,7 @@ import numpy as np
 
 from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError, LifecycleError
 from drivers.interfaces.lifecycle import DeviceState
-from drivers.interfaces.robot import MotionLimits, Robot, RobotMode, RobotState
+from drivers.interfaces.robot import FollowingModel, MotionLimits, Robot, RobotMode, RobotState
 from hil.clock import Clock
 from hil.geometry.transform import RigidTransform
 from hil.safety.layer import SafetyViolationError
@@ -98,6 +98,11 @@ class ServoRobot(Robot):
     @property
     def control_rate_hz(self) -> float:
         return self.link.control_rate_hz
+
+    @property
+    def following_model(self) -> FollowingModel:
+        """The bounds the loop supervises with (the robot's model, [safety] overrides applied)."""
+        return self.link.following_model
 
     @property
     def T_flange_from_tcp(self) -> RigidTransform:

@@ -19,7 +19,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from drivers.interfaces.robot import MotionLimits, Robot
+from drivers.interfaces.robot import FollowingModel, MotionLimits, Robot
 from hil.clock import Clock
 from hil.geometry.transform import RigidTransform
 from hil.servo.limiter import RateLimiter
@@ -75,6 +75,12 @@ class ServoLink(Protocol):
     @property
     def T_flange_from_tcp(self) -> RigidTransform: ...
 
+    @property
+    def following_model(self) -> FollowingModel:
+        """The following-error lag and bounds the loop supervises with ([safety] overrides
+        applied)."""
+        ...
+
     def request(self, command: str, *args: Any, timeout_s: float = 5.0) -> Any:
         """Run a channel command; returns its result. Raises the driver's error, or
         DeviceTimeoutError / DisconnectedError when the loop does not answer or is gone."""
@@ -123,6 +129,10 @@ class InProcessLink:
     @property
     def T_flange_from_tcp(self) -> RigidTransform:
         return self.robot.T_flange_from_tcp
+
+    @property
+    def following_model(self) -> FollowingModel:
+        return self.loop.following.model
 
     def _report(self, kind: str, fields: dict[str, Any]) -> None:
         """The loop's events, kept until :meth:`take_events` (the same thread: no lock)."""

@@ -221,7 +221,7 @@ class ServoLoop:
             return 0
         self._cmd_failing = False
         T_act = st.T_robot_from_tcp
-        fault = self.following.update(now_ns, self.period_s, cmd.R, cmd.t, T_act.R, T_act.t)
+        fault = self.following.update(now_ns, cmd.R, cmd.t, T_act.R, T_act.t)
         if fault is not None:
             self.stats.c[Stat.FOLLOWING_FAULTS] += 1
             self._halt(sp)

@@ -30,6 +30,7 @@ The child ignores SIGINT: Ctrl-C goes to the whole process group, and the parent
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import signal
 import socket
@@ -39,13 +40,14 @@ import threading
 import time
 import traceback
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
 
 from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError
+from drivers.interfaces.robot import FollowingModel
 from hil.clock import MonotonicClock
 from hil.config.setup import SetupConfig
 from hil.geometry.transform import RigidTransform
@@ -89,6 +91,7 @@ class ServoReady:
     T_flange_from_tcp: RigidTransform
     rt: RtGranted
     pid: int
+    following: FollowingModel = field(default_factory=FollowingModel)
 
 
 class ServoProcess:
@@ -143,7 +146,8 @@ class ServoProcess:
             time.sleep(0.001)
         self.ready = ServoReady(info["robot_name"], float(info["control_rate_hz"]),
                                 RigidTransform.from_matrix(np.asarray(info["T_flange_from_tcp"])),
-                                RtGranted.from_dict(info["rt"]), int(info["pid"]))
+                                RtGranted.from_dict(info["rt"]), int(info["pid"]),
+                                FollowingModel(**info["following"]))
         return self.ready
 
     def close(self, timeout_s: float = 5.0) -> None:
@@ -181,6 +185,11 @@ class ServoProcess:
     def control_rate_hz(self) -> float:
         assert self.ready is not None, "start() first"
         return self.ready.control_rate_hz
+
+    @property
+    def following_model(self) -> FollowingModel:
+        assert self.ready is not None, "start() first"
+        return self.ready.following
 
     @property
     def T_flange_from_tcp(self) -> RigidTransform:
@@ -323,7 +332,8 @@ def servo_main(conn: Connection, parent_pid: int) -> None:
     rt = apply_realtime(spec.priority, loop_cpu) if spec.realtime else RtGranted()
     T_tcp = robot.T_flange_from_tcp
     send(("ready", {"robot_name": robot.name, "control_rate_hz": robot.control_rate_hz,
-                    "T_flange_from_tcp": T_tcp.as_matrix().tolist(), "rt": rt.to_dict(), "pid": os.getpid()}))
+                    "T_flange_from_tcp": T_tcp.as_matrix().tolist(), "rt": rt.to_dict(), "pid": os.getpid(),
+                    "following": dataclasses.asdict(loop.following.model)}))
     try:
         _run(loop, parent_pid, closing)
     except BaseException:  # noqa: BLE001 - a crash: stop the arm, say why, exit non-zero

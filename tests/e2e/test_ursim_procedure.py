@@ -147,6 +147,18 @@ def test_clean_run_reaches_lock_and_done(clean_run: RunSummary) -> None:
     assert s.lock_error_mm < 1.0
     assert s.robot_fre_mm is not None
     assert s.robot_fre_mm < 0.5
+    # the servo process supervised the real driver's following with the UR servoL model: a
+    # healthy arm stays inside the bound the whole run
+    records = session_records(s)
+    bounds = [r for r in records if r["event"] == "servo_following_bounds"]
+    assert [(b["lag_ms"], b["bound_mm"], b["bound_deg"], b["bound_ms"]) for b in bounds] == [
+        (17.0, 2.0, 1.5, 100.0)]
+    assert bounds[0]["bounds_from"] == "UR cb3 servoL lookahead 0.05 s, gain 500"
+    stats = [r for r in records if r["event"] == "servo_stats"]
+    assert stats
+    assert sum(r["commands"] for r in stats) > 0
+    assert sum(r["following_faults"] for r in stats) == 0
+    assert 0.0 < stats[-1]["following_peak_mm"] < 2.0
 
 
 def _schedule_after_compensate(clean: RunSummary) -> float:

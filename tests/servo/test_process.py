@@ -58,6 +58,10 @@ def test_start_reports_the_robot_and_what_the_os_granted(robot: ServoRobot) -> N
     assert robot.control_rate_hz == 125.0           # configs/sim.toml's simulated UR3
     assert robot.rt is not None
     assert robot.rt.requested is False
+    # the child's loop supervises with the simulated arm's own lag and the UR bounds
+    f = robot.following_model
+    assert (f.time_constant_s, f.max_error_mm, f.max_error_deg, f.max_duration_s) == (0.03, 2.0, 1.5, 0.1)
+    assert f.source == "simulated arm, servo lag 0.03 s"
     _wait(lambda: link.regions.stats.get(Stat.PERIODS) > 10, "the loop to run")
     st = robot.state_now()
     assert st.t_ns > 0
