@@ -20,6 +20,16 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
   with older runs; with the servo process the loop never waits for a frame, and they are 0 / empty.
 - ``limit_violations``: servo steps the loop's merged limit check refused (none reaches the driver;
   the controller faults on each).
+- ``transient_faults`` (with ``--faults-every S``): a transient fault injected into the simulated
+  devices every S seconds (cycling through :data:`TRANSIENT_FAULTS`); for each, its onset (s after
+  the devices opened), what the controller said (from the onset — less a second's slack, as the
+  devices open up to a second apart — to the next fault's onset: the first fault reason naming the
+  faulted device, else the first reason at all, else ``tolerated``) and, for a detected one, how
+  long after the onset the procedure was compensating again (``back_in_compensation_s``; None if it
+  never came back, or if it was tolerated). The soak operator resumes after every fault, so the soak
+  goes on. The last fault leaves at least one period before the soak's planned end.
+- ``following_peak_mm``: the largest following error the servo loop measured
+  (hil/safety/following.py), and ``following_faults``.
 """
 
 from __future__ import annotations
@@ -36,6 +46,7 @@ import numpy as np
 
 from hil.clock import MonotonicClock
 from hil.config import build_devices, load_setup
+from hil.config.faults import FaultKind, FaultSpec
 from hil.config.setup import SetupConfig
 from hil.controller.controller import Controller
 from hil.controller.fsm import Event, State
@@ -47,6 +58,16 @@ from hil.servo.figures import LoopFigures, StatsCopy, loop_figures
 from hil.session.log import SessionLog
 
 Progress = Callable[[str], None]
+
+#: The transient faults ``--faults-every`` cycles through: kind, window length (s) — the simulator
+#: tier's profiles (hil/campaign/scenarios.py) for a camera, a robot link and a robot safety fault.
+TRANSIENT_FAULTS: tuple[tuple[FaultKind, float], ...] = (
+    (FaultKind.FRAME_DROP, 0.6),
+    (FaultKind.ROBOT_DISCONNECT, 0.6),
+    (FaultKind.PROTECTIVE_STOP, 0.6),
+    (FaultKind.OCCLUSION, 1.0),
+    (FaultKind.MOTION_LAG, 1.5),
+)
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
 
@@ -107,9 +128,21 @@ class SoakResult:
     command_errors: int = 0
     #: stop requested by the supervisor -> the loop issued it, ms (every stop of the run)
     stop_to_command_ms: dict[str, float | None] = field(default_factory=dict)
+    #: the injected transient faults and what became of each (module doc)
+    transient_faults: list[dict[str, Any]] = field(default_factory=list)
+    following_peak_mm: float = 0.0
+    following_faults: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+    def passed(self) -> bool:
+        """Compensated, no refused step, no fault beyond the injected ones (one reason each), and
+        back in compensation after every injected fault that was detected."""
+        detected = [f for f in self.transient_faults if f["detected"] != "tolerated"]
+        came_back = all(f["back_in_compensation_s"] is not None for f in detected)
+        return bool(self.compensate_s > 0 and not self.limit_violations and came_back
+                    and len(self.faults) <= len(detected))
 
 
 class SoakOperator:
@@ -181,9 +214,26 @@ class SoakOperator:
         return view.state is State.DONE or now - self.t_start > self.give_up_s
 
 
-def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: bool = True) -> SetupConfig:
+def transient_schedule(minutes: float, every_s: float, warmup_s: float = 60.0) -> tuple[FaultSpec, ...]:
+    """A fault from :data:`TRANSIENT_FAULTS` every ``every_s`` seconds, the first ``warmup_s``
+    (at least one period) after the devices open, cycling through the kinds, until the end of
+    ``minutes`` of compensation (plus the time to reach it, about 15 s)."""
+    if not every_s > 0:
+        return ()
+    out: list[FaultSpec] = []
+    t = max(warmup_s, every_s)
+    while t + every_s <= minutes * 60.0 + 15.0:   # each fault gets a whole period to recover
+        kind, duration_s = TRANSIENT_FAULTS[len(out) % len(TRANSIENT_FAULTS)]
+        out.append(FaultSpec(kind=kind, start_s=round(t, 3), duration_s=duration_s))
+        t += every_s
+    return tuple(out)
+
+
+def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: bool = True,
+               faults: tuple[FaultSpec, ...] = ()) -> SetupConfig:
     """The setup in real time, at ``rate_hz``, staying in compensation (never settles into lock),
-    with the servo loop in its own process (real-time scheduling asked for when ``realtime``)."""
+    with the servo loop in its own process (real-time scheduling asked for when ``realtime``) and
+    only the given faults (none by default: the setup's own are left out)."""
     robot = setup.robot.model_copy(update={"control_rate_hz": rate_hz})
     proc = setup.procedure
     comp = proc.compensation.model_copy(update={"settle_s": 1e6, "timeout_s": 1e6})
@@ -193,8 +243,8 @@ def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: boo
     )
     sim = setup.simulation.model_copy(update={"real_time": True})
     servo = setup.servo.model_copy(update={"process": "on", "realtime": realtime})
-    return setup.model_copy(update={"robot": robot, "procedure": procedure, "simulation": sim, "faults": (),
-                                    "servo": servo})
+    return setup.model_copy(update={"robot": robot, "procedure": procedure, "simulation": sim,
+                                    "faults": faults, "servo": servo})
 
 
 def run_soak(
@@ -206,9 +256,11 @@ def run_soak(
     session_dir: Path,
     realtime: bool = True,
     progress: Progress | None = None,
+    faults_every_s: float = 0.0,
 ) -> SoakResult:
     """Run the soak (blocking, ``minutes`` of compensation plus the time to reach it). The servo
-    process is started and stopped here (the arm is stopped on every path).
+    process is started and stopped here (the arm is stopped on every path). With
+    ``faults_every_s`` > 0 a transient fault is injected that often (module doc).
 
     Raises:
         InputFileError: a bad argument; ConfigError / InputFileError from the config and plan;
@@ -216,14 +268,18 @@ def run_soak(
     """
     if not minutes > 0:
         raise InputFileError("--minutes", f"must be > 0, got {minutes}")
+    if not (faults_every_s == 0 or faults_every_s >= 10.0):
+        raise InputFileError("--faults-every", f"must be 0 (none) or at least 10 s, got {faults_every_s:g}")
     if rate_hz not in (125.0, 500.0):
         raise InputFileError("--rate", f"must be 125 (CB3) or 500 (e-Series), got {rate_hz:g}")
     say = progress or (lambda _m: None)
     base = load_setup(config)
-    setup = soak_setup(base, rate_hz, minutes, realtime)
+    schedule = transient_schedule(minutes, faults_every_s)
+    setup = soak_setup(base, rate_hz, minutes, realtime, schedule)
     plan_path = Path(plan) if plan else config.resolve().parent / "plans" / f"{config.stem}_plan.json"
     procedure_plan = load_plan(plan_path)
     clock = MonotonicClock()
+    t_open_ns = clock.now_ns()
     from hil.controller.assembly import build_controller, with_servo_process  # what `hil run` builds
 
     devices = with_servo_process(setup, build_devices(setup, clock), clock)
@@ -265,6 +321,8 @@ def run_soak(
     res = analyse(rate_hz, minutes, figs, ctl, operator, rss, summary.final_state, summary.states,
                   summary.faults, str(session.path))
     res.rt_granted = robot.rt.to_dict() if robot.rt is not None else {}
+    res.transient_faults = fault_outcomes(schedule, str(session.path), t_open_ns)
+    res.following_peak_mm, res.following_faults = figs.following_peak_mm, figs.following_faults
     res.stop_to_command_ms = _stats([x * 1e-6 for x in robot.stop_latency_ns])
     return res
 
@@ -332,3 +390,33 @@ def analyse(
     res.rss_mb = _rss_figures([(t, m) for t, m, _ in rss], operator.t_comp, minutes)
     res.servo_rss_mb = _rss_figures([(t, m) for t, _, m in rss], operator.t_comp, minutes)
     return res
+
+
+#: The devices open up to about a second apart (the servo process opens the robot in its own
+#: process): a fault reason this long before the scheduled onset still counts as its effect.
+ATTRIBUTION_SLACK_NS = 1_000_000_000
+
+
+def fault_outcomes(schedule: tuple[FaultSpec, ...], session_log: str, t_open_ns: int) -> list[dict[str, Any]]:
+    """What became of each injected fault, from the session log (module doc). The onsets are
+    relative to the devices' opening (``t_open_ns`` on the controller clock, within the time the
+    devices take to open)."""
+    import json
+
+    records = [json.loads(line) for line in Path(session_log).read_text().splitlines() if line.strip()]
+    faults = [(r["t_ns"], str(r.get("reason", ""))) for r in records if r.get("event") == "fault_detected"]
+    comp = [r["t_ns"] for r in records
+            if r.get("event") == "state_entered" and r.get("state") == "compensate"]
+    out: list[dict[str, Any]] = []
+    for k, f in enumerate(schedule):
+        onset_ns = t_open_ns + round(f.start_s * 1e9)
+        end_ns = (t_open_ns + round(schedule[k + 1].start_s * 1e9)) if k + 1 < len(schedule) else None
+        window = [(t, why) for t, why in faults if onset_ns - ATTRIBUTION_SLACK_NS <= t
+                  and (end_ns is None or t < end_ns)]
+        # the first fault naming the faulted device, else the first one at all in the window
+        said = next((why for _, why in window if f.device in why), window[0][1] if window else None)
+        back = next((t for t in comp if t > onset_ns and (end_ns is None or t < end_ns)), None)
+        back_s = None if said is None or back is None else round((back - onset_ns) * 1e-9, 3)
+        out.append({"kind": f.kind.value, "onset_s": f.start_s, "duration_s": f.duration_s,
+                    "detected": "tolerated" if said is None else said, "back_in_compensation_s": back_s})
+    return out

@@ -12,6 +12,7 @@ Documented bounds of the short soak (docs/benchmarks.md), counts only, no timing
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -19,8 +20,17 @@ from typing import Any
 import pytest
 
 from hil.config import default_setup_path
+from hil.errors import InputFileError
 from hil.servo.figures import LoopFigures
-from hil.soak.soak import SoakOperator, analyse, run_soak
+from hil.soak.soak import (
+    TRANSIENT_FAULTS,
+    SoakOperator,
+    SoakResult,
+    analyse,
+    fault_outcomes,
+    run_soak,
+    transient_schedule,
+)
 
 LATE_FRACTION_BOUND_RT = 0.005
 LATE_FRACTION_BOUND = 0.05
@@ -91,3 +101,46 @@ def test_short_soak_does_not_grow(short_soak: Any) -> None:
     for rss in (short_soak.rss_mb, short_soak.servo_rss_mb):
         assert rss["growth"] is not None
         assert rss["growth"] <= RSS_GROWTH_BOUND_MB
+
+
+def test_transient_faults_are_scheduled_every_period_after_the_warm_up() -> None:
+    sched = transient_schedule(3.0, 45.0)
+    assert [(f.kind.value, f.start_s, f.duration_s) for f in sched] == [
+        ("frame_drop", 60.0, 0.6), ("robot_disconnect", 105.0, 0.6), ("protective_stop", 150.0, 0.6)]
+    assert transient_schedule(3.0, 0.0) == ()
+    assert [f.kind for f in transient_schedule(60.0, 300.0)][:6] == [k for k, _ in TRANSIENT_FAULTS] + [
+        TRANSIENT_FAULTS[0][0]]
+
+
+def test_each_injected_fault_is_matched_to_what_the_controller_said(tmp_path: Path) -> None:
+    t0 = 10**9
+    def fault(t_s: float, reason: str) -> dict[str, Any]:
+        return {"event": "fault_detected", "reason": reason, "t_ns": t0 + round(t_s * 1e9)}
+
+    rec = [{"event": "state_entered", "state": "compensate", "t_ns": t0 + 30 * 10**9},
+           fault(59.7, "watchdog: robot state 0.06 s old > 0.05 s"),   # within the slack, not naming it
+           fault(60.1, "camera: no stereo pair within 0.04 s"),
+           {"event": "state_entered", "state": "compensate", "t_ns": t0 + 63 * 10**9},
+           fault(105.05, "robot: RTDE connection lost (injected)")]
+    log = tmp_path / "s.jsonl"
+    log.write_text("".join(json.dumps(r) + "\n" for r in rec))
+    out = fault_outcomes(transient_schedule(4.0, 45.0), str(log), t0)
+    assert out == [
+        {"kind": "frame_drop", "onset_s": 60.0, "duration_s": 0.6,
+         "detected": "camera: no stereo pair within 0.04 s", "back_in_compensation_s": 3.0},
+        {"kind": "robot_disconnect", "onset_s": 105.0, "duration_s": 0.6,
+         "detected": "robot: RTDE connection lost (injected)", "back_in_compensation_s": None},
+        {"kind": "protective_stop", "onset_s": 150.0, "duration_s": 0.6, "detected": "tolerated",
+         "back_in_compensation_s": None},
+        {"kind": "occlusion", "onset_s": 195.0, "duration_s": 1.0, "detected": "tolerated",
+         "back_in_compensation_s": None}]
+    res = SoakResult(500.0, 4.0, compensate_s=200.0, transient_faults=out,
+                     faults=["camera: no stereo pair within 0.04 s",
+                             "robot: RTDE connection lost (injected)"])
+    assert res.passed() is False   # it never came back from the disconnect
+    out[1]["back_in_compensation_s"] = 8.0
+    assert res.passed() is True
+    res.faults.append("watchdog: camera data 0.3 s old > 0.25 s")   # a fault beyond the injected ones
+    assert res.passed() is False
+    with pytest.raises(InputFileError, match="--faults-every"):
+        run_soak(1.0, 125.0, config=default_setup_path(), plan=None, session_dir=tmp_path, faults_every_s=5.0)
