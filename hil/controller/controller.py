@@ -71,7 +71,11 @@ class Controller(ControllerParts):
         try:
             while self._queue:
                 event, reason = self._queue.popleft()
-                guards = {"has_plan": self.est.guide_plan is not None}
+                # plan_current: a guide plan made on the patient registration in force (entering
+                # REGISTER forgets the registration; resuming into APPROACH on the old plan would
+                # guide on a registration that is gone)
+                has_plan = self.est.guide_plan is not None
+                guards = {"has_plan": has_plan, "plan_current": has_plan and self.est.patient_reg is not None}
                 res = self.fsm.fire(event, reason=reason, guards=guards)
                 first = first or res
                 if res.changed:

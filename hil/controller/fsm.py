@@ -148,9 +148,9 @@ _FORWARD: dict[tuple[State, Event], Goto] = {
     (State.RETRACT, Event.RETRACTED): Goto(State.SAFE_STOP, "retracted"),
     (State.RETRACT, Event.TIMED_OUT): Goto(State.FAULT, "retract_timed_out"),
     # recovery: always from where the robot actually is (APPROACH re-plans from the actual pose)
-    (State.PAUSED, Event.RESUME_REQUESTED): Goto(State.APPROACH, "resume", guard="has_plan"),
-    (State.SAFE_STOP, Event.RESUME_REQUESTED): Goto(State.APPROACH, "resume", guard="has_plan"),
-    (State.FAULT, Event.RESUME_REQUESTED): Goto(State.APPROACH, "recover", guard="has_plan"),
+    (State.PAUSED, Event.RESUME_REQUESTED): Goto(State.APPROACH, "resume", guard="plan_current"),
+    (State.SAFE_STOP, Event.RESUME_REQUESTED): Goto(State.APPROACH, "resume", guard="plan_current"),
+    (State.FAULT, Event.RESUME_REQUESTED): Goto(State.APPROACH, "recover", guard="plan_current"),
     (State.PAUSED, Event.START_REQUESTED): Goto(State.REGISTER, "re_register"),
     (State.SAFE_STOP, Event.START_REQUESTED): Goto(State.REGISTER, "re_register"),
     (State.FAULT, Event.RESET_REQUESTED): Goto(State.IDLE, "reset"),

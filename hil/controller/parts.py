@@ -288,8 +288,12 @@ class ControllerParts(abc.ABC):
             return "pending", f"{res.transition_name} awaits confirmation"
         if res.kind == "rejected":
             reason = res.reason
-            if reason == "guard has_plan is false":
+            guarded = reason in ("guard has_plan is false", "guard plan_current is false")
+            if guarded and self.est.guide_plan is None:
                 reason = "no guide plan yet: register first (s)"
+            elif reason == "guard plan_current is false":
+                reason = ("the guide plan belongs to a registration that was restarted: register and plan "
+                          "first (s)")
             return "rejected", reason
         return "executed", res.reason
 

@@ -230,7 +230,12 @@ class ServoRobot(Robot):
                                                      f"servo loop: {fields.get('message')}")
             elif kind == EV_STOP_FAILED:   # raised by the waiting stop (the supervisor retries it)
                 self._stop_error = error_from_wire(*fields["wire"])
-            elif kind in (EV_COMMAND_FAILED, EV_READ_FAILED) and not self.link.in_process:
+            elif kind == EV_COMMAND_FAILED:
+                # a servo command the driver refused or could not send: the controller faults at
+                # its next read, in-process as in the servo process (never retried silently)
+                self._pending = error_from_wire(*fields["wire"])
+            elif kind == EV_READ_FAILED and not self.link.in_process:
+                # (in-process, the controller's own state read raises the same error itself)
                 self._pending = error_from_wire(*fields["wire"])
 
     def _raise_if_gone(self) -> None:

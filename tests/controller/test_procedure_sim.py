@@ -299,3 +299,45 @@ def test_recovery_does_not_skip_the_pending_approach_confirmation(tmp_path: Path
     assert first_move["command"] == "move_linear"
     fault_row = next(r for r in s.timeline if r["state"] == "fault")
     assert "protective_stop" in fault_row["reason"]
+
+
+class _ReRegisterThenResumeOperator:
+    """Pauses in COMPENSATE, re-registers, aborts the new registration, then asks to resume."""
+
+    def __init__(self) -> None:
+        from hil.controller.operator_input import AutoOperator
+
+        self.auto = AutoOperator()
+        self.step = 0
+
+    def poll(self, view: Any) -> Any:
+        from hil.controller.fsm import Event, State
+
+        script = [(State.COMPENSATE, Event.PAUSE_REQUESTED), (State.PAUSED, Event.START_REQUESTED),
+                  (State.REGISTER, Event.ABORT_REQUESTED), (State.SAFE_STOP, Event.RESUME_REQUESTED)]
+        if self.step < len(script) and view.state is script[self.step][0]:
+            self.step += 1
+            return script[self.step - 1][1]
+        return None if self.step else self.auto.poll(view)
+
+    def finished(self, view: Any) -> bool:
+        return self.step == 4 and view.t_s > 0
+
+
+@pytest.mark.slow
+def test_resume_after_a_restarted_registration_is_refused_not_guided_on_the_old_plan(tmp_path: Path) -> None:
+    """Found by the 60-minute soak: a registration restarted (its patient registration forgotten)
+    kept the old guide plan, and a resume went to APPROACH and on to GATE without a registration
+    (an internal error). The resume must be refused until registration and planning are redone."""
+    from hil.cli.cmd_run import run_procedure
+
+    s = run_procedure(CONFIG, _setup(), PLAN, auto=True, session_dir=tmp_path, max_duration_s=40.0,
+                      operator=_ReRegisterThenResumeOperator())
+    assert s.states == ["idle", "register", "plan", "approach", "gate", "compensate", "paused", "register",
+                        "safe_stop"]
+    assert s.faults == []
+    results = [r for r in read_session_log(s.session_log) if r["event"] == "operator_command_result"]
+    resume = [r for r in results if r["input"] == "resume_requested"]
+    assert [(r["outcome"], r["reason"]) for r in resume] == [
+        ("rejected",
+         "the guide plan belongs to a registration that was restarted: register and plan first (s)")]
