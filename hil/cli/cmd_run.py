@@ -28,6 +28,7 @@ from hil.controller.assembly import (
     with_servo_process,
     wrap_robot,
 )
+from hil.controller.controller import Controller
 from hil.controller.fsm import Event, State
 from hil.controller.metrics import RunSummary
 from hil.controller.operator_input import AutoOperator, Operator, OperatorView
@@ -179,19 +180,27 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
         if igtl is not None:
             igtl.close()
         raise
+    ctl: Controller | None = None
     try:
-        ctl = build_controller(
-            setup, plan, devices, clock=clock, session=session,
-            operator=operator or (AutoOperator() if auto else InteractiveOperator()),
-            hooks=runtime_plugins(igtl, plan),
-        )
-        summary = ctl.run(max_duration_s)
-        if isinstance(ctl.locate, StereoMarkerLocator):
-            summary.locate_ms = ctl.locate.locate_ms()
-    finally:
-        devices.close_all()
-        if igtl is not None:
-            igtl.close()
+        try:
+            ctl = build_controller(
+                setup, plan, devices, clock=clock, session=session,
+                operator=operator or (AutoOperator() if auto else InteractiveOperator()),
+                hooks=runtime_plugins(igtl, plan),
+            )
+            summary = ctl.run(max_duration_s)
+            if isinstance(ctl.locate, StereoMarkerLocator):
+                summary.locate_ms = ctl.locate.locate_ms()
+        finally:
+            devices.close_all()
+            if igtl is not None:
+                igtl.close()
+    except BaseException as exc:
+        # Ctrl-C, SIGTERM, an error building the controller: the devices are closed (the arm
+        # stopped); the log still ends with session_closed, saying how and in which state
+        session.close(final_state="interrupted" if isinstance(exc, KeyboardInterrupt) else "error",
+                      state=None if ctl is None else ctl.state, ended_by=type(exc).__name__)
+        raise
     session.close(final_state=summary.final_state, states=summary.states)
     summary.session_log_sha256 = session.head_sha256  # the chain head, published outside the file
     return summary

@@ -314,8 +314,12 @@ def run_soak(
                                operator=operator)
         summary = ctl.run()
         end = StatsCopy.of(robot.link.regions.stats)
-    finally:
+    except BaseException as exc:   # Ctrl-C, SIGTERM: the log still ends with session_closed
         devices.close_all()
+        session.close(final_state="interrupted" if isinstance(exc, KeyboardInterrupt) else "error",
+                      ended_by=type(exc).__name__)
+        raise
+    devices.close_all()
     session.close(final_state=summary.final_state)
     figs = loop_figures(copies.get("start", end), end, 1.0 / rate_hz)
     res = analyse(rate_hz, minutes, figs, ctl, operator, rss, summary.final_state, summary.states,
