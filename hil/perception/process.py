@@ -43,6 +43,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -63,6 +64,8 @@ from hil.servo.wire import error_from_wire
 #: How long the child may take to start (a fresh interpreter importing numpy, the driver, the
 #: locator).
 START_TIMEOUT_S = 60.0
+#: Locate times kept for the figures (the newest).
+LOCATE_SAMPLES = 4096
 #: The longest a waiting ``take`` goes without checking that the child still runs, s.
 ALIVE_CHECK_S = 0.05
 
@@ -125,7 +128,7 @@ class PerceptionProcess:
     Attributes:
         produced: records taken or skipped so far (the ring's head when last read).
         overwritten: records replaced by a newer one before they were taken (latest wins).
-        locate_ms: the locate time of every marker set taken, ms.
+        locate_ms: the locate time of the last :data:`LOCATE_SAMPLES` marker sets taken, ms.
     """
 
     def __init__(self, spec_for: Callable[[], PerceptionSpec], camera_name: str) -> None:
@@ -134,7 +137,7 @@ class PerceptionProcess:
         self.ready_info: PerceptionReady | None = None
         self.produced = 0
         self.overwritten = 0
-        self.locate_ms: list[float] = []
+        self.locate_ms: deque[float] = deque(maxlen=LOCATE_SAMPLES)
         self._taken_head = 0
         self._crash: str | None = None
         self._started = False
@@ -180,6 +183,14 @@ class PerceptionProcess:
             self.close()
             raise error_from_wire(*msg[1])
         info = msg[1]
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while self.ring.head == 0:   # the first (cold: caches, a full search) pair is published
+            if self._proc.poll() is not None or time.monotonic() > deadline:
+                self.close()
+                raise DeviceTimeoutError(self.camera_name,
+                                         "perception process published nothing after starting")
+            with contextlib.suppress(OSError, ValueError):
+                select.select([self._notify_r], [], [], ALIVE_CHECK_S)
         self.ready_info = PerceptionReady(str(info["camera_name"]), int(info["pid"]),
                                           tuple(int(c) for c in info["cpus"]))
         return self.ready_info
@@ -236,6 +247,14 @@ class PerceptionProcess:
             return
         with self._lock, contextlib.suppress(OSError, ValueError):
             self._conn.send(("hold", start_s, duration_s, level))
+
+    def locate_figures(self) -> dict[str, float | None]:
+        """p50 and p95 of the locate time in the perception process, ms (None before a pair), as
+        :meth:`hil.controller.perception.StereoMarkerLocator.locate_ms` gives them in-process."""
+        if not self.locate_ms:
+            return {"p50": None, "p95": None}
+        a = np.fromiter(self.locate_ms, dtype=np.float64)
+        return {"p50": float(np.percentile(a, 50)), "p95": float(np.percentile(a, 95))}
 
     # ------------------------------------------------------------------ consumer contract
     def ready(self) -> bool:

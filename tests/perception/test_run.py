@@ -1,0 +1,111 @@
+"""``hil run`` on a wall-clock simulated setup with the servo loop and perception each in their own
+process: the procedure reaches DONE, the supervisor took its pairs from the perception process,
+and nothing (process, shared memory) is left behind. Also: where the perception process cannot
+run, ``on`` is a one-line config error and ``auto`` stays in the supervisor."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from hil.clock import ManualClock, MonotonicClock
+from hil.config import build_devices, load_setup
+from hil.config.setup import SetupConfig
+from hil.controller.assembly import with_perception_process, with_servo_process
+from hil.controller.plan_file import load_plan
+from hil.errors import ConfigError
+from hil.perception.camera import PerceptionCamera
+from hil.servo.shm import ShmRegion
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _setup(tmp_path: Path, perception: str, extra: str = "") -> tuple[Path, SetupConfig]:
+    text = (ROOT / "configs" / "sim.toml").read_text()
+    text = text.replace("real_time = false", "real_time = true", 1)
+    text = text.replace('stereo = "calibration/sim_stereo.json"',
+                        f'stereo = "{ROOT / "configs" / "calibration" / "sim_stereo.json"}"', 1)
+    text += f'\n[perception]\nprocess = "{perception}"\n' + extra
+    cfg = tmp_path / "rt.toml"
+    cfg.write_text(text)
+    return cfg, load_setup(cfg)
+
+
+@pytest.mark.slow
+def test_hil_run_reaches_done_with_perception_and_servo_in_their_own_processes(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from hil.cli.cmd_run import run_procedure
+
+    cfg, setup = _setup(tmp_path, "on")
+    assert setup.simulation.real_time
+    created: list[str] = []   # the segments this run creates (others' tests may share /dev/shm)
+    real_create = ShmRegion.create.__func__  # type: ignore[attr-defined]
+
+    def create(cls: type[ShmRegion], words: int) -> ShmRegion:
+        region: ShmRegion = real_create(cls, words)
+        created.append(str(region.name).lstrip("/"))
+        return region
+
+    monkeypatch.setattr(ShmRegion, "create", classmethod(create))
+    s = run_procedure(cfg, setup, load_plan(ROOT / "configs" / "plans" / "sim_plan.json"), auto=True,
+                      session_dir=tmp_path, max_duration_s=60.0)
+    assert s.final_state == "done", s.faults
+    assert s.locate_ms["p50"] is not None   # the perception process's figures
+    events = [json.loads(line) for line in Path(s.session_log).read_text().splitlines()]
+    stopped = [e for e in events if e["event"] == "frame_prefetch_stopped"]
+    assert len(stopped) == 1
+    assert stopped[0]["process"] is True
+    assert stopped[0]["pairs"] > 10
+    assert len(created) == 4   # the servo's three regions and the marker ring
+    assert set(os.listdir("/dev/shm")) & set(created) == set()
+
+
+def test_on_with_a_needle_check_is_a_config_error(tmp_path: Path) -> None:
+    text = (ROOT / "configs" / "sim_needle.toml").read_text()
+    text = text.replace("real_time = false", "real_time = true", 1)
+    text = text.replace('stereo = "calibration/sim_stereo.json"',
+                        f'stereo = "{ROOT / "configs" / "calibration" / "sim_stereo.json"}"', 1)
+    text += '\n[perception]\nprocess = "on"\n'
+    cfg = tmp_path / "needle.toml"
+    cfg.write_text(text)
+    setup = load_setup(cfg)
+    assert setup.procedure.lock.needle_check is not None
+    clock = MonotonicClock()
+    devices = with_servo_process(setup, build_devices(setup, clock), clock)
+    try:
+        with pytest.raises(ConfigError, match=r'perception\.process: "on" the needle check'):
+            with_perception_process(setup, devices, clock)
+    finally:
+        devices.close_all()   # the world's follower thread ends with the (never opened) robot
+
+
+def test_auto_stays_in_the_supervisor_on_the_manual_clock_or_without_the_servo_process(
+        tmp_path: Path) -> None:
+    _, setup = _setup(tmp_path, "auto", '\n[servo]\nprocess = "off"\n')
+    clock = MonotonicClock()
+    devices = build_devices(setup, clock)
+    assert with_perception_process(setup, devices, clock) is devices      # a world needs the servo process
+    manual = ManualClock(10**9)
+    devices = build_devices(setup, manual)
+    assert with_perception_process(setup, devices, manual) is devices
+    _, on = _setup(tmp_path, "on", '\n[servo]\nprocess = "off"\n')
+    with pytest.raises(ConfigError, match=r'perception\.process: "on" needs the wall clock'):
+        with_perception_process(on, build_devices(on, manual), manual)
+    with pytest.raises(ConfigError, match=r"a simulated world needs the servo loop in its own process"):
+        with_perception_process(on, build_devices(on, clock), clock)
+
+
+def test_on_replaces_the_camera_and_opens_the_robot_first(tmp_path: Path) -> None:
+    _, setup = _setup(tmp_path, "on")
+    clock = MonotonicClock()
+    devices = with_servo_process(setup, build_devices(setup, clock), clock)
+    devices = with_perception_process(setup, devices, clock)
+    try:
+        assert isinstance(devices.camera, PerceptionCamera)
+        assert [d.kind for d in devices][:2] == ["robot", "camera"]
+        assert devices.camera.calibration is not None
+    finally:
+        devices.close_all()
