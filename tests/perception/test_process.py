@@ -190,3 +190,37 @@ def test_the_perception_process_exits_when_its_supervisor_is_killed() -> None:
         if child_pid:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(child_pid, signal.SIGKILL)
+
+
+def test_a_breath_hold_reaches_the_perception_processs_world() -> None:
+    """The supervisor's world is the coach: a hold it is asked for is relayed, and the markers the
+    process locates are the held patient's (without the relay they would be up to ~5 mm off)."""
+    setup = load_setup(default_setup_path())
+    world = build_devices(setup, MonotonicClock()).world
+    breathing = build_devices(setup, MonotonicClock()).world   # the same patient, never held
+    assert world is not None
+    assert breathing is not None
+    breathing.t0_ns = world.t0_ns
+    proc = PerceptionProcess(lambda: PerceptionSpec(setup, world_t0_ns=world.t0_ns), "camera")
+    world.breath_hold_listeners.append(proc.relay_breath_hold)
+    proc.start()
+    try:
+        world.request_breath_hold(20.0, 0.0, delay_s=0.2)
+        start_ns = world.t0_ns + round((world.now_s() + 0.3) * 1e9)
+        held_errors, unheld_gaps = [], []
+        while len(held_errors) < 25:
+            got = proc.take(5.0)
+            assert got is not None
+            assert got.located is not None
+            t = got.frame.left.t_ns
+            if t < start_ns:
+                continue
+            truth, _ = world.patient_markers_optical(t)
+            free, _ = breathing.patient_markers_optical(t)
+            pts = got.located.points_mm
+            held_errors.append(float(np.linalg.norm(truth[:, None] - pts[None], axis=2).min(axis=1).max()))
+            unheld_gaps.append(float(np.abs(truth - free).max()))
+    finally:
+        proc.close()
+    assert max(held_errors) < 0.5, held_errors
+    assert max(unheld_gaps) > 1.0, unheld_gaps   # the hold made a difference: the test can fail

@@ -109,3 +109,37 @@ def test_on_replaces_the_camera_and_opens_the_robot_first(tmp_path: Path) -> Non
         assert devices.camera.calibration is not None
     finally:
         devices.close_all()
+
+
+def test_the_processs_world_sees_the_arm_the_servo_process_moves(tmp_path: Path) -> None:
+    """The perception process's world follows the servo's state ring: after a move the flange
+    markers it locates are where the supervisor's world (following the same arm) has them."""
+    import numpy as np
+
+    from hil.geometry.transform import RigidTransform
+
+    _, setup = _setup(tmp_path, "on")
+    clock = MonotonicClock()
+    devices = with_servo_process(setup, build_devices(setup, clock), clock)
+    devices = with_perception_process(setup, devices, clock)
+    world = devices.world
+    assert world is not None
+    camera = devices.camera
+    assert isinstance(camera, PerceptionCamera)
+    devices.open_all()
+    try:
+        start = devices.robot.state_now().T_robot_from_tcp
+        devices.robot.move_linear(RigidTransform(start.R, start.t + np.array([0.0, 30.0, 0.0])), 60.0, 300.0)
+        moved = devices.robot.state_now().T_robot_from_tcp.t
+        assert float(np.linalg.norm(moved - start.t)) > 25.0
+        for _ in range(3):
+            got = camera.perception_feed.take(5.0)
+            assert got is not None
+            assert got.located is not None
+        flange, _ = world.flange_markers_optical(got.frame.left.t_ns)
+        assert len(flange) > 0
+        pts = got.located.points_mm
+        nearest = np.linalg.norm(flange[:, None] - pts[None], axis=2).min(axis=1)
+        assert nearest.max() < 0.5, nearest
+    finally:
+        devices.close_all()
