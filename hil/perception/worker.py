@@ -79,16 +79,26 @@ def perception_main(conn: Connection, notify_fd: int, parent_pid: int) -> None:
     region.close()
 
 
+#: The fewest CPUs the perception process is left when it keeps off the servo loop's CPU.
+MIN_CPUS_OFF_SERVO = 2
+
+
 def _place(spec: PerceptionSpec) -> set[int]:
-    """Keep the process on ``spec.cpu``, else off the servo loop's CPU; returns the CPUs."""
+    """Keep the process on ``spec.cpu`` when given; else off the servo loop's CPU (when that loop
+    asks for real time) provided :data:`MIN_CPUS_OFF_SERVO` CPUs remain. On a two-CPU machine it
+    may use both: the loop preempts it there anyway (SCHED_FIFO), and one CPU shared with the
+    supervisor starved rendering and locating under load (pairs later than the grab timeout in the
+    end-to-end runs). Returns the CPUs."""
     from hil.servo.rt import default_cpu
 
     cpus = os.sched_getaffinity(0)
+    servo = spec.setup.servo
     if spec.cpu is not None:
         want = {spec.cpu} & cpus
-    else:
-        servo = spec.setup.servo
+    elif servo.realtime and len(cpus) > MIN_CPUS_OFF_SERVO:
         want = cpus - {default_cpu() if servo.cpu is None else servo.cpu}
+    else:
+        want = cpus
     if want and want != cpus:
         with contextlib.suppress(OSError):
             os.sched_setaffinity(0, want)
