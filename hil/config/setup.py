@@ -119,7 +119,8 @@ class PerceptionConfig(BaseModel):
                            "off = in the supervisor's process (simulated runs on the manual clock "
                            "always are)")
     cpu: int | None = Field(None, ge=0, description="CPU to keep the perception process on (default: every "
-                                                    "CPU but the servo loop's)")
+                                                    "CPU but the real-time servo loop's when two or more "
+                                                    "remain, else every CPU)")
 
 
 class SetupConfig(BaseModel):
