@@ -5,6 +5,7 @@ run, ``on`` is a one-line config error and ``auto`` stays in the supervisor."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from pathlib import Path
@@ -143,3 +144,63 @@ def test_the_processs_world_sees_the_arm_the_servo_process_moves(tmp_path: Path)
         assert nearest.max() < 0.5, nearest
     finally:
         devices.close_all()
+
+
+def _children_of(pid: int) -> dict[int, str]:
+    """Live children of ``pid``: pid -> command line."""
+    out: dict[int, str] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid and stat.rsplit(")", 1)[1].split()[0] != "Z":
+                out[int(d.name)] = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except (OSError, ValueError, IndexError):
+            continue
+    return out
+
+
+def _running(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+@pytest.mark.slow
+def test_ctrl_c_ends_hil_run_and_its_processes(tmp_path: Path) -> None:
+    """Ctrl-C (SIGINT to the process group) during a wall-clock ``hil run``: the children ignore it,
+    the supervisor closes them on its way out, and nothing is left running."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    cfg, _ = _setup(tmp_path, "on")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hil", "run", str(cfg), "--plan", str(ROOT / "configs/plans/sim_plan.json"),
+         "--auto", "--no-report", "--session-dir", str(tmp_path)],
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    kids: dict[int, str] = {}
+    try:
+        deadline = time.monotonic() + 60.0
+        while not any("hil.perception.child" in c for c in kids.values()):
+            assert proc.poll() is None, "hil run ended before starting its processes"
+            assert time.monotonic() < deadline, "the perception process did not start"
+            time.sleep(0.05)
+            kids = _children_of(proc.pid)
+        assert any("hil.servo.child" in c for c in kids.values())
+        os.killpg(proc.pid, signal.SIGINT)     # what a terminal's Ctrl-C does
+        proc.wait(30.0)
+        deadline = time.monotonic() + 20.0
+        while any(_running(k) for k in kids):
+            assert time.monotonic() < deadline, f"left running: {kids}"
+            time.sleep(0.05)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        for k in kids:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(k, signal.SIGKILL)
