@@ -123,6 +123,9 @@ def _build(spec: PerceptionSpec) -> tuple[StereoCamera, Any, FollowingWorld | No
             follower = RingFlangeSource(spec.servo_ring,
                                         RigidTransform.from_matrix(np.asarray(spec.T_flange_from_tcp)))
             world.attach_robot(follower)
+            devices.robot.close()   # never opened here; ends a pose follower the builder started
+    if devices.tracker is not None:
+        devices.tracker.close()     # never opened here
     camera = with_rig_time_offsets(spec.setup, devices).camera
     return camera, marker_locator(spec.setup, camera), world, follower
 
