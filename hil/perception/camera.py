@@ -110,7 +110,7 @@ def with_perception_process(setup: SetupConfig, devices: Devices, clock: Clock) 
     world = devices.world
     why = None
     if not wall:
-        why = 'needs the wall clock; set [simulation] real_time = true, or use "auto"'
+        why = "it needs the wall clock ([simulation] real_time = true)"
     elif setup.procedure.lock.needle_check is not None:
         why = "the needle check ([procedure.lock.needle_check]) needs the images in the supervisor"
     elif world is not None and servo is None:
@@ -119,7 +119,8 @@ def with_perception_process(setup: SetupConfig, devices: Devices, clock: Clock) 
         why = f"the simulated world ({type(world).__name__}) cannot follow a perception process"
     if why is not None:
         if mode == "on":
-            raise ConfigError("setup", [f'perception.process: "on" {why}'])
+            raise ConfigError("setup", [f'perception.process: "on" cannot be used: {why}; use "auto" '
+                                        '(it then runs where it can) or "off"'])
         _log.info(EV_PERCEPTION_IN_PROCESS, reason=why)
         return devices
     def spec() -> PerceptionSpec:

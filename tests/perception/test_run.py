@@ -87,7 +87,7 @@ def test_on_with_a_needle_check_is_a_config_error(tmp_path: Path) -> None:
     clock = MonotonicClock()
     devices = with_servo_process(setup, build_devices(setup, clock), clock)
     try:
-        with pytest.raises(ConfigError, match=r'perception\.process: "on" the needle check'):
+        with pytest.raises(ConfigError, match=r'perception\.process: "on" cannot be used: the needle check'):
             with_perception_process(setup, devices, clock)
     finally:
         devices.close_all()   # the world's follower thread ends with the (never opened) robot
@@ -103,7 +103,7 @@ def test_auto_stays_in_the_supervisor_on_the_manual_clock_or_without_the_servo_p
     devices = build_devices(setup, manual)
     assert with_perception_process(setup, devices, manual) is devices
     _, on = _setup(tmp_path, "on", '\n[servo]\nprocess = "off"\n')
-    with pytest.raises(ConfigError, match=r'perception\.process: "on" needs the wall clock'):
+    with pytest.raises(ConfigError, match=r'"on" cannot be used: it needs the wall clock'):
         with_perception_process(on, build_devices(on, manual), manual)
     with pytest.raises(ConfigError, match=r"a simulated world needs the servo loop in its own process"):
         with_perception_process(on, build_devices(on, clock), clock)
