@@ -25,8 +25,9 @@ from hil.servo.shm import ShmRegion
 ROOT = Path(__file__).resolve().parents[2]
 
 
-#: watchdogs loosened for a shared, loaded test machine (as the emulator end-to-end tests do): the
-#: runs here test the processes' plumbing, not data age
+#: watchdogs loosened for a shared, loaded test machine (as the emulator end-to-end tests do), and
+#: the camera at half its rate (the grab timeout is four frame periods): the runs here test the
+#: processes' plumbing, not data age
 LOOSE_WATCHDOGS = {"camera_frame_max_age_ms": 1500.0, "tracker_max_age_ms": 1500.0,
                    "robot_state_max_age_ms": 1000.0}
 
@@ -36,6 +37,7 @@ def _setup(tmp_path: Path, perception: str, extra: str = "") -> tuple[Path, Setu
     for key, value in LOOSE_WATCHDOGS.items():
         text, n = re.subn(rf"^{key} = .*$", f"{key} = {value}", text, count=1, flags=re.MULTILINE)
         assert n == 1, key
+    text = text.replace("frame_rate_hz = 15.0", "frame_rate_hz = 7.5", 1)
     text = text.replace("real_time = false", "real_time = true", 1)
     text = text.replace('stereo = "calibration/sim_stereo.json"',
                         f'stereo = "{ROOT / "configs" / "calibration" / "sim_stereo.json"}"', 1)
