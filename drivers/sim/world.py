@@ -11,6 +11,7 @@ import bisect
 import math
 import threading
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -197,6 +198,9 @@ class SimWorld:
         self.flange_marker_normal: FloatArray = n / np.linalg.norm(n)
         self._robot: FlangeSource | None = None
         self._lock = threading.Lock()
+        #: called with (start_s, duration_s, level) of every breath-hold requested (a perception
+        #: process's copy of this world is told this way)
+        self.breath_hold_listeners: list[Callable[[float, float, float], None]] = []
 
     # ------------------------------------------------------------------ time
     def t_s(self, t_ns: int) -> float:
@@ -221,6 +225,8 @@ class SimWorld:
         with self._lock:
             self.motion.holds.append(hold)
         _log.info("breath_hold_requested", start_s=start, duration_s=duration_s, level=level)
+        for listener in self.breath_hold_listeners:
+            listener(start, duration_s, level)
         return start
 
     def attach_robot(self, robot: FlangeSource) -> None:

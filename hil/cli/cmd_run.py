@@ -25,6 +25,7 @@ from hil.controller.assembly import (
     runtime_plugins,
     start_igtl,
     stereo_calibration,
+    with_perception_process,
     with_servo_process,
     wrap_robot,
 )
@@ -35,6 +36,7 @@ from hil.controller.operator_input import AutoOperator, Operator, OperatorView
 from hil.controller.perception import StereoMarkerLocator
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import HilError, InputFileError
+from hil.perception.camera import PerceptionCamera
 from hil.rigcal.apply import rig_calibration_sha256
 from hil.session.log import SessionLog, file_sha256
 
@@ -156,6 +158,7 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
         devices = wrap_robot(devices, robot_wrapper)
     else:
         devices = with_servo_process(setup, devices, clock)  # [servo] process: on the wall clock
+        devices = with_perception_process(setup, devices, clock)  # [perception] process: likewise
     world = devices.world
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
     header: dict[str, Any] = {
@@ -189,7 +192,9 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
                 hooks=runtime_plugins(igtl, plan),
             )
             summary = ctl.run(max_duration_s)
-            if isinstance(ctl.locate, StereoMarkerLocator):
+            if isinstance(devices.camera, PerceptionCamera):   # located in the perception process
+                summary.locate_ms = devices.camera.perception_feed.locate_figures()
+            elif isinstance(ctl.locate, StereoMarkerLocator):
                 summary.locate_ms = ctl.locate.locate_ms()
         finally:
             devices.close_all()

@@ -90,7 +90,14 @@ def run(args: argparse.Namespace) -> int:
                   "setpoint\n")
         out.write(f"frame->command       {_fmt(res.frame_to_command_ms)} ms (p50/p99/max)\n")
         out.write(f"stop->command        {_fmt(res.stop_to_command_ms)} ms (p50/p99/max)\n")
-        for label, r in (("memory supervisor", res.rss_mb), ("memory servo proc.", res.servo_rss_mb)):
+        where = "perception process" if res.perception_rss_mb else "supervisor"
+        loc = " / ".join("n/a" if res.locate_ms.get(k) is None else f"{res.locate_ms[k]:.2f}"
+                         for k in ("p50", "p95"))
+        out.write(f"locate               {loc} ms (p50/p95, {where})\n")
+        mems = [("memory supervisor", res.rss_mb), ("memory servo proc.", res.servo_rss_mb)]
+        if res.perception_rss_mb:
+            mems.append(("memory perception", res.perception_rss_mb))
+        for label, r in mems:
             out.write(
                 f"{label:<21}{r.get('after_warmup')} -> {r.get('end')} MB, "
                 f"growth {r.get('growth')} MB, slope {r.get('slope_mb_per_min')} MB/min\n"

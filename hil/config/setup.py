@@ -127,6 +127,23 @@ class ServoConfig(BaseModel):
     cpu: int | None = Field(None, ge=0, description="CPU to pin the servo process to (default: the last)")
 
 
+class PerceptionConfig(BaseModel):
+    """Where the camera is grabbed and the markers located (docs/architecture.md, "Perception
+    process")."""
+
+    model_config = STRICT
+
+    process: Literal["auto", "on", "off"] = Field(
+        "off", description="grab, locate and triangulate in a process of its own that publishes marker "
+                           "sets through shared memory: auto = whenever the setup runs on the wall clock "
+                           "and it can (no needle check; a simulated world needs the servo process); "
+                           "off = in the supervisor's process (simulated runs on the manual clock "
+                           "always are)")
+    cpu: int | None = Field(None, ge=0, description="CPU to keep the perception process on (default: every "
+                                                    "CPU but the real-time servo loop's when two or more "
+                                                    "remain, else every CPU)")
+
+
 class SetupConfig(BaseModel):
     """A whole hardware setup. Build it with :func:`hil.config.load_setup` (TOML file) or
     :func:`hil.config.parse_setup` (a mapping): device sections need the driver registry.
@@ -150,6 +167,7 @@ class SetupConfig(BaseModel):
         None, description="the UR emulator's fault channel, for [[faults]] with transport (tools/ursim only)")
     igtl: IgtlConfig = Field(IgtlConfig(), description="OpenIGTLink streaming to 3D Slicer (docs/igtl.md)")
     servo: ServoConfig = Field(ServoConfig(), description="the servo loop's process and real-time set-up")
+    perception: PerceptionConfig = Field(PerceptionConfig(), description="the perception process")
     rig_calibration: RigCalibrationConfig = Field(
         RigCalibrationConfig(), description="hil rig-calibrate: poses, bounds, temporal motion")
     _config_dir: Path = PrivateAttr(default_factory=Path.cwd)

@@ -18,7 +18,13 @@ from hil.config.build import Devices, clock_for
 from hil.config.setup import SetupConfig
 from hil.console.operator import ConsoleOperator
 from hil.console.runner import ControllerRunner
-from hil.controller.assembly import build_controller, runtime_plugins, stereo_calibration, with_servo_process
+from hil.controller.assembly import (
+    build_controller,
+    runtime_plugins,
+    stereo_calibration,
+    with_perception_process,
+    with_servo_process,
+)
 from hil.controller.controller import Controller
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import InputFileError
@@ -118,6 +124,7 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
     try:
         stereo_calibration(setup, devices.camera)  # none anywhere: refused before any device opens
         devices = with_servo_process(setup, devices, clk)  # [servo] process: on the wall clock
+        devices = with_perception_process(setup, devices, clk)  # [perception] process: likewise
     except BaseException:
         if igtl is not None:
             igtl.close()

@@ -137,6 +137,21 @@ def with_servo_process(setup: SetupConfig, devices: Devices, clock: Clock) -> De
     return dataclasses.replace(devices, robot=robot)
 
 
+def with_perception_process(setup: SetupConfig, devices: Devices, clock: Clock) -> Devices:
+    """``devices`` (not opened) with the camera run by the perception process when ``[perception]
+    process`` asks for it (``auto``: on the wall clock, where the setup allows), else unchanged;
+    call it after :func:`with_servo_process`. Opening the result opens the robot first, then
+    starts the perception process (it builds and opens its own camera from the setup); closing it
+    ends the process. See :func:`hil.perception.camera.with_perception_process` (the rules, the
+    ConfigError for ``on`` where it cannot run)."""
+    mode = setup.perception.process
+    if mode == "off" or (mode == "auto" and not isinstance(clock, MonotonicClock)):
+        return devices
+    from hil.perception.camera import with_perception_process as wire
+
+    return wire(setup, devices, clock)
+
+
 def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, *, clock: Clock,
                      session: SessionLog, operator: Operator,
                      observers: Sequence[TickObserver] = (), hooks: HookCaller | None = None) -> Controller:

@@ -1,8 +1,13 @@
 """The camera side of a tick: priming the pipeline, the real-time prefetcher, and reading the
 devices (the stereo pair, the robot state, the tracker's latest samples) into the estimate.
 
+Where pairs come from: a camera with a ``perception_feed`` (the perception process's camera,
+:class:`hil.perception.camera.PerceptionCamera`) is never grabbed here: its feed has the pairs,
+already located, and stands in for the prefetcher; otherwise the camera itself, through the
+prefetcher thread on the wall clock.
+
 Blocking: :meth:`DevicePipeline.read` blocks up to the grab timeout for the next pair (from the
-camera, or the pair the prefetcher has ready). Errors: the devices' DriverError (a
+camera, or the pair the prefetcher or the feed has ready). Errors: the devices' DriverError (a
 DeviceTimeoutError naming the camera when no pair arrives).
 """
 
@@ -10,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Iterator
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -33,6 +39,26 @@ _log = get_logger(__name__)
 MarkerLocator = Callable[[StereoFrame], FloatArray]
 
 
+@runtime_checkable
+class PairFeed(Protocol):
+    """Located pairs from elsewhere (the perception process): the prefetcher's consumer contract."""
+
+    produced: int
+    overwritten: int
+
+    def ready(self) -> bool: ...
+
+    def take(self, timeout_s: float, wake: Callable[[], bool] | None = None) -> Prefetched | None: ...
+
+    def stop(self, timeout_s: float | None = None) -> None: ...
+
+
+def perception_feed(camera: StereoCamera) -> PairFeed | None:
+    """The camera's ``perception_feed`` when it has one (a wrapper passes it through), else None."""
+    feed = getattr(camera, "perception_feed", None)
+    return feed if isinstance(feed, PairFeed) else None
+
+
 class DevicePipeline:
     """Reads the devices for the controller (module doc). ``locate``: stereo pair -> marker
     centres (optical frame, mm)."""
@@ -45,7 +71,8 @@ class DevicePipeline:
         self.watchdogs, self.session, self.metrics = watchdogs, session, metrics
         self.frame_period_s = 1.0 / camera.frame_rate_hz
         self.primed = False   # the camera pipeline's first (late) pair has been consumed
-        self.prefetch: FramePrefetcher | None = None
+        self.feed = perception_feed(camera)   # the perception process's pairs (module doc)
+        self.prefetch: FramePrefetcher | PairFeed | None = None
         self.prefetched: Prefetched | None = None   # the result the current tick perceives
         #: the markers located in the latest pair perceived (None before one, or when locating it
         #: raised): what snapshots show per camera
@@ -68,7 +95,7 @@ class DevicePipeline:
         self.primed = True
         t_ns = self.clock.now_ns()
         try:
-            frame = self.camera.grab(timeout_s=max(timeout_s, 4 * self.frame_period_s))
+            frame = self._grab_next(max(timeout_s, 4 * self.frame_period_s))
         except DriverError as exc:
             self.session.write(ev.PIPELINE_PRIME_FAILED, reason=str(exc))
             _log.warning(ev.PIPELINE_PRIME_FAILED, reason=str(exc))
@@ -84,7 +111,11 @@ class DevicePipeline:
         (so COMPENSATE keeps streaming meanwhile) with the GIL switch interval lowered; otherwise
         (a manual clock: a deterministic simulation) nothing changes. The worker is stopped and
         joined when the block ends, however it ends, before the caller can close the camera;
-        ``frame_prefetch_stopped`` records its counts."""
+        ``frame_prefetch_stopped`` records its counts. With a perception feed (module doc) the feed
+        is the prefetcher, enabled or not: nothing starts or stops here."""
+        if self.feed is not None:
+            yield from self._feeding(self.feed)
+            return
         if not (enabled and isinstance(self.clock, MonotonicClock)):
             yield
             return
@@ -101,13 +132,39 @@ class DevicePipeline:
             self.metrics.frames_overwritten += pf.overwritten
             self.session.write(ev.FRAME_PREFETCH_STOPPED, pairs=pf.produced, overwritten=pf.overwritten)
 
+    def _feeding(self, feed: PairFeed) -> Iterator[None]:
+        produced, overwritten = feed.produced, feed.overwritten
+        self.prefetch = feed
+        try:
+            yield
+        finally:
+            self.prefetch = None
+            self.prefetched = None
+            skipped = feed.overwritten - overwritten
+            self.metrics.frames_overwritten += skipped
+            self.session.write(ev.FRAME_PREFETCH_STOPPED, pairs=feed.produced - produced, overwritten=skipped,
+                               process=True)
+
+    def _grab_next(self, timeout_s: float) -> StereoFrame:
+        """The next pair: from the camera, or the first the perception feed publishes from now on
+        (what it published before, while the supervisor was starting, is skipped: it is as late
+        as a camera's first buffer)."""
+        if self.feed is not None:
+            if self.feed.ready():
+                self.feed.take(0.0)
+            got = self.feed.take(timeout_s)
+            assert got is not None   # no wake: a pair or an error
+            return got.frame
+        return self.camera.grab(timeout_s=timeout_s)
+
     def read(self, est: Estimate, wake: Callable[[], bool] | None = None) -> RobotState | None:
         """The next pair, the robot state and the tracker samples into ``est`` (module doc);
         feeds the watchdogs. Returns the robot state, or None when ``wake`` (an operator input
         waits) ended the wait for the pair first (real time, with the prefetcher; nothing read)."""
         self.prefetched = None
-        if self.prefetch is not None:
-            got = self.prefetch.take(self.grab_timeout_s(), wake)
+        source = self.prefetch if self.prefetch is not None else self.feed
+        if source is not None:
+            got = source.take(self.grab_timeout_s(), wake)
             if got is None:
                 return None
             self.prefetched, frame = got, got.frame

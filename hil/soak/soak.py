@@ -12,9 +12,11 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
   ``longest_gap_ms`` is the worst.
 - *frame-to-command latency*: exposure time of a stereo pair -> the first servo command the loop
   computed from that pair's setpoint.
-- *memory growth*: resident set size of the supervisor (``rss_mb``) and of the servo process
-  (``servo_rss_mb``) at the end minus after the warm-up (the first quarter of the compensation
-  time, at most 30 s), and the least-squares slope.
+- *memory growth*: resident set size of the supervisor (``rss_mb``), of the servo process
+  (``servo_rss_mb``) and of the perception process (``perception_rss_mb``, when it runs) at the
+  end minus after the warm-up (the first quarter of the compensation time, at most 30 s), and the
+  least-squares slope.
+- ``locate_ms``: p50 / p95 of the time to locate one pair's markers (where it ran).
 - ``stream_deadlines_missed``, ``frame_boundaries``, ``frame_boundary_missed``,
   ``frame_boundary_ms``: figures of the former in-thread stream, kept in the JSON for comparison
   with older runs; with the servo process the loop never waits for a frame, and they are 0 / empty.
@@ -51,6 +53,7 @@ from hil.config.setup import SetupConfig
 from hil.controller.controller import Controller
 from hil.controller.fsm import Event, State
 from hil.controller.operator_input import OperatorView
+from hil.controller.perception import StereoMarkerLocator
 from hil.controller.plan_file import load_plan
 from hil.errors import InputFileError
 from hil.servo.client import ServoRobot
@@ -132,6 +135,11 @@ class SoakResult:
     transient_faults: list[dict[str, Any]] = field(default_factory=list)
     following_peak_mm: float = 0.0
     following_faults: int = 0
+    #: memory of the perception process as ``rss_mb`` (empty: perception ran in the supervisor)
+    perception_rss_mb: dict[str, float | None] = field(default_factory=dict)
+    #: p50 / p95 of the time to locate the markers of one pair, ms (in the perception process when
+    #: it runs, else the supervisor's locator)
+    locate_ms: dict[str, float | None] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -280,9 +288,16 @@ def run_soak(
     procedure_plan = load_plan(plan_path)
     clock = MonotonicClock()
     t_open_ns = clock.now_ns()
-    from hil.controller.assembly import build_controller, with_servo_process  # what `hil run` builds
+    from hil.controller.assembly import (  # what `hil run` builds
+        build_controller,
+        with_perception_process,
+        with_servo_process,
+    )
+    from hil.perception.camera import PerceptionCamera
 
     devices = with_servo_process(setup, build_devices(setup, clock), clock)
+    devices = with_perception_process(setup, devices, clock)
+    feed = devices.camera.perception_feed if isinstance(devices.camera, PerceptionCamera) else None
     robot = devices.robot
     assert isinstance(robot, ServoRobot)
     session = SessionLog(
@@ -291,6 +306,7 @@ def run_soak(
         {"setup": str(config), "soak_minutes": minutes, "rate_hz": rate_hz, "realtime": realtime},
     )
     rss: list[tuple[float, float, float]] = []
+    perception_rss: list[tuple[float, float]] = []   # (monotonic s, perception process MB)
     last = [0.0]
     copies: dict[str, StatsCopy] = {}
 
@@ -300,6 +316,8 @@ def run_soak(
             last[0] = now
             ready = getattr(robot.link, "ready", None)
             rss.append((now, rss_mb(), rss_mb(ready.pid) if ready is not None else 0.0))
+            if feed is not None and feed.pid is not None:
+                perception_rss.append((now, rss_mb(feed.pid)))
 
     def on_compensate() -> None:
         copies["start"] = StatsCopy.of(robot.link.regions.stats)
@@ -328,6 +346,11 @@ def run_soak(
     res.transient_faults = fault_outcomes(schedule, str(session.path), t_open_ns)
     res.following_peak_mm, res.following_faults = figs.following_peak_mm, figs.following_faults
     res.stop_to_command_ms = _stats([x * 1e-6 for x in robot.stop_latency_ns])
+    res.perception_rss_mb = _rss_figures(perception_rss, operator.t_comp, minutes)
+    if feed is not None:
+        res.locate_ms = feed.locate_figures()
+    elif isinstance(ctl.locate, StereoMarkerLocator):
+        res.locate_ms = ctl.locate.locate_ms()
     return res
 
 

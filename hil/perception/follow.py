@@ -1,0 +1,77 @@
+"""The arm as a simulated world in the perception process sees it: the servo process's state ring,
+attached read-only by name (the same records the supervisor's robot reads)."""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from hil.geometry.transform import RigidTransform
+from hil.servo.link import RING_SLOTS
+from hil.servo.shm import RingRecord, ShmRegion, StateRing, ring_words
+
+#: How many records back (from the newest) a pose is looked for: 1000 periods is 2 s at 500 Hz.
+MAX_BACK = RING_SLOTS - 24
+
+
+@runtime_checkable
+class FollowingWorld(Protocol):
+    """What the perception process asks of a simulated world (without importing the simulator):
+    its time origin (set to the supervisor's world's), a flange source, breath-hold requests."""
+
+    t0_ns: int
+
+    def attach_robot(self, robot: RingFlangeSource) -> None: ...
+
+    def now_s(self) -> float: ...
+
+    def request_breath_hold(self, duration_s: float, level: float = 0.0,
+                            delay_s: float | None = None) -> float: ...
+
+
+class RingFlangeSource:
+    """``T_robot_from_flange_at`` from the servo's state ring (a world's flange source).
+
+    The pose at ``t_ns`` is interpolated between the two records around it (translation linear,
+    rotation along the geodesic); after the newest record, the newest; before the oldest still
+    kept, the oldest. Before the loop's first record: None (the world then sees no flange).
+
+    Args:
+        ring_name: the servo process's state-ring segment.
+        T_flange_from_tcp: the robot's TCP in the flange frame (mm).
+    """
+
+    def __init__(self, ring_name: str, T_flange_from_tcp: RigidTransform) -> None:
+        self.region = ShmRegion.attach(ring_name, ring_words(RING_SLOTS))
+        self.ring = StateRing(self.region, RING_SLOTS)
+        self.T_tcp_from_flange = T_flange_from_tcp.inverse()
+        self._newer, self._older = RingRecord(), RingRecord()
+
+    def close(self) -> None:
+        self.region.close()
+
+    def _pose(self, rec: RingRecord) -> RigidTransform:
+        T = RigidTransform(rec.pose[:9].reshape(3, 3).copy(), rec.pose[9:].copy())
+        return T @ self.T_tcp_from_flange
+
+    def T_robot_from_flange_at(self, t_ns: int) -> RigidTransform | None:
+        newer = self.ring.read_latest(self._newer)
+        if newer is None:
+            return None
+        if newer.t_ns <= t_ns:
+            return self._pose(newer)
+        for back in range(1, MAX_BACK):
+            older = self.ring.read_back(back, self._older)
+            if older is None:
+                break
+            if older.t_ns <= t_ns:
+                span = newer.t_ns - older.t_ns
+                s = 0.0 if span <= 0 else (t_ns - older.t_ns) / span
+                a, b = self._pose(older), self._pose(newer)
+                rel = RigidTransform(a.R.T @ b.R, np.zeros(3))
+                R = a.R @ RigidTransform.from_rotvec(s * rel.as_rotvec()).R
+                return RigidTransform(R, a.t + s * (b.t - a.t))
+            self._newer, self._older = self._older, self._newer
+            newer = self._newer
+        return self._pose(newer)
