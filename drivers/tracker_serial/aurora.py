@@ -263,6 +263,7 @@ class AuroraTracker(SerialPoseTracker):
                     if not self._reinitialise(f"tracking data request refused: {exc}"):
                         self._stop.wait(reinit_after_s)
                     heard_s = next_s = time.monotonic()
+                    consecutive = 0
                     continue
                 consecutive += 1
                 self._record_damage(consecutive, str(exc))
@@ -276,6 +277,7 @@ class AuroraTracker(SerialPoseTracker):
                 if reinit_after_s is not None and time.monotonic() - heard_s >= reinit_after_s:
                     self._reinitialise(f"no answer for {time.monotonic() - heard_s:.2f} s")
                     heard_s = next_s = time.monotonic()  # a failed attempt is retried after reinit_after_s
+                    consecutive = 0
                     continue
             else:
                 heard_s = time.monotonic()

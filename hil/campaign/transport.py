@@ -162,6 +162,10 @@ TRANSPORT_FAULTS: tuple[TransportFault, ...] = (
     TransportFault("aurora_wrong_baud", "trackersim", FaultKind.TRACKER_TIMEOUT,
                    "fault wrong_baud,baud=9600", "clear wrong_baud", 0.6, "sim.toml",
                    "the Aurora leaves the COMM rate for 9600 baud (host stays at 115200)", "aurora"),
+    TransportFault("aurora_comm_baud", "trackersim", FaultKind.TRACKER_TIMEOUT,
+                   "fault comm_baud,baud=57600; fault reset", None, 3.0, "sim.toml",
+                   "the Aurora resets, and the driver's next COMM leaves it at 57600 (host at 115200)",
+                   "aurora"),
     TransportFault("camera_stream_loss", "fakegv", FaultKind.FRAME_DROP, "stream_loss 1.0", None, 1.0,
                    "sim.toml", "both GigE cameras silent (GVCP, GVSP), back on the same addresses after 1 s"),
 )

@@ -32,7 +32,7 @@ from hil.config import load_setup
 from hil.config.faults import FaultKind
 
 AURORA = ("aurora_bad_crc", "aurora_tool_missing", "aurora_out_of_volume", "aurora_reset",
-          "aurora_wrong_baud")
+          "aurora_wrong_baud", "aurora_comm_baud")
 Runs = dict[str, tuple[dict[str, Any], dict[str, Any]]]
 
 
@@ -52,6 +52,7 @@ def test_the_aurora_rows_are_in_every_state() -> None:
         "aurora_reset": (FaultKind.TRACKER_TIMEOUT, "fault reset", None, 1.5),
         "aurora_wrong_baud": (FaultKind.TRACKER_TIMEOUT, "fault wrong_baud,baud=9600", "clear wrong_baud",
                               0.6),
+        "aurora_comm_baud": (FaultKind.TRACKER_TIMEOUT, "fault comm_baud,baud=57600; fault reset", None, 3.0),
     }
     assert BY_NAME["serial_silence@gate"].protocol == "fob"
 

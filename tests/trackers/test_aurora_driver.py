@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -220,6 +221,41 @@ def test_device_reset_seen_at_the_same_rate_is_re_initialised(aurora_emulator: A
             dev.reset()
         wait_until(lambda: dev.tracking, what="the driver's start-up again")
         wait_until(_fresh_pose(tracker, "needle", seq), what="frames after the reset")
+
+
+def test_a_wrong_baud_after_comm_in_the_restart_is_retried(aurora_emulator: AuroraFactory) -> None:
+    """The device resets, and the COMM of the driver's start-up leaves it at 57600 instead of
+    115200: VER gets no valid reply, that attempt fails (the condition stays), the next one after
+    reinit_after_s succeeds."""
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, timeout_s=0.3, response_timeout_s=0.2, reinit_after_s=0.4))
+    failures: list[str] = []
+    tracker.log = _Spy(tracker.log, failures)
+    with tracker:
+        wait_until(lambda: "needle" in tracker.latest(), what="first frame")
+        seq = tracker.latest()["needle"].seq
+        dev.faults.inject("comm_baud,baud=57600", dev.now_s())
+        dev.faults.inject("reset", dev.now_s())
+        wait_until(lambda: dev.faults.fired["comm_baud"] == 1, what="the COMM to the wrong rate")
+        wait_until(_fresh_pose(tracker, "needle", seq), what="frames after the second start-up")
+        assert dev.baud == 115200
+    assert len(failures) == 1
+    assert "no valid reply at 115200 baud after COMM" in failures[0]
+
+
+class _Spy:
+    """A logger stand-in that keeps the errors of ``tracker_reinit_failed`` and passes all on."""
+
+    def __init__(self, log: Any, failures: list[str]) -> None:
+        self._log, self._failures = log, failures
+
+    def warning(self, event: str, **fields: Any) -> None:
+        if event == "tracker_reinit_failed":
+            self._failures.append(str(fields["error"]))
+        self._log.warning(event, **fields)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._log, name)
 
 
 def test_no_answer_without_re_initialisation_stays_a_timeout(aurora_emulator: AuroraFactory) -> None:

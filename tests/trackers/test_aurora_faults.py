@@ -11,6 +11,7 @@ import struct
 
 import pytest
 import serial
+from emulators.trackersim.__main__ import control_command
 from emulators.trackersim.faults import Faults, parse_fault
 from emulators.trackersim.poses import StaticPoses
 
@@ -153,6 +154,29 @@ def test_reset_fault_at_the_comm_rate_arrives_as_noise(aurora_emulator: AuroraFa
         assert ser.read(64) == b""  # the device at 9600 reads our bytes as framing errors
 
 
+def test_comm_baud_answers_okay_then_runs_at_the_wrong_rate(aurora_emulator: AuroraFactory) -> None:
+    dev = aurora_emulator(poses=POSES)
+    with serial.Serial(dev.link.path, 9600, timeout=0.3) as ser:
+        _tracking(ser)
+        # both in one control line: armed together, under the device lock
+        assert control_command(dev, "fault comm_baud,baud=57600; fault wrong_baud,baud=9600") == "ok"
+        assert control_command(dev, "clear wrong_baud; fault nonsense; fault silence").startswith("error: ")
+        assert dev.faults.wrong_baud is None  # the first command of the line ran, the third did not
+        assert dev.faults.fire("silence", dev.now_s()) is None
+        assert _ask(ser, "COMM:50000") == b"OKAYA896\r"  # the OKAY at the old rate, as always
+        wait_until(lambda: dev.baud != 9600, what="the switch")
+        assert dev.baud == 57600  # not the 115200 asked
+        ser.baudrate = 115200
+        ser.reset_input_buffer()
+        ser.write(_cmd("BEEP:1"))
+        assert ser.read(16) == b""  # our bytes are framing errors to it
+        ser.baudrate = 57600
+        assert _ask(ser, "BEEP:1") == ap.frame_reply("1")
+        assert dev.faults.fired["comm_baud"] == 1
+        assert _ask(ser, "COMM:50000") == b"OKAYA896\r"  # count=1: the next COMM is honoured
+        wait_until(lambda: dev.baud == 115200, what="115200")
+
+
 def test_window_faults_end_by_themselves() -> None:
     faults = Faults(seed=1)
     faults.inject("tool_missing,seconds=0.5,after=1.0,handles=0A+0C", now_s=10.0)
@@ -177,6 +201,7 @@ def test_window_faults_end_by_themselves() -> None:
     ("tool_missing,handles=", "handles"),
     ("out_of_volume,handles=100", "handles"),
     ("tool_missing,colour=red", "unknown key"),
+    ("comm_baud", "needs baud=B"),
 ])
 def test_bad_fault_specs_are_refused(spec: str, message: str) -> None:
     with pytest.raises(ValueError, match=message):

@@ -11,6 +11,9 @@ answering one line (``ok ...`` or ``error: ...``):
     reset             power cycle the device, silently (a pty has no RTS line to do it); the
                       Aurora's ``fault reset`` is a reset that also sends RESET, as a device does
     status            one JSON object: protocol, baud, host_baud, faults fired, device state
+
+Several commands may share a line, separated by ``;`` (run in order under the device lock, so
+nothing happens between them; the answer is the first error, or ``ok``).
 """
 
 from __future__ import annotations
@@ -51,11 +54,15 @@ fault SPEC (--fault, or the control interface's "fault SPEC"):
                  reply option 0x0800), for seconds=S or until cleared
   reset          (aurora) the device resets mid-session: RESET sent at 9600, back at 9600 baud,
                  not initialised, not tracking
+  comm_baud      (aurora) the next COMM (count=N: the next N) answered OKAY, but the device
+                 then runs at baud=B instead of the rate asked
   count=N: the next N records/replies; p=P: each with probability P; after=S: armed S s later.
 
 control interface (--control PATH; one line in, one line out: "ok ..." or "error: ..."):
-  fault SPEC | clear [KIND] | reset (silent power cycle) | status (JSON)
-  e.g. echo 'fault tool_missing,handles=0A,seconds=1' | socat - UNIX-CONNECT:/tmp/aurora.sock
+  fault SPEC | clear [KIND] | reset (silent power cycle) | status (JSON); several on one line
+  separated by ";" (run together, under the device lock), e.g.
+  echo 'fault comm_baud,baud=57600; fault reset' | socat - UNIX-CONNECT:/tmp/aurora.sock
+  or echo 'fault tool_missing,handles=0A,seconds=1' | socat - UNIX-CONNECT:/tmp/aurora.sock
 """
 
 
@@ -112,7 +119,17 @@ def make_device(args: argparse.Namespace, link: PtyLink, faults: Faults) -> Emul
 
 
 def control_command(device: EmulatedDevice, line: str) -> str:
-    """Execute one control-interface line; returns the answer line."""
+    """Execute one control-interface line (one command, or several separated by ``;``); returns
+    the answer line: the first error, else the last answer."""
+    answer = "ok"
+    for part in line.split(";"):
+        answer = _one_command(device, part)
+        if not answer.startswith("ok"):
+            return answer
+    return answer
+
+
+def _one_command(device: EmulatedDevice, line: str) -> str:
     verb, _, rest = line.strip().partition(" ")
     try:
         if verb == "fault":

@@ -17,7 +17,8 @@ volume gets the out-of-volume port status bit (0x40) and is sent with its transf
 host asked for out-of-volume transforms (reply option 0x0800), else as ``MISSING`` with that bit;
 one within ``margin_mm`` of a face gets the partially-in-volume bit (0x80). Frame numbers count at
 ``frame_rate_hz``. The faults ``tool_missing`` and ``out_of_volume`` put the chosen handles in those
-states whatever their pose; ``reset`` resets the device mid-session (below).
+states whatever their pose; ``reset`` resets the device mid-session (below); ``comm_baud`` makes
+the next COMM leave the device at another rate than the one asked (after its OKAY).
 
 Reset: a break (see below), the ``reset`` fault or the control interface's ``reset``: back to the
 power-up state (9600 baud, not initialised, not tracking, handles neither initialised nor
@@ -142,7 +143,8 @@ class AuroraDevice(EmulatedDevice):
             self._reply_error(0x06 if len(params) == 5 else 0x07)
             return
         self._reply(nw.OKAY)  # at the old settings
-        self.baud = nw.COMM_BAUD[params[0]]
+        wrong = self.faults.fire("comm_baud", self.now_s())
+        self.baud = nw.COMM_BAUD[params[0]] if wrong is None or wrong.baud is None else wrong.baud
 
     def _cmd_ver(self, params: str) -> None:
         self._reply("NDI AURORA Control Firmware\nFreeze Tag: AURORA Rev 008\n"

@@ -17,6 +17,8 @@ Kinds:
                 tool is reported ``MISSING`` (for ``seconds=S``, or until cleared)
     reset       (Aurora) the device resets by itself mid-session (a power dip): it sends
                 ``RESET`` + CRC at 9600 baud, is back at 9600 baud, not initialised, not tracking
+    comm_baud   (Aurora) the next COMM (``count=N``: the next N) is answered ``OKAY`` at the old
+                rate as usual, but the device then runs at ``baud=B`` instead of the rate asked
 
 A spec string (command line ``--fault``, control interface ``fault``):
 ``KIND[,count=N][,p=P][,seconds=S][,after=S][,bytes=N][,mask=M][,baud=B][,handles=H+H][,seed=K]``.
@@ -33,7 +35,7 @@ import threading
 from dataclasses import dataclass
 
 KINDS = ("garbage", "truncate", "lost_phase", "bad_crc", "silence", "wrong_baud", "tool_missing",
-         "out_of_volume", "reset")
+         "out_of_volume", "reset", "comm_baud")
 #: Kinds that hold for a time window (``seconds=S`` or until cleared) when given no count and no p.
 WINDOW_KINDS = ("tool_missing", "out_of_volume")
 
@@ -95,8 +97,8 @@ def parse_fault(spec: str) -> FaultSpec:
                 raise ValueError(f"unknown key {key!r}")
         except ValueError as exc:
             raise ValueError(f"fault {spec!r}: {exc}") from exc
-    if out.kind == "wrong_baud" and out.baud is None:
-        raise ValueError(f"fault {spec!r}: wrong_baud needs baud=B")
+    if out.kind in ("wrong_baud", "comm_baud") and out.baud is None:
+        raise ValueError(f"fault {spec!r}: {out.kind} needs baud=B")
     return out
 
 
