@@ -17,16 +17,26 @@ frame's time on the context clock: ``offset + frame / frame_rate_hz``, where ``o
 smallest ``receive time - frame time`` seen so far (the least-delayed reply).
 Tool status: MISSING or out of volume -> ``missing`` (no pose); partially in volume -> a pose
 with the ``partially_out`` flag.
+
+Device reset mid-tracking (a power dip, a cable pulled and pushed back): the device is back at
+9600 baud, not initialised, not tracking. At the host's COMM rate the polls then get no answer; at
+9600 they get ``ERROR0C``/``ERROR10``. Either way ``latest()`` raises (``DeviceTimeoutError`` once
+``timeout_s`` passed without a valid frame, ``DeviceFaultError`` on the refusal), and when nothing
+was heard for ``reinit_after_s`` (or at once on the refusal) the reader thread runs the whole
+start-up again (break, INIT, COMM, PINIT/PENA, TSTART), every ``reinit_after_s`` until it succeeds
+or the driver is closed; a success clears the condition and samples flow again
+(``tracker_reinitialised``). ``reinit_after_s = None`` turns this off: the condition then stays.
 """
 
 from __future__ import annotations
 
 import contextlib
 import time
+from collections.abc import Callable
 
 import serial
 
-from drivers.interfaces.errors import DeviceFaultError, DeviceTimeoutError, ProtocolError
+from drivers.interfaces.errors import DeviceFaultError, DeviceTimeoutError, DriverError, ProtocolError
 from drivers.interfaces.tracker import TrackerSample
 from drivers.tracker_serial import aurora_protocol as ap
 from drivers.tracker_serial.base import SerialFactory, SerialPoseTracker, TruncatedReplyError
@@ -34,6 +44,10 @@ from drivers.tracker_serial.config import AuroraConfig
 from hil.clock import Clock
 
 _BX_MAX_BODY = 4096
+#: Log events of the re-initialisation after a device reset (module doc).
+EV_REINITIALISING = "tracker_reinitialising"
+EV_REINIT_FAILED = "tracker_reinit_failed"
+EV_REINITIALISED = "tracker_reinitialised"
 
 
 class AuroraTracker(SerialPoseTracker):
@@ -93,7 +107,12 @@ class AuroraTracker(SerialPoseTracker):
         if reply != ap.OKAY:
             raise ProtocolError(self.name, f"{command}: expected OKAY, got {reply!r}")
 
-    def _reset(self) -> None:
+    def _reset(self, abort: Callable[[], bool] = lambda: False) -> None:
+        """Serial break at 9600 baud and wait for ``RESET`` (``reset_timeout_s``, or until ``abort()``).
+
+        Raises:
+            DeviceTimeoutError: no RESET in time (or aborted).
+        """
         cfg = self.config
         self.ser.baudrate = ap.RESET_BAUD
         self._flush_input()
@@ -105,7 +124,7 @@ class AuroraTracker(SerialPoseTracker):
             self._write(b"\x00")
         deadline = time.monotonic() + cfg.reset_timeout_s
         seen = bytearray()
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not abort():
             seen += self._read_until_cr()
             if seen.endswith(ap.RESET_REPLY):
                 return
@@ -116,9 +135,13 @@ class AuroraTracker(SerialPoseTracker):
                        f"(power, cable? got {bytes(seen[-40:])!r}; a pseudo-terminal needs break_as_nul)")
 
     def _start_device(self) -> None:
-        cfg = self.config
-        if cfg.reset_on_open:
+        if self.config.reset_on_open:
             self._reset()
+        self._initialise()
+
+    def _initialise(self) -> None:
+        """From the reset state (9600 baud): INIT, COMM, VER, PINIT/PENA of every handle, TSTART."""
+        cfg = self.config
         self._expect_okay("INIT:")
         if cfg.baud_rate != ap.RESET_BAUD:
             self._expect_okay(ap.comm_command(cfg.baud_rate))
@@ -206,27 +229,58 @@ class AuroraTracker(SerialPoseTracker):
                                      missing=missing, flags=rec.flags))
         return out
 
+    def _reinitialise(self, why: str) -> bool:
+        """Run the start-up again in the reader thread (module doc); True when tracking again.
+        A failure is logged and leaves the condition as it is (the caller retries later)."""
+        self.log.warning(EV_REINITIALISING, device=self.name, reason=why)
+        try:
+            self._reset(abort=self._stop.is_set)
+            self._initialise()
+        except DriverError as exc:
+            self.log.warning(EV_REINIT_FAILED, device=self.name, error=str(exc))
+            return False
+        with self._lock:
+            self._condition = None  # stale until the first new frame (latest()'s own timeout)
+        self.log.warning(EV_REINITIALISED, device=self.name, **self.info)
+        return True
+
     def _reader_loop(self) -> None:
         period_s = 1.0 / self.config.poll_rate_hz
+        reinit_after_s = self.config.reinit_after_s
         next_s = time.monotonic()
+        heard_s = next_s  # the last time the device answered anything (valid or damaged)
         consecutive = 0
         while not self._stop.is_set():
             self._flush_input()
             try:
                 reply = self._poll_once()
             except ap.NdiReplyError as exc:
+                heard_s = time.monotonic()
                 if exc.code in (0x0C, 0x10):  # not tracking any more (device reset / power cycle)
                     self._set_condition(DeviceFaultError(self.name, f"tracking data request refused: {exc}"))
-                    return
+                    if reinit_after_s is None:
+                        return
+                    if not self._reinitialise(f"tracking data request refused: {exc}"):
+                        self._stop.wait(reinit_after_s)
+                    heard_s = next_s = time.monotonic()
+                    consecutive = 0
+                    continue
                 consecutive += 1
                 self._record_damage(consecutive, str(exc))
             except (ap.NdiDecodeError, TruncatedReplyError) as exc:
+                heard_s = time.monotonic()
                 consecutive += 1
                 self._record_damage(consecutive, str(exc))
                 self._flush_input(quiet_s=0.005)
             except DeviceTimeoutError as exc:
                 self.log.debug("poll_timeout", device=self.name, error=str(exc))
+                if reinit_after_s is not None and time.monotonic() - heard_s >= reinit_after_s:
+                    self._reinitialise(f"no answer for {time.monotonic() - heard_s:.2f} s")
+                    heard_s = next_s = time.monotonic()  # a failed attempt is retried after reinit_after_s
+                    consecutive = 0
+                    continue
             else:
+                heard_s = time.monotonic()
                 consecutive = 0
                 self._publish(self._samples(reply, self.clock.now_ns()))
             next_s += period_s

@@ -109,6 +109,9 @@ class AuroraConfig(BaseModel):
             times (Aurora's exact figure is not in the sources read; 40 Hz by default).
         break_as_nul: also send a NUL byte with the break (what a UART reads for a break); needed
             for the emulator on a pseudo-terminal, which carries no break.
+        reinit_after_s: after a device reset mid-tracking (no answer for this long, or tracking
+            refused with ERROR0C/ERROR10), run the start-up again, retried every this many
+            seconds; None: do not (the error then stays until the driver is reopened).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -127,6 +130,7 @@ class AuroraConfig(BaseModel):
     break_duration_s: float = Field(default=0.25, gt=0.0)
     break_as_nul: bool = False
     max_consecutive_damaged: int = Field(default=20, ge=1)
+    reinit_after_s: float | None = Field(default=1.0, gt=0.0)
 
     @field_validator("baud_rate")
     @classmethod

@@ -4,8 +4,8 @@ clients of their fault channels (line protocols; no driver import: the core stay
 - ``tools/emulators/ursim`` (UR controller, RTDE + dashboard + fault channel on TCP 30200) on a
   random loopback address 127.x.y.z (Linux routes all of 127/8 to lo), so the fixed UR ports never
   collide with another emulator;
-- ``tools/emulators/trackersim`` (Flock of Birds) on a pseudo-terminal, with its control interface
-  on a Unix socket;
+- ``tools/emulators/trackersim`` (Flock of Birds or NDI Aurora) on a pseudo-terminal, with its
+  control interface on a Unix socket;
 - ``tools/emulators/fakegv`` (two fake GigE Vision cameras serving a shared-memory frame block) on
   127.0.0.1 and 127.0.0.2, with its control interface on a Unix socket; started INSIDE the run's
   private network namespace (:mod:`hil.campaign.gige`), dying with the process that started it.
@@ -307,12 +307,18 @@ class TrackerSim:
             self.control_path.unlink()
 
 
-def start_trackersim(log_dir: Path, *, seed: int = 0) -> TrackerSim:
-    """Start ``python -m emulators.trackersim --protocol fob`` (a standalone bird, static poses) on
-    a pty; wait (bounded) for the device path on its first stdout line and its control socket."""
+def start_trackersim(log_dir: Path, *, seed: int = 0, protocol: str = "fob") -> TrackerSim:
+    """Start ``python -m emulators.trackersim --protocol PROTOCOL`` on a pty, static poses (``fob``:
+    a standalone bird; ``aurora``: two wired tools on handles 0A and 0B); wait (bounded) for the
+    device path on its first stdout line and its control socket.
+
+    Raises:
+        EmulatorError: it exited or did not answer within ``START_TIMEOUT_S``.
+    """
     log_path = log_dir / "trackersim.log"
     control = _control_socket_path("trackersim")
-    proc, line = _spawn(["emulators.trackersim", "--protocol", "fob", "--motion", "static",
+    extra = ["--tools", "2"] if protocol == "aurora" else []
+    proc, line = _spawn(["emulators.trackersim", "--protocol", protocol, *extra, "--motion", "static",
                          "--seed", str(seed), "--control", str(control)], log_path)
     if not line.startswith("/dev/"):
         _stop(proc)

@@ -3,8 +3,8 @@ their emulators (docs/campaign.md, "Transport tier").
 
 Each run starts its emulator as a subprocess (the UR emulator on a private loopback address, the
 Flock of Birds emulator on a pty), writes a mixed setup to the run's directory (simulated camera
-and world; the real ``ur_rtde`` robot driver and/or the real ``fob`` tracker driver on the
-emulator), and runs the procedure in real time, bounded. The fault is **state-triggered**: the
+and world; the real ``ur_rtde`` robot driver and/or the real ``fob`` or ``aurora`` tracker driver on
+the emulator), and runs the procedure in real time, bounded. The fault is **state-triggered**: the
 operator sends it through the emulator's fault channel ``delay_s`` after the controller entered
 the target state (and, from then on, holds any pending confirmation until the fault is over, so a
 fault aimed at COMPENSATE or LOCK lands there however fast the machine is). The run is judged with the
@@ -52,6 +52,7 @@ from .runner import RECOVER_SETTLE_S, RunResult, RunSpec, _latency_bound_ms, jud
 from .scenarios import TARGET_STATES, ScenarioSelectionError
 
 Emulator = Literal["ursim", "trackersim", "fakegv"]
+TrackerProtocol = Literal["fob", "aurora"]
 
 #: Watchdog ages for the real-time runs (ms / s): a loaded shared 2-core machine pauses the
 #: simulated camera and the emulators for a few 100 ms; the faults under test are detected from
@@ -87,6 +88,7 @@ class TransportFault:
     duration_s: float
     base: str  # setup the mixed setup is written from, relative to configs/
     what: str  # one line for the docs and the table legend
+    protocol: TrackerProtocol = "fob"  # trackersim rows: the device emulated and the driver used
 
 
 @dataclass(frozen=True)
@@ -103,6 +105,7 @@ class TransportScenario:
     duration_s: float
     delay_s: float
     base: str  # setup the mixed setup is written from, relative to configs/
+    protocol: TrackerProtocol = "fob"
 
     @property
     def device(self) -> str:
@@ -115,7 +118,9 @@ class TransportScenario:
 
 #: Every fault the emulators' fault channels can play (docs/ursim.md, docs/trackers.md), as the
 #: symptom kind the controller sees. RTDE faults go to ``tools/ursim`` and the ``ur_rtde`` driver,
-#: serial faults to ``tools/trackersim`` (Flock of Birds on a pty) and the ``fob`` driver, camera
+#: serial faults to ``tools/trackersim`` (Flock of Birds on a pty) and the ``fob`` driver, Aurora
+#: faults to ``tools/trackersim --protocol aurora`` and the ``aurora`` driver (the reference sensor
+#: in use, :data:`AURORA_PROCEDURE_TRACKING`), camera
 #: faults to ``tools/fakegv`` (two fake GigE cameras serving the simulated world) and the ``aravis``
 #: driver, inside the run's own network namespace (:mod:`hil.campaign.gige`).
 TRANSPORT_FAULTS: tuple[TransportFault, ...] = (
@@ -144,6 +149,23 @@ TRANSPORT_FAULTS: tuple[TransportFault, ...] = (
                    "the bird switches to 9600 baud (host stays at 115200)"),
     TransportFault("serial_silence", "trackersim", FaultKind.TRACKER_TIMEOUT, "fault silence,seconds=1.0",
                    None, 1.0, "sim.toml", "the bird sends nothing for 1 s"),
+    TransportFault("aurora_bad_crc", "trackersim", FaultKind.CORRUPT_RECORD, "fault bad_crc,p=1",
+                   "clear bad_crc", 0.6, "sim.toml", "the CRC of every Aurora reply wrong", "aurora"),
+    TransportFault("aurora_tool_missing", "trackersim", FaultKind.SENSOR_MISSING,
+                   "fault tool_missing,handles=0A", "clear tool_missing", 1.0, "sim.toml",
+                   "the reference tool (handle 0A) not seen: MISSING for 1 s", "aurora"),
+    TransportFault("aurora_out_of_volume", "trackersim", FaultKind.SENSOR_MISSING,
+                   "fault out_of_volume,handles=0A", "clear out_of_volume", 1.0, "sim.toml",
+                   "the reference tool (handle 0A) out of the volume (port status 0x40) for 1 s", "aurora"),
+    TransportFault("aurora_reset", "trackersim", FaultKind.TRACKER_TIMEOUT, "fault reset", None, 1.5,
+                   "sim.toml", "the Aurora resets mid-tracking: RESET at 9600, not tracking", "aurora"),
+    TransportFault("aurora_wrong_baud", "trackersim", FaultKind.TRACKER_TIMEOUT,
+                   "fault wrong_baud,baud=9600", "clear wrong_baud", 0.6, "sim.toml",
+                   "the Aurora leaves the COMM rate for 9600 baud (host stays at 115200)", "aurora"),
+    TransportFault("aurora_comm_baud", "trackersim", FaultKind.TRACKER_TIMEOUT,
+                   "fault comm_baud,baud=57600; fault reset", None, 3.0, "sim.toml",
+                   "the Aurora resets, and the driver's next COMM leaves it at 57600 (host at 115200)",
+                   "aurora"),
     TransportFault("camera_stream_loss", "fakegv", FaultKind.FRAME_DROP, "stream_loss 1.0", None, 1.0,
                    "sim.toml", "both GigE cameras silent (GVCP, GVSP), back on the same addresses after 1 s"),
 )
@@ -158,7 +180,7 @@ TRANSPORT_DELAY_S: dict[str, float] = {"register": 0.2, "approach": 0.3, "gate":
 FAMILIES: tuple[str, ...] = tuple(f.family for f in TRANSPORT_FAULTS)
 TRANSPORT_SCENARIOS: tuple[TransportScenario, ...] = tuple(
     TransportScenario(f"{f.family}@{state}", f.emulator, f.kind, state, f.inject, f.clear, f.duration_s,
-                      TRANSPORT_DELAY_S[state], f.base)
+                      TRANSPORT_DELAY_S[state], f.base, f.protocol)
     for f in TRANSPORT_FAULTS for state in TRANSPORT_STATES
 )
 BY_NAME = {s.name: s for s in TRANSPORT_SCENARIOS}
@@ -193,6 +215,23 @@ def select_transport(patterns: list[str]) -> list[TransportScenario]:
 
 
 # ---------------------------------------------------------------------- the mixed setup
+#: The Aurora rows' reference-sensor use (appended after ``[procedure]``): the patient reference on
+#: handle 0A stands in for the skin markers when they give no rigid change and is checked against
+#: them otherwise (docs/run.md, "The tracker"); the transmitter mounting is the simulated world's.
+AURORA_PROCEDURE_TRACKING = '\n[procedure.tracking]\nreference_sensor = "reference"\n'
+
+
+def aurora_tracker_section(port: str) -> str:
+    """The ``[tracker]`` of an Aurora row: the real ``aurora`` driver on the emulator's pty at
+    115200 after COMM, the two wired tools (reference 0A, needle 0B), the break sent as a NUL (a
+    pty has none), short reply and reset timeouts (a pty answers at once), re-initialisation after
+    1 s without an answer."""
+    return (f'[tracker]\ndriver = "aurora"\nport = "{port}"\nbaud_rate = 115200\n'
+            'sensors = { reference = "0A", needle = "0B" }   # the emulator\'s two wired tools\n'
+            'break_as_nul = true\nreset_timeout_s = 2.0\nresponse_timeout_s = 0.3\ntimeout_s = 0.5\n'
+            "reinit_after_s = 1.0\n\n")
+
+
 def _set_key(text: str, key: str, value: str) -> str:
     text, n = re.subn(rf"^{key} = .*$", f"{key} = {value}", text, count=1, flags=re.MULTILINE)
     if n != 1:
@@ -222,9 +261,13 @@ def write_setup(sc: TransportScenario, out: Path, *, seed: int, ursim_host: str 
     if tracker_port is not None:
         start = text.index("[tracker]\n")
         end = text.index("[calibration]\n")
-        fob = (f'[tracker]\ndriver = "fob"\nport = "{tracker_port}"\nbaud_rate = 115200\n'
-               "sensors = { reference = 0 }   # the emulator's standalone bird\n\n")
-        text = text[:start] + fob + text[end:]
+        if sc.protocol == "aurora":
+            text = (text[:start] + aurora_tracker_section(tracker_port) + text[end:]
+                    + AURORA_PROCEDURE_TRACKING)
+        else:
+            fob = (f'[tracker]\ndriver = "fob"\nport = "{tracker_port}"\nbaud_rate = 115200\n'
+                   "sensors = { reference = 0 }   # the emulator's standalone bird\n\n")
+            text = text[:start] + fob + text[end:]
     path = out / "setup.toml"
     head = f"# transport campaign run: {sc.name}, seed {seed} (written by hil campaign --transport)\n"
     path.write_text(head + text)
@@ -519,7 +562,7 @@ def _prepare(sc: TransportScenario, seed: int, logs: Path) -> _Prepared:
         setup = write_setup(sc, run_dir, seed=seed, ursim_host=ursim.host)
         return _Prepared(TransportSpec(run_id, sc.name, seed, str(setup), str(_plan(sc)), str(logs),
                                        ursim_host=ursim.host), ursim.stop)
-    tracker = start_trackersim(run_dir, seed=seed)
+    tracker = start_trackersim(run_dir, seed=seed, protocol=sc.protocol)
     setup = write_setup(sc, run_dir, seed=seed, tracker_port=tracker.port)
     return _Prepared(TransportSpec(run_id, sc.name, seed, str(setup), str(_plan(sc)), str(logs),
                                    tracker_control=str(tracker.control_path)), tracker.stop)

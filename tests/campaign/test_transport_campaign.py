@@ -92,7 +92,8 @@ def test_the_matrix_is_every_family_in_every_state() -> None:
     assert FAMILIES == ("rtde_protective_stop", "rtde_estop", "rtde_drop_connection", "rtde_pause_stream",
                         "rtde_stop_program", "rtde_slow_responses", "rtde_stall", "serial_garbage",
                         "serial_truncate", "serial_lost_phase", "serial_wrong_baud", "serial_silence",
-                        "camera_stream_loss")
+                        "aurora_bad_crc", "aurora_tool_missing", "aurora_out_of_volume", "aurora_reset",
+                        "aurora_wrong_baud", "aurora_comm_baud", "camera_stream_loss")
     assert {s.state for s in TRANSPORT_SCENARIOS} == {"register", "approach", "gate", "compensate", "lock"}
     lock = BY_NAME["rtde_estop@lock"]
     assert (lock.emulator, lock.kind, lock.inject, lock.clear, lock.delay_s) == (

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
 from emulators.trackersim.poses import StaticPoses
 from pydantic import ValidationError
 
-from drivers.interfaces.errors import DeviceFaultError, DeviceTimeoutError, ProtocolError
+from drivers.interfaces.errors import DeviceFaultError, DeviceTimeoutError, DriverError, ProtocolError
 from drivers.interfaces.tracker import TrackerSample
 from drivers.tracker_serial.aurora import AuroraTracker
 from drivers.tracker_serial.config import AuroraConfig
@@ -148,8 +150,9 @@ def test_unconfigured_handle_is_a_device_fault(aurora_emulator: AuroraFactory) -
 
 
 def test_device_reset_mid_tracking_is_a_device_fault(aurora_emulator: AuroraFactory) -> None:
+    """Without re-initialisation the refusal stays (reinit_after_s = None)."""
     dev = aurora_emulator()
-    tracker = AuroraTracker(_config(dev.link.path, timeout_s=30.0))
+    tracker = AuroraTracker(_config(dev.link.path, timeout_s=30.0, reinit_after_s=None))
     with tracker:
         wait_until(lambda: "needle" in tracker.latest(), what="first frame")
         with dev.lock:
@@ -164,6 +167,156 @@ def test_device_reset_mid_tracking_is_a_device_fault(aurora_emulator: AuroraFact
             return False
 
         wait_until(faulted, what="DeviceFaultError")
+        assert not dev.tracking
+
+
+def _raises(tracker: AuroraTracker, error: type[Exception]) -> Callable[[], bool]:
+    def check() -> bool:
+        try:
+            tracker.latest()
+        except error:
+            return True
+        return False
+    return check
+
+
+def _fresh_pose(tracker: AuroraTracker, sensor: str, after_seq: int) -> Callable[[], bool]:
+    def check() -> bool:
+        try:
+            s = tracker.latest().get(sensor)
+        except DriverError:
+            return False
+        return s is not None and not s.missing and s.seq != after_seq
+    return check
+
+
+def test_device_reset_at_the_comm_rate_is_re_initialised(aurora_emulator: AuroraFactory) -> None:
+    """The reset fault (RESET at 9600, tracking stopped) while the host is at 115200: the polls get
+    no answer, latest() times out, the driver runs the start-up again and frames flow again."""
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, timeout_s=0.3, response_timeout_s=0.2, reinit_after_s=0.4))
+    rec = Recorder()
+    tracker.add_listener(rec)
+    with tracker:
+        wait_until(lambda: rec.count("needle") >= 5, what="first frames")
+        before = rec.samples[-1].seq
+        dev.faults.inject("reset", dev.now_s())
+        wait_until(_raises(tracker, DeviceTimeoutError), what="DeviceTimeoutError after the reset")
+        wait_until(lambda: dev.tracking and dev.baud == 115200, what="the driver's start-up again")
+        wait_until(_fresh_pose(tracker, "needle", before), what="frames after the reset")
+        after = tracker.latest()
+    assert dev.faults.fired["reset"] == 1
+    assert after["needle"].seq < before  # the frame counter restarted with TSTART
+    _assert_matches(after["needle"], _truth(dev, "0A"), 1e-3)
+
+
+def test_device_reset_seen_at_the_same_rate_is_re_initialised(aurora_emulator: AuroraFactory) -> None:
+    """A reset seen as ERROR0C (host and device both at 9600): DeviceFaultError, then tracking again."""
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, baud_rate=9600, timeout_s=30.0, reinit_after_s=0.3))
+    with tracker:
+        wait_until(lambda: "needle" in tracker.latest(), what="first frame")
+        seq = tracker.latest()["needle"].seq
+        with dev.lock:
+            dev.reset()
+        wait_until(lambda: dev.tracking, what="the driver's start-up again")
+        wait_until(_fresh_pose(tracker, "needle", seq), what="frames after the reset")
+
+
+def test_a_wrong_baud_after_comm_in_the_restart_is_retried(aurora_emulator: AuroraFactory) -> None:
+    """The device resets, and the COMM of the driver's start-up leaves it at 57600 instead of
+    115200: VER gets no valid reply, that attempt fails (the condition stays), the next one after
+    reinit_after_s succeeds."""
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, timeout_s=0.3, response_timeout_s=0.2, reinit_after_s=0.4))
+    failures: list[str] = []
+    tracker.log = _Spy(tracker.log, failures)
+    with tracker:
+        wait_until(lambda: "needle" in tracker.latest(), what="first frame")
+        seq = tracker.latest()["needle"].seq
+        dev.faults.inject("comm_baud,baud=57600", dev.now_s())
+        dev.faults.inject("reset", dev.now_s())
+        wait_until(lambda: dev.faults.fired["comm_baud"] == 1, what="the COMM to the wrong rate")
+        wait_until(_fresh_pose(tracker, "needle", seq), what="frames after the second start-up")
+        assert dev.baud == 115200
+    assert len(failures) == 1
+    assert "no valid reply at 115200 baud after COMM" in failures[0]
+
+
+class _Spy:
+    """A logger stand-in that keeps the errors of ``tracker_reinit_failed`` and passes all on."""
+
+    def __init__(self, log: Any, failures: list[str]) -> None:
+        self._log, self._failures = log, failures
+
+    def warning(self, event: str, **fields: Any) -> None:
+        if event == "tracker_reinit_failed":
+            self._failures.append(str(fields["error"]))
+        self._log.warning(event, **fields)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._log, name)
+
+
+def test_no_answer_without_re_initialisation_stays_a_timeout(aurora_emulator: AuroraFactory) -> None:
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, timeout_s=0.2, response_timeout_s=0.1,
+                                    reinit_after_s=None))
+    with tracker:
+        wait_until(lambda: "needle" in tracker.latest(), what="first frame")
+        dev.faults.inject("reset", dev.now_s())
+        wait_until(_raises(tracker, DeviceTimeoutError), what="DeviceTimeoutError")
+        assert not dev.tracking  # nobody started it again
+
+
+def test_wrong_baud_mid_tracking_times_out_then_recovers(aurora_emulator: AuroraFactory) -> None:
+    """The device leaves the COMM rate (runs at 57600): the host's polls are framing errors to it,
+    so no answer; once it is back at the COMM rate, frames flow again."""
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, timeout_s=0.2, response_timeout_s=0.1, reinit_after_s=0.5))
+    with tracker:
+        wait_until(lambda: "needle" in tracker.latest(), what="first frame")
+        seq = tracker.latest()["needle"].seq
+        dev.faults.inject("wrong_baud,baud=57600", dev.now_s())
+        wait_until(_raises(tracker, DeviceTimeoutError), what="DeviceTimeoutError")
+        dev.faults.clear("wrong_baud")
+        wait_until(_fresh_pose(tracker, "needle", seq), what="frames at the COMM rate again")
+
+
+def test_bad_crc_on_every_reply_is_a_protocol_error_until_cleared(aurora_emulator: AuroraFactory) -> None:
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path, timeout_s=30.0, max_consecutive_damaged=5))
+    with tracker:
+        wait_until(lambda: "needle" in tracker.latest(), what="first frame")
+        seq = tracker.latest()["needle"].seq
+        dev.faults.inject("bad_crc,p=1", dev.now_s())
+        wait_until(_raises(tracker, ProtocolError), what="ProtocolError")
+        with pytest.raises(ProtocolError, match="5 damaged records in a row"):
+            tracker.latest()
+        dev.faults.clear("bad_crc")
+        wait_until(_fresh_pose(tracker, "needle", seq), what="valid frames again")
+        assert dev.tracking  # damaged replies never re-initialise a device that answers
+
+
+@pytest.mark.parametrize(("fault", "flags"), [("tool_missing,handles=0B", ("missing",)),
+                                              ("out_of_volume,handles=0B", ("out_of_volume",))])
+def test_a_tool_going_missing_mid_tracking(aurora_emulator: AuroraFactory, fault: str,
+                                           flags: tuple[str, ...]) -> None:
+    """The reference (0B) missing or out of volume: a missing sample, no pose, the other tool still
+    tracked, no error; the pose is back when the fault ends."""
+    dev = aurora_emulator()
+    tracker = AuroraTracker(_config(dev.link.path))
+    with tracker:
+        wait_until(lambda: "reference" in tracker.latest(), what="first frame")
+        dev.faults.inject(fault, dev.now_s())
+        wait_until(lambda: tracker.latest()["reference"].missing, what="reference missing")
+        latest = tracker.latest()
+        assert latest["reference"].T_tracker_from_sensor is None
+        assert latest["reference"].flags == flags
+        assert not latest["needle"].missing
+        dev.faults.clear()
+        wait_until(lambda: not tracker.latest()["reference"].missing, what="reference back")
+        _assert_matches(tracker.latest()["reference"], _truth(dev, "0B"), 1e-3)
 
 
 def test_frame_numbers_map_to_host_time_through_the_least_delayed_reply() -> None:

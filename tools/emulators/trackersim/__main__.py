@@ -8,8 +8,12 @@ answering one line (``ok ...`` or ``error: ...``):
 
     fault SPEC        arm a fault (syntax in emulators.trackersim.faults, e.g. ``fault garbage,count=3``)
     clear [KIND]      disarm one kind, or all faults
-    reset             power cycle the device (a pty has no RTS line to do it)
+    reset             power cycle the device, silently (a pty has no RTS line to do it); the
+                      Aurora's ``fault reset`` is a reset that also sends RESET, as a device does
     status            one JSON object: protocol, baud, host_baud, faults fired, device state
+
+Several commands may share a line, separated by ``;`` (run in order under the device lock, so
+nothing happens between them; the answer is the first error, or ``ok``).
 """
 
 from __future__ import annotations
@@ -36,9 +40,35 @@ from emulators.trackersim.pty_link import PtyLink
 from hil.errors import HilError
 from hil.log import configure_logging
 
+EPILOG = """\
+fault SPEC (--fault, or the control interface's "fault SPEC"):
+  KIND[,count=N][,p=P][,seconds=S][,after=S][,bytes=N][,mask=M][,baud=B][,handles=H+H][,seed=K]
+  garbage        random bytes inserted into a record/reply (bytes=N, mask=0x7f)
+  truncate       the tail of a record/reply dropped
+  lost_phase     (fob) the phasing bit of a record cleared
+  bad_crc        (aurora) the CRC of a reply wrong (ASCII: last digit; BX: body CRC)
+  silence        nothing sent, for seconds=S or until cleared
+  wrong_baud     the device runs at baud=B (fob: its dip switches; aurora: instead of the COMM rate)
+  tool_missing   (aurora) tools on handles=0A+0B (default all) MISSING, for seconds=S or until cleared
+  out_of_volume  (aurora) tools on handles out of volume (port status 0x40; MISSING without
+                 reply option 0x0800), for seconds=S or until cleared
+  reset          (aurora) the device resets mid-session: RESET sent at 9600, back at 9600 baud,
+                 not initialised, not tracking
+  comm_baud      (aurora) the next COMM (count=N: the next N) answered OKAY, but the device
+                 then runs at baud=B instead of the rate asked
+  count=N: the next N records/replies; p=P: each with probability P; after=S: armed S s later.
+
+control interface (--control PATH; one line in, one line out: "ok ..." or "error: ..."):
+  fault SPEC | clear [KIND] | reset (silent power cycle) | status (JSON); several on one line
+  separated by ";" (run together, under the device lock), e.g.
+  echo 'fault comm_baud,baud=57600; fault reset' | socat - UNIX-CONNECT:/tmp/aurora.sock
+  or echo 'fault tool_missing,handles=0A,seconds=1' | socat - UNIX-CONNECT:/tmp/aurora.sock
+"""
+
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="trackersim", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="trackersim", description=__doc__.split("\n\n")[0], epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--protocol", choices=["fob", "aurora"], required=True)
     p.add_argument("--baud", type=int, default=115200,
                    help="fob: the baud rate set by the Bird's dip switches (default 115200); "
@@ -89,7 +119,17 @@ def make_device(args: argparse.Namespace, link: PtyLink, faults: Faults) -> Emul
 
 
 def control_command(device: EmulatedDevice, line: str) -> str:
-    """Execute one control-interface line; returns the answer line."""
+    """Execute one control-interface line (one command, or several separated by ``;``); returns
+    the answer line: the first error, else the last answer."""
+    answer = "ok"
+    for part in line.split(";"):
+        answer = _one_command(device, part)
+        if not answer.startswith("ok"):
+            return answer
+    return answer
+
+
+def _one_command(device: EmulatedDevice, line: str) -> str:
     verb, _, rest = line.strip().partition(" ")
     try:
         if verb == "fault":

@@ -8,13 +8,22 @@ both command forms (``NAME:params`` + CRC, ``NAME params``); ``ERROR04`` for a b
 ``ERROR01`` unknown command, ``ERROR0C`` invalid in the current mode, ``ERROR0E``/``ERROR0F`` port
 not initialised/enabled, ``ERROR10`` system not initialised.
 
-Reset: a pty carries no serial break. The receiver of a real UART reads a break as a NUL byte
+Break: a pty carries no serial break. The receiver of a real UART reads a break as a NUL byte
 (a framing error with all-zero data), so the emulator takes a NUL byte from the host as the
 break (the driver's ``break_as_nul`` option sends one). NUL never occurs in a valid command.
 
 Tool status: a sensor whose pose source gives None is ``MISSING``; a pose outside the box
-volume is reported with the out-of-volume port status bit (0x40), one within ``margin_mm`` of a
-face with the partially-in-volume bit (0x80). Frame numbers count at ``frame_rate_hz``.
+volume gets the out-of-volume port status bit (0x40) and is sent with its transform only when the
+host asked for out-of-volume transforms (reply option 0x0800), else as ``MISSING`` with that bit;
+one within ``margin_mm`` of a face gets the partially-in-volume bit (0x80). Frame numbers count at
+``frame_rate_hz``. The faults ``tool_missing`` and ``out_of_volume`` put the chosen handles in those
+states whatever their pose; ``reset`` resets the device mid-session (below); ``comm_baud`` makes
+the next COMM leave the device at another rate than the one asked (after its OKAY).
+
+Reset: a break (see below), the ``reset`` fault or the control interface's ``reset``: back to the
+power-up state (9600 baud, not initialised, not tracking, handles neither initialised nor
+enabled, the frame counter restarted). After a break and after the ``reset`` fault the device sends
+``RESETBE6F`` at 9600 baud (a host still at the COMM rate reads it as noise).
 
 The bytes come from the emulator's own encoder (:mod:`emulators.trackersim.ndi_wire`), written
 from the manual's facts and independent of the driver's codec.
@@ -134,7 +143,8 @@ class AuroraDevice(EmulatedDevice):
             self._reply_error(0x06 if len(params) == 5 else 0x07)
             return
         self._reply(nw.OKAY)  # at the old settings
-        self.baud = nw.COMM_BAUD[params[0]]
+        wrong = self.faults.fire("comm_baud", self.now_s())
+        self.baud = nw.COMM_BAUD[params[0]] if wrong is None or wrong.baud is None else wrong.baud
 
     def _cmd_ver(self, params: str) -> None:
         self._reply("NDI AURORA Control Firmware\nFreeze Tag: AURORA Rev 008\n"
@@ -225,18 +235,24 @@ class AuroraDevice(EmulatedDevice):
             return None
         frame = self.frame_number()
         now = self.now_s()
+        gone = self.faults.fire("tool_missing", now)
+        away = self.faults.fire("out_of_volume", now)
         tools = []
         for h, st in sorted(self.handles.items()):
             if not st & _PS.ENABLED:
                 continue
-            T = self.poses.pose(f"{h:02X}", now)
+            T = None if gone is not None and gone.hits(h) else self.poses.pose(f"{h:02X}", now)
             if T is None:
                 tools.append(nw.ToolFrame(h, None, int(st), frame))
+                continue
+            bits = int(_PS.OUT_OF_VOLUME) if away is not None and away.hits(h) else self._volume_bits(T.t)
+            if bits & _PS.OUT_OF_VOLUME and not mode & nw.REPLY_OUT_OF_VOLUME:
+                tools.append(nw.ToolFrame(h, None, int(st) | bits, frame))  # not normally reported
                 continue
             q = T.as_quaternion()
             pose = (float(q[0]), float(q[1]), float(q[2]), float(q[3]),
                     float(T.t[0]), float(T.t[1]), float(T.t[2]), _RMS_ERROR)
-            tools.append(nw.ToolFrame(h, pose, int(st) | self._volume_bits(T.t), frame))
+            tools.append(nw.ToolFrame(h, pose, int(st) | bits, frame))
         return tools
 
     def _volume_bits(self, p: np.ndarray) -> int:
@@ -257,5 +273,8 @@ class AuroraDevice(EmulatedDevice):
             self.send(self._damage(nw.bx_reply(tools, _SYSTEM_STATUS), ascii_reply=False))
 
     def tick(self) -> float:
+        if self.faults.fire("reset", self.now_s()) is not None:
+            self.reset()
+            self.send(nw.reset_reply())  # at 9600, whatever the host's rate
         return 0.02
 

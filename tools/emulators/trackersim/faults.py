@@ -9,11 +9,23 @@ Kinds:
     silence     the device sends nothing (for ``seconds=S``, or until cleared)
     wrong_baud  the device runs at ``baud=B`` instead of what the host expects (Flock: its dip
                 switch; Aurora: where COMM switches it)
+    tool_missing  (Aurora) the tools on ``handles=0A+0B`` (default: every tool) are not seen: TX
+                ``MISSING`` / BX handle status 0x02, port status and frame number still sent
+                (for ``seconds=S``, or until cleared)
+    out_of_volume (Aurora) the tools on ``handles`` are out of the measurement volume: port status
+                bit 0x40; with reply option 0x0800 the transform is still sent, without it the
+                tool is reported ``MISSING`` (for ``seconds=S``, or until cleared)
+    reset       (Aurora) the device resets by itself mid-session (a power dip): it sends
+                ``RESET`` + CRC at 9600 baud, is back at 9600 baud, not initialised, not tracking
+    comm_baud   (Aurora) the next COMM (``count=N``: the next N) is answered ``OKAY`` at the old
+                rate as usual, but the device then runs at ``baud=B`` instead of the rate asked
 
 A spec string (command line ``--fault``, control interface ``fault``):
-``KIND[,count=N][,p=P][,seconds=S][,after=S][,bytes=N][,mask=M][,baud=B][,seed=K]``. ``count`` arms the
-fault for the next N records/replies (default 1 when neither ``count`` nor ``p`` is given),
-``p`` fires it with probability P on each, ``after`` delays arming by S seconds of emulator time.
+``KIND[,count=N][,p=P][,seconds=S][,after=S][,bytes=N][,mask=M][,baud=B][,handles=H+H][,seed=K]``.
+``count`` arms the fault for the next N records/replies (default 1 when neither ``count`` nor ``p``
+is given; ``silence``, ``tool_missing`` and ``out_of_volume`` then hold for ``seconds``, or until
+cleared), ``p`` fires it with probability P on each, ``after`` delays arming by S seconds of
+emulator time.
 """
 
 from __future__ import annotations
@@ -22,7 +34,10 @@ import random
 import threading
 from dataclasses import dataclass
 
-KINDS = ("garbage", "truncate", "lost_phase", "bad_crc", "silence", "wrong_baud")
+KINDS = ("garbage", "truncate", "lost_phase", "bad_crc", "silence", "wrong_baud", "tool_missing",
+         "out_of_volume", "reset", "comm_baud")
+#: Kinds that hold for a time window (``seconds=S`` or until cleared) when given no count and no p.
+WINDOW_KINDS = ("tool_missing", "out_of_volume")
 
 
 @dataclass
@@ -35,7 +50,12 @@ class FaultSpec:
     n_bytes: int | None = None
     mask: int = 0xFF
     baud: int | None = None
+    handles: tuple[int, ...] | None = None  # Aurora port handles hit (None: every tool)
     seed: int | None = None
+
+    def hits(self, handle: int) -> bool:
+        """Whether the fault applies to the Aurora port handle ``handle``."""
+        return self.handles is None or handle in self.handles
 
 
 def parse_fault(spec: str) -> FaultSpec:
@@ -67,14 +87,18 @@ def parse_fault(spec: str) -> FaultSpec:
                 out.mask = int(value, 0) & 0xFF
             elif key == "baud":
                 out.baud = int(value)
+            elif key == "handles":
+                out.handles = tuple(int(h, 16) for h in value.split("+"))
+                if not out.handles or any(not 0 <= h <= 0xFF for h in out.handles):
+                    raise ValueError("handles must be port handles (2 hex digits) joined by +")
             elif key == "seed":
                 out.seed = int(value)
             else:
                 raise ValueError(f"unknown key {key!r}")
         except ValueError as exc:
             raise ValueError(f"fault {spec!r}: {exc}") from exc
-    if out.kind == "wrong_baud" and out.baud is None:
-        raise ValueError(f"fault {spec!r}: wrong_baud needs baud=B")
+    if out.kind in ("wrong_baud", "comm_baud") and out.baud is None:
+        raise ValueError(f"fault {spec!r}: {out.kind} needs baud=B")
     return out
 
 
@@ -83,6 +107,7 @@ class _Armed:
     spec: FaultSpec
     remaining: int | None
     start_s: float
+    until_s: float | None = None  # a window kind's end (None: until cleared)
 
 
 class Faults:
@@ -112,6 +137,10 @@ class Faults:
                 else:
                     self._silence_until_s = now_s + s.after_s + s.seconds
                 self._armed["silence"] = _Armed(s, None, now_s + s.after_s)
+                return
+            if s.kind in WINDOW_KINDS and s.count is None and s.p is None:
+                start = now_s + s.after_s
+                self._armed[s.kind] = _Armed(s, None, start, None if s.seconds is None else start + s.seconds)
                 return
             remaining = s.count if s.count is not None else (None if s.p is not None else 1)
             self._armed[s.kind] = _Armed(s, remaining, now_s + s.after_s)
@@ -151,6 +180,9 @@ class Faults:
         with self._lock:
             a = self._armed.get(kind)
             if a is None or now_s < a.start_s:
+                return None
+            if a.until_s is not None and now_s >= a.until_s:
+                del self._armed[kind]
                 return None
             hit = self.rng.random() < a.spec.p if a.spec.p is not None else True
             if hit and a.remaining is not None:
