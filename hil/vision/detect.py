@@ -336,13 +336,14 @@ def fit_rings(edges: RingEdges, params: DetectParams) -> list[RingDetection | No
     var_i = 2.0 * np.maximum(ri, 0.01) ** 2 / np.maximum(ni, 1)
     sigma = np.sqrt(wo * wo * var_o + wi * wi * var_i)
     resid = np.sqrt((ro**2 * no + ri**2 * ni) / np.maximum(no + ni, 1))
-    for k in np.nonzero(ok)[0]:
-        eo, ei = f.ellipse(int(k)), f.ellipse(m + int(k))
-        assert eo is not None
-        assert ei is not None
-        j = int(idx[k])
-        out[j] = RingDetection(center[k], float(sigma[k]), eo, ei, float(resid[k]),
-                               bool(edges.dark_on_light[j]), float(edges.frac[j]))
+    keep = np.nonzero(ok)[0]
+    outers, inners = f.ellipses(keep), f.ellipses(keep + m)
+    rows = idx[keep]
+    centers = center[keep]
+    sig, res = sigma[keep].tolist(), resid[keep].tolist()
+    dol, frac = edges.dark_on_light[rows].tolist(), edges.frac[rows].tolist()
+    for k, j in enumerate(rows.tolist()):
+        out[j] = RingDetection(centers[k], sig[k], outers[k], inners[k], res[k], dol[k], frac[k])
     return out
 
 

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from hil.vision.sym3 import adj_sym3, det_sym3, ellipse_eigvec
+
 FloatArray = NDArray[np.float64]
 
 
@@ -196,23 +198,10 @@ def projected_center_from_normal(C_px: FloatArray, K: FloatArray, normal_cam: Fl
     return np.array([p0 / p2, p1 / p2])
 
 
-#: the ellipse constraint 4ac - b^2 as a quadratic form of (a, b, c)
-_C1 = np.array([[0.0, 0.0, 2.0], [0.0, -1.0, 0.0], [2.0, 0.0, 0.0]])
-
-
-def _cholesky_rows(A: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Cholesky factors of a stack of symmetric 3x3 matrices and which were positive definite
-    (the others get the identity)."""
-    try:
-        return np.asarray(np.linalg.cholesky(A), dtype=np.float64), np.ones(A.shape[0], dtype=bool)
-    except np.linalg.LinAlgError:
-        pd = np.asarray(np.linalg.eigvalsh(A)[:, 0] > 0, dtype=np.bool_)
-        return np.asarray(np.linalg.cholesky(np.where(pd[:, None, None], A, np.eye(3))), dtype=np.float64), pd
-
-
 def _direct_fit_batch(X: FloatArray, Y: FloatArray, W: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Weighted direct ellipse fits of E point sets at once: X, Y, W are (E, R) (weight 0 = unused
-    point). Returns conics (E, 3, 3) (normalised) and a validity mask (E,)."""
+    point). Returns conics (E, 3, 3) (normalised) and a validity mask (E,). The 3x3 algebra is in
+    closed form (:mod:`hil.vision.sym3`): the same fit as :func:`fit_conic_direct`."""
     n = W.sum(axis=1)
     ok = n >= 6
     n = np.where(ok, n, 1.0)
@@ -225,37 +214,30 @@ def _direct_fit_batch(X: FloatArray, Y: FloatArray, W: FloatArray) -> tuple[Floa
     D = np.stack([xn * xn, xn * yn, yn * yn, xn, yn, np.ones_like(xn)], axis=1)  # (E, 6, R)
     S = (D * W[:, None, :]) @ np.transpose(D, (0, 2, 1))
     S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
-    det3 = np.linalg.det(S3)
+    det3 = det_sym3(S3)
     ok &= np.abs(det3) > 1e-12
-    S3 = np.where(ok[:, None, None], S3, np.eye(3))
-    T = -np.linalg.solve(S3, np.transpose(S2, (0, 2, 1)))
-    # reduced scatter Sr = S1 - S2 S3^-1 S2^T (symmetric, positive semi-definite); the fit is the
-    # generalised eigenvector Sr a = lambda C1 a with a^T C1 a = 4ac - b^2 > 0 (Halir & Flusser).
-    # Symmetric form: Sr = L L^T, B = L^-1 C1 L^-T; the one positive eigenvalue of B gives a = L^-T v.
+    # T = -S3^-1 S2^T (Halir & Flusser); reduced scatter Sr = S1 + S2 T = S1 - S2 S3^-1 S2^T
+    T = adj_sym3(S3) @ np.transpose(S2, (0, 2, 1)) * (-1.0 / np.where(ok, det3, 1.0))[:, None, None]
     Sr = S1 + S2 @ T
     Sr = 0.5 * (Sr + np.transpose(Sr, (0, 2, 1)))
     Sr = np.where(np.isfinite(Sr), Sr, 0.0)
-    tr = np.trace(Sr, axis1=1, axis2=2)
+    tr = Sr[:, 0, 0] + Sr[:, 1, 1] + Sr[:, 2, 2]
     pos = ok & (tr > 0)
     Sr = np.where(pos[:, None, None], Sr + (1e-12 * tr)[:, None, None] * np.eye(3), np.eye(3))
-    L, pd = _cholesky_rows(Sr)
-    pos &= pd
-    Li = np.linalg.inv(L)
-    B = Li @ _C1 @ np.transpose(Li, (0, 2, 1))
-    mu, V = np.linalg.eigh(B)
-    a1 = np.einsum("eji,ej->ei", Li, V[:, :, 2])  # L^-T v of the largest (the positive) eigenvalue
-    ok &= pos & (mu[:, 2] > 0) & (4.0 * a1[:, 0] * a1[:, 2] - a1[:, 1] ** 2 > 0)
+    # the fit is the generalised eigenvector Sr a = lambda C1 a with lambda > 0 (4ac - b^2 > 0)
+    a1, _, good = ellipse_eigvec(Sr)
+    ok &= pos & good & (4.0 * a1[:, 0] * a1[:, 2] - a1[:, 1] ** 2 > 0)
     a2 = np.einsum("eij,ej->ei", T, a1)
-    a, b, c = a1[:, 0], a1[:, 1], a1[:, 2]
-    d, e, f = a2[:, 0], a2[:, 1], a2[:, 2]
-    Cn = np.stack(
-        [np.stack([a, b / 2, d / 2], -1), np.stack([b / 2, c, e / 2], -1), np.stack([d / 2, e / 2, f], -1)], 1
-    )
+    Cn = np.empty((X.shape[0], 3, 3))
+    Cn[:, 0, 0], Cn[:, 1, 1], Cn[:, 2, 2] = a1[:, 0], a1[:, 2], a2[:, 2]
+    Cn[:, 0, 1] = Cn[:, 1, 0] = 0.5 * a1[:, 1]
+    Cn[:, 0, 2] = Cn[:, 2, 0] = 0.5 * a2[:, 0]
+    Cn[:, 1, 2] = Cn[:, 2, 1] = 0.5 * a2[:, 1]
     N = np.zeros((X.shape[0], 3, 3))
     N[:, 0, 0] = N[:, 1, 1] = 1.0 / s
     N[:, 0, 2], N[:, 1, 2], N[:, 2, 2] = -mx / s, -my / s, 1.0
     C = np.transpose(N, (0, 2, 1)) @ Cn @ N
-    C /= np.linalg.norm(C, axis=(1, 2), keepdims=True)
+    C /= np.sqrt(np.einsum("eij,eij->e", C, C))[:, None, None]
     return C, ok
 
 
@@ -288,6 +270,14 @@ class EllipseArrays:
         return Ellipse(self.center_px[i].copy(), float(self.a_px[i]), float(self.b_px[i]),
                        float(self.angle_rad[i]), self.conic[i], float(self.residual_rms_px[i]),
                        int(self.n_points[i]))
+
+    def ellipses(self, rows: NDArray[np.intp]) -> list[Ellipse]:
+        """:meth:`ellipse` of each of ``rows`` (all of them good), built with a few array calls."""
+        centers, conics = self.center_px[rows], self.conic[rows]
+        a, b = self.a_px[rows].tolist(), self.b_px[rows].tolist()
+        ang, res = self.angle_rad[rows].tolist(), self.residual_rms_px[rows].tolist()
+        n = self.n_points[rows].tolist()
+        return [Ellipse(centers[k], a[k], b[k], ang[k], conics[k], res[k], n[k]) for k in range(len(a))]
 
 
 def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> EllipseArrays:

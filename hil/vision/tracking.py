@@ -223,7 +223,7 @@ class ImageTracker:
         """Per track, the largest accepted distance of a detection from its prediction (px)."""
         half = np.array([_window_half_px(t.det, self.params.window_margin_px) for t in self._tracks])
         if preds.shape[0] > 1:
-            d = np.linalg.norm(preds[:, None, :] - preds[None, :, :], axis=2)
+            d = _distances(preds, preds)
             np.fill_diagonal(d, np.inf)
             half = np.minimum(half, 0.5 * d.min(axis=1))
         return half
@@ -236,7 +236,8 @@ class ImageTracker:
         gates = self._gates(preds)
         h, w = img.shape
         centres = np.array([[np.nan, np.nan] if d is None else d.center_px for d in found])
-        dist = np.linalg.norm(centres - preds, axis=1)
+        dd = centres - preds
+        dist = np.sqrt(dd[:, 0] * dd[:, 0] + dd[:, 1] * dd[:, 1])
         for i in np.nonzero(~(dist <= gates))[0]:
             half = _window_half_px(tracks[i].det, self.params.window_margin_px)
             x, y = preds[i]
@@ -253,7 +254,7 @@ class ImageTracker:
             dist[i] = float(np.linalg.norm(centres[i] - preds[i]))
         # two markers never take the same detection: the one nearer its prediction keeps it
         if len(found) > 1:
-            sep = np.linalg.norm(centres[:, None, :] - centres[None, :, :], axis=2)
+            sep = _distances(centres, centres)
             b = np.array([np.nan if d is None else d.outer.b_px for d in found])
             close = sep < 0.5 * np.minimum(b[:, None], b[None, :])
             np.fill_diagonal(close, False)
@@ -263,14 +264,21 @@ class ImageTracker:
         return found
 
     def _advance(self, dets: list[RingDetection], dt: float) -> None:
-        for t, det in zip(self._tracks, dets, strict=True):
-            t.velocity_px_s = self._velocity(det.center_px - t.det.center_px, dt)
+        if not dets:
+            return
+        step = np.array([d.center_px for d in dets]) - np.array([t.det.center_px for t in self._tracks])
+        move = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1])
+        vmax = self.params.max_speed_px_per_frame
+        scale = np.where(move <= vmax, 1.0, vmax / np.where(move > 0, move, 1.0))
+        velocities = step * (scale / dt)[:, None]  # :meth:`_velocity` of every track at once
+        for t, det, v in zip(self._tracks, dets, velocities, strict=True):
+            t.velocity_px_s = v
             t.det = det
 
     def _velocity(self, step_px: FloatArray, dt: float) -> FloatArray:
         """Velocity (px per second, or per frame without timestamps) of a move of ``step_px`` in
         ``dt``, its move per frame clamped to ``max_speed_px_per_frame``."""
-        move = float(np.hypot(step_px[0], step_px[1]))
+        move = math.sqrt(float(step_px[0]) ** 2 + float(step_px[1]) ** 2)
         vmax = self.params.max_speed_px_per_frame
         scale = 1.0 if move <= vmax else vmax / move
         return np.asarray(step_px * (scale / dt), dtype=np.float64)
@@ -296,6 +304,13 @@ class ImageTracker:
             self._expected, self._missing_since = len(new), None
         elif self._missing_since is None:
             self._missing_since = self.stats.frames
+
+
+def _distances(p: FloatArray, q: FloatArray) -> FloatArray:
+    """Pairwise distances (len(p), len(q)) of two point sets (N, 2), (M, 2), px."""
+    dx = p[:, None, 0] - q[None, :, 0]
+    dy = p[:, None, 1] - q[None, :, 1]
+    return np.asarray(np.sqrt(dx * dx + dy * dy), dtype=np.float64)
 
 
 def _window_half_px(det: RingDetection, margin_px: float) -> float:
