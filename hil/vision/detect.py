@@ -214,7 +214,7 @@ def _ring_in_mask(dark: U8Image, params: DetectParams) -> tuple[Contour, Contour
         contours, hier_raw = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
         if len(contours) == 0:
             continue
-        hier = np.asarray(hier_raw).reshape(-1, 4)
+        hier: list[list[int]] = np.asarray(hier_raw, dtype=np.int64).reshape(-1, 4).tolist()
         tops = [i for i in range(len(contours)) if hier[i][3] == -1]
         rects = {i: cv2.boundingRect(contours[i]) for i in tops}
         best: tuple[float, Contour, Contour] | None = None
@@ -268,22 +268,37 @@ def _initial_ellipse(pts: Contour) -> tuple[FloatArray, float, float, float]:
 
 
 # ---- 3.+4. sub-pixel edges, fits, ring check ------------------------------------------------
-def seed_from_contours(
+_SeedRow = tuple[float, float, float, float, float, float, float, float, bool]
+
+
+def _seed_row(
     x0: int, y0: int, outer_pts: Contour, inner_pts: Contour, dark_on_light: bool, params: DetectParams
-) -> RingSeeds | None:
-    """The ray seed of one coarse ring hypothesis of a ROI at (x0, y0): origin at the outer
-    contour's ellipse centre, radii of the contours' ellipses (None: outer size out of range)."""
+) -> _SeedRow | None:
+    """:func:`seed_from_contours` as one row: origin x, y, outer a, b, angle, inner a, b, angle,
+    polarity."""
     c0, ao, bo, ango = _initial_ellipse(outer_pts)
     _, ai, bi, angi = _initial_ellipse(inner_pts)
     if not params.min_outer_px <= 2 * ao <= params.max_outer_px:
         return None
     # outer contour pixels lie ~0.5 px inside the edge, hole pixels ~0.5 px outside it
-    return RingSeeds(
-        np.array([[c0[0] + x0, c0[1] + y0]]),
-        np.array([[ao + 0.5, bo + 0.5, ango]]),
-        np.array([[max(ai - 0.5, 0.8), max(bi - 0.5, 0.8), angi]]),
-        np.array([dark_on_light]),
-    )
+    return (float(c0[0] + x0), float(c0[1] + y0), ao + 0.5, bo + 0.5, ango,
+            max(ai - 0.5, 0.8), max(bi - 0.5, 0.8), angi, dark_on_light)
+
+
+def _seeds_of_rows(rows: Sequence[_SeedRow]) -> RingSeeds:
+    if not rows:
+        return RingSeeds.stack([])
+    v = np.array([r[:8] for r in rows], dtype=np.float64)
+    return RingSeeds(v[:, 0:2], v[:, 2:5], v[:, 5:8], np.array([r[8] for r in rows], dtype=bool))
+
+
+def seed_from_contours(
+    x0: int, y0: int, outer_pts: Contour, inner_pts: Contour, dark_on_light: bool, params: DetectParams
+) -> RingSeeds | None:
+    """The ray seed of one coarse ring hypothesis of a ROI at (x0, y0): origin at the outer
+    contour's ellipse centre, radii of the contours' ellipses (None: outer size out of range)."""
+    row = _seed_row(x0, y0, outer_pts, inner_pts, dark_on_light, params)
+    return None if row is None else _seeds_of_rows([row])
 
 
 def edges_of(img: U8Image, seeds: RingSeeds, params: DetectParams) -> RingEdges:
@@ -392,23 +407,22 @@ def detect_rings(
 _Pending = tuple[tuple[int, int, int, int], Iterator[tuple[Contour, Contour, bool]]]
 
 
-def _first_hypotheses(frame: U8Image, params: DetectParams) -> tuple[list[_Pending], list[RingSeeds]]:
+def _first_hypotheses(frame: U8Image, params: DetectParams) -> tuple[list[_Pending], RingSeeds]:
     """Per candidate ROI, the seed of its first usable coarse ring hypothesis (and the rest, lazily)."""
     pending: list[_Pending] = []
-    seeds: list[RingSeeds] = []
+    rows: list[_SeedRow] = []
     for box in find_candidates(frame, params):
         x0, y0, x1, y1 = box
-        roi = frame[y0:y1, x0:x1]
-        if roi.shape[0] < 6 or roi.shape[1] < 6:
+        if y1 - y0 < 6 or x1 - x0 < 6:
             continue
-        hyps = _coarse_rings(roi, params)
+        hyps = _coarse_rings(frame[y0:y1, x0:x1], params)
         for outer_pts, inner_pts, dol in hyps:
-            seed = seed_from_contours(x0, y0, outer_pts, inner_pts, dol, params)
-            if seed is not None:
+            row = _seed_row(x0, y0, outer_pts, inner_pts, dol, params)
+            if row is not None:
                 pending.append((box, hyps))
-                seeds.append(seed)
+                rows.append(row)
                 break
-    return pending, seeds
+    return pending, _seeds_of_rows(rows)
 
 
 def detect_rings_multi(
@@ -422,7 +436,7 @@ def detect_rings_multi(
     """
     frames = [validate_image(img, name) for img, name in images]
     firsts = [_first_hypotheses(f, params) for f in frames]
-    parts = [(f, RingSeeds.stack(seeds)) for f, (_, seeds) in zip(frames, firsts, strict=True)]
+    parts = [(f, seeds) for f, (_, seeds) in zip(frames, firsts, strict=True)]
     dets = fit_rings(ring_edges_multi(parts, params.n_rays, params.min_contrast, params.min_valid_fraction),
                      params)
     out: list[list[RingDetection]] = []
@@ -439,15 +453,18 @@ def detect_rings_multi(
 
 
 def _deduplicated(found: list[RingDetection | None]) -> list[RingDetection]:
-    out: list[RingDetection] = []
+    """The detections without None and without one within half a kept ring's minor axis of it,
+    sorted by row (rounded) then column."""
+    out: list[tuple[float, float, RingDetection]] = []
     for det in found:
         if det is None:
             continue
-        if any(float(np.linalg.norm(det.center_px - o.center_px)) < 0.5 * o.outer.b_px for o in out):
+        x, y = det.center_px.tolist()
+        if any(math.sqrt((x - ox) ** 2 + (y - oy) ** 2) < 0.5 * o.outer.b_px for ox, oy, o in out):
             continue
-        out.append(det)
-    out.sort(key=lambda d: (round(float(d.center_px[1])), float(d.center_px[0])))
-    return out
+        out.append((x, y, det))
+    out.sort(key=lambda t: (round(t[1]), t[0]))
+    return [d for _, _, d in out]
 
 
 # ---- the seed-001 pipeline as published, for comparison ------------------------------------
