@@ -287,13 +287,13 @@ def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> El
     W = M.astype(np.float64)
     C, ok = _direct_fit_batch(X, Y, W)
     d = np.abs(_sampson_batch(C, X, Y))
-    cnt = M.sum(axis=1)
+    cnt = np.count_nonzero(M, axis=1)
     srt = np.sort(np.where(M, d, np.inf), axis=1)
-    mad = np.take_along_axis(srt, np.maximum(cnt // 2, 0)[:, None], axis=1)[:, 0] * 1.4826 + 1e-3
+    mad = srt[np.arange(srt.shape[0]), cnt // 2] * 1.4826 + 1e-3
     keep = M & (d <= np.maximum(3.0 * mad, 0.05)[:, None])
-    n_keep = keep.sum(axis=1)
+    n_keep = np.count_nonzero(keep, axis=1)
     refit = (n_keep < cnt) & (n_keep >= 6)
-    if np.any(refit):
+    if refit.any():
         W2 = np.where(refit[:, None], keep, M).astype(np.float64)
         C2, ok2 = _direct_fit_batch(X, Y, W2)
         C = np.where(refit[:, None, None], C2, C)
@@ -313,9 +313,11 @@ def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> El
         a_ax, b_ax = np.sqrt(-k / lam_s), np.sqrt(-k / lam_b)
     angle = 0.5 * np.arctan2(2.0 * B, A - Cq) + math.pi / 2
     good = ok & (det > 0) & (k < 0) & (lam_s > 0) & np.isfinite(a_ax) & np.isfinite(b_ax)
-    n_pts = M.sum(axis=1)
+    n_pts = np.count_nonzero(M, axis=1)
     res = np.sqrt(np.where(M, d * d, 0.0).sum(axis=1) / np.maximum(n_pts, 1))
-    return EllipseArrays(C, np.stack([cx, cy], axis=1), a_ax, b_ax, angle, res, n_pts, good)
+    centers = np.empty((C.shape[0], 2))
+    centers[:, 0], centers[:, 1] = cx, cy
+    return EllipseArrays(C, centers, a_ax, b_ax, angle, res, n_pts, good)
 
 
 def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> list[Ellipse | None]:
