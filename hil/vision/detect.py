@@ -191,7 +191,7 @@ def _coarse_rings(roi: U8Image, params: DetectParams) -> Iterator[tuple[Contour,
     """Initial (outer contour, inner contour, dark_on_light) ring hypotheses in a ROI, best first
     (lazily): the paper's 3x3 median + Otsu, then raw pixels with the threshold moved towards
     either level (a 3x3 median can close a 2-px hole; a touching freckle can merge at Otsu's level)."""
-    med = cv2.medianBlur(roi, 3)
+    med = _median3(roi)
     otsu, dark = cv2.threshold(med, 0, 255, cv2.THRESH_BINARY_INV | cv2.THRESH_OTSU)
     found = _ring_in_mask(np.asarray(dark, dtype=np.uint8), params)
     if found is not None:
@@ -202,6 +202,22 @@ def _coarse_rings(roi: U8Image, params: DetectParams) -> Iterator[tuple[Contour,
         found = _ring_in_mask(np.asarray(dark, dtype=np.uint8), params)
         if found is not None:
             yield found
+
+
+#: OpenCV's 3x3 median of 8-bit images takes its vectorised path from a width of ~66 px; on the
+#: narrower ROIs of ring candidates the scalar path costs ~6x more (10 us for 26 x 26 px)
+_MEDIAN_MIN_WIDTH = 80
+
+
+def _median3(roi: U8Image) -> U8Image:
+    """``cv2.medianBlur(roi, 3)`` (border replicated), pixel for pixel: a ROI narrower than
+    ``_MEDIAN_MIN_WIDTH`` is first padded on the right with copies of its last column, which is
+    what the replicated border gives its last column anyway, and the result cut back."""
+    w = roi.shape[1]
+    if w >= _MEDIAN_MIN_WIDTH:
+        return np.asarray(cv2.medianBlur(roi, 3), dtype=np.uint8)
+    padded = cv2.copyMakeBorder(roi, 0, 0, 0, _MEDIAN_MIN_WIDTH - w, cv2.BORDER_REPLICATE)
+    return np.ascontiguousarray(cv2.medianBlur(padded, 3)[:, :w])
 
 
 def _ring_in_mask(dark: U8Image, params: DetectParams) -> tuple[Contour, Contour, bool] | None:
@@ -475,7 +491,7 @@ def detect_rings_paper(img: object, params: DetectParams = DetectParams()) -> li
     frame = validate_image(img)
     out: list[FloatArray] = []
     for x0, y0, x1, y1 in find_candidates(frame, params):
-        roi = cv2.medianBlur(frame[y0:y1, x0:x1], 3)
+        roi = _median3(frame[y0:y1, x0:x1])
         _, binary = cv2.threshold(roi, 0, 255, cv2.THRESH_BINARY_INV | cv2.THRESH_OTSU)
         edges = cv2.Canny(binary, 50, 150)
         ys, xs = np.nonzero(edges)

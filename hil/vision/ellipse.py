@@ -241,12 +241,21 @@ def _direct_fit_batch(X: FloatArray, Y: FloatArray, W: FloatArray) -> tuple[Floa
     return C, ok
 
 
-def _sampson_batch(C: FloatArray, X: FloatArray, Y: FloatArray) -> FloatArray:
-    c = C[:, :, :, None]
-    gx = c[:, 0, 0] * X + c[:, 0, 1] * Y + c[:, 0, 2]
-    gy = c[:, 1, 0] * X + c[:, 1, 1] * Y + c[:, 1, 2]
-    alg = gx * X + gy * Y + (c[:, 2, 0] * X + c[:, 2, 1] * Y + c[:, 2, 2])
+def _sampson_batch(C: FloatArray, X: FloatArray, Y: FloatArray, P: FloatArray | None = None) -> FloatArray:
+    """Sampson distances (E, R) of the points (X, Y) to their conics C (E, 3, 3); ``P``: the points
+    as homogeneous columns (E, 3, R) when already stacked."""
+    if P is None:
+        P = _homogeneous(X, Y)
+    G = C @ P  # the gradients (halved) and the third row
+    alg = (P * G).sum(axis=1)
+    gx, gy = G[:, 0], G[:, 1]
     return np.asarray(alg / np.maximum(2.0 * np.sqrt(gx * gx + gy * gy), 1e-300), dtype=np.float64)
+
+
+def _homogeneous(X: FloatArray, Y: FloatArray) -> FloatArray:
+    P = np.empty((X.shape[0], 3, X.shape[1]))
+    P[:, 0], P[:, 1], P[:, 2] = X, Y, 1.0
+    return P
 
 
 @dataclass(frozen=True)
@@ -286,7 +295,8 @@ def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> El
     fitting each set on its own, with far fewer numpy calls."""
     W = M.astype(np.float64)
     C, ok = _direct_fit_batch(X, Y, W)
-    d = np.abs(_sampson_batch(C, X, Y))
+    P = _homogeneous(X, Y)
+    d = np.abs(_sampson_batch(C, X, Y, P))
     cnt = np.count_nonzero(M, axis=1)
     srt = np.sort(np.where(M, d, np.inf), axis=1)
     mad = srt[np.arange(srt.shape[0]), cnt // 2] * 1.4826 + 1e-3
@@ -299,7 +309,7 @@ def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> El
         C = np.where(refit[:, None, None], C2, C)
         ok = np.where(refit, ok & ok2, ok)
         M = W2 > 0
-        d = np.abs(_sampson_batch(C, X, Y))
+        d = np.abs(_sampson_batch(C, X, Y, P))
     # ellipse parameters of all conics at once (closed forms of ellipse_from_conic)
     C = np.where((C[:, 0, 0] + C[:, 1, 1] < 0)[:, None, None], -C, C)
     A, B, Cq = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
