@@ -423,8 +423,20 @@ def detect_rings(
 _Pending = tuple[tuple[int, int, int, int], Iterator[tuple[Contour, Contour, bool]]]
 
 
-def _first_hypotheses(frame: U8Image, params: DetectParams) -> tuple[list[_Pending], RingSeeds]:
-    """Per candidate ROI, the seed of its first usable coarse ring hypothesis (and the rest, lazily)."""
+@dataclass
+class FrameSearch:
+    """A full-frame search of one (validated) frame in progress: the candidate ROIs with a usable
+    first coarse hypothesis (and their remaining hypotheses, lazily) and the ray seeds of those
+    first hypotheses, to be fitted -- possibly in one batch with other rings -- and handed to
+    :func:`finish_search`."""
+
+    frame: U8Image
+    pending: list[_Pending]
+    seeds: RingSeeds
+
+
+def begin_search(frame: U8Image, params: DetectParams = DetectParams()) -> FrameSearch:
+    """Candidates and first coarse hypotheses of a full-frame search (see :func:`detect_rings`)."""
     pending: list[_Pending] = []
     rows: list[_SeedRow] = []
     for box in find_candidates(frame, params):
@@ -438,7 +450,21 @@ def _first_hypotheses(frame: U8Image, params: DetectParams) -> tuple[list[_Pendi
                 pending.append((box, hyps))
                 rows.append(row)
                 break
-    return pending, _seeds_of_rows(rows)
+    return FrameSearch(frame, pending, _seeds_of_rows(rows))
+
+
+def finish_search(
+    search: FrameSearch, first_fits: Sequence[RingDetection | None], params: DetectParams = DetectParams()
+) -> list[RingDetection]:
+    """The detections of a full-frame search from the fits of its first hypotheses (one per seed,
+    in order, as :func:`fit_rings` returns them): a candidate whose first hypothesis failed tries
+    its other hypotheses one by one; duplicates are dropped; sorted by image row then column."""
+    found: list[RingDetection | None] = []
+    for (box, hyps), det in zip(search.pending, first_fits, strict=True):
+        if det is None:  # the remaining hypotheses of this candidate, one by one
+            det = _refine_hypotheses(search.frame, box, hyps, params)
+        found.append(det)
+    return _deduplicated(found)
 
 
 def detect_rings_multi(
@@ -450,21 +476,17 @@ def detect_rings_multi(
     Raises:
         VisionError: an image is not a non-empty 2-D uint8 array.
     """
-    frames = [validate_image(img, name) for img, name in images]
-    firsts = [_first_hypotheses(f, params) for f in frames]
-    parts = [(f, seeds) for f, (_, seeds) in zip(frames, firsts, strict=True)]
-    dets = fit_rings(ring_edges_multi(parts, params.n_rays, params.min_contrast, params.min_valid_fraction),
-                     params)
+    searches = [begin_search(validate_image(img, name), params) for img, name in images]
+    dets = fit_rings(
+        ring_edges_multi([(sr.frame, sr.seeds) for sr in searches], params.n_rays, params.min_contrast,
+                         params.min_valid_fraction),
+        params,
+    )
     out: list[list[RingDetection]] = []
     start = 0
-    for frame, (pending, _) in zip(frames, firsts, strict=True):
-        found: list[RingDetection | None] = []
-        for (box, hyps), det in zip(pending, dets[start : start + len(pending)], strict=True):
-            if det is None:  # the remaining hypotheses of this candidate, one by one
-                det = _refine_hypotheses(frame, box, hyps, params)
-            found.append(det)
-        start += len(pending)
-        out.append(_deduplicated(found))
+    for sr in searches:
+        out.append(finish_search(sr, dets[start : start + sr.seeds.count], params))
+        start += sr.seeds.count
     return out
 
 

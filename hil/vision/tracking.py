@@ -43,9 +43,11 @@ from hil.vision.camera_model import StereoCalibration
 from hil.vision.detect import (
     DetectParams,
     RingDetection,
+    begin_search,
     detect_rings,
     detect_rings_multi,
     edges_of,
+    finish_search,
     fit_rings,
     refine_in_box,
     validate_image,
@@ -373,24 +375,28 @@ class MarkerTracker:
         left = validate_image(left_img, "left image", self.cal.image_size)
         right = validate_image(right_img, "right image", self.cal.image_size)
         trackers = ((self.left, left), (self.right, right))
+        dp = self.left.detect_params
         steps = [tr.begin(t_s) for tr, _ in trackers]
+        # one batch of rings for the pair: the windows of a tracked image and the first hypotheses
+        # of an image due for a full-frame search (known now: periodic, retry or requested)
         windowed = [k for k in range(2) if not steps[k].full]
-        found: list[list[RingDetection | None] | None] = [None, None]
-        if windowed:  # both images' windows in one batch
-            parts = [(trackers[k][1], trackers[k][0].seeds(steps[k])) for k in windowed]
-            dp = self.left.detect_params
+        searches = {k: begin_search(trackers[k][1], dp) for k in range(2) if steps[k].full}
+        parts = [(trackers[k][1], trackers[k][0].seeds(steps[k])) for k in windowed]
+        parts += [(sr.frame, sr.seeds) for sr in searches.values()]
+        fitted: list[RingDetection | None] = []
+        if parts:
             fitted = fit_rings(ring_edges_multi(parts, dp.n_rays, dp.min_contrast, dp.min_valid_fraction), dp)
-            start = 0
-            for k, (_, sd) in zip(windowed, parts, strict=True):
-                found[k] = fitted[start : start + sd.count]
-                start += sd.count
-        need = [
-            k for k in range(2)
-            if steps[k].full or not trackers[k][0].resolve_windows(trackers[k][1], steps[k], found[k] or [])
-        ]
-        if need:  # full-frame searches, both images in one batch
+        found: dict[int, list[RingDetection | None]] = {}
+        start = 0
+        for k, (_, sd) in zip([*windowed, *searches], parts, strict=True):
+            found[k] = fitted[start : start + sd.count]
+            start += sd.count
+        for k, sr in searches.items():
+            trackers[k][0].reacquire(finish_search(sr, found[k], dp), steps[k])
+        need = [k for k in windowed if not trackers[k][0].resolve_windows(trackers[k][1], steps[k], found[k])]
+        if need:  # a marker lost from its window: full-frame searches, both images in one batch
             images = [(trackers[k][1], trackers[k][0].name) for k in need]
-            for k, dets in zip(need, detect_rings_multi(images, self.left.detect_params), strict=True):
+            for k, dets in zip(need, detect_rings_multi(images, dp), strict=True):
                 trackers[k][0].reacquire(dets, steps[k])
         dl, dr = self.left.markers, self.right.markers
         stereo = match_and_triangulate(self.cal, dl, dr, self.stereo_params)
