@@ -364,13 +364,11 @@ def circle_normals_from_cones(Q: FloatArray) -> tuple[FloatArray, FloatArray, ND
     den = np.where(ok, l1 - l3, 1.0)
     g = np.sqrt(np.maximum((l1 - l2) / den, 0.0))
     h = np.sqrt(np.maximum((l2 - l3) / den, 0.0))
-    out = []
-    for sgn in (1.0, -1.0):
-        n = v1 * (sgn * g)[:, None] + v3 * h[:, None]
-        n = n / np.sqrt(np.sum(n * n, axis=1, keepdims=True))
-        n = np.where((n[:, 2] > 0)[:, None], -n, n)
-        out.append(np.asarray(n, dtype=np.float64))
-    return out[0], out[1], np.asarray(ok, dtype=np.bool_)
+    a, b = v1 * g[:, None], v3 * h[:, None]
+    n = np.stack([b + a, b - a])  # the signs +g and -g, (2, P, 3)
+    n = n / np.sqrt(np.sum(n * n, axis=2, keepdims=True))
+    n = np.where(n[:, :, 2:] > 0, -n, n)  # towards the camera
+    return n[0], n[1], np.asarray(ok, dtype=np.bool_)
 
 
 def poles_of_lines(C_px: FloatArray, lines: FloatArray) -> FloatArray:

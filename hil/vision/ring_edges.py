@@ -198,8 +198,8 @@ def ring_edges_multi(
     in_ring = (jr3 >= j_ring_lo[:, :, None]) & (jr3 <= j_ring_hi[:, :, None]) & valid3
     ring_prof = np.where(in_ring, prof, np.float32(np.inf))
     jmin = np.argmin(ring_prof, axis=2)  # (E, n)
-    ring_min = ring_prof.min(axis=2)
-    ring_level = np.sort(ring_min, axis=1)[:, n // 2].astype(np.float64)
+    ee, nn = np.arange(E)[:, None], np.arange(n)[None, :]
+    ring_level = np.sort(ring_prof[ee, nn, jmin], axis=1)[:, n // 2].astype(np.float64)
     # background level: the tail samples (only the tail columns are sorted)
     j_tail = np.ceil((r_out + 1.8) / ds - 1e-9).astype(np.int16)
     t0 = max(int(j_tail.min()), 0)
@@ -217,7 +217,6 @@ def ring_edges_multi(
     contrast_ok = (bg_level - ring_level >= min_contrast) & (hole_level - ring_level >= 0.35 * min_contrast)
     t_out = (0.5 * (bg_level + ring_level))[:, None, None]
     t_in = (0.5 * (hole_level + ring_level))[:, None, None]
-    ee, nn = np.arange(E)[:, None], np.arange(n)[None, :]
     # outer edge: the first sample past the ring minimum at or above t_out
     rel = jr3 - jmin.astype(np.int16)[:, :, None]
     above_o = (prof >= t_out) & (rel > 0) & valid3
