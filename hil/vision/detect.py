@@ -275,7 +275,7 @@ def _ring_in_mask(dark: U8Image, params: DetectParams) -> tuple[Contour, Contour
 
 
 def _initial_ellipse(pts: Contour) -> tuple[FloatArray, float, float, float]:
-    (cx, cy), (d1, d2), ang = cv2.fitEllipseDirect(pts)
+    (cx, cy), (d1, d2), ang = cv2.fitEllipse(pts)
     a, b = d1 / 2.0, d2 / 2.0
     angle = math.radians(ang)
     if b > a:
