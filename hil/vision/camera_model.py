@@ -64,6 +64,21 @@ class Rectification:
     Q: FloatArray
 
 
+@dataclass(frozen=True)
+class RigConstants:
+    """Matrices derived from a calibration, computed once (read-only): the projections of
+    :meth:`StereoCalibration.P_left` / ``P_right``, the inverse intrinsics, the right camera's
+    centre in the optical frame (mm) and whether each camera has lens distortion."""
+
+    P_left: FloatArray
+    P_right: FloatArray
+    K_left_inv: FloatArray
+    K_right_inv: FloatArray
+    right_center_mm: FloatArray
+    distorted_left: bool
+    distorted_right: bool
+
+
 @dataclass(frozen=True, eq=False)
 class StereoCalibration:
     """A calibrated stereo rig. Immutable; arrays are read-only float64.
@@ -189,6 +204,20 @@ class StereoCalibration:
         """Remove lens distortion from (N, 2) pixel points of ``side``; returns ideal pixels (N, 2)."""
         K, dist, _, _ = self.camera(side)
         return undistort_pixels(np.asarray(uv_px, dtype=np.float64).reshape(-1, 2), K, dist)
+
+    @cached_property
+    def constants(self) -> RigConstants:
+        """The derived matrices of :class:`RigConstants` (computed on first use)."""
+        def frozen(a: ArrayLike) -> FloatArray:
+            out = np.array(a, dtype=np.float64)
+            out.setflags(write=False)
+            return out
+
+        return RigConstants(
+            frozen(self.P_left()), frozen(self.P_right()), frozen(np.linalg.inv(self.K_left)),
+            frozen(np.linalg.inv(self.K_right)), frozen(self.right_center_mm),
+            bool(np.any(self.dist_left)), bool(np.any(self.dist_right)),
+        )
 
     @cached_property
     def rectification(self) -> Rectification:

@@ -191,7 +191,7 @@ def _coarse_rings(roi: U8Image, params: DetectParams) -> Iterator[tuple[Contour,
     """Initial (outer contour, inner contour, dark_on_light) ring hypotheses in a ROI, best first
     (lazily): the paper's 3x3 median + Otsu, then raw pixels with the threshold moved towards
     either level (a 3x3 median can close a 2-px hole; a touching freckle can merge at Otsu's level)."""
-    med = cv2.medianBlur(roi, 3)
+    med = _median3(roi)
     otsu, dark = cv2.threshold(med, 0, 255, cv2.THRESH_BINARY_INV | cv2.THRESH_OTSU)
     found = _ring_in_mask(np.asarray(dark, dtype=np.uint8), params)
     if found is not None:
@@ -204,6 +204,22 @@ def _coarse_rings(roi: U8Image, params: DetectParams) -> Iterator[tuple[Contour,
             yield found
 
 
+#: OpenCV's 3x3 median of 8-bit images takes its vectorised path from a width of ~66 px; on the
+#: narrower ROIs of ring candidates the scalar path costs ~6x more (10 us for 26 x 26 px)
+_MEDIAN_MIN_WIDTH = 80
+
+
+def _median3(roi: U8Image) -> U8Image:
+    """``cv2.medianBlur(roi, 3)`` (border replicated), pixel for pixel: a ROI narrower than
+    ``_MEDIAN_MIN_WIDTH`` is first padded on the right with copies of its last column, which is
+    what the replicated border gives its last column anyway, and the result cut back."""
+    w = roi.shape[1]
+    if w >= _MEDIAN_MIN_WIDTH:
+        return np.asarray(cv2.medianBlur(roi, 3), dtype=np.uint8)
+    padded = cv2.copyMakeBorder(roi, 0, 0, 0, _MEDIAN_MIN_WIDTH - w, cv2.BORDER_REPLICATE)
+    return np.ascontiguousarray(cv2.medianBlur(padded, 3)[:, :w])
+
+
 def _ring_in_mask(dark: U8Image, params: DetectParams) -> tuple[Contour, Contour, bool] | None:
     """The ring in a binary ROI: a component (dark first, then bright) not touching the border
     with exactly one hole of plausible relative size and nothing inside that hole (which rules
@@ -214,7 +230,7 @@ def _ring_in_mask(dark: U8Image, params: DetectParams) -> tuple[Contour, Contour
         contours, hier_raw = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
         if len(contours) == 0:
             continue
-        hier = np.asarray(hier_raw).reshape(-1, 4)
+        hier: list[list[int]] = np.asarray(hier_raw, dtype=np.int64).reshape(-1, 4).tolist()
         tops = [i for i in range(len(contours)) if hier[i][3] == -1]
         rects = {i: cv2.boundingRect(contours[i]) for i in tops}
         best: tuple[float, Contour, Contour] | None = None
@@ -268,22 +284,37 @@ def _initial_ellipse(pts: Contour) -> tuple[FloatArray, float, float, float]:
 
 
 # ---- 3.+4. sub-pixel edges, fits, ring check ------------------------------------------------
-def seed_from_contours(
+_SeedRow = tuple[float, float, float, float, float, float, float, float, bool]
+
+
+def _seed_row(
     x0: int, y0: int, outer_pts: Contour, inner_pts: Contour, dark_on_light: bool, params: DetectParams
-) -> RingSeeds | None:
-    """The ray seed of one coarse ring hypothesis of a ROI at (x0, y0): origin at the outer
-    contour's ellipse centre, radii of the contours' ellipses (None: outer size out of range)."""
+) -> _SeedRow | None:
+    """:func:`seed_from_contours` as one row: origin x, y, outer a, b, angle, inner a, b, angle,
+    polarity."""
     c0, ao, bo, ango = _initial_ellipse(outer_pts)
     _, ai, bi, angi = _initial_ellipse(inner_pts)
     if not params.min_outer_px <= 2 * ao <= params.max_outer_px:
         return None
     # outer contour pixels lie ~0.5 px inside the edge, hole pixels ~0.5 px outside it
-    return RingSeeds(
-        np.array([[c0[0] + x0, c0[1] + y0]]),
-        np.array([[ao + 0.5, bo + 0.5, ango]]),
-        np.array([[max(ai - 0.5, 0.8), max(bi - 0.5, 0.8), angi]]),
-        np.array([dark_on_light]),
-    )
+    return (float(c0[0] + x0), float(c0[1] + y0), ao + 0.5, bo + 0.5, ango,
+            max(ai - 0.5, 0.8), max(bi - 0.5, 0.8), angi, dark_on_light)
+
+
+def _seeds_of_rows(rows: Sequence[_SeedRow]) -> RingSeeds:
+    if not rows:
+        return RingSeeds.stack([])
+    v = np.array([r[:8] for r in rows], dtype=np.float64)
+    return RingSeeds(v[:, 0:2], v[:, 2:5], v[:, 5:8], np.array([r[8] for r in rows], dtype=bool))
+
+
+def seed_from_contours(
+    x0: int, y0: int, outer_pts: Contour, inner_pts: Contour, dark_on_light: bool, params: DetectParams
+) -> RingSeeds | None:
+    """The ray seed of one coarse ring hypothesis of a ROI at (x0, y0): origin at the outer
+    contour's ellipse centre, radii of the contours' ellipses (None: outer size out of range)."""
+    row = _seed_row(x0, y0, outer_pts, inner_pts, dark_on_light, params)
+    return None if row is None else _seeds_of_rows([row])
 
 
 def edges_of(img: U8Image, seeds: RingSeeds, params: DetectParams) -> RingEdges:
@@ -336,13 +367,14 @@ def fit_rings(edges: RingEdges, params: DetectParams) -> list[RingDetection | No
     var_i = 2.0 * np.maximum(ri, 0.01) ** 2 / np.maximum(ni, 1)
     sigma = np.sqrt(wo * wo * var_o + wi * wi * var_i)
     resid = np.sqrt((ro**2 * no + ri**2 * ni) / np.maximum(no + ni, 1))
-    for k in np.nonzero(ok)[0]:
-        eo, ei = f.ellipse(int(k)), f.ellipse(m + int(k))
-        assert eo is not None
-        assert ei is not None
-        j = int(idx[k])
-        out[j] = RingDetection(center[k], float(sigma[k]), eo, ei, float(resid[k]),
-                               bool(edges.dark_on_light[j]), float(edges.frac[j]))
+    keep = np.nonzero(ok)[0]
+    outers, inners = f.ellipses(keep), f.ellipses(keep + m)
+    rows = idx[keep]
+    centers = center[keep]
+    sig, res = sigma[keep].tolist(), resid[keep].tolist()
+    dol, frac = edges.dark_on_light[rows].tolist(), edges.frac[rows].tolist()
+    for k, j in enumerate(rows.tolist()):
+        out[j] = RingDetection(centers[k], sig[k], outers[k], inners[k], res[k], dol[k], frac[k])
     return out
 
 
@@ -391,23 +423,48 @@ def detect_rings(
 _Pending = tuple[tuple[int, int, int, int], Iterator[tuple[Contour, Contour, bool]]]
 
 
-def _first_hypotheses(frame: U8Image, params: DetectParams) -> tuple[list[_Pending], list[RingSeeds]]:
-    """Per candidate ROI, the seed of its first usable coarse ring hypothesis (and the rest, lazily)."""
+@dataclass
+class FrameSearch:
+    """A full-frame search of one (validated) frame in progress: the candidate ROIs with a usable
+    first coarse hypothesis (and their remaining hypotheses, lazily) and the ray seeds of those
+    first hypotheses, to be fitted -- possibly in one batch with other rings -- and handed to
+    :func:`finish_search`."""
+
+    frame: U8Image
+    pending: list[_Pending]
+    seeds: RingSeeds
+
+
+def begin_search(frame: U8Image, params: DetectParams = DetectParams()) -> FrameSearch:
+    """Candidates and first coarse hypotheses of a full-frame search (see :func:`detect_rings`)."""
     pending: list[_Pending] = []
-    seeds: list[RingSeeds] = []
+    rows: list[_SeedRow] = []
     for box in find_candidates(frame, params):
         x0, y0, x1, y1 = box
-        roi = frame[y0:y1, x0:x1]
-        if roi.shape[0] < 6 or roi.shape[1] < 6:
+        if y1 - y0 < 6 or x1 - x0 < 6:
             continue
-        hyps = _coarse_rings(roi, params)
+        hyps = _coarse_rings(frame[y0:y1, x0:x1], params)
         for outer_pts, inner_pts, dol in hyps:
-            seed = seed_from_contours(x0, y0, outer_pts, inner_pts, dol, params)
-            if seed is not None:
+            row = _seed_row(x0, y0, outer_pts, inner_pts, dol, params)
+            if row is not None:
                 pending.append((box, hyps))
-                seeds.append(seed)
+                rows.append(row)
                 break
-    return pending, seeds
+    return FrameSearch(frame, pending, _seeds_of_rows(rows))
+
+
+def finish_search(
+    search: FrameSearch, first_fits: Sequence[RingDetection | None], params: DetectParams = DetectParams()
+) -> list[RingDetection]:
+    """The detections of a full-frame search from the fits of its first hypotheses (one per seed,
+    in order, as :func:`fit_rings` returns them): a candidate whose first hypothesis failed tries
+    its other hypotheses one by one; duplicates are dropped; sorted by image row then column."""
+    found: list[RingDetection | None] = []
+    for (box, hyps), det in zip(search.pending, first_fits, strict=True):
+        if det is None:  # the remaining hypotheses of this candidate, one by one
+            det = _refine_hypotheses(search.frame, box, hyps, params)
+        found.append(det)
+    return _deduplicated(found)
 
 
 def detect_rings_multi(
@@ -419,34 +476,33 @@ def detect_rings_multi(
     Raises:
         VisionError: an image is not a non-empty 2-D uint8 array.
     """
-    frames = [validate_image(img, name) for img, name in images]
-    firsts = [_first_hypotheses(f, params) for f in frames]
-    parts = [(f, RingSeeds.stack(seeds)) for f, (_, seeds) in zip(frames, firsts, strict=True)]
-    dets = fit_rings(ring_edges_multi(parts, params.n_rays, params.min_contrast, params.min_valid_fraction),
-                     params)
+    searches = [begin_search(validate_image(img, name), params) for img, name in images]
+    dets = fit_rings(
+        ring_edges_multi([(sr.frame, sr.seeds) for sr in searches], params.n_rays, params.min_contrast,
+                         params.min_valid_fraction),
+        params,
+    )
     out: list[list[RingDetection]] = []
     start = 0
-    for frame, (pending, _) in zip(frames, firsts, strict=True):
-        found: list[RingDetection | None] = []
-        for (box, hyps), det in zip(pending, dets[start : start + len(pending)], strict=True):
-            if det is None:  # the remaining hypotheses of this candidate, one by one
-                det = _refine_hypotheses(frame, box, hyps, params)
-            found.append(det)
-        start += len(pending)
-        out.append(_deduplicated(found))
+    for sr in searches:
+        out.append(finish_search(sr, dets[start : start + sr.seeds.count], params))
+        start += sr.seeds.count
     return out
 
 
 def _deduplicated(found: list[RingDetection | None]) -> list[RingDetection]:
-    out: list[RingDetection] = []
+    """The detections without None and without one within half a kept ring's minor axis of it,
+    sorted by row (rounded) then column."""
+    out: list[tuple[float, float, RingDetection]] = []
     for det in found:
         if det is None:
             continue
-        if any(float(np.linalg.norm(det.center_px - o.center_px)) < 0.5 * o.outer.b_px for o in out):
+        x, y = det.center_px.tolist()
+        if any(math.sqrt((x - ox) ** 2 + (y - oy) ** 2) < 0.5 * o.outer.b_px for ox, oy, o in out):
             continue
-        out.append(det)
-    out.sort(key=lambda d: (round(float(d.center_px[1])), float(d.center_px[0])))
-    return out
+        out.append((x, y, det))
+    out.sort(key=lambda t: (round(t[1]), t[0]))
+    return [d for _, _, d in out]
 
 
 # ---- the seed-001 pipeline as published, for comparison ------------------------------------
@@ -457,7 +513,7 @@ def detect_rings_paper(img: object, params: DetectParams = DetectParams()) -> li
     frame = validate_image(img)
     out: list[FloatArray] = []
     for x0, y0, x1, y1 in find_candidates(frame, params):
-        roi = cv2.medianBlur(frame[y0:y1, x0:x1], 3)
+        roi = _median3(frame[y0:y1, x0:x1])
         _, binary = cv2.threshold(roi, 0, 255, cv2.THRESH_BINARY_INV | cv2.THRESH_OTSU)
         edges = cv2.Canny(binary, 50, 150)
         ys, xs = np.nonzero(edges)

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from hil.vision.sym3 import adj_sym3, det_sym3, ellipse_eigvec
+
 FloatArray = NDArray[np.float64]
 
 
@@ -196,23 +198,10 @@ def projected_center_from_normal(C_px: FloatArray, K: FloatArray, normal_cam: Fl
     return np.array([p0 / p2, p1 / p2])
 
 
-#: the ellipse constraint 4ac - b^2 as a quadratic form of (a, b, c)
-_C1 = np.array([[0.0, 0.0, 2.0], [0.0, -1.0, 0.0], [2.0, 0.0, 0.0]])
-
-
-def _cholesky_rows(A: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Cholesky factors of a stack of symmetric 3x3 matrices and which were positive definite
-    (the others get the identity)."""
-    try:
-        return np.asarray(np.linalg.cholesky(A), dtype=np.float64), np.ones(A.shape[0], dtype=bool)
-    except np.linalg.LinAlgError:
-        pd = np.asarray(np.linalg.eigvalsh(A)[:, 0] > 0, dtype=np.bool_)
-        return np.asarray(np.linalg.cholesky(np.where(pd[:, None, None], A, np.eye(3))), dtype=np.float64), pd
-
-
 def _direct_fit_batch(X: FloatArray, Y: FloatArray, W: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Weighted direct ellipse fits of E point sets at once: X, Y, W are (E, R) (weight 0 = unused
-    point). Returns conics (E, 3, 3) (normalised) and a validity mask (E,)."""
+    point). Returns conics (E, 3, 3) (normalised) and a validity mask (E,). The 3x3 algebra is in
+    closed form (:mod:`hil.vision.sym3`): the same fit as :func:`fit_conic_direct`."""
     n = W.sum(axis=1)
     ok = n >= 6
     n = np.where(ok, n, 1.0)
@@ -225,46 +214,48 @@ def _direct_fit_batch(X: FloatArray, Y: FloatArray, W: FloatArray) -> tuple[Floa
     D = np.stack([xn * xn, xn * yn, yn * yn, xn, yn, np.ones_like(xn)], axis=1)  # (E, 6, R)
     S = (D * W[:, None, :]) @ np.transpose(D, (0, 2, 1))
     S1, S2, S3 = S[:, :3, :3], S[:, :3, 3:], S[:, 3:, 3:]
-    det3 = np.linalg.det(S3)
+    det3 = det_sym3(S3)
     ok &= np.abs(det3) > 1e-12
-    S3 = np.where(ok[:, None, None], S3, np.eye(3))
-    T = -np.linalg.solve(S3, np.transpose(S2, (0, 2, 1)))
-    # reduced scatter Sr = S1 - S2 S3^-1 S2^T (symmetric, positive semi-definite); the fit is the
-    # generalised eigenvector Sr a = lambda C1 a with a^T C1 a = 4ac - b^2 > 0 (Halir & Flusser).
-    # Symmetric form: Sr = L L^T, B = L^-1 C1 L^-T; the one positive eigenvalue of B gives a = L^-T v.
+    # T = -S3^-1 S2^T (Halir & Flusser); reduced scatter Sr = S1 + S2 T = S1 - S2 S3^-1 S2^T
+    T = adj_sym3(S3) @ np.transpose(S2, (0, 2, 1)) * (-1.0 / np.where(ok, det3, 1.0))[:, None, None]
     Sr = S1 + S2 @ T
     Sr = 0.5 * (Sr + np.transpose(Sr, (0, 2, 1)))
     Sr = np.where(np.isfinite(Sr), Sr, 0.0)
-    tr = np.trace(Sr, axis1=1, axis2=2)
+    tr = Sr[:, 0, 0] + Sr[:, 1, 1] + Sr[:, 2, 2]
     pos = ok & (tr > 0)
     Sr = np.where(pos[:, None, None], Sr + (1e-12 * tr)[:, None, None] * np.eye(3), np.eye(3))
-    L, pd = _cholesky_rows(Sr)
-    pos &= pd
-    Li = np.linalg.inv(L)
-    B = Li @ _C1 @ np.transpose(Li, (0, 2, 1))
-    mu, V = np.linalg.eigh(B)
-    a1 = np.einsum("eji,ej->ei", Li, V[:, :, 2])  # L^-T v of the largest (the positive) eigenvalue
-    ok &= pos & (mu[:, 2] > 0) & (4.0 * a1[:, 0] * a1[:, 2] - a1[:, 1] ** 2 > 0)
+    # the fit is the generalised eigenvector Sr a = lambda C1 a with lambda > 0 (4ac - b^2 > 0)
+    a1, _, good = ellipse_eigvec(Sr)
+    ok &= pos & good & (4.0 * a1[:, 0] * a1[:, 2] - a1[:, 1] ** 2 > 0)
     a2 = np.einsum("eij,ej->ei", T, a1)
-    a, b, c = a1[:, 0], a1[:, 1], a1[:, 2]
-    d, e, f = a2[:, 0], a2[:, 1], a2[:, 2]
-    Cn = np.stack(
-        [np.stack([a, b / 2, d / 2], -1), np.stack([b / 2, c, e / 2], -1), np.stack([d / 2, e / 2, f], -1)], 1
-    )
+    Cn = np.empty((X.shape[0], 3, 3))
+    Cn[:, 0, 0], Cn[:, 1, 1], Cn[:, 2, 2] = a1[:, 0], a1[:, 2], a2[:, 2]
+    Cn[:, 0, 1] = Cn[:, 1, 0] = 0.5 * a1[:, 1]
+    Cn[:, 0, 2] = Cn[:, 2, 0] = 0.5 * a2[:, 0]
+    Cn[:, 1, 2] = Cn[:, 2, 1] = 0.5 * a2[:, 1]
     N = np.zeros((X.shape[0], 3, 3))
     N[:, 0, 0] = N[:, 1, 1] = 1.0 / s
     N[:, 0, 2], N[:, 1, 2], N[:, 2, 2] = -mx / s, -my / s, 1.0
     C = np.transpose(N, (0, 2, 1)) @ Cn @ N
-    C /= np.linalg.norm(C, axis=(1, 2), keepdims=True)
+    C /= np.sqrt(np.einsum("eij,eij->e", C, C))[:, None, None]
     return C, ok
 
 
-def _sampson_batch(C: FloatArray, X: FloatArray, Y: FloatArray) -> FloatArray:
-    c = C[:, :, :, None]
-    gx = c[:, 0, 0] * X + c[:, 0, 1] * Y + c[:, 0, 2]
-    gy = c[:, 1, 0] * X + c[:, 1, 1] * Y + c[:, 1, 2]
-    alg = gx * X + gy * Y + (c[:, 2, 0] * X + c[:, 2, 1] * Y + c[:, 2, 2])
+def _sampson_batch(C: FloatArray, X: FloatArray, Y: FloatArray, P: FloatArray | None = None) -> FloatArray:
+    """Sampson distances (E, R) of the points (X, Y) to their conics C (E, 3, 3); ``P``: the points
+    as homogeneous columns (E, 3, R) when already stacked."""
+    if P is None:
+        P = _homogeneous(X, Y)
+    G = C @ P  # the gradients (halved) and the third row
+    alg = (P * G).sum(axis=1)
+    gx, gy = G[:, 0], G[:, 1]
     return np.asarray(alg / np.maximum(2.0 * np.sqrt(gx * gx + gy * gy), 1e-300), dtype=np.float64)
+
+
+def _homogeneous(X: FloatArray, Y: FloatArray) -> FloatArray:
+    P = np.empty((X.shape[0], 3, X.shape[1]))
+    P[:, 0], P[:, 1], P[:, 2] = X, Y, 1.0
+    return P
 
 
 @dataclass(frozen=True)
@@ -289,6 +280,14 @@ class EllipseArrays:
                        float(self.angle_rad[i]), self.conic[i], float(self.residual_rms_px[i]),
                        int(self.n_points[i]))
 
+    def ellipses(self, rows: NDArray[np.intp]) -> list[Ellipse]:
+        """:meth:`ellipse` of each of ``rows`` (all of them good), built with a few array calls."""
+        centers, conics = self.center_px[rows], self.conic[rows]
+        a, b = self.a_px[rows].tolist(), self.b_px[rows].tolist()
+        ang, res = self.angle_rad[rows].tolist(), self.residual_rms_px[rows].tolist()
+        n = self.n_points[rows].tolist()
+        return [Ellipse(centers[k], a[k], b[k], ang[k], conics[k], res[k], n[k]) for k in range(len(a))]
+
 
 def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> EllipseArrays:
     """Robust direct ellipse fits of E point sets (X, Y (E, R), M the used points): a fit, the
@@ -296,20 +295,21 @@ def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> El
     fitting each set on its own, with far fewer numpy calls."""
     W = M.astype(np.float64)
     C, ok = _direct_fit_batch(X, Y, W)
-    d = np.abs(_sampson_batch(C, X, Y))
-    cnt = M.sum(axis=1)
+    P = _homogeneous(X, Y)
+    d = np.abs(_sampson_batch(C, X, Y, P))
+    cnt = np.count_nonzero(M, axis=1)
     srt = np.sort(np.where(M, d, np.inf), axis=1)
-    mad = np.take_along_axis(srt, np.maximum(cnt // 2, 0)[:, None], axis=1)[:, 0] * 1.4826 + 1e-3
+    mad = srt[np.arange(srt.shape[0]), cnt // 2] * 1.4826 + 1e-3
     keep = M & (d <= np.maximum(3.0 * mad, 0.05)[:, None])
-    n_keep = keep.sum(axis=1)
+    n_keep = np.count_nonzero(keep, axis=1)
     refit = (n_keep < cnt) & (n_keep >= 6)
-    if np.any(refit):
+    if refit.any():
         W2 = np.where(refit[:, None], keep, M).astype(np.float64)
         C2, ok2 = _direct_fit_batch(X, Y, W2)
         C = np.where(refit[:, None, None], C2, C)
         ok = np.where(refit, ok & ok2, ok)
         M = W2 > 0
-        d = np.abs(_sampson_batch(C, X, Y))
+        d = np.abs(_sampson_batch(C, X, Y, P))
     # ellipse parameters of all conics at once (closed forms of ellipse_from_conic)
     C = np.where((C[:, 0, 0] + C[:, 1, 1] < 0)[:, None, None], -C, C)
     A, B, Cq = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
@@ -323,9 +323,11 @@ def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> El
         a_ax, b_ax = np.sqrt(-k / lam_s), np.sqrt(-k / lam_b)
     angle = 0.5 * np.arctan2(2.0 * B, A - Cq) + math.pi / 2
     good = ok & (det > 0) & (k < 0) & (lam_s > 0) & np.isfinite(a_ax) & np.isfinite(b_ax)
-    n_pts = M.sum(axis=1)
+    n_pts = np.count_nonzero(M, axis=1)
     res = np.sqrt(np.where(M, d * d, 0.0).sum(axis=1) / np.maximum(n_pts, 1))
-    return EllipseArrays(C, np.stack([cx, cy], axis=1), a_ax, b_ax, angle, res, n_pts, good)
+    centers = np.empty((C.shape[0], 2))
+    centers[:, 0], centers[:, 1] = cx, cy
+    return EllipseArrays(C, centers, a_ax, b_ax, angle, res, n_pts, good)
 
 
 def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> list[Ellipse | None]:
@@ -362,13 +364,11 @@ def circle_normals_from_cones(Q: FloatArray) -> tuple[FloatArray, FloatArray, ND
     den = np.where(ok, l1 - l3, 1.0)
     g = np.sqrt(np.maximum((l1 - l2) / den, 0.0))
     h = np.sqrt(np.maximum((l2 - l3) / den, 0.0))
-    out = []
-    for sgn in (1.0, -1.0):
-        n = v1 * (sgn * g)[:, None] + v3 * h[:, None]
-        n = n / np.sqrt(np.sum(n * n, axis=1, keepdims=True))
-        n = np.where((n[:, 2] > 0)[:, None], -n, n)
-        out.append(np.asarray(n, dtype=np.float64))
-    return out[0], out[1], np.asarray(ok, dtype=np.bool_)
+    a, b = v1 * g[:, None], v3 * h[:, None]
+    n = np.stack([b + a, b - a])  # the signs +g and -g, (2, P, 3)
+    n = n / np.sqrt(np.sum(n * n, axis=2, keepdims=True))
+    n = np.where(n[:, :, 2:] > 0, -n, n)  # towards the camera
+    return n[0], n[1], np.asarray(ok, dtype=np.bool_)
 
 
 def poles_of_lines(C_px: FloatArray, lines: FloatArray) -> FloatArray:

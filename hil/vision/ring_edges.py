@@ -90,8 +90,8 @@ def _upper_median(values: NDArray[np.floating[Any]], mask: BoolArray) -> tuple[F
     """Per row, the element of rank ``count // 2`` of the masked values (the upper median, as
     ``np.partition(x, x.size // 2)``), and whether the row had any value."""
     v = np.sort(np.where(mask, values, np.inf), axis=1)
-    cnt = mask.sum(axis=1)
-    med = np.take_along_axis(v, (cnt // 2)[:, None], axis=1)[:, 0].astype(np.float64)
+    cnt = np.count_nonzero(mask, axis=1)
+    med = v[np.arange(v.shape[0]), cnt // 2].astype(np.float64)
     return med, cnt > 0
 
 
@@ -101,6 +101,21 @@ def ring_edges(
     """Sub-pixel outer and inner edge points of every seeded ring of one image: see
     :func:`ring_edges_multi`."""
     return ring_edges_multi([(img, seeds)], n_rays, min_contrast, min_valid_fraction)
+
+
+_RAY_DIRS: dict[int, tuple[FloatArray, FloatArray, FloatArray]] = {}
+
+
+def _ray_dirs(n: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Angles, cosines and sines of ``n`` rays (computed once per ``n``; read-only)."""
+    dirs = _RAY_DIRS.get(n)
+    if dirs is None:
+        theta: FloatArray = np.arange(n, dtype=np.float64) * (2 * math.pi / n)
+        dirs = (theta, np.cos(theta), np.sin(theta))
+        for a in dirs:
+            a.setflags(write=False)
+        _RAY_DIRS[n] = dirs
+    return dirs
 
 
 def _ray_profiles(
@@ -121,112 +136,21 @@ def _ray_profiles(
     ox, oy = seeds.origin_px[:, 0], seeds.origin_px[:, 1]
     mapx = (ox[:, None, None] + r[None, None, :] * cos_t[None, :, None]).astype(np.float32)
     mapy = (oy[:, None, None] + r[None, None, :] * sin_t[None, :, None]).astype(np.float32)
-    rows: list[NDArray[np.uint8]] = []
+    prof = np.empty((E, n, S), dtype=np.float32)
     start = 0
     for img, sd in parts:
         stop = start + sd.count
         if stop > start:
             mx = mapx[start:stop].reshape(-1, S)
             my = mapy[start:stop].reshape(-1, S)
-            rows.append(np.asarray(cv2.remap(img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)))
+            grey = cv2.remap(img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+            # grey levels are integers: float32 holds them and every threshold below exactly enough
+            prof[start:stop] = grey.reshape(stop - start, n, S)
         start = stop
-    # grey levels are integers: float32 holds them and every threshold below exactly enough
-    prof = np.concatenate(rows).astype(np.float32).reshape(E, n, S)
     dol = seeds.dark_on_light
-    if not np.all(dol):
+    if not dol.all():
         prof = np.where(dol[:, None, None], prof, np.float32(255.0) - prof)
     return prof
-
-
-def _ring_minimum(
-    prof: F32Array, r_in: FloatArray, r_out: FloatArray, jr3: NDArray[np.int64], valid3: BoolArray
-) -> tuple[NDArray[np.intp], FloatArray]:
-    """Darkest sample of each ray within the ring ``[r_in - 0.5, r_out + 0.5]`` px.
-
-    Returns its sample index (E, n_rays) and the ring's grey level (E,): the upper median of the
-    rays' minima.
-    """
-    ds = RAY_STEP_PX
-    j_ring_lo = np.ceil((r_in - 0.5) / ds - 1e-9).astype(np.int64)
-    j_ring_hi = np.floor((r_out + 0.5) / ds + 1e-9).astype(np.int64)
-    in_ring = (jr3 >= j_ring_lo[:, :, None]) & (jr3 <= j_ring_hi[:, :, None]) & valid3
-    ring_prof = np.where(in_ring, prof, np.float32(np.inf))
-    jmin = np.argmin(ring_prof, axis=2)  # (E, n)
-    ring_min = np.take_along_axis(ring_prof, jmin[:, :, None], axis=2)[:, :, 0].astype(np.float64)
-    ring_level, _ = _upper_median(ring_min, np.ones_like(ring_min, dtype=bool))
-    return jmin, ring_level
-
-
-def _background_level(
-    prof: F32Array, r_out: FloatArray, n_samples: NDArray[np.int64], jr3: NDArray[np.int64], valid3: BoolArray
-) -> FloatArray:
-    """Background grey level of each ring (E,): upper median of the tail samples ``r >= r_out + 1.8``
-    px of all its rays, or the mean of the rays' last samples when no ray reaches that far."""
-    E = prof.shape[0]
-    j_tail = np.ceil((r_out + 1.8) / RAY_STEP_PX - 1e-9).astype(np.int64)
-    t0 = max(int(j_tail.min()), 0)  # only the tail columns are sorted for the background level
-    tail = (jr3[:, :, t0:] >= j_tail[:, :, None]) & valid3[:, :, t0:]
-    bg_level, has_tail = _upper_median(prof[:, :, t0:].reshape(E, -1), tail.reshape(E, -1))
-    if not np.all(has_tail):
-        last = prof[np.arange(E), :, n_samples - 1].mean(axis=1)
-        bg_level = np.where(has_tail, bg_level, last)
-    return bg_level
-
-
-def _hole_level(prof: F32Array, r_in: FloatArray, jr: NDArray[np.int64], valid3: BoolArray) -> FloatArray:
-    """Grey level of each ring's hole (E,): upper median of the samples within
-    ``max(0.35 min(r_in), 0.3)`` px of the origin on all its rays."""
-    E, n = prof.shape[0], prof.shape[1]
-    ds = RAY_STEP_PX
-    hole_r = np.maximum(0.35 * r_in.min(axis=1), 0.3)
-    n_hole = np.floor(hole_r / ds + 1e-9).astype(np.int64) + 1  # samples with r <= hole_r
-    J = int(n_hole.max())
-    hole = np.broadcast_to(((jr[None, :J] < n_hole[:, None]) & valid3[:, 0, :J])[:, None, :], (E, n, J))
-    hole_level, _ = _upper_median(prof[:, :, :J].reshape(E, -1), hole.reshape(E, -1))
-    return hole_level
-
-
-def _outer_edge(
-    prof: F32Array,
-    t_out: FloatArray,
-    jmin: NDArray[np.intp],
-    jr3: NDArray[np.int64],
-    valid3: BoolArray,
-    r: FloatArray,
-    ee: NDArray[np.int64],
-    nn: NDArray[np.int64],
-) -> tuple[FloatArray, BoolArray]:
-    """Outer edge radius (px, sub-sample by linear interpolation) on each ray, and whether found:
-    the first sample past the ring minimum at or above the threshold ``t_out`` (E, 1, 1)."""
-    ds = RAY_STEP_PX
-    above_o = (prof >= t_out) & (jr3 > jmin[:, :, None]) & valid3
-    jo = np.argmax(above_o, axis=2)
-    ok_o = above_o[ee, nn, jo] & (jo > 0)
-    jo1 = np.maximum(jo - 1, 0)
-    p1, p0 = prof[ee, nn, jo].astype(np.float64), prof[ee, nn, jo1].astype(np.float64)
-    ro_sub = r[jo1] + ds * (t_out[:, :, 0] - p0) / np.where(p1 - p0 == 0, 1e-9, p1 - p0)
-    return ro_sub, ok_o
-
-
-def _inner_edge(
-    prof: F32Array,
-    t_in: FloatArray,
-    jmin: NDArray[np.intp],
-    jr3: NDArray[np.int64],
-    r: FloatArray,
-    ee: NDArray[np.int64],
-    nn: NDArray[np.int64],
-) -> tuple[FloatArray, BoolArray]:
-    """Inner edge radius (px, sub-sample by linear interpolation) on each ray, and whether found:
-    the last sample before the ring minimum at or above the threshold ``t_in`` (E, 1, 1)."""
-    ds, S = RAY_STEP_PX, prof.shape[2]
-    above_i = (prof >= t_in) & (jr3 < jmin[:, :, None])
-    ji = S - 1 - np.argmax(above_i[:, :, ::-1], axis=2)
-    ok_i = above_i[ee, nn, ji] & (ji < S - 1)
-    q0 = prof[ee, nn, ji].astype(np.float64)
-    q1 = prof[ee, nn, np.minimum(ji + 1, S - 1)].astype(np.float64)
-    ri_sub = r[ji] + ds * (q0 - t_in[:, :, 0]) / np.where(q0 - q1 == 0, 1e-9, q0 - q1)
-    return ri_sub, ok_i
 
 
 def ring_edges_multi(
@@ -239,34 +163,75 @@ def ring_edges_multi(
     background (and 0.35 of that than its hole), or when both edges are found on fewer than
     ``min_valid_fraction`` of the rays; an edge further than ``1.5 + 0.15 r`` (outer) or
     ``1.5 + 0.25 r`` (inner) px from the seed's radius on a ray does not count. Pure CPU.
+
+    On each ray (samples ``j``, radius ``j * 0.25`` px, up to ``3`` px beyond the ring's largest
+    outer radius): the ring minimum is the darkest sample within ``[r_in - 0.5, r_out + 0.5]``;
+    the ring level is the upper median of the rays' minima, the background level the upper median
+    of all samples at ``r >= r_out + 1.8`` (or the mean of the rays' last samples), the hole level
+    the upper median of the samples within ``max(0.35 min(r_in), 0.3)`` px of the origin. The
+    outer edge is the first sample past the minimum at or above the mid-level of ring and
+    background, the inner edge the last sample before it at or above the mid-level of ring and
+    hole, both interpolated linearly between samples. One ``cv2.remap`` per image and a fixed
+    number of array operations for all rings: the cost hardly grows with the ring count.
     """
-    seeds = RingSeeds.stack([sd for _, sd in parts])
+    seeds = parts[0][1] if len(parts) == 1 else RingSeeds.stack([sd for _, sd in parts])
     E, n, ds = seeds.count, n_rays, RAY_STEP_PX
-    theta: FloatArray = np.arange(n, dtype=np.float64) * (2 * math.pi / n)
-    cos_t, sin_t = np.cos(theta), np.sin(theta)
+    theta, cos_t, sin_t = _ray_dirs(n)
     if E == 0:
         z, zb = np.zeros((0, n)), np.zeros((0, n), dtype=bool)
         return RingEdges(z, z, zb, z, z, zb, np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool))
-    r_out = ellipse_radius(seeds.outer[:, 0], seeds.outer[:, 1], seeds.outer[:, 2], theta)
-    r_in = ellipse_radius(seeds.inner[:, 0], seeds.inner[:, 1], seeds.inner[:, 2], theta)
+    axes = np.concatenate([seeds.outer, seeds.inner])
+    radii = ellipse_radius(axes[:, 0], axes[:, 1], axes[:, 2], theta)
+    r_out, r_in = radii[:E], radii[E:]
     r_max = r_out.max(axis=1) + 3.0
     n_samples = np.ceil(r_max / ds).astype(np.int64)  # len(np.arange(0, r_max, ds)) per ring
     S = int(n_samples.max())
     r = np.arange(S, dtype=np.float64) * ds
-    jr = np.arange(S)
-    valid3 = (jr[None, :] < n_samples[:, None])[:, None, :]  # (E, 1, S)
+    # sample indices as small integers: the masks below are (E, n, S) comparisons
+    jr3 = np.arange(S, dtype=np.int16)[None, None, :]
+    valid3 = jr3 < n_samples.astype(np.int16)[:, None, None]  # (E, 1, S)
     ox, oy = seeds.origin_px[:, 0], seeds.origin_px[:, 1]
     prof = _ray_profiles(parts, seeds, r, cos_t, sin_t)
-    jr3 = jr[None, None, :]
-    jmin, ring_level = _ring_minimum(prof, r_in, r_out, jr3, valid3)
-    bg_level = _background_level(prof, r_out, n_samples, jr3, valid3)
-    hole_level = _hole_level(prof, r_in, jr, valid3)
+    # ring minimum per ray and the ring level
+    j_ring_lo = np.ceil((r_in - 0.5) / ds - 1e-9).astype(np.int16)
+    j_ring_hi = np.floor((r_out + 0.5) / ds + 1e-9).astype(np.int16)
+    in_ring = (jr3 >= j_ring_lo[:, :, None]) & (jr3 <= j_ring_hi[:, :, None]) & valid3
+    ring_prof = np.where(in_ring, prof, np.float32(np.inf))
+    jmin = np.argmin(ring_prof, axis=2)  # (E, n)
+    ee, nn = np.arange(E)[:, None], np.arange(n)[None, :]
+    ring_level = np.sort(ring_prof[ee, nn, jmin], axis=1)[:, n // 2].astype(np.float64)
+    # background level: the tail samples (only the tail columns are sorted)
+    j_tail = np.ceil((r_out + 1.8) / ds - 1e-9).astype(np.int16)
+    t0 = max(int(j_tail.min()), 0)
+    tail = (jr3[:, :, t0:] >= j_tail[:, :, None]) & valid3[:, :, t0:]
+    bg_level, has_tail = _upper_median(prof[:, :, t0:].reshape(E, -1), tail.reshape(E, -1))
+    if not has_tail.all():
+        last = prof[np.arange(E), :, n_samples - 1].mean(axis=1)
+        bg_level = np.where(has_tail, bg_level, last)
+    # hole level: the samples near the origin on all rays
+    hole_r = np.maximum(0.35 * r_in.min(axis=1), 0.3)
+    n_hole = np.floor(hole_r / ds + 1e-9).astype(np.int16) + 1  # samples with r <= hole_r
+    J = int(n_hole.max())
+    hole = (jr3[:, :, :J] < n_hole[:, None, None]) & valid3[:, :, :J]  # (E, 1, J)
+    hole_level, _ = _upper_median(prof[:, :, :J].reshape(E, -1), np.repeat(hole, n, axis=1).reshape(E, -1))
     contrast_ok = (bg_level - ring_level >= min_contrast) & (hole_level - ring_level >= 0.35 * min_contrast)
     t_out = (0.5 * (bg_level + ring_level))[:, None, None]
     t_in = (0.5 * (hole_level + ring_level))[:, None, None]
-    ee, nn = np.arange(E)[:, None], np.arange(n)[None, :]
-    ro_sub, ok_o = _outer_edge(prof, t_out, jmin, jr3, valid3, r, ee, nn)
-    ri_sub, ok_i = _inner_edge(prof, t_in, jmin, jr3, r, ee, nn)
+    # outer edge: the first sample past the ring minimum at or above t_out
+    rel = jr3 - jmin.astype(np.int16)[:, :, None]
+    above_o = (prof >= t_out) & (rel > 0) & valid3
+    jo = np.argmax(above_o, axis=2)
+    ok_o = above_o[ee, nn, jo] & (jo > 0)
+    jo1 = np.maximum(jo - 1, 0)
+    p1, p0 = prof[ee, nn, jo].astype(np.float64), prof[ee, nn, jo1].astype(np.float64)
+    ro_sub = r[jo1] + ds * (t_out[:, :, 0] - p0) / np.where(p1 - p0 == 0, 1e-9, p1 - p0)
+    # inner edge: the last sample before the ring minimum at or above t_in
+    above_i = (prof >= t_in) & (rel < 0)
+    ji = S - 1 - np.argmax(above_i[:, :, ::-1], axis=2)
+    ok_i = above_i[ee, nn, ji] & (ji < S - 1)
+    q0 = prof[ee, nn, ji].astype(np.float64)
+    q1 = prof[ee, nn, np.minimum(ji + 1, S - 1)].astype(np.float64)
+    ri_sub = r[ji] + ds * (q0 - t_in[:, :, 0]) / np.where(q0 - q1 == 0, 1e-9, q0 - q1)
     ok_o &= np.abs(ro_sub - r_out) < 1.5 + 0.15 * r_out
     ok_i &= np.abs(ri_sub - r_in) < 1.5 + 0.25 * r_in
     frac = np.count_nonzero(ok_o & ok_i, axis=1) / n

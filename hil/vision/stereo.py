@@ -15,7 +15,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -110,9 +109,8 @@ class StereoResult:
 def _rectify(cal: StereoCalibration, side: str, uv_ideal: FloatArray) -> FloatArray:
     if uv_ideal.shape[0] == 0:
         return uv_ideal
-    K, _, _, _ = cal.camera(side)
     rect = cal.rectification
-    R, P = (rect.R1, rect.P1) if side == "left" else (rect.R2, rect.P2)
+    K, R, P = (cal.K_left, rect.R1, rect.P1) if side == "left" else (cal.K_right, rect.R2, rect.P2)
     out = cv2.undistortPoints(uv_ideal.reshape(-1, 1, 2), K, None, R=R, P=P)
     return np.asarray(out.reshape(-1, 2), dtype=np.float64)
 
@@ -124,9 +122,11 @@ def _ideal_with_affines(
     distorted -> ideal pixels linearised at the centre (n, 3, 3); None for a camera without
     distortion (every map the identity). The second-order error over a ring is far below the
     noise. One undistortion of all points."""
-    K, dist, _, _ = cal.camera(side)
+    left = side == "left"
+    K, dist = (cal.K_left, cal.dist_left) if left else (cal.K_right, cal.dist_right)
+    distorted = cal.constants.distorted_left if left else cal.constants.distorted_right
     n = centers_px.shape[0]
-    if not np.any(dist) or n == 0:
+    if not distorted or n == 0:
         return centers_px.astype(np.float64, copy=True), None
     h = 1.0
     pts = np.concatenate([centers_px, centers_px + np.array([h, 0.0]), centers_px + np.array([0.0, h])])
@@ -158,16 +158,22 @@ def _to_ideal_stack(C: FloatArray, H: FloatArray | None) -> FloatArray:
 
 
 def _conic_stacks(
-    dets: list[RingDetection], H: FloatArray | None
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Outer and inner conics in ideal (undistorted) pixels (P, 3, 3) and the centre weights (P, 2)."""
-    P = len(dets)
-    C = _to_ideal_stack(
-        np.array([d.outer.conic for d in dets] + [d.inner.conic for d in dets]),
-        None if H is None else np.concatenate([H, H]),
-    )
-    ax = np.array([(d.outer.a_px + d.outer.b_px, d.inner.a_px + d.inner.b_px) for d in dets]).reshape(P, 2)
-    return C[:P], C[P:], ax / ax.sum(axis=1, keepdims=True)
+    left: list[RingDetection], right: list[RingDetection], HL: FloatArray | None, HR: FloatArray | None
+) -> tuple[FloatArray, FloatArray]:
+    """The paired detections' conics in ideal (undistorted) pixels (4P, 3, 3), in the order left
+    outer, right outer, left inner, right inner, and the centre weights of the left then the right
+    detections (2P, 2), all in one stack."""
+    P = len(left)
+    dets = left + right
+    C = np.array([d.outer.conic for d in dets] + [d.inner.conic for d in dets])
+    if HL is not None and HR is not None:
+        C = _to_ideal_stack(C, np.concatenate([HL, HR, HL, HR]))
+    elif HL is not None or HR is not None:
+        for k, H in enumerate((HL, HR, HL, HR)):
+            C[k * P : (k + 1) * P] = _to_ideal_stack(C[k * P : (k + 1) * P], H)
+    ax = np.array([(d.outer.a_px + d.outer.b_px, d.inner.a_px + d.inner.b_px) for d in dets])
+    ax = ax.reshape(2 * P, 2)
+    return C, ax / ax.sum(axis=1, keepdims=True)
 
 
 def _normal_correction(
@@ -184,9 +190,9 @@ def _normal_correction(
     (optical frame; None where a conic gave no normal)."""
     KL, KR, R_rl = cal.K_left, cal.K_right, cal.R_right_from_left
     P = len(left)
-    CoL, CiL, wl = _conic_stacks(left, HL)
-    CoR, CiR, wr = _conic_stacks(right, HR)
-    c1, c2, okc = circle_normals_from_cones(np.concatenate([KL.T @ CoL @ KL, KR.T @ CoR @ KR]))
+    C, w = _conic_stacks(left, right, HL, HR)
+    wl, wr = w[:P], w[P:]
+    c1, c2, okc = circle_normals_from_cones(np.concatenate([KL.T @ C[:P] @ KL, KR.T @ C[P : 2 * P] @ KR]))
     l1, l2, okL = c1[:P], c2[:P], okc[:P]
     r1, r2, okR = c1[P:] @ R_rl, c2[P:] @ R_rl, okc[P:]  # R_rl^T n: the right candidates in the left frame
     # the best-agreeing pair of candidates (first maximum wins, as in a loop over left then right)
@@ -197,10 +203,9 @@ def _normal_correction(
     nR = n @ R_rl.T
     ok = okL & okR
     lL, lR = vanishing_lines(KL, n), vanishing_lines(KR, nR)
-    C = np.concatenate([CoL, CiL, CoR, CiR])
-    shift = poles_of_lines(C, np.concatenate([lL, lL, lR, lR])) - conic_centers(C)
-    dl = wl[:, :1] * shift[:P] + wl[:, 1:] * shift[P : 2 * P]
-    dr = wr[:, :1] * shift[2 * P : 3 * P] + wr[:, 1:] * shift[3 * P :]
+    shift = poles_of_lines(C, np.concatenate([lL, lR, lL, lR])) - conic_centers(C)
+    dl = wl[:, :1] * shift[:P] + wl[:, 1:] * shift[2 * P : 3 * P]
+    dr = wr[:, :1] * shift[P : 2 * P] + wr[:, 1:] * shift[3 * P :]
     UL += np.where(ok[:, None], dl, 0.0)
     UR += np.where(ok[:, None], dr, 0.0)
     return [n[k].copy() if ok[k] else None for k in range(P)]
@@ -215,8 +220,10 @@ def _concentric_correction(
     UR: FloatArray,
 ) -> None:
     """The concentric-conic correction (per view): moves ``UL``, ``UR`` in place."""
-    CoL, CiL, wl = _conic_stacks(left, HL)
-    CoR, CiR, wr = _conic_stacks(right, HR)
+    P = len(left)
+    C, w = _conic_stacks(left, right, HL, HR)
+    CoL, CoR, CiL, CiR = C[:P], C[P : 2 * P], C[2 * P : 3 * P], C[3 * P :]
+    wl, wr = w[:P], w[P:]
     for k in range(UL.shape[0]):
         ccl, ccr = concentric_center(CoL[k], CiL[k]), concentric_center(CoR[k], CiR[k])
         if ccl is not None and ccr is not None:
@@ -235,16 +242,16 @@ def match_and_triangulate(
     Raises:
         GeometryError (from the triangulation) only for degenerate input such as parallel rays.
     """
-    KL, KR = cal.K_left, cal.K_right
     R_rl = cal.R_right_from_left
+    const = cal.constants
+    nl, nr = len(left), len(right)
+    if nl == 0 or nr == 0:
+        return StereoResult((), (), tuple(range(nl)), tuple(range(nr)))
     cL = np.array([d.center_px for d in left]).reshape(-1, 2)
     cR = np.array([d.center_px for d in right]).reshape(-1, 2)
     iL, HL_all = _ideal_with_affines(cal, "left", cL)
     iR, HR_all = _ideal_with_affines(cal, "right", cR)
     rL, rR = _rectify(cal, "left", iL), _rectify(cal, "right", iR)
-    nl, nr = len(left), len(right)
-    if nl == 0 or nr == 0:
-        return StereoResult((), (), tuple(range(nl)), tuple(range(nr)))
     P2 = cal.rectification.P2
     f_rect = float(P2[0, 0])
     fb = abs(float(P2[0, 3]))  # f * baseline (rectified)
@@ -253,48 +260,51 @@ def match_and_triangulate(
     cost = (dv / params.epipolar_tol_px) ** 2
     allowed = (dv <= params.epipolar_tol_px) & (disp > 0)
     if params.outer_diameter_mm is not None:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = fb / disp
-        sl = np.array([math.sqrt(d.outer.a_px * d.outer.b_px) for d in left])
-        sr = np.array([math.sqrt(d.outer.a_px * d.outer.b_px) for d in right])
+        z = fb / np.where(disp > 0, disp, 1.0)  # only the pairs with disp > 0 are allowed
+        abl = np.array([(d.outer.a_px, d.outer.b_px) for d in left])
+        abr = np.array([(d.outer.a_px, d.outer.b_px) for d in right])
+        sl, sr = np.sqrt(abl[:, 0] * abl[:, 1]), np.sqrt(abr[:, 0] * abr[:, 1])
         # the ring's major axis ~ its diameter at its depth: D = 2 a Z / f (upper bound under tilt)
-        dl = 2.0 * np.array([d.outer.a_px for d in left])[:, None] * z / f_rect
-        dr = 2.0 * np.array([d.outer.a_px for d in right])[None, :] * z / f_rect
+        dl = 2.0 * abl[:, 0][:, None] * z / f_rect
+        dr = 2.0 * abr[:, 0][None, :] * z / f_rect
         size_err = np.abs(0.5 * (dl + dr) / params.outer_diameter_mm - 1.0)
         allowed &= size_err <= params.size_tol
         cost = cost + (size_err / params.size_tol) ** 2 + np.abs(np.log(sl[:, None] / sr[None, :]))
     cost = np.where(allowed, cost, _FORBIDDEN)
     rows, cols = linear_sum_assignment(cost)
-    pairs = [(int(a), int(b)) for a, b in zip(rows, cols, strict=True) if allowed[a, b]]
-    used_l, used_r = {a for a, _ in pairs}, {b for _, b in pairs}
-    if not pairs:
+    keep = allowed[rows, cols]
+    ia, ib = rows[keep], cols[keep]
+    if ia.size == 0:
         return StereoResult((), (), tuple(range(nl)), tuple(range(nr)))
-    ia = np.array([a for a, _ in pairs])
-    ib = np.array([b for _, b in pairs])
-    UL, UR = iL[ia].copy(), iR[ib].copy()
+    pairs = list(zip(ia.tolist(), ib.tolist(), strict=True))
+    used_l, used_r = set(ia.tolist()), set(ib.tolist())
+    UL, UR = iL[ia], iR[ib]  # fancy indexing: copies
     normals: list[FloatArray | None] = [None] * len(pairs)
     HL = None if HL_all is None else HL_all[ia]
     HR = None if HR_all is None else HR_all[ib]
+    paired_l, paired_r = [left[a] for a, _ in pairs], [right[b] for _, b in pairs]
     if params.correction == "normal":
-        normals = _normal_correction(cal, [left[a] for a in ia], [right[b] for b in ib], HL, HR, UL, UR)
+        normals = _normal_correction(cal, paired_l, paired_r, HL, HR, UL, UR)
     elif params.correction == "concentric":
-        _concentric_correction([left[a] for a in ia], [right[b] for b in ib], HL, HR, UL, UR)
-    pts = triangulate_dlt(cal.P_left(), cal.P_right(), UL, UR)
-    dirs_l = np.column_stack([UL, np.ones(len(UL))]) @ np.linalg.inv(KL).T
-    dirs_r = (np.column_stack([UR, np.ones(len(UR))]) @ np.linalg.inv(KR).T) @ R_rl
-    _, gaps = triangulate_midpoint(np.zeros(3), dirs_l, cal.right_center_mm, dirs_r)
-    epi = np.abs(_rectify(cal, "left", UL)[:, 1] - _rectify(cal, "right", UR)[:, 1])
+        _concentric_correction(paired_l, paired_r, HL, HR, UL, UR)
+    pts = triangulate_dlt(const.P_left, const.P_right, UL, UR)
+    ones = np.ones((len(UL), 1))
+    dirs_l = np.hstack([UL, ones]) @ const.K_left_inv.T
+    dirs_r = (np.hstack([UR, ones]) @ const.K_right_inv.T) @ R_rl
+    _, gaps = triangulate_midpoint(np.zeros(3), dirs_l, const.right_center_mm, dirs_r)
+    epi = np.abs(_rectify(cal, "left", UL)[:, 1] - _rectify(cal, "right", UR)[:, 1]).tolist()
+    gap_list = gaps.tolist()
     good: list[StereoPoint] = []
     rejected: list[RejectedPair] = []
     for k, (a, b) in enumerate(pairs):
-        if gaps[k] > params.max_gap_mm:
+        if gap_list[k] > params.max_gap_mm:
             rejected.append(
                 RejectedPair(
-                    a, b, f"rays pass {gaps[k]:.3f} mm apart (> {params.max_gap_mm} mm)", float(gaps[k])
+                    a, b, f"rays pass {gap_list[k]:.3f} mm apart (> {params.max_gap_mm} mm)", gap_list[k]
                 )
             )
             continue
-        good.append(StereoPoint(a, b, pts[k], float(epi[k]), float(gaps[k]), UL[k], UR[k], normals[k]))
+        good.append(StereoPoint(a, b, pts[k], epi[k], gap_list[k], UL[k], UR[k], normals[k]))
     return StereoResult(
         tuple(good),
         tuple(rejected),

@@ -43,9 +43,11 @@ from hil.vision.camera_model import StereoCalibration
 from hil.vision.detect import (
     DetectParams,
     RingDetection,
+    begin_search,
     detect_rings,
     detect_rings_multi,
     edges_of,
+    finish_search,
     fit_rings,
     refine_in_box,
     validate_image,
@@ -223,7 +225,7 @@ class ImageTracker:
         """Per track, the largest accepted distance of a detection from its prediction (px)."""
         half = np.array([_window_half_px(t.det, self.params.window_margin_px) for t in self._tracks])
         if preds.shape[0] > 1:
-            d = np.linalg.norm(preds[:, None, :] - preds[None, :, :], axis=2)
+            d = _distances(preds, preds)
             np.fill_diagonal(d, np.inf)
             half = np.minimum(half, 0.5 * d.min(axis=1))
         return half
@@ -236,7 +238,8 @@ class ImageTracker:
         gates = self._gates(preds)
         h, w = img.shape
         centres = np.array([[np.nan, np.nan] if d is None else d.center_px for d in found])
-        dist = np.linalg.norm(centres - preds, axis=1)
+        dd = centres - preds
+        dist = np.sqrt(dd[:, 0] * dd[:, 0] + dd[:, 1] * dd[:, 1])
         for i in np.nonzero(~(dist <= gates))[0]:
             half = _window_half_px(tracks[i].det, self.params.window_margin_px)
             x, y = preds[i]
@@ -253,7 +256,7 @@ class ImageTracker:
             dist[i] = float(np.linalg.norm(centres[i] - preds[i]))
         # two markers never take the same detection: the one nearer its prediction keeps it
         if len(found) > 1:
-            sep = np.linalg.norm(centres[:, None, :] - centres[None, :, :], axis=2)
+            sep = _distances(centres, centres)
             b = np.array([np.nan if d is None else d.outer.b_px for d in found])
             close = sep < 0.5 * np.minimum(b[:, None], b[None, :])
             np.fill_diagonal(close, False)
@@ -263,14 +266,21 @@ class ImageTracker:
         return found
 
     def _advance(self, dets: list[RingDetection], dt: float) -> None:
-        for t, det in zip(self._tracks, dets, strict=True):
-            t.velocity_px_s = self._velocity(det.center_px - t.det.center_px, dt)
+        if not dets:
+            return
+        step = np.array([d.center_px for d in dets]) - np.array([t.det.center_px for t in self._tracks])
+        move = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1])
+        vmax = self.params.max_speed_px_per_frame
+        scale = np.where(move <= vmax, 1.0, vmax / np.where(move > 0, move, 1.0))
+        velocities = step * (scale / dt)[:, None]  # :meth:`_velocity` of every track at once
+        for t, det, v in zip(self._tracks, dets, velocities, strict=True):
+            t.velocity_px_s = v
             t.det = det
 
     def _velocity(self, step_px: FloatArray, dt: float) -> FloatArray:
         """Velocity (px per second, or per frame without timestamps) of a move of ``step_px`` in
         ``dt``, its move per frame clamped to ``max_speed_px_per_frame``."""
-        move = float(np.hypot(step_px[0], step_px[1]))
+        move = math.sqrt(float(step_px[0]) ** 2 + float(step_px[1]) ** 2)
         vmax = self.params.max_speed_px_per_frame
         scale = 1.0 if move <= vmax else vmax / move
         return np.asarray(step_px * (scale / dt), dtype=np.float64)
@@ -296,6 +306,13 @@ class ImageTracker:
             self._expected, self._missing_since = len(new), None
         elif self._missing_since is None:
             self._missing_since = self.stats.frames
+
+
+def _distances(p: FloatArray, q: FloatArray) -> FloatArray:
+    """Pairwise distances (len(p), len(q)) of two point sets (N, 2), (M, 2), px."""
+    dx = p[:, None, 0] - q[None, :, 0]
+    dy = p[:, None, 1] - q[None, :, 1]
+    return np.asarray(np.sqrt(dx * dx + dy * dy), dtype=np.float64)
 
 
 def _window_half_px(det: RingDetection, margin_px: float) -> float:
@@ -358,24 +375,28 @@ class MarkerTracker:
         left = validate_image(left_img, "left image", self.cal.image_size)
         right = validate_image(right_img, "right image", self.cal.image_size)
         trackers = ((self.left, left), (self.right, right))
+        dp = self.left.detect_params
         steps = [tr.begin(t_s) for tr, _ in trackers]
+        # one batch of rings for the pair: the windows of a tracked image and the first hypotheses
+        # of an image due for a full-frame search (known now: periodic, retry or requested)
         windowed = [k for k in range(2) if not steps[k].full]
-        found: list[list[RingDetection | None] | None] = [None, None]
-        if windowed:  # both images' windows in one batch
-            parts = [(trackers[k][1], trackers[k][0].seeds(steps[k])) for k in windowed]
-            dp = self.left.detect_params
+        searches = {k: begin_search(trackers[k][1], dp) for k in range(2) if steps[k].full}
+        parts = [(trackers[k][1], trackers[k][0].seeds(steps[k])) for k in windowed]
+        parts += [(sr.frame, sr.seeds) for sr in searches.values()]
+        fitted: list[RingDetection | None] = []
+        if parts:
             fitted = fit_rings(ring_edges_multi(parts, dp.n_rays, dp.min_contrast, dp.min_valid_fraction), dp)
-            start = 0
-            for k, (_, sd) in zip(windowed, parts, strict=True):
-                found[k] = fitted[start : start + sd.count]
-                start += sd.count
-        need = [
-            k for k in range(2)
-            if steps[k].full or not trackers[k][0].resolve_windows(trackers[k][1], steps[k], found[k] or [])
-        ]
-        if need:  # full-frame searches, both images in one batch
+        found: dict[int, list[RingDetection | None]] = {}
+        start = 0
+        for k, (_, sd) in zip([*windowed, *searches], parts, strict=True):
+            found[k] = fitted[start : start + sd.count]
+            start += sd.count
+        for k, sr in searches.items():
+            trackers[k][0].reacquire(finish_search(sr, found[k], dp), steps[k])
+        need = [k for k in windowed if not trackers[k][0].resolve_windows(trackers[k][1], steps[k], found[k])]
+        if need:  # a marker lost from its window: full-frame searches, both images in one batch
             images = [(trackers[k][1], trackers[k][0].name) for k in need]
-            for k, dets in zip(need, detect_rings_multi(images, self.left.detect_params), strict=True):
+            for k, dets in zip(need, detect_rings_multi(images, dp), strict=True):
                 trackers[k][0].reacquire(dets, steps[k])
         dl, dr = self.left.markers, self.right.markers
         stereo = match_and_triangulate(self.cal, dl, dr, self.stereo_params)
