@@ -9,7 +9,7 @@ Two families of scenarios (docs/campaign.md, "Compound faults"):
   on a pair of frames at the earliest one tick after A's onset). 91 pairs: 27 on one device
   (camera 15, tracker 6, robot 6) and 64 across devices; x 5 states = 455 scenarios.
 * **Second fault during recovery** ``A+B@S+recovery`` (ordered): A is a fault the controller
-  answers with a safe state (detect ``watchdog`` or ``on_command``: 7 kinds), aimed at S;
+  answers with a safe state (:func:`recovery_first_kinds`, detect ``watchdog``: 6 kinds), aimed at S;
   B, any of the 14 kinds, starts inside the recovery from A: the first state the controller
   enters by a recovery transition after A's safe state (``recover``/``resume`` into APPROACH,
   ``re_register`` or a restart into REGISTER), found in the session log of the single-fault run
@@ -17,8 +17,7 @@ Two families of scenarios (docs/campaign.md, "Compound faults"):
   :func:`~hil.campaign.scenarios.place_fault` places a fault in a state. A's state picks the
   recovery path, so S is REGISTER (no plan yet: reset, restart, re-registration) or COMPENSATE
   (plan kept: resume, a fresh approach from the actual pose; APPROACH, GATE and LOCK take the
-  same path). 7 x 14 x 2 less the 14 of ``motion_rejected`` aimed at REGISTER (no motion is
-  commanded there, so it passes unseen and nothing recovers) = 182 scenarios.
+  same path). 6 x 14 x 2 = 168 scenarios.
 """
 
 from __future__ import annotations
@@ -46,10 +45,13 @@ RECOVERY_TRANSITIONS = frozenset({"recover", "resume", "re_register", "start"})
 RECOVERY_SUFFIX = "+recovery"
 
 
-def bounded_kinds() -> list[FaultKind]:
-    """The kinds the controller always answers with a safe state (detect ``watchdog`` or
-    ``on_command``), in enum order: the first faults of the recovery scenarios."""
-    return [k for k in FaultKind if PROFILES[k].detect != "content"]
+def recovery_first_kinds() -> list[FaultKind]:
+    """The first faults of the recovery scenarios, in enum order: the kinds detectable at onset
+    (detect ``watchdog``), which the controller answers with a safe state in every state.
+    ``motion_rejected`` (detect ``on_command``) is not among them: the servo loop absorbs rejected
+    servo commands (``servo_command_failed``) and the procedure goes on once motion is accepted
+    again, so it is tolerated in every state and leaves no recovery to place a second fault in."""
+    return [k for k in FaultKind if PROFILES[k].detect == "watchdog"]
 
 
 @dataclass(frozen=True)
@@ -90,12 +92,10 @@ def overlap_scenarios() -> list[PairScenario]:
 
 
 def recovery_scenarios() -> list[PairScenario]:
-    """Every bounded first kind x every second kind (the same kind again included) x
-    :data:`RECOVERY_STATES`, except a first fault detectable only at a motion command aimed at
-    REGISTER (no motion is commanded there: the fault passes unseen and nothing recovers)."""
+    """Every first kind of :func:`recovery_first_kinds` x every second kind (the same kind again
+    included) x :data:`RECOVERY_STATES`."""
     return [PairScenario(a, b, s, recovery=True)
-            for a in bounded_kinds() for b in FaultKind for s in RECOVERY_STATES
-            if not (PROFILES[a].detect == "on_command" and s == "register")]
+            for a in recovery_first_kinds() for b in FaultKind for s in RECOVERY_STATES]
 
 
 def all_pairs() -> list[PairScenario]:
@@ -148,10 +148,11 @@ def select_pairs(patterns: list[str]) -> list[PairScenario]:
         hit = [s for s in every if _matches(s, pat)]
         if not hit:
             kinds = ", ".join(k.value for k in FaultKind)
+            firsts = ", ".join(k.value for k in recovery_first_kinds())
             raise ScenarioSelectionError(
                 f"pair scenario {pat!r} matches nothing (A+B@STATE or A+B@STATE+recovery, A, B kinds: "
                 f"{kinds}; states: {', '.join(TARGET_STATES)}; recovery: first kind one of "
-                f"{', '.join(k.value for k in bounded_kinds())}, state {' or '.join(RECOVERY_STATES)})")
+                f"{firsts}, state {' or '.join(RECOVERY_STATES)})")
         chosen += [s for s in hit if s not in chosen]
     return chosen
 

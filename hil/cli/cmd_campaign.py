@@ -23,7 +23,7 @@ the I-th of N deterministic slices of the matrix, for array jobs.
 
 ``--pairs``: compound faults instead (:mod:`hil.campaign.pairs`): every unordered pair of fault
 kinds overlapping in every state (``A+B@STATE``, 455) and a second fault during the recovery from a
-first (``A+B@STATE+recovery``, 182); SCENARIOS select them (``frame_drop+robot_disconnect@lock``,
+first (``A+B@STATE+recovery``, 168); SCENARIOS select them (``frame_drop+robot_disconnect@lock``,
 ``frame_drop`` = every pair with it, ``@lock``, ``+recovery``, wildcards); the table's rows are the
 pairs; the JSON adds ``pairs`` and per run the second fault's ``second_*`` fields.
 
@@ -123,9 +123,9 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--pairs", action="store_true",
                    help="compound faults: every pair of fault kinds overlapping in every state "
                         "(A+B@STATE: 91 pairs x 5 states) and a second fault during the recovery from a "
-                        "first (A+B@STATE+recovery: 7 x 14 x register/compensate); SCENARIOS select them "
+                        "first (A+B@STATE+recovery: 6 x 14 x register/compensate); SCENARIOS select them "
                         "(frame_drop+robot_disconnect@lock, frame_drop, '@lock', '+recovery', globs; "
-                        "A+B matches either order); default: all 637")
+                        "A+B matches either order); default: all 623")
     p.add_argument("--transport", action="store_true",
                    help="run the transport tier: faults through the emulators to the real drivers, "
                         "in real time (SCENARIOS: FAMILY@STATE transport scenario names)")
