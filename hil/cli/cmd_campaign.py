@@ -97,7 +97,7 @@ def add_parser(sub: Any) -> None:
         nargs="*",
         metavar="SCENARIO",
         help="kind@state patterns (e.g. frame_drop@compensate, robot_disconnect, '@lock', "
-        "'*@gate'); default: all",
+        "'*@gate'); with --pairs A+B@STATE[+recovery] patterns; default: all",
     )
     p.add_argument("--seeds", type=int, default=1, help="number of seeds (1..N; default 1)")
     p.add_argument(
