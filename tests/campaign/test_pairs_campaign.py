@@ -14,7 +14,7 @@ import pytest
 from hil.cli import main
 
 OVERLAP = "frame_drop+robot_disconnect@compensate"
-SAME_DEVICE = "tracker_timeout+bad_quality@approach"
+SAME_DEVICE = "frame_drop+stale_timestamp@lock"
 RECOVERY = "robot_disconnect+tracker_timeout@compensate+recovery"
 
 pytestmark = pytest.mark.slow
@@ -51,6 +51,15 @@ def test_overlapping_faults_both_hit_the_state_and_end_safe(
     assert 0 <= r["safe_latency_ms"] <= r["latency_bound_ms"]
     assert r["inputs"]["second_kind"] == "robot_disconnect"
     assert r["replay"].startswith(f"hil campaign --pairs {OVERLAP} --seed 1 ")
+
+
+def test_two_faults_on_one_device(campaign: tuple[int, dict[str, Any], Path]) -> None:
+    _, summary, _ = campaign
+    r = {r["scenario"]: r for r in summary["results"]}[SAME_DEVICE]
+    assert (r["state_at_onset"], r["second_kind"], r["outcome"], r["final_state"]) == (
+        "lock", "stale_timestamp", "safe_state", "done")
+    assert r["latency_bound_ms"] == 650.0  # both camera faults: the camera's bound from the first
+    assert 0 <= r["safe_latency_ms"] <= r["latency_bound_ms"]
 
 
 def test_second_fault_lands_in_the_recovery_and_ends_safe(campaign: tuple[int, dict[str, Any], Path]) -> None:

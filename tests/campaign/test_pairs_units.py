@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from hil.campaign.compound import judge_second
 from hil.campaign.operator import CampaignOperator
 from hil.campaign.pairs import (
     OVERLAP_OFFSET_S,
@@ -24,8 +25,9 @@ from hil.campaign.pairs import (
     select_pairs,
 )
 from hil.campaign.pairs_campaign import pair_spec, pairs_matrix_ids, single_runs
+from hil.campaign.recorder import Recording, StateSample
 from hil.campaign.report import pair_row_of, row_order, table
-from hil.campaign.runner import RunSpec
+from hil.campaign.runner import RunResult, RunSpec
 from hil.campaign.scenarios import TARGET_STATES, ScenarioSelectionError
 from hil.cli import main
 from hil.config.faults import FAULT_DEVICE, FaultKind
@@ -219,3 +221,57 @@ def test_every_pair_is_in_the_matrix_once() -> None:
     got = {(s.first, s.second) for s in overlap_scenarios()}
     assert got == {tuple(sorted(p, key=lambda k: KIND_NAMES.index(k.value)))
                    for p in itertools.combinations(FaultKind, 2)}
+
+
+# ---------------------------------------------------------------------- judging the second fault
+T0_NS = 1_000_000_000
+ENTERED = [(0.03, "register"), (2.3, "plan"), (2.36, "approach"), (4.4, "gate"), (6.7, "compensate"),
+           (6.9, "fault"), (7.96, "approach"), (8.2, "fault"), (9.4, "approach"), (11.0, "gate"),
+           (12.0, "compensate"), (12.5, "lock"), (14.0, "done")]
+
+
+def _recovery_spec(second: str = "robot_disconnect") -> RunSpec:
+    return RunSpec("r", "c.toml", None, 1, kind="tracker_timeout", state="compensate", start_s=6.83,
+                   duration_s=0.6, second_kind=second, second_start_s=8.12, second_duration_s=0.6,
+                   recovery=True, second_state="approach")
+
+
+def _judged(spec: RunSpec, entered: list[tuple[float, str]], stopped_at_s: float | None = 8.25,
+            final: str = "done", lock_mm: float | None = 0.3) -> RunResult:
+    rec = Recording()
+    if stopped_at_s is not None:
+        rec.states.append(StateSample(T0_NS + round(stopped_at_s * 1e9), 0.2, "stopped", "normal"))
+    op = CampaignOperator(recover_after_s=7.93, max_recoveries=4, holds=((8.12, 9.22),))
+    op.commands = [(7.95, "resume_requested"), (9.3, "resume_requested")]
+    result = RunResult("r", spec.scenario, spec.kind, spec.state, 1, passed=False, final_state=final,
+                       lock_error_mm=lock_mm, second_latency_bound_ms=183.333)
+    judge_second(spec, result, rec, (T0_NS, entered, 14.1), op)
+    return result
+
+
+def test_second_fault_in_recovery_judged_on_its_own() -> None:
+    r = _judged(_recovery_spec(), ENTERED)
+    assert r.reasons == []
+    assert (r.second_kind, r.second_onset_s, r.second_state_at_onset, r.second_safe_state) == (
+        "robot_disconnect", 8.12, "approach", "fault")
+    assert (r.second_safe_latency_ms, r.second_latency_bound_ms) == (80.0, 183.333)
+
+
+def test_second_fault_in_recovery_failures() -> None:
+    late = [(t + (0.2 if t >= 8.2 else 0.0), s) for t, s in ENTERED]  # FAULT 280 ms after onset
+    assert _judged(_recovery_spec(), late, stopped_at_s=8.45).reasons == [
+        "second fault: safe state fault 280 ms after the fault was detectable (bound 183 ms)"]
+    assert _judged(_recovery_spec(), ENTERED, stopped_at_s=None).reasons == [
+        "second fault: robot not seen stopped (< 1.0 mm/s) in fault before recovery"]
+    no_lock = [(t, s) for t, s in ENTERED if t < 9.0]
+    assert _judged(_recovery_spec(), no_lock, final="fault").reasons == [
+        "second fault: did not continue to lock after recovery (final state fault)"]
+    missed = [(t, s) for t, s in ENTERED if t != 7.96]  # still in FAULT when the second fault came
+    assert _judged(_recovery_spec(), missed).reasons == [
+        "second fault started in fault, not in the recovery state approach it was placed in: not tested"]
+    tolerated = [(t, s) for t, s in ENTERED if t != 8.2]
+    assert _judged(_recovery_spec("glare"), tolerated).reasons == []
+    assert _judged(_recovery_spec("glare"), tolerated, lock_mm=2.5).reasons == [
+        "tolerated, but lock error 2.5 mm > 2.0 mm"]
+    assert _judged(_recovery_spec("glare"), tolerated, final="safe_stop").reasons == [
+        "second fault neither reached a safe state nor was tolerated (final state safe_stop)"]
