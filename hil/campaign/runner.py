@@ -377,13 +377,56 @@ def _first_bound(spec: RunSpec, result: RunResult, rec: Recording, t0_ns: int
     return min(detectable)
 
 
+def judge_second(spec: RunSpec, result: RunResult, rec: Recording,
+                 timeline: tuple[int, list[tuple[float, str]], float], operator: CampaignOperator) -> None:
+    """The second fault of a compound-fault run (``hil campaign --pairs``; docs/campaign.md,
+    "Compound faults"): its onset and the state it hit; for one placed in the recovery from the
+    first, the criteria again from its onset: the first safe state at or after it (within its
+    device's bound from when it was detectable, the robot seen stopped before the next recovery,
+    the procedure continuing to lock), or, with none, tolerated (done, lock within 2 mm). A
+    recovery scenario whose second fault did not start in the recovery state it was placed in
+    fails: that cell was not tested. Fills ``result``'s ``second_*`` fields and adds to
+    ``result.reasons``; ``timeline`` is ``(t0_ns, [(t_s, state entered)], end_s)``."""
+    assert spec.second_kind is not None
+    assert spec.second_start_s is not None
+    t0_ns, entered, end_s = timeline
+    onset = spec.second_start_s
+    result.second_kind = spec.second_kind
+    result.second_onset_s = onset
+    if end_s < onset:
+        result.reasons.append(f"the run ended at {end_s:.2f} s, before the second fault at {onset:.2f} s")
+        return
+    result.second_state_at_onset = _state_at(entered, onset)
+    if not spec.recovery:
+        return
+    if result.second_state_at_onset != spec.second_state:
+        result.reasons.append(
+            f"second fault started in {result.second_state_at_onset}, not in the recovery state "
+            f"{spec.second_state} it was placed in: not tested")
+        return
+    safe = [(t, s) for t, s in entered if s in SAFE_STATES and t >= onset - 1e-9]
+    if not safe:
+        _judge_tolerated(result, "second fault")
+        return
+    ref = detectable_s(spec.second_kind, onset, rec, t0_ns)
+    bound = result.second_latency_bound_ms
+    if ref is None or ref > safe[0][0]:  # safe before the second fault was detectable: not bounded
+        ref, bound = onset, None
+    v = check_safe_state(safe[0], ref, bound, t0_ns, entered, end_s, rec, operator, result.final_state)
+    result.second_safe_state = safe[0][1]
+    result.second_safe_latency_ms = v.latency_ms
+    if not v.bounded:
+        result.second_latency_bound_ms = None
+    result.reasons += [f"second fault: {r}" for r in v.reasons]
+
+
 def judge(
     spec: RunSpec, result: RunResult, rec: Recording, log_path: Path, operator: CampaignOperator
 ) -> RunResult:
     """Apply the pass criteria (docs/campaign.md) and fill ``result``. A compound fault (a
     second fault in ``spec``) is judged from its first fault as one fault is (the latency from
     the first fault that became detectable, against the earliest bound either sets); a second
-    fault placed in the recovery is then judged again on its own (:mod:`hil.campaign.compound`)."""
+    fault placed in the recovery is then judged again on its own (:func:`judge_second`)."""
     reasons = result.reasons
     t0_ns, entered, records = _judge_run(result, rec, log_path)
     end_s = records[-1][0]
@@ -422,8 +465,6 @@ def judge(
     else:
         _judge_tolerated(result)
     if spec.second_kind is not None:
-        from .compound import judge_second  # the compound-fault part (it builds on this module)
-
         judge_second(spec, result, rec, (t0_ns, entered, end_s), operator)
     result.passed = not reasons
     return result

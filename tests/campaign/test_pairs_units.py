@@ -10,7 +10,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hil.campaign.compound import judge_second
 from hil.campaign.operator import CampaignOperator
 from hil.campaign.pairs import (
     OVERLAP_OFFSET_S,
@@ -27,7 +26,7 @@ from hil.campaign.pairs import (
 from hil.campaign.pairs_campaign import pair_spec, pairs_matrix_ids, single_runs
 from hil.campaign.recorder import Recording, StateSample
 from hil.campaign.report import pair_row_of, row_order, table
-from hil.campaign.runner import RunResult, RunSpec
+from hil.campaign.runner import RunResult, RunSpec, judge_second
 from hil.campaign.scenarios import TARGET_STATES, ScenarioSelectionError
 from hil.cli import main
 from hil.config.faults import FAULT_DEVICE, FaultKind
