@@ -10,6 +10,9 @@ failed command. The recorder now does the same.
 
 from __future__ import annotations
 
+from dataclasses import replace
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -96,14 +99,15 @@ def test_the_same_reversal_without_a_refusal_is_a_violation() -> None:
     ("frozen_frame+motion_rejected@compensate", "tolerated"),
     ("stale_timestamp+motion_rejected@compensate", "safe_state"),
 ])
-def test_motion_rejected_with_a_camera_fault_while_compensating_passes(name: str, outcome: str) -> None:
+def test_motion_rejected_with_a_camera_fault_while_compensating_passes(name: str, outcome: str,
+                                                                       tmp_path: Path) -> None:
     """The campaign runs that found it (seed 1, placed in the baseline's COMPENSATE window
     [6.6967, 7.1527] s): no command outside the limits reached the driver."""
     (sc,) = select_pairs([name])
     spec = pair_spec(sc, 1, {"compensate": [6.6967, 7.1527]}, None, str(default_setup_path()), None, 90.0)
     assert isinstance(spec, RunSpec)
     assert (spec.start_s, spec.second_start_s) == (6.8335, 6.8835)
-    out = run_one(spec)
+    out = run_one(replace(spec, log_dir=str(tmp_path)))
     assert (out.limit_violations, out.reasons) == ([], [])
     assert (out.outcome, out.final_state, out.passed) == (outcome, "done", True)
     assert out.state_at_onset == "compensate"
