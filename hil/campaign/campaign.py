@@ -32,7 +32,8 @@ def replay_command(scenario: str, seed: int, config: Path, plan: str | None) -> 
     extra = f" --plan {plan}" if plan else ""
     if scenario == "baseline":
         return f"hil run {config} --seed {seed} --auto"
-    return f"hil campaign {scenario} --seed {seed} --config {config}{extra}"
+    pairs = " --pairs" if "+" in scenario else ""  # a compound-fault scenario (A+B@S)
+    return f"hil campaign{pairs} {scenario} --seed {seed} --config {config}{extra}"
 
 
 def matrix_ids(scenarios: list[Scenario], seeds: list[int]) -> list[str]:
@@ -61,6 +62,10 @@ class SimTaskFactory:
                   "state": spec.state, "start_s": spec.start_s, "duration_s": spec.duration_s,
                   "max_duration_s": spec.max_duration_s, "config": str(self.config), "plan": self.plan,
                   "config_sha256": self.digest, "code_version": self.version["id"]}
+        if spec.second_kind is not None:
+            inputs.update(second_kind=spec.second_kind, second_start_s=spec.second_start_s,
+                          second_duration_s=spec.second_duration_s, recovery=spec.recovery,
+                          second_state=spec.second_state)
         return RunTask("simulator", spec.run_id, fields, inputs,
                        replay_command(spec.scenario, spec.seed, self.config, self.plan), self.timeout_s,
                        str(self.version["id"]), self.digest, self.paths, keep_logs=self.keep_logs,

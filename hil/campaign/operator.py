@@ -16,10 +16,15 @@ class CampaignOperator:
     recover_after_s: controller time (s) before which it will not try to recover (the end of
         the fault window plus a settling time).
     max_recoveries: recovery attempts (each resume / reset-and-restart counts one).
+    holds: further ``(from_s, until_s)`` controller-time windows in which it will not recover
+        either (a second fault of a compound-fault run: from its start to its end plus the
+        settling time).
     """
 
-    def __init__(self, recover_after_s: float, max_recoveries: int = 2) -> None:
+    def __init__(self, recover_after_s: float, max_recoveries: int = 2,
+                 holds: tuple[tuple[float, float], ...] = ()) -> None:
         self.recover_after_s = recover_after_s
+        self.holds = holds
         self.recoveries_left = max_recoveries
         self._started = False
         self._last: Event | None = None
@@ -31,6 +36,10 @@ class CampaignOperator:
         self.commands.append((round(view.t_s, 4), ev.value))
         return ev
 
+    def _holding(self, t_s: float) -> bool:
+        """Whether recovery must wait at controller time ``t_s`` (s)."""
+        return t_s < self.recover_after_s or any(a <= t_s < b for a, b in self.holds)
+
     def poll(self, view: OperatorView) -> Event | None:
         if self._last is not None and view.state is not self._last_state:
             self._last = None  # the last command was applied (the state moved on)
@@ -40,7 +49,7 @@ class CampaignOperator:
         if view.pending is not None:
             return Event.CONFIRM_REQUESTED
         halted = view.state in HALTED or (view.state is State.IDLE and self._started)
-        if not halted or view.t_s < self.recover_after_s:
+        if not halted or self._holding(view.t_s):
             self._last = None
             return None
         if view.state is State.IDLE:
@@ -61,7 +70,7 @@ class CampaignOperator:
     def finished(self, view: OperatorView) -> bool:
         if view.state is State.DONE:
             return True
-        if view.t_s < self.recover_after_s:
+        if self._holding(view.t_s):
             return False
         halted = view.state in HALTED or (view.state is State.IDLE and self._started)
         if not halted:

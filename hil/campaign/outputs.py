@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from .report import family_of, render_html
+from .report import family_of, pair_row_of, render_html, row_order
 
 #: The summary file's stem per tier.
 STEMS = {"simulator": "campaign", "transport": "transport"}
@@ -29,6 +29,9 @@ def write_summary(summary: dict[str, Any], out_dir: Path) -> Path:
         from .transport import FAMILIES
 
         page = render_html(summary, row_of=family_of, order=FAMILIES, title="Transport fault campaign")
+    elif summary.get("pairs") is not None:
+        rows = row_order(summary["results"], pair_row_of)
+        page = render_html(summary, row_of=pair_row_of, order=rows, title="Compound-fault campaign")
     else:
         page = render_html(summary)
     (out_dir / f"{stem}.html").write_text(page)

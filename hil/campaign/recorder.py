@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.interfaces.errors import LimitViolationError
+from drivers.interfaces.errors import DriverError, LimitViolationError
 from drivers.interfaces.robot import FollowingModel, MotionLimits, Robot, RobotState
 from hil.clock import Clock
 from hil.geometry.transform import RigidTransform
@@ -182,7 +182,15 @@ class RecordingRobot(Robot):
         rec = CommandRecord(
             self.clock.now_ns(), "servo", (float(t[0]), float(t[1]), float(t[2])), speed, None, tuple(v)
         )
-        self._record(rec, lambda: self.inner.servo(T_robot_from_tcp, period_s))
+        try:
+            self._record(rec, lambda: self.inner.servo(T_robot_from_tcp, period_s))
+        except DriverError:
+            # refused or failed: the servo loop starts its stream again from the actual pose at
+            # rest once commands are accepted again (hil.servo.loop), so the next step is checked
+            # from rest at the last reported pose, as a stream's first step always is
+            self._last_servo = None
+            self._last_servo_v = None
+            raise
         self._last_servo = T_robot_from_tcp
 
     def stop(self, decel_mm_s2: float | None = None) -> None:

@@ -65,6 +65,23 @@ def family_of(result: dict[str, Any]) -> str:
     return str(result["scenario"]).partition("@")[0]
 
 
+def pair_row_of(result: dict[str, Any]) -> str:
+    """The pairs campaign's table row: ``A+B`` (overlapping), ``A+B+recovery`` (the second fault in
+    the recovery from the first), or the kind of a single-fault placement run."""
+    name = str(result["scenario"])
+    head = name.partition("@")[0]
+    return head + ("+recovery" if name.endswith("+recovery") else "")
+
+
+def row_order(results: list[dict[str, Any]], row_of: RowOf) -> list[str]:
+    """The rows of ``results`` in the order they first appear (baselines left out)."""
+    out: list[str] = []
+    for r in results:
+        if r.get("kind") and row_of(r) not in out:
+            out.append(row_of(r))
+    return out
+
+
 def _cells(results: list[dict[str, Any]], row_of: RowOf = kind_of,
            ) -> dict[tuple[str, str], tuple[int, int, float | None]]:
     """(row, state) -> (runs, failed, worst latency ms); rows are fault kinds unless ``row_of``
@@ -120,6 +137,16 @@ def table(results: list[dict[str, Any]], *, row_of: RowOf = kind_of,
     return "\n".join(lines) + "\n"
 
 
+def _second_text(r: dict[str, Any]) -> str:
+    """A compound-fault run's second fault: kind, onset, state hit, safe state and latency."""
+    if not r.get("second_kind"):
+        return ""
+    text = f"{r['second_kind']} at {r.get('second_onset_s')} s in {r.get('second_state_at_onset')}"
+    if r.get("second_safe_state"):
+        text += f" -> {r['second_safe_state']} {r.get('second_safe_latency_ms')} ms"
+    return text
+
+
 def render_html(summary: dict[str, Any], *, row_of: RowOf = kind_of, order: Sequence[str] | None = None,
                 title: str = "Fault-injection campaign") -> str:
     """The summary as one HTML page: the fault x state table (rows as in :func:`table`), the
@@ -129,6 +156,7 @@ def render_html(summary: dict[str, Any], *, row_of: RowOf = kind_of, order: Sequ
     kinds = _rows(cells, order)
     states = [s for s in TARGET_STATES if any(key[1] == s for key in cells)]
     e = html.escape
+    compound = any(r.get("second_kind") for r in results)
 
     def td(cell: tuple[int, int, float | None] | None) -> str:
         colour = "#eee" if cell is None else ("#c8f0c8" if cell[1] == 0 else "#f4c2c2")
@@ -145,7 +173,8 @@ def render_html(summary: dict[str, Any], *, row_of: RowOf = kind_of, order: Sequ
         f"<td>{e(str(r.get('outcome')))}</td><td>{e(str(r.get('state_at_onset')))}</td>"
         f"<td>{e(str(r.get('safe_state')))}</td><td>{e(str(r.get('safe_latency_ms')))}</td>"
         f"<td>{e(str(r.get('stop_latency_ms')))}</td><td>{e(str(r.get('recovered_to_lock')))}</td>"
-        f"<td>{e(str(r.get('final_state')))}</td></tr>"
+        f"<td>{e(str(r.get('final_state')))}</td>"
+        + (f"<td>{e(_second_text(r))}</td>" if compound else "") + "</tr>"
         for r in results
     )
     head = (
@@ -163,5 +192,6 @@ def render_html(summary: dict[str, Any], *, row_of: RowOf = kind_of, order: Sequ
         f"{fails}</table>"
         "<h2>All runs</h2><table><tr><th>scenario</th><th>seed</th><th>verdict</th><th>outcome</th>"
         "<th>state at onset</th><th>safe state</th><th>latency ms</th><th>stop ms</th>"
-        "<th>recovered to lock</th><th>final</th></tr>" + runs + "</table></body></html>\n"
+        "<th>recovered to lock</th><th>final</th>" + ("<th>second fault</th>" if compound else "")
+        + "</tr>" + runs + "</table></body></html>\n"
     )

@@ -18,8 +18,9 @@ from hil.controller.plan_file import load_plan
 from hil.session.log import SessionLog, file_sha256, read_session_log, verify_session_log
 
 from .operator import CampaignOperator
+from .pairs import recovery_window
 from .recorder import Recording, RecordingRobot
-from .scenarios import PROFILES, KindProfile
+from .scenarios import PROFILES
 
 #: States that count as the defined safe state after a fault (the robot is stopped on entry).
 SAFE_STATES = ("fault", "safe_stop", "paused")
@@ -27,6 +28,8 @@ SAFE_STATES = ("fault", "safe_stop", "paused")
 STOPPED_MM_S = 1.0
 #: Settling time after the fault window before the operator recovers (s).
 RECOVER_SETTLE_S = 0.5
+#: Recovery attempts the operator has per scheduled fault (a resume, or a reset and a restart).
+RECOVERIES_PER_FAULT = 2
 #: Lock accuracy a tolerated fault must still reach (the seeds' 2 mm), vs simulator truth.
 TOLERATED_LOCK_MM = 2.0
 
@@ -45,10 +48,35 @@ class RunSpec:
     duration_s: float | None = None
     max_duration_s: float = 90.0
     log_dir: str = "."
+    #: A compound fault (``hil campaign --pairs``): the second fault's kind, start and length, and
+    #: whether it was placed in the recovery from the first (else it overlaps the first).
+    second_kind: str | None = None
+    second_start_s: float | None = None
+    second_duration_s: float | None = None
+    recovery: bool = False
+    #: the state the second fault is meant to hit (recovery scenarios fail when it does not)
+    second_state: str | None = None
 
     @property
     def scenario(self) -> str:
-        return "baseline" if self.kind is None else f"{self.kind}@{self.state}"
+        if self.kind is None:
+            return "baseline"
+        if self.second_kind is None:
+            return f"{self.kind}@{self.state}"
+        return f"{self.kind}+{self.second_kind}@{self.state}" + ("+recovery" if self.recovery else "")
+
+    def windows(self) -> list[tuple[str, float, float]]:
+        """``(kind, start_s, duration_s)`` of every scheduled fault, in order."""
+        out = []
+        if self.kind is not None:
+            assert self.start_s is not None
+            assert self.duration_s is not None
+            out.append((self.kind, self.start_s, self.duration_s))
+        if self.second_kind is not None:
+            assert self.second_start_s is not None
+            assert self.second_duration_s is not None
+            out.append((self.second_kind, self.second_start_s, self.second_duration_s))
+        return out
 
 
 @dataclass
@@ -69,6 +97,16 @@ class RunResult:
     latency_bound_ms: float | None = None
     stop_latency_ms: float | None = None
     recovered_to_lock: bool | None = None
+    #: fault runs: the first state entered by a recovery transition after the safe state
+    #: ``[enter_s, leave_s, state]`` (where a recovery scenario's second fault is placed)
+    recovery_window_s: list[float | str] | None = None
+    #: compound faults: the second fault, its onset, the state it hit, and the safe state it led to
+    second_kind: str | None = None
+    second_onset_s: float | None = None
+    second_state_at_onset: str | None = None
+    second_safe_state: str | None = None
+    second_safe_latency_ms: float | None = None
+    second_latency_bound_ms: float | None = None
     final_state: str | None = None
     lock_error_mm: float | None = None
     commands: int = 0
@@ -94,11 +132,7 @@ def _plan_path(config: Path, plan: str | None) -> Path:
 def _setup_for(spec: RunSpec) -> SetupConfig:
     setup = load_setup(spec.config)
     sim = setup.simulation.model_copy(update={"seed": spec.seed})
-    faults: list[FaultSpec] = []
-    if spec.kind is not None:
-        assert spec.start_s is not None
-        assert spec.duration_s is not None
-        faults.append(FaultSpec(kind=FaultKind(spec.kind), start_s=spec.start_s, duration_s=spec.duration_s))
+    faults = [FaultSpec(kind=FaultKind(k), start_s=a, duration_s=d) for k, a, d in spec.windows()]
     return setup.model_copy(update={"simulation": sim, "faults": tuple(faults)})
 
 
@@ -142,10 +176,16 @@ def execute(spec: RunSpec) -> tuple[RunResult, Recording, Path, CampaignOperator
         "fault_start_s": spec.start_s,
         "fault_duration_s": spec.duration_s,
     }
+    if spec.second_kind is not None:
+        header.update(second_fault_kind=spec.second_kind, second_fault_start_s=spec.second_start_s,
+                      second_fault_duration_s=spec.second_duration_s, second_fault_in_recovery=spec.recovery)
     session = SessionLog(log_path, clock, header)
     end_s = (spec.start_s or 0.0) + (spec.duration_s or 0.0)
+    faults = spec.windows()
+    holds = tuple((a, round(a + d + RECOVER_SETTLE_S, 6)) for _, a, d in faults[1:])
     operator = CampaignOperator(
-        recover_after_s=end_s + RECOVER_SETTLE_S if spec.kind else 0.0, max_recoveries=2 if spec.kind else 0
+        recover_after_s=end_s + RECOVER_SETTLE_S if spec.kind else 0.0,
+        max_recoveries=RECOVERIES_PER_FAULT * len(faults), holds=holds,
     )
     result = RunResult(
         spec.run_id, spec.scenario, spec.kind, spec.state, spec.seed, passed=False, session_log=str(log_path)
@@ -168,6 +208,9 @@ def execute(spec: RunSpec) -> tuple[RunResult, Recording, Path, CampaignOperator
         session.close(**closed_fields)
     if spec.kind is not None:
         result.latency_bound_ms = _latency_bound_ms(setup, FAULT_DEVICE[FaultKind(spec.kind)], frame_rate)
+    if spec.second_kind is not None:
+        result.second_latency_bound_ms = _latency_bound_ms(
+            setup, FAULT_DEVICE[FaultKind(spec.second_kind)], frame_rate)
     return result, recorder.recording, log_path, operator, frame_rate
 
 
@@ -221,38 +264,51 @@ def _judge_run(
     return t0_ns, entered, records
 
 
-def _judge_safe_state(
-    result: RunResult,
-    profile: KindProfile,
-    onset: float,
+def detectable_s(kind: str, onset_s: float, rec: Recording, t0_ns: int) -> float | None:
+    """When a fault of ``kind`` that started at ``onset_s`` (s) became detectable: its onset
+    (``watchdog`` kinds), the first command to the robot at or after it (``on_command``; the onset
+    when none came), None for kinds detectable only in the data (``content``: not bounded)."""
+    detect = PROFILES[FaultKind(kind)].detect
+    if detect == "content":
+        return None
+    if detect == "on_command":
+        after = [(c.t_ns - t0_ns) * 1e-9 for c in rec.commands if (c.t_ns - t0_ns) * 1e-9 >= onset_s - 1e-9]
+        return after[0] if after else onset_s
+    return onset_s
+
+
+@dataclass
+class SafeVerdict:
+    """What :func:`check_safe_state` found for one safe state."""
+
+    latency_ms: float
+    bounded: bool
+    stop_latency_ms: float | None
+    recovered_to_lock: bool
+    reasons: list[str]
+
+
+def check_safe_state(
     safe: tuple[float, str],
+    ref_s: float,
+    bound_ms: float | None,
     t0_ns: int,
     entered: list[tuple[float, str]],
     end_s: float,
     rec: Recording,
     operator: CampaignOperator,
-) -> None:
-    """A fault that reached the safe state ``safe = (t_safe, state)`` (s): its latency from when
-    the fault was detectable, that the robot was seen stopped before the operator's recovery, and
-    that the procedure continued to lock. Fills ``result`` and adds to ``result.reasons``."""
-    reasons = result.reasons
+    final_state: str | None,
+) -> SafeVerdict:
+    """A safe state ``safe = (t_safe, state)`` (s) entered after a fault: its latency from
+    ``ref_s`` (when the fault was detectable) against ``bound_ms`` (None: not bounded), that the
+    robot was seen stopped before the operator's next recovery command, and that the procedure
+    continued to lock afterwards."""
+    reasons: list[str] = []
     t_safe, s_safe = safe
-    result.outcome = result.outcome or "safe_state"
-    result.safe_state = s_safe
-    ref = onset
-    if profile.detect == "on_command":
-        after = [(c.t_ns - t0_ns) * 1e-9 for c in rec.commands if (c.t_ns - t0_ns) * 1e-9 >= onset - 1e-9]
-        ref = after[0] if after else onset
-    result.safe_latency_ms = round((t_safe - ref) * 1e3, 3)
-    if (
-        profile.detect != "content"
-        and result.latency_bound_ms is not None
-        and result.safe_latency_ms > result.latency_bound_ms
-    ):
-        reasons.append(
-            f"safe state {s_safe} {result.safe_latency_ms:.0f} ms after the fault was "
-            f"detectable (bound {result.latency_bound_ms:.0f} ms)"
-        )
+    latency_ms = round((t_safe - ref_s) * 1e3, 3)
+    if bound_ms is not None and latency_ms > bound_ms:
+        reasons.append(f"safe state {s_safe} {latency_ms:.0f} ms after the fault was detectable "
+                       f"(bound {bound_ms:.0f} ms)")
     # stopped or holding: a state sample under STOPPED_MM_S after entering the safe state,
     # before the operator's first recovery command
     t_recover = next((t for t, c in operator.commands if t >= t_safe), end_s + 1.0)
@@ -261,31 +317,116 @@ def _judge_safe_state(
         for s in rec.states
         if t_safe - 1e-9 <= (s.t_ns - t0_ns) * 1e-9 <= t_recover and s.speed_mm_s < STOPPED_MM_S
     ]
-    if stops:
-        result.stop_latency_ms = round((stops[0] - t_safe) * 1e3, 3)
-    else:
+    stop_ms = round((stops[0] - t_safe) * 1e3, 3) if stops else None
+    if stop_ms is None:
         reasons.append(f"robot not seen stopped (< {STOPPED_MM_S} mm/s) in {s_safe} before recovery")
-    result.recovered_to_lock = any(s == "lock" and t > t_safe for t, s in entered)
-    if not result.recovered_to_lock:
-        reasons.append(f"did not continue to lock after recovery (final state {result.final_state})")
+    recovered = any(s == "lock" and t > t_safe for t, s in entered)
+    if not recovered:
+        reasons.append(f"did not continue to lock after recovery (final state {final_state})")
+    return SafeVerdict(latency_ms, bound_ms is not None, stop_ms, recovered, reasons)
 
 
-def _judge_tolerated(result: RunResult) -> None:
+def _judge_safe_state(result: RunResult, safe: tuple[float, str], ref_s: float, bound_ms: float | None,
+                      timeline: tuple[int, list[tuple[float, str]], float], rec: Recording,
+                      operator: CampaignOperator) -> None:
+    """A fault that reached the safe state ``safe`` (:func:`check_safe_state`). Fills ``result``
+    and adds to ``result.reasons``."""
+    t0_ns, entered, end_s = timeline
+    v = check_safe_state(safe, ref_s, bound_ms, t0_ns, entered, end_s, rec, operator, result.final_state)
+    result.outcome = result.outcome or "safe_state"
+    result.safe_state = safe[1]
+    result.safe_latency_ms = v.latency_ms
+    result.stop_latency_ms = v.stop_latency_ms
+    result.recovered_to_lock = v.recovered_to_lock
+    result.reasons += v.reasons
+
+
+def _judge_tolerated(result: RunResult, what: str = "fault") -> None:
     """A fault that never reached a safe state: it passes only when the run still ended in done
     with a lock error within ``TOLERATED_LOCK_MM`` mm. Adds to ``result.reasons``."""
     result.outcome = result.outcome or "tolerated"
     if result.final_state != State.DONE.value:
         result.reasons.append(
-            f"fault neither reached a safe state nor was tolerated (final state {result.final_state})"
+            f"{what} neither reached a safe state nor was tolerated (final state {result.final_state})"
         )
     elif result.lock_error_mm is None or result.lock_error_mm > TOLERATED_LOCK_MM:
         result.reasons.append(f"tolerated, but lock error {result.lock_error_mm} mm > {TOLERATED_LOCK_MM} mm")
 
 
+def _state_at(entered: list[tuple[float, str]], t_s: float) -> str:
+    before = [s for t, s in entered if t <= t_s]
+    return before[-1] if before else "idle"
+
+
+def _first_bound(spec: RunSpec, result: RunResult, rec: Recording, t0_ns: int
+                 ) -> tuple[float | None, float | None]:
+    """``(ref_s, bound_ms)`` of the first safe state: the time the first fault became detectable
+    and that fault's device bound (two becoming detectable at once: the smaller bound). For an
+    overlapping pair the second fault competes; a fault in the recovery does not (it is judged
+    on its own). ``(None, None)`` when no fault is bounded (content kinds only)."""
+    bounds = [result.latency_bound_ms]
+    if spec.second_kind is not None and not spec.recovery:
+        bounds.append(result.second_latency_bound_ms)
+    detectable = []
+    for (kind, start, _), bound in zip(spec.windows(), bounds, strict=False):
+        det = detectable_s(kind, start, rec, t0_ns)
+        if det is not None and bound is not None:
+            detectable.append((det, bound))
+    if not detectable:
+        return None, None
+    return min(detectable)
+
+
+def judge_second(spec: RunSpec, result: RunResult, rec: Recording,
+                 timeline: tuple[int, list[tuple[float, str]], float], operator: CampaignOperator) -> None:
+    """The second fault of a compound-fault run (``hil campaign --pairs``; docs/campaign.md,
+    "Compound faults"): its onset and the state it hit; for one placed in the recovery from the
+    first, the criteria again from its onset: the first safe state at or after it (within its
+    device's bound from when it was detectable, the robot seen stopped before the next recovery,
+    the procedure continuing to lock), or, with none, tolerated (done, lock within 2 mm). A
+    recovery scenario whose second fault did not start in the recovery state it was placed in
+    fails: that cell was not tested. Fills ``result``'s ``second_*`` fields and adds to
+    ``result.reasons``; ``timeline`` is ``(t0_ns, [(t_s, state entered)], end_s)``."""
+    assert spec.second_kind is not None
+    assert spec.second_start_s is not None
+    t0_ns, entered, end_s = timeline
+    onset = spec.second_start_s
+    result.second_kind = spec.second_kind
+    result.second_onset_s = onset
+    if end_s < onset:
+        result.reasons.append(f"the run ended at {end_s:.2f} s, before the second fault at {onset:.2f} s")
+        return
+    result.second_state_at_onset = _state_at(entered, onset)
+    if not spec.recovery:
+        return
+    if result.second_state_at_onset != spec.second_state:
+        result.reasons.append(
+            f"second fault started in {result.second_state_at_onset}, not in the recovery state "
+            f"{spec.second_state} it was placed in: not tested")
+        return
+    safe = [(t, s) for t, s in entered if s in SAFE_STATES and t >= onset - 1e-9]
+    if not safe:
+        _judge_tolerated(result, "second fault")
+        return
+    ref = detectable_s(spec.second_kind, onset, rec, t0_ns)
+    bound = result.second_latency_bound_ms
+    if ref is None or ref > safe[0][0]:  # safe before the second fault was detectable: not bounded
+        ref, bound = onset, None
+    v = check_safe_state(safe[0], ref, bound, t0_ns, entered, end_s, rec, operator, result.final_state)
+    result.second_safe_state = safe[0][1]
+    result.second_safe_latency_ms = v.latency_ms
+    if not v.bounded:
+        result.second_latency_bound_ms = None
+    result.reasons += [f"second fault: {r}" for r in v.reasons]
+
+
 def judge(
     spec: RunSpec, result: RunResult, rec: Recording, log_path: Path, operator: CampaignOperator
 ) -> RunResult:
-    """Apply the pass criteria (docs/campaign.md) and fill ``result``."""
+    """Apply the pass criteria (docs/campaign.md) and fill ``result``. A compound fault (a
+    second fault in ``spec``) is judged from its first fault as one fault is (the latency from
+    the first fault that became detectable, against the earliest bound either sets); a second
+    fault placed in the recovery is then judged again on its own (:func:`judge_second`)."""
     reasons = result.reasons
     t0_ns, entered, records = _judge_run(result, rec, log_path)
     end_s = records[-1][0]
@@ -301,22 +442,30 @@ def judge(
     assert spec.duration_s is not None
     onset = spec.start_s
     result.onset_s = onset
-    before = [s for t, s in entered if t <= onset]
-    result.state_at_onset = before[-1] if before else "idle"
+    result.state_at_onset = _state_at(entered, onset)
     if end_s < onset:
         result.outcome = "not_reached"
         reasons.append(f"the run ended at {end_s:.2f} s, before the fault at {onset:.2f} s")
         result.passed = False
         return result
-    profile = PROFILES[FaultKind(spec.kind)]
     detected = [t for t, r in records if r.get("event") == "fault_detected" and t >= onset - 1e-9]
     result.detected_s = round(detected[0], 4) if detected else None
+    transitions = [(t, str(r.get("state")), str(r.get("transition"))) for t, r in records
+                   if r.get("event") == "state_entered"]
+    window = recovery_window(transitions, onset, end_s)
+    result.recovery_window_s = None if window is None else [window[0], window[1], window[2]]
     safe = [(t, s) for t, s in entered if s in SAFE_STATES and t >= onset - 1e-9]
     if safe:
-        t_safe, s_safe = safe[0]
-        _judge_safe_state(result, profile, onset, (t_safe, s_safe), t0_ns, entered, end_s, rec, operator)
+        ref, bound = _first_bound(spec, result, rec, t0_ns)
+        if ref is None or ref > safe[0][0]:  # safe before any fault was detectable: not bounded
+            ref, bound = onset, None
+        if spec.second_kind is not None and not spec.recovery:
+            result.latency_bound_ms = bound if bound is not None else result.latency_bound_ms
+        _judge_safe_state(result, safe[0], ref, bound, (t0_ns, entered, end_s), rec, operator)
     else:
         _judge_tolerated(result)
+    if spec.second_kind is not None:
+        judge_second(spec, result, rec, (t0_ns, entered, end_s), operator)
     result.passed = not reasons
     return result
 

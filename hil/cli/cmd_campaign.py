@@ -21,6 +21,12 @@ machine's processes (default), or a Dask cluster (the scheduler at ADDRESS, or a
 ``--jobs`` workers on loopback); needs the ``campaign-dask`` extra. ``--shard I/N`` (0-based) runs
 the I-th of N deterministic slices of the matrix, for array jobs.
 
+``--pairs``: compound faults instead (:mod:`hil.campaign.pairs`): every unordered pair of fault
+kinds overlapping in every state (``A+B@STATE``, 455) and a second fault during the recovery from a
+first (``A+B@STATE+recovery``, 168); SCENARIOS select them (``frame_drop+robot_disconnect@lock``,
+``frame_drop`` = every pair with it, ``@lock``, ``+recovery``, wildcards); the table's rows are the
+pairs; the JSON adds ``pairs`` and per run the second fault's ``second_*`` fields.
+
 ``hil campaign merge DIR... [--out DIR] [--json] [--allow-mismatch] [--allow-partial]``: combine
 campaign outputs (shards) into one summary, the ``--json`` object of ``hil campaign``
 (:mod:`hil.campaign.merge`). Every JSON object is documented in docs/campaign.md.
@@ -91,7 +97,7 @@ def add_parser(sub: Any) -> None:
         nargs="*",
         metavar="SCENARIO",
         help="kind@state patterns (e.g. frame_drop@compensate, robot_disconnect, '@lock', "
-        "'*@gate'); default: all",
+        "'*@gate'); with --pairs A+B@STATE[+recovery] patterns; default: all",
     )
     p.add_argument("--seeds", type=int, default=1, help="number of seeds (1..N; default 1)")
     p.add_argument(
@@ -114,6 +120,12 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--keep-logs", action="store_true", help="keep the session logs of passing runs too")
     p.add_argument("--timeout", type=float, default=None,
                    help="wall-time bound of one run, s (default 300; 150 with --transport)")
+    p.add_argument("--pairs", action="store_true",
+                   help="compound faults: every pair of fault kinds overlapping in every state "
+                        "(A+B@STATE: 91 pairs x 5 states) and a second fault during the recovery from a "
+                        "first (A+B@STATE+recovery: 6 x 14 x register/compensate); SCENARIOS select them "
+                        "(frame_drop+robot_disconnect@lock, frame_drop, '@lock', '+recovery', globs; "
+                        "A+B matches either order); default: all 623")
     p.add_argument("--transport", action="store_true",
                    help="run the transport tier: faults through the emulators to the real drivers, "
                         "in real time (SCENARIOS: FAMILY@STATE transport scenario names)")
@@ -135,6 +147,7 @@ def add_parser(sub: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from hil.campaign.campaign import run_campaign
     from hil.campaign.executor import open_executor
+    from hil.campaign.pairs import select_pairs
     from hil.campaign.report import table
     from hil.campaign.scenarios import select
     from hil.campaign.shard import parse_shard
@@ -162,13 +175,15 @@ def run(args: argparse.Namespace) -> int:
     def progress(msg: str) -> None:
         print(f"hil campaign: {msg}", file=sys.stderr, flush=True)
 
+    if args.pairs and args.transport:
+        raise InputFileError("--pairs", "does not apply to --transport (compound faults are simulator-tier)")
     if args.transport:
         if args.config or args.plan:
             raise InputFileError("--config/--plan",
                                  "do not apply to --transport (each run writes its own setup)")
         transport_scenarios = _transport_selection(list(args.scenarios), progress)
     else:
-        scenarios = select(list(args.scenarios))
+        scenarios: list[Any] = (select_pairs if args.pairs else select)(list(args.scenarios))
         config = Path(args.config) if args.config else default_setup_path()
         if not config.is_file():
             raise InputFileError(str(config), "no such setup file (--config)")
@@ -177,6 +192,8 @@ def run(args: argparse.Namespace) -> int:
             return _run_transport(args, transport_scenarios, seeds, out, progress, executor, shard)
         progress(f"{len(scenarios)} scenario(s) x {len(seeds)} seed(s) on {config}"
                  + (f", shard {shard}" if shard else ""))
+        if args.pairs:
+            return _run_pairs(args, scenarios, seeds, config, out, progress, executor, shard)
         summary = run_campaign(
             scenarios,
             seeds,
@@ -191,6 +208,23 @@ def run(args: argparse.Namespace) -> int:
             progress=progress,
         )
     return _report(summary, args.json, table(summary["results"]), out, "campaign")
+
+
+def _run_pairs(args: argparse.Namespace, scenarios: list[Any], seeds: list[int], config: Path, out: Path,
+               progress: Any, executor: Any, shard: Any) -> int:
+    from hil.campaign.pairs_campaign import run_pairs_campaign
+    from hil.campaign.report import pair_row_of, row_order, table
+
+    summary = run_pairs_campaign(
+        scenarios, seeds, config=config, plan=args.plan, out_dir=out, executor=executor, shard=shard,
+        keep_logs=args.keep_logs, timeout_s=args.timeout if args.timeout is not None else 300.0,
+        check_version=not args.allow_mismatch, progress=progress)
+    results = summary["results"]
+    text = table(results, row_of=pair_row_of, order=row_order(results, pair_row_of))
+    p = summary["pairs"]
+    text += (f"pair scenarios: {p['runs']} ({p['overlapping']} overlapping, {p['recovery']} in recovery), "
+             f"{p['passed']} passed\n")
+    return _report(summary, args.json, text, out, "campaign")
 
 
 def run_merge(args: argparse.Namespace) -> int:
