@@ -21,6 +21,7 @@ from typing import Any
 
 from hil.errors import HilError
 
+from .runner import following_note
 from .task import RunTask, TaskOutcome, _error_record, execute_task, finish_record, kill_running
 
 Progress = Callable[[str], None]
@@ -43,6 +44,7 @@ def progress_line(rec: dict[str, Any]) -> str:
     lat = rec.get("safe_latency_ms")
     line = (f"{rec['run_id']}: {'pass' if rec['passed'] else 'FAIL'} {rec.get('outcome', '')}"
             + (f" {lat:.0f} ms" if isinstance(lat, int | float) else "")
+            + following_note(rec)
             + ("" if rec["passed"] else f" ({'; '.join(rec.get('reasons', []))})"))
     return line + (f" [attempt {rec['attempts']}]" if rec.get("attempts", 1) > 1 else "")
 

@@ -12,7 +12,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from .runner import RunResult, RunSpec, run_one
+from .runner import RunResult, RunSpec, following_note, run_one
 
 Progress = Callable[[str], None]
 
@@ -108,7 +108,9 @@ def run_parallel(
             say(
                 f"{spec.run_id}: {'pass' if r['passed'] else 'FAIL'} {r.get('outcome', '')}"
                 + (f" {lat:.0f} ms" if isinstance(lat, int | float) else "")
+                + following_note(r)
                 + ("" if r["passed"] else f" ({'; '.join(r.get('reasons', []))})")
             )
         time.sleep(0.05)
     return [results[i] for i in range(len(specs))]
+

@@ -5,6 +5,7 @@ the recorded driver boundary (see docs/campaign.md for the criteria)."""
 from __future__ import annotations
 
 import traceback
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -118,6 +119,10 @@ class RunResult:
     wall_s: float | None = None
     session_log: str | None = None
     error: str | None = None
+    #: the servo loop's following-error supervision (hil/safety/following.py): the largest error
+    #: of the run and the bound (mm); a fault the arm tolerated was tolerated within this bound
+    following_peak_mm: float | None = None
+    following_bound_mm: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -261,7 +266,31 @@ def _judge_run(
     ]
     if bad:
         reasons.append(f"{len(bad)} command(s) outside the limits reached the driver")
+    result.following_peak_mm, result.following_bound_mm = following_figures(r for _, r in records)
     return t0_ns, entered, records
+
+
+def following_note(r: dict[str, Any]) -> str:
+    """For a tolerated fault: the run's following-error peak beside its bound (hil/safety/
+    following.py), so a tolerated stall or slow response shows how far inside the bound it stayed;
+    empty otherwise (the progress line's suffix)."""
+    peak, bound = r.get("following_peak_mm"), r.get("following_bound_mm")
+    if r.get("outcome") != "tolerated" or peak is None or bound is None:
+        return ""
+    return f" (following error peak {peak:.2f} mm, bound {bound:g} mm)"
+
+
+def following_figures(records: Iterable[dict[str, Any]]) -> tuple[float | None, float | None]:
+    """``(peak, bound)`` of the run's following error, mm, from its ``servo_stats`` (the peak is a
+    running maximum) and ``servo_following_bounds`` records; None where the log has none."""
+    peak: float | None = None
+    bound: float | None = None
+    for r in records:
+        if r.get("event") == "servo_stats" and r.get("following_peak_mm") is not None:
+            peak = max(peak or 0.0, float(r["following_peak_mm"]))
+        elif r.get("event") == "servo_following_bounds" and bound is None:
+            bound = float(r["bound_mm"])
+    return peak, bound
 
 
 def detectable_s(kind: str, onset_s: float, rec: Recording, t0_ns: int) -> float | None:

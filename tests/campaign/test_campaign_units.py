@@ -205,3 +205,19 @@ def test_summary_and_table() -> None:
     assert t[0].split() == ["fault", "\\", "state", "gate", "lock"]
     assert t[1].split() == ["frame_drop", "-", "FAIL", "1/2", "900ms"]
     assert t[2].split() == ["glare", "pass", "-"]
+
+
+def test_a_tolerated_run_shows_its_following_error_peak_beside_the_bound() -> None:
+    from hil.campaign.runner import following_figures, following_note
+
+    records = [{"event": "servo_following_bounds", "bound_mm": 2.0, "lag_ms": 30.0},
+               {"event": "servo_stats", "following_peak_mm": 0.0},
+               {"event": "servo_stats", "following_peak_mm": 0.47},
+               {"event": "servo_stats", "following_peak_mm": 0.47},
+               {"event": "frame_measured"}]
+    assert following_figures(records) == (0.47, 2.0)
+    assert following_figures([{"event": "frame_measured"}]) == (None, None)
+    tolerated = {"outcome": "tolerated", "following_peak_mm": 0.47, "following_bound_mm": 2.0}
+    assert following_note(tolerated) == " (following error peak 0.47 mm, bound 2 mm)"
+    assert following_note({**tolerated, "outcome": "safe_state"}) == ""
+    assert following_note({**tolerated, "following_peak_mm": None}) == ""
