@@ -11,6 +11,7 @@ depends on them) but reports only those it owns.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -104,13 +105,7 @@ def run_pairs_campaign(
     plan = str(Path(plan).resolve()) if plan else None
     ctx = SimTaskFactory(config, plan, timeout_s, keep_logs, check_version, hook)
     ids = pairs_matrix_ids(scenarios, seeds)
-    owned = {rid for k, rid in enumerate(ids) if shard is None or shard.owns(k)}
-    singles = single_runs(scenarios)
-    mine = {s: [sc for sc in scenarios if f"{sc.name}_s{s}" in owned] for s in seeds}
-    need_singles = {s: [x for x in singles if f"{x.name}_s{s}" in owned
-                        or any(sc.recovery and sc.first is x.kind and sc.state == x.state for sc in mine[s])]
-                    for s in seeds}
-    need = [s for s in seeds if f"baseline_s{s}" in owned or mine[s] or need_singles[s]]
+    owned, mine, need_singles, need = _selection(scenarios, seeds, ids, shard)
     sink = LogSink(out_dir)
     where = executor.description
     say(f"baselines: {len(need)} run(s) on {where['kind']} ({where['workers']} worker(s))")
@@ -126,17 +121,7 @@ def run_pairs_campaign(
                "outcome": "not_reached", "reasons": [why]}
         skipped.append(finish_record(ctx.task(spec), rec))
 
-    single_specs: list[RunSpec] = []
-    for s in need:
-        for x in need_singles[s]:
-            w = windows[s].get(x.state)
-            spec = RunSpec(f"{x.name}_s{s}", str(config), plan, s, kind=x.kind.value, state=x.state,
-                           start_s=place_fault((w[0], w[1]) if w else None, x.profile.duration_s),
-                           duration_s=x.profile.duration_s, max_duration_s=max_duration_s)
-            if spec.start_s is None:
-                skip(spec, f"baseline of seed {s} never reached {x.state}")
-            else:
-                single_specs.append(spec)
+    single_specs = _single_specs(need, need_singles, windows, str(config), plan, max_duration_s, skip)
     say(f"single-fault runs for placement in recovery: {len(single_specs)} run(s)")
     single_results = executor.run([ctx.task(sp) for sp in single_specs], progress=say, on_files=sink)
     by_single = {r["run_id"]: r for r in single_results}
@@ -156,13 +141,51 @@ def run_pairs_campaign(
     everything.sort(key=lambda r: ids.index(r["run_id"]))
     sink.attach(everything)
     summary = summarise(everything, config=str(config))
-    pair_runs = [r for r in everything if r.get("second_kind")]
-    in_recovery = sum(1 for r in pair_runs if str(r["scenario"]).endswith(RECOVERY_SUFFIX))
     summary.update(tier="simulator", code_version=ctx.version, config_sha256=ctx.digest, executor=where,
                    shard=None if shard is None else shard.to_dict(), matrix=matrix_identity(ids),
-                   pairs={"runs": len(pair_runs),
-                          "overlapping": len(pair_runs) - in_recovery, "recovery": in_recovery,
-                          "passed": sum(1 for r in pair_runs if r.get("passed"))},
-                   wall_s=round(time.perf_counter() - t_wall, 3))
+                   pairs=_pair_counts(everything), wall_s=round(time.perf_counter() - t_wall, 3))
     write_summary(summary, out_dir)
     return summary
+
+
+
+def _selection(scenarios: list[PairScenario], seeds: list[int], ids: list[str], shard: Shard | None
+               ) -> tuple[set[str], dict[int, list[PairScenario]], dict[int, list[Scenario]], list[int]]:
+    """What this shard runs: the run ids it owns, its pair scenarios per seed, the single-fault
+    runs each seed needs (owned, or placing an owned recovery scenario), the seeds that need a
+    baseline."""
+    owned = {rid for k, rid in enumerate(ids) if shard is None or shard.owns(k)}
+    singles = single_runs(scenarios)
+    mine = {s: [sc for sc in scenarios if f"{sc.name}_s{s}" in owned] for s in seeds}
+    need_singles = {s: [x for x in singles if f"{x.name}_s{s}" in owned
+                        or any(sc.recovery and sc.first is x.kind and sc.state == x.state for sc in mine[s])]
+                    for s in seeds}
+    need = [s for s in seeds if f"baseline_s{s}" in owned or mine[s] or need_singles[s]]
+    return owned, mine, need_singles, need
+
+def _single_specs(need: list[int], need_singles: dict[int, list[Scenario]],
+                  windows: dict[int, dict[str, Any]], config: str, plan: str | None, max_duration_s: float,
+                  skip: Callable[[RunSpec, str], None]) -> list[RunSpec]:
+    """The single-fault runs whose logs place the second faults in recovery (placed in the
+    baseline's window of their state, as single faults are); one the baseline never reached is
+    skipped with the reason."""
+    out: list[RunSpec] = []
+    for s in need:
+        for x in need_singles[s]:
+            w = windows[s].get(x.state)
+            spec = RunSpec(f"{x.name}_s{s}", config, plan, s, kind=x.kind.value, state=x.state,
+                           start_s=place_fault((w[0], w[1]) if w else None, x.profile.duration_s),
+                           duration_s=x.profile.duration_s, max_duration_s=max_duration_s)
+            if spec.start_s is None:
+                skip(spec, f"baseline of seed {s} never reached {x.state}")
+            else:
+                out.append(spec)
+    return out
+
+
+def _pair_counts(everything: list[dict[str, Any]]) -> dict[str, int]:
+    """The summary's ``pairs``: pair runs, overlapping, in recovery, passed."""
+    pair_runs = [r for r in everything if r.get("second_kind")]
+    in_recovery = sum(1 for r in pair_runs if str(r["scenario"]).endswith(RECOVERY_SUFFIX))
+    return {"runs": len(pair_runs), "overlapping": len(pair_runs) - in_recovery, "recovery": in_recovery,
+            "passed": sum(1 for r in pair_runs if r.get("passed"))}

@@ -255,6 +255,42 @@ def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: boo
                                     "faults": faults, "servo": servo})
 
 
+def _check_arguments(minutes: float, rate_hz: float, faults_every_s: float) -> None:
+    """Raises InputFileError naming the option for a bad one."""
+    if not minutes > 0:
+        raise InputFileError("--minutes", f"must be > 0, got {minutes}")
+    if not (faults_every_s == 0 or faults_every_s >= 10.0):
+        raise InputFileError("--faults-every", f"must be 0 (none) or at least 10 s, got {faults_every_s:g}")
+    if rate_hz not in (125.0, 500.0):
+        raise InputFileError("--rate", f"must be 125 (CB3) or 500 (e-Series), got {rate_hz:g}")
+
+
+class _Sampler:
+    """Once a second (called by the soak operator every tick): RSS of the supervisor, the servo
+    process and the perception process; and the loop's counters when compensation starts."""
+
+    def __init__(self, robot: ServoRobot, perception_pid: Callable[[], int | None] | None) -> None:
+        self.robot, self.perception_pid = robot, perception_pid
+        self.rss: list[tuple[float, float, float]] = []   # (monotonic s, supervisor MB, servo MB)
+        self.perception_rss: list[tuple[float, float]] = []   # (monotonic s, perception process MB)
+        self.start: StatsCopy | None = None
+        self._last = 0.0
+
+    def sample(self) -> None:
+        now = time.monotonic()
+        if now - self._last < 1.0:
+            return
+        self._last = now
+        ready = getattr(self.robot.link, "ready", None)
+        self.rss.append((now, rss_mb(), rss_mb(ready.pid) if ready is not None else 0.0))
+        pid = None if self.perception_pid is None else self.perception_pid()
+        if pid is not None:
+            self.perception_rss.append((now, rss_mb(pid)))
+
+    def on_compensate(self) -> None:
+        self.start = StatsCopy.of(self.robot.link.regions.stats)
+
+
 def run_soak(
     minutes: float,
     rate_hz: float,
@@ -274,12 +310,7 @@ def run_soak(
         InputFileError: a bad argument; ConfigError / InputFileError from the config and plan;
         DriverError when the servo process cannot start.
     """
-    if not minutes > 0:
-        raise InputFileError("--minutes", f"must be > 0, got {minutes}")
-    if not (faults_every_s == 0 or faults_every_s >= 10.0):
-        raise InputFileError("--faults-every", f"must be 0 (none) or at least 10 s, got {faults_every_s:g}")
-    if rate_hz not in (125.0, 500.0):
-        raise InputFileError("--rate", f"must be 125 (CB3) or 500 (e-Series), got {rate_hz:g}")
+    _check_arguments(minutes, rate_hz, faults_every_s)
     say = progress or (lambda _m: None)
     base = load_setup(config)
     schedule = transient_schedule(minutes, faults_every_s)
@@ -305,25 +336,9 @@ def run_soak(
         clock,
         {"setup": str(config), "soak_minutes": minutes, "rate_hz": rate_hz, "realtime": realtime},
     )
-    rss: list[tuple[float, float, float]] = []
-    perception_rss: list[tuple[float, float]] = []   # (monotonic s, perception process MB)
-    last = [0.0]
-    copies: dict[str, StatsCopy] = {}
-
-    def sample() -> None:
-        now = time.monotonic()
-        if now - last[0] >= 1.0:
-            last[0] = now
-            ready = getattr(robot.link, "ready", None)
-            rss.append((now, rss_mb(), rss_mb(ready.pid) if ready is not None else 0.0))
-            if feed is not None and feed.pid is not None:
-                perception_rss.append((now, rss_mb(feed.pid)))
-
-    def on_compensate() -> None:
-        copies["start"] = StatsCopy.of(robot.link.regions.stats)
-
-    soak_s = minutes * 60.0
-    operator = SoakOperator(soak_s, give_up_s=120.0, sample=sample, on_compensate=on_compensate, progress=say)
+    sampler = _Sampler(robot, None if feed is None else lambda: feed.pid)
+    operator = SoakOperator(minutes * 60.0, give_up_s=120.0, sample=sampler.sample,
+                            on_compensate=sampler.on_compensate, progress=say)
     devices.open_all()
     try:
         say(f"soak: {minutes:g} min of compensation at {rate_hz:g} Hz (real time); servo process: "
@@ -339,14 +354,14 @@ def run_soak(
         raise
     devices.close_all()
     session.close(final_state=summary.final_state)
-    figs = loop_figures(copies.get("start", end), end, 1.0 / rate_hz)
-    res = analyse(rate_hz, minutes, figs, ctl, operator, rss, summary.final_state, summary.states,
+    figs = loop_figures(sampler.start or end, end, 1.0 / rate_hz)
+    res = analyse(rate_hz, minutes, figs, ctl, operator, sampler.rss, summary.final_state, summary.states,
                   summary.faults, str(session.path))
     res.rt_granted = robot.rt.to_dict() if robot.rt is not None else {}
     res.transient_faults = fault_outcomes(schedule, str(session.path), t_open_ns)
     res.following_peak_mm, res.following_faults = figs.following_peak_mm, figs.following_faults
     res.stop_to_command_ms = _stats([x * 1e-6 for x in robot.stop_latency_ns])
-    res.perception_rss_mb = _rss_figures(perception_rss, operator.t_comp, minutes)
+    res.perception_rss_mb = _rss_figures(sampler.perception_rss, operator.t_comp, minutes)
     if feed is not None:
         res.locate_ms = feed.locate_figures()
     elif isinstance(ctl.locate, StereoMarkerLocator):

@@ -153,6 +153,31 @@ def _ray_profiles(
     return prof
 
 
+
+def _crossings(prof: Any, jr3: Any, jmin: Any, valid3: Any, r: Any, t_out: Any,
+               t_in: Any) -> tuple[Any, Any, Any, Any]:
+    """The outer edge (the first sample past the ring minimum at or above ``t_out``) and the
+    inner edge (the last sample before it at or above ``t_in``) on every ray of every ring,
+    interpolated linearly between samples: ``(r_outer, ok_outer, r_inner, ok_inner)``, (E, n)."""
+    E, n, S = prof.shape
+    ds = RAY_STEP_PX
+    ee, nn = np.arange(E)[:, None], np.arange(n)[None, :]
+    rel = jr3 - jmin.astype(np.int16)[:, :, None]
+    above_o = (prof >= t_out) & (rel > 0) & valid3
+    jo = np.argmax(above_o, axis=2)
+    ok_o = above_o[ee, nn, jo] & (jo > 0)
+    jo1 = np.maximum(jo - 1, 0)
+    p1, p0 = prof[ee, nn, jo].astype(np.float64), prof[ee, nn, jo1].astype(np.float64)
+    ro_sub = r[jo1] + ds * (t_out[:, :, 0] - p0) / np.where(p1 - p0 == 0, 1e-9, p1 - p0)
+    above_i = (prof >= t_in) & (rel < 0)
+    ji = S - 1 - np.argmax(above_i[:, :, ::-1], axis=2)
+    ok_i = above_i[ee, nn, ji] & (ji < S - 1)
+    q0 = prof[ee, nn, ji].astype(np.float64)
+    q1 = prof[ee, nn, np.minimum(ji + 1, S - 1)].astype(np.float64)
+    ri_sub = r[ji] + ds * (q0 - t_in[:, :, 0]) / np.where(q0 - q1 == 0, 1e-9, q0 - q1)
+    return ro_sub, ok_o, ri_sub, ok_i
+
+
 def ring_edges_multi(
     parts: Sequence[tuple[U8Image, RingSeeds]], n_rays: int, min_contrast: float, min_valid_fraction: float
 ) -> RingEdges:
@@ -217,21 +242,7 @@ def ring_edges_multi(
     contrast_ok = (bg_level - ring_level >= min_contrast) & (hole_level - ring_level >= 0.35 * min_contrast)
     t_out = (0.5 * (bg_level + ring_level))[:, None, None]
     t_in = (0.5 * (hole_level + ring_level))[:, None, None]
-    # outer edge: the first sample past the ring minimum at or above t_out
-    rel = jr3 - jmin.astype(np.int16)[:, :, None]
-    above_o = (prof >= t_out) & (rel > 0) & valid3
-    jo = np.argmax(above_o, axis=2)
-    ok_o = above_o[ee, nn, jo] & (jo > 0)
-    jo1 = np.maximum(jo - 1, 0)
-    p1, p0 = prof[ee, nn, jo].astype(np.float64), prof[ee, nn, jo1].astype(np.float64)
-    ro_sub = r[jo1] + ds * (t_out[:, :, 0] - p0) / np.where(p1 - p0 == 0, 1e-9, p1 - p0)
-    # inner edge: the last sample before the ring minimum at or above t_in
-    above_i = (prof >= t_in) & (rel < 0)
-    ji = S - 1 - np.argmax(above_i[:, :, ::-1], axis=2)
-    ok_i = above_i[ee, nn, ji] & (ji < S - 1)
-    q0 = prof[ee, nn, ji].astype(np.float64)
-    q1 = prof[ee, nn, np.minimum(ji + 1, S - 1)].astype(np.float64)
-    ri_sub = r[ji] + ds * (q0 - t_in[:, :, 0]) / np.where(q0 - q1 == 0, 1e-9, q0 - q1)
+    ro_sub, ok_o, ri_sub, ok_i = _crossings(prof, jr3, jmin, valid3, r, t_out, t_in)
     ok_o &= np.abs(ro_sub - r_out) < 1.5 + 0.15 * r_out
     ok_i &= np.abs(ri_sub - r_in) < 1.5 + 0.25 * r_in
     frac = np.count_nonzero(ok_o & ok_i, axis=1) / n
