@@ -354,16 +354,21 @@ class FaultyRobot(_Delegating, Robot):
         lag = self.schedule.active(FaultKind.MOTION_LAG)
         now = self.schedule.clock.now_ns()
         if lag is None:
-            self._servo_queue.clear()
+            # the window is over: the targets it still held back reach the arm now, in order and
+            # late, then this one -- the stream never skips the held-back motion in one step (a
+            # step of lag_ms of motion, which the arm's own step check refuses)
+            self._deliver(now)
             self.inner.servo(T_robot_from_tcp, period_s)
             return
         self._servo_queue.append((now, T_robot_from_tcp, period_s))
-        due = now - round(lag.lag_ms * 1e6)
-        target = None
-        while self._servo_queue and self._servo_queue[0][0] <= due:
-            target = self._servo_queue.popleft()
-        if target is not None:
-            self.inner.servo(target[1], target[2])
+        self._deliver(now - round(lag.lag_ms * 1e6))
+
+    def _deliver(self, due_ns: int) -> None:
+        """Hand the held-back servo targets commanded at or before ``due_ns`` to the arm, each in
+        order (every step one period of the stream)."""
+        while self._servo_queue and self._servo_queue[0][0] <= due_ns:
+            _, T, period_s = self._servo_queue.popleft()
+            self.inner.servo(T, period_s)
 
     def _stop(self, decel_mm_s2: float) -> None:
         self._check_connected()

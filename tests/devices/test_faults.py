@@ -238,6 +238,20 @@ def test_robot_motion_lag_delays_servo_targets(clock: ManualClock) -> None:
     assert inner_target.t[0] - T0.t[0] == pytest.approx(0.1 * 26, abs=1e-9)
 
 
+def test_robot_motion_lag_ending_delivers_the_held_back_targets_in_order(clock: ManualClock) -> None:
+    """Found by the one-hour soak: when the lag window ended, the held-back targets were dropped
+    and the newest sent, a step of lag_ms of motion the arm's own step check refused (633.8 mm/s).
+    Now they reach the arm in order, every step one period of the stream."""
+    r = _robot(clock, fault("motion_lag", 0.0, 0.3, lag_ms=100.0))
+    T0 = r.state_now().T_robot_from_tcp
+    for i in range(1, 60):   # 0.4 mm per 8 ms = 50 mm/s (limit 100), across the window's end at 0.3 s
+        r.servo(RigidTransform(T0.R, T0.t + np.array([0.4 * i, 0.0, 0.0])), 0.008)
+        clock.advance(0.008)
+    inner_target = r.inner._last_servo_target
+    assert inner_target is not None
+    assert inner_target.t[0] - T0.t[0] == pytest.approx(0.4 * 59, abs=1e-9)   # caught up, no refusal
+
+
 def test_robot_motion_lag_delays_moves(clock: ManualClock) -> None:
     r = _robot(clock, fault("motion_lag", 0.0, 10.0, lag_ms=150.0))
     t = clock.now_ns()
