@@ -55,10 +55,10 @@ def test_hil_run_reaches_done_with_perception_and_servo_in_their_own_processes(
     cfg, setup = _setup(tmp_path, "on")
     assert setup.simulation.real_time
     created: list[str] = []   # the segments this run creates (others' tests may share /dev/shm)
-    real_create = ShmRegion.create.__func__  # type: ignore[attr-defined]
+    real_create = ShmRegion.create   # bound to ShmRegion before the patch
 
     def create(cls: type[ShmRegion], words: int) -> ShmRegion:
-        region: ShmRegion = real_create(cls, words)
+        region = real_create(words)
         created.append(str(region.name).lstrip("/"))
         return region
 
