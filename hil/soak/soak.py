@@ -140,6 +140,10 @@ class SoakResult:
     #: p50 / p95 of the time to locate the markers of one pair, ms (in the perception process when
     #: it runs, else the supervisor's locator)
     locate_ms: dict[str, float | None] = field(default_factory=dict)
+    #: the supervisor's RSS (MB) at each whole minute after compensation first started: tells a
+    #: one-off step (the C heap keeping the high-water mark of the first full-frame re-acquisition
+    #: after a fault) from a steady growth
+    rss_mb_by_minute: list[float] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -431,7 +435,21 @@ def analyse(
     res.frames_overwritten = ctl.frames_overwritten
     res.rss_mb = _rss_figures([(t, m) for t, m, _ in rss], operator.t_comp, minutes)
     res.servo_rss_mb = _rss_figures([(t, m) for t, _, m in rss], operator.t_comp, minutes)
+    res.rss_mb_by_minute = rss_by_minute([(t, m) for t, m, _ in rss], operator.t_comp)
     return res
+
+
+def rss_by_minute(rss: list[tuple[float, float]], t_comp: float | None) -> list[float]:
+    """The first sample at or after each whole minute from ``t_comp`` (monotonic s; None: the
+    first sample), MB rounded to 0.01; ``rss`` is (monotonic s, MB) in time order."""
+    if not rss:
+        return []
+    t0 = rss[0][0] if t_comp is None else t_comp
+    out: list[float] = []
+    for t, mb in rss:
+        if t >= t0 + 60.0 * len(out):
+            out.append(round(mb, 2))
+    return out
 
 
 #: The devices open up to about a second apart (the servo process opens the robot in its own

@@ -28,6 +28,7 @@ from hil.soak.soak import (
     SoakResult,
     analyse,
     fault_outcomes,
+    rss_by_minute,
     run_soak,
     transient_schedule,
 )
@@ -63,6 +64,14 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     assert res.rss_mb["after_warmup"] == 101.0  # warm-up: min(30 s, a quarter of 1 min) = 15 s
     assert res.rss_mb["growth"] == 0.5
     assert res.servo_rss_mb["growth"] == 0.2
+    assert res.rss_mb_by_minute == [100.0]      # the samples span 40 s: only minute 0
+
+
+def test_rss_by_minute_takes_the_first_sample_of_each_whole_minute() -> None:
+    rss = [(5.0, 90.0), (10.0, 100.0), (69.9, 101.0), (70.0, 102.0), (131.0, 103.456), (140.0, 104.0)]
+    assert rss_by_minute(rss, t_comp=10.0) == [100.0, 102.0, 103.46]
+    assert rss_by_minute(rss, t_comp=None) == [90.0, 101.0, 103.46]
+    assert rss_by_minute([], t_comp=3.0) == []
 
 
 def test_bad_arguments_are_typed_errors(tmp_path: Path) -> None:
