@@ -143,7 +143,10 @@ class FaultyStereoCamera(_Delegating, StereoCamera):
             remaining_s = (deadline_ns - clock.now_ns()) * 1e-9
             if remaining_s <= 0:
                 raise DeviceTimeoutError(self.name, f"no stereo pair within {timeout_s} s")
-            pair = self.inner.grab(remaining_s)
+            try:
+                pair = self.inner.grab(remaining_s)
+            except DeviceTimeoutError as exc:   # the whole wait, not what was left of it after drops
+                raise DeviceTimeoutError(self.name, f"no stereo pair within {timeout_s} s") from exc
             drop = self.schedule.active(FaultKind.FRAME_DROP)
             if drop is None:
                 break

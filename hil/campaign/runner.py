@@ -387,12 +387,15 @@ def _state_at(entered: list[tuple[float, str]], t_s: float) -> str:
     return before[-1] if before else "idle"
 
 
-def _first_bound(spec: RunSpec, result: RunResult, rec: Recording, t0_ns: int
+def _first_bound(spec: RunSpec, result: RunResult, rec: Recording, t0_ns: int, safe_s: float
                  ) -> tuple[float | None, float | None]:
-    """``(ref_s, bound_ms)`` of the first safe state: the time the first fault became detectable
-    and that fault's device bound (two becoming detectable at once: the smaller bound). For an
-    overlapping pair the second fault competes; a fault in the recovery does not (it is judged
-    on its own). ``(None, None)`` when no fault is bounded (content kinds only)."""
+    """``(ref_s, bound_ms)`` of the first safe state (entered at ``safe_s``): ``ref_s`` the time
+    the first fault became detectable; the bound such that ``ref_s + bound`` is the earliest
+    deadline of the faults detectable by ``safe_s`` (each one's detectable time plus its device's
+    bound). So a robot fault starting while the camera drops frames must be acted on within the
+    robot's bound, not the camera's. For an overlapping pair the second fault competes; a fault
+    in the recovery does not (it is judged on its own). ``(None, None)`` when no fault is bounded
+    (content kinds only)."""
     bounds = [result.latency_bound_ms]
     if spec.second_kind is not None and not spec.recovery:
         bounds.append(result.second_latency_bound_ms)
@@ -403,7 +406,10 @@ def _first_bound(spec: RunSpec, result: RunResult, rec: Recording, t0_ns: int
             detectable.append((det, bound))
     if not detectable:
         return None, None
-    return min(detectable)
+    ref = min(det for det, _ in detectable)
+    due = [det + bound / 1e3 for det, bound in detectable if det <= safe_s + 1e-9] or \
+        [det + bound / 1e3 for det, bound in detectable if det == ref]
+    return ref, round(1e3 * (min(due) - ref), 3)
 
 
 def judge_second(spec: RunSpec, result: RunResult, rec: Recording,
@@ -485,7 +491,7 @@ def judge(
     result.recovery_window_s = None if window is None else [window[0], window[1], window[2]]
     safe = [(t, s) for t, s in entered if s in SAFE_STATES and t >= onset - 1e-9]
     if safe:
-        ref, bound = _first_bound(spec, result, rec, t0_ns)
+        ref, bound = _first_bound(spec, result, rec, t0_ns, safe[0][0])
         if ref is None or ref > safe[0][0]:  # safe before any fault was detectable: not bounded
             ref, bound = onset, None
         if spec.second_kind is not None and not spec.recovery:

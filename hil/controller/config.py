@@ -288,6 +288,12 @@ class ProcedureConfig(BaseModel):
     camera_prefetch: bool = Field(
         True, description="on the wall clock only (real time): grab and locate the next stereo pair in a "
         "background thread so the servo stream continues meanwhile; never with the simulated clock")
+    supervisor_period_ms: float | None = Field(
+        None, gt=0, le=1000, description="the longest a control tick waits for a stereo pair; when none "
+        "arrived by then the tick still reads the robot and the tracker and checks the watchdogs and the "
+        "operator (None: 1.25 camera frame periods, so it ticks with every pair while pairs arrive). The "
+        "camera fault still comes only after the whole grab timeout. Applies with the prefetcher, the "
+        "perception process and the simulated clock")
 
     @model_validator(mode="after")
     def _consistent(self) -> ProcedureConfig:

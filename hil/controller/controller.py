@@ -1,10 +1,12 @@
-"""The Controller: one tick per stereo pair (or per operator input that ends the wait for one), on
-an injected clock, through interfaces only. The arm is commanded at its own rate by the servo loop
-(hil/servo; docs/architecture.md): the controller publishes setpoints and stops to it.
+"""The Controller: one tick per stereo pair, per supervisor period without one, or per operator
+input that ends the wait for one, on an injected clock, through interfaces only. The arm is
+commanded at its own rate by the servo loop (hil/servo; docs/architecture.md): the controller
+publishes setpoints and stops to it.
 
 A tick (docs/architecture.md draws it): the owed stop is retried and the operator's command is
-decided -> the devices are read (:mod:`~hil.controller.pipeline`) -> the supervisor checks the
-watchdogs and the robot (:mod:`~hil.controller.supervisor`) -> perception identifies and tracks
+decided -> the devices are read (:mod:`~hil.controller.pipeline`: the next pair, waited for at most
+a supervisor period) -> the supervisor checks the watchdogs and the robot
+(:mod:`~hil.controller.supervisor`) -> when a new pair arrived, perception identifies and tracks
 the markers into the estimate (:mod:`~hil.controller.markers`) -> the current phase steps
 (:mod:`~hil.controller.phases`) -> its commands are executed through the safety layer and its
 events are processed by the state machine, in order. Entering a state runs its phase's entry
@@ -198,8 +200,8 @@ class Controller(ControllerParts):
             self.fault(reason)
             return
         frame = self.est.last_frame
-        if frame is None:
-            return
+        if frame is None or not self.pipeline.pair_arrived:
+            return  # a supervisor tick without a new pair (pipeline module doc): no perception, no step
         points = self.pipeline.located(frame)
         self.markers.update(self.est, points, frame.left.t_ns,
                             lambda: self.roles.reference_sensor(self.est, self.state))

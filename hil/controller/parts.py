@@ -134,8 +134,9 @@ class ControllerParts(abc.ABC):
         self.t0_ns = clock.now_ns()
         self.est = Estimate(plan, rig, procedure)
         self.metrics = RunMetrics()
+        sup_ms = procedure.supervisor_period_ms
         self.pipeline = DevicePipeline(camera, robot, tracker, clock, locate, self.watchdogs, session,
-                                       self.metrics)
+                                       self.metrics, None if sup_ms is None else sup_ms / 1e3)
         self.supervisor = Supervisor(robot, self.safety, self.watchdogs, session)
         self.markers = MarkerTracker(procedure.registration.match_tolerance_mm)
         self.crosscheck = CameraCrossCheck(crosscheck or CrossCheckBounds())

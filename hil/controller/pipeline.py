@@ -6,9 +6,16 @@ Where pairs come from: a camera with a ``perception_feed`` (the perception proce
 already located, and stands in for the prefetcher; otherwise the camera itself, through the
 prefetcher thread on the wall clock.
 
-Blocking: :meth:`DevicePipeline.read` blocks up to the grab timeout for the next pair (from the
-camera, or the pair the prefetcher or the feed has ready). Errors: the devices' DriverError (a
-DeviceTimeoutError naming the camera when no pair arrives).
+Blocking: the supervisor ticks on its own clock. :meth:`DevicePipeline.read` waits for the next pair
+at most one *supervisor period* (``[procedure] supervisor_period_ms``; default 1.25 frame periods,
+so while pairs arrive it ticks with each pair); when none arrived by then it still reads the robot
+and the tracker and feeds their watchdogs, and the tick goes on without a pair (supervision only:
+:attr:`DevicePipeline.pair_arrived` is False). Only when no pair arrived for the whole grab timeout
+(:meth:`DevicePipeline.grab_timeout_s`, counted from the first wait after the last pair) does it
+raise the camera's DeviceTimeoutError. This holds where the wait is on a prefetcher, a perception feed or the
+simulated clock; a direct grab on the wall clock (``camera_prefetch = false``) blocks for the
+whole grab timeout, as a real camera driver may count a short timeout as a lost frame.
+Errors: the devices' DriverError (a DeviceTimeoutError naming the camera when no pair arrives).
 """
 
 from __future__ import annotations
@@ -20,7 +27,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from drivers.interfaces.camera import StereoCamera, StereoFrame
-from drivers.interfaces.errors import DriverError
+from drivers.interfaces.errors import DeviceTimeoutError, DriverError
 from drivers.interfaces.robot import Robot, RobotState
 from drivers.interfaces.tracker import PoseTracker
 from hil.clock import Clock, MonotonicClock
@@ -37,6 +44,10 @@ _log = get_logger(__name__)
 
 #: Stereo frame -> triangulated marker centres (M, 3), optical frame, mm (any order).
 MarkerLocator = Callable[[StereoFrame], FloatArray]
+
+#: The default supervisor period in camera frame periods: long enough that a tick never ends
+#: without the pair while pairs arrive on time, short enough that a camera gap is supervised.
+SUPERVISOR_PERIOD_FRAMES = 1.25
 
 
 @runtime_checkable
@@ -65,11 +76,19 @@ class DevicePipeline:
 
     def __init__(self, camera: StereoCamera, robot: Robot, tracker: PoseTracker | None, clock: Clock,
                  locate: MarkerLocator, watchdogs: WatchdogSet, session: SessionLog,
-                 metrics: RunMetrics) -> None:
+                 metrics: RunMetrics, supervisor_period_s: float | None = None) -> None:
         self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
         self.locate = locate
         self.watchdogs, self.session, self.metrics = watchdogs, session, metrics
         self.frame_period_s = 1.0 / camera.frame_rate_hz
+        #: the longest a tick waits for a pair before it supervises without one, s (module doc)
+        self.supervisor_period_s = (SUPERVISOR_PERIOD_FRAMES * self.frame_period_s
+                                    if supervisor_period_s is None else supervisor_period_s)
+        #: whether the latest :meth:`read` brought a new pair (False: a tick without one)
+        self.pair_arrived = False
+        #: the clock when the first read waiting for the next pair began (None: not waiting); the
+        #: grab timeout counts from there, as it counted from one blocking grab before
+        self._waiting_since_ns: int | None = None
         self.primed = False   # the camera pipeline's first (late) pair has been consumed
         self.feed = perception_feed(camera)   # the perception process's pairs (module doc)
         self.prefetch: FramePrefetcher | PairFeed | None = None
@@ -158,22 +177,26 @@ class DevicePipeline:
         return self.camera.grab(timeout_s=timeout_s)
 
     def read(self, est: Estimate, wake: Callable[[], bool] | None = None) -> RobotState | None:
-        """The next pair, the robot state and the tracker samples into ``est`` (module doc);
-        feeds the watchdogs. Returns the robot state, or None when ``wake`` (an operator input
-        waits) ended the wait for the pair first (real time, with the prefetcher; nothing read)."""
+        """The next pair (if one arrives within the supervisor period), the robot state and the
+        tracker samples into ``est`` (module doc); feeds the watchdogs and sets
+        :attr:`pair_arrived`. Returns the robot state, or None when ``wake`` (an operator input
+        waits) ended the wait for the pair first (real time; nothing read).
+
+        Raises:
+            DeviceTimeoutError: no pair for the whole grab timeout since the last one (the camera's).
+            DriverError: a device's error (the camera's at once, the robot's, the tracker's).
+        """
         self.prefetched = None
-        source = self.prefetch if self.prefetch is not None else self.feed
-        if source is not None:
-            got = source.take(self.grab_timeout_s(), wake)
-            if got is None:
-                return None
-            self.prefetched, frame = got, got.frame
-        else:
-            frame = self.camera.grab(timeout_s=self.grab_timeout_s())
+        self.pair_arrived = False
+        frame, woken = self._next_pair(wake)
+        if woken:
+            return None
         now = self.clock.now_ns()
-        self.metrics.frames += 1
-        est.last_frame = frame
-        self.watchdogs["camera"].feed(frame.left.t_ns, now)
+        if frame is not None:
+            self.pair_arrived = True
+            self.metrics.frames += 1
+            est.last_frame = frame
+            self.watchdogs["camera"].feed(frame.left.t_ns, now)
         st = self.robot.state_now()
         est.record_robot_state(st)
         self.watchdogs["robot"].feed(st.t_ns, now)
@@ -184,6 +207,39 @@ class DevicePipeline:
             if fresh:
                 self.watchdogs["tracker"].feed(max(fresh), now)
         return st
+
+    def _next_pair(self, wake: Callable[[], bool] | None) -> tuple[StereoFrame | None, bool]:
+        """Wait up to the supervisor period (or what is left of the grab timeout) for a pair:
+        (the pair or None when none arrived yet (module doc), whether ``wake`` ended the wait)."""
+        source = self.prefetch if self.prefetch is not None else self.feed
+        sliced = source is not None or not isinstance(self.clock, MonotonicClock)
+        timeout_s = self.grab_timeout_s()
+        start_ns = self.clock.now_ns()
+        if self._waiting_since_ns is None:
+            self._waiting_since_ns = start_ns
+        left_s = timeout_s - (start_ns - self._waiting_since_ns) * 1e-9
+        wait_s = min(self.supervisor_period_s, left_s) if sliced else timeout_s
+        last = not sliced or wait_s >= left_s
+        try:
+            if source is not None:
+                got = source.take(max(wait_s, 0.0), wake)
+                if got is None:
+                    return None, True
+                self.prefetched, frame = got, got.frame
+            else:
+                frame = self.camera.grab(timeout_s=max(wait_s, 0.0))
+        except DeviceTimeoutError as exc:
+            if not last:
+                return None, False   # no pair yet: a tick without one
+            self._waiting_since_ns = None
+            if sliced:
+                raise DeviceTimeoutError(exc.device, f"no stereo pair within {timeout_s:g} s") from exc
+            raise
+        except DriverError:
+            self._waiting_since_ns = None   # the next wait has the whole grab timeout again
+            raise
+        self._waiting_since_ns = None
+        return frame, False
 
     def located(self, frame: StereoFrame) -> FloatArray:
         """The marker centres of ``frame`` (M, 3), optical frame, mm (a fresh array): the

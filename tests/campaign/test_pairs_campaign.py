@@ -48,6 +48,10 @@ def test_overlapping_faults_both_hit_the_state_and_end_safe(
     assert r["second_onset_s"] == pytest.approx(r["onset_s"] + 0.05)
     assert (r["outcome"], r["safe_state"], r["recovered_to_lock"], r["final_state"]) == (
         "safe_state", "fault", True, "done")
+    # the robot fault, 50 ms after the frame drop, is due within the robot's bound (183.333 ms) of
+    # its own onset, not the camera's (650 ms): the supervisor reads the robot while the camera is
+    # silent. Before it ticked on its own clock the safe state came 386 ms after the frame drop.
+    assert r["latency_bound_ms"] == 233.333
     assert 0 <= r["safe_latency_ms"] <= r["latency_bound_ms"]
     assert r["inputs"]["second_kind"] == "robot_disconnect"
     assert r["replay"].startswith(f"hil campaign --pairs {OVERLAP} --seed 1 ")

@@ -118,7 +118,12 @@ def test_a_slow_simulation_does_not_trip_the_camera_watchdog(monkeypatch: pytest
     assert base.safety.camera_frame_max_age_ms < 300.0
     # ~3 frames/s: average fewer frames so that registration fits in the breath-hold
     reg = base.procedure.registration.model_copy(update={"frames_averaged": 4})
-    setup = base.model_copy(update={"procedure": base.procedure.model_copy(update={"registration": reg})})
+    # A render that takes clock time models real time; there, without the prefetcher, the tick
+    # grabs directly and waits the whole grab timeout (hil/controller/pipeline.py): the camera can
+    # start its render ahead of the frame only within a grab's timeout. A supervisor period as long
+    # as the grab timeout makes the simulated tick do the same.
+    procedure = base.procedure.model_copy(update={"registration": reg, "supervisor_period_ms": 1000.0})
+    setup = base.model_copy(update={"procedure": procedure})
     clock = ManualClock(10**9)
     _slow_render(monkeypatch, clock, 0.3)
     s = run_procedure(CONFIG, setup, load_plan("configs/plans/sim_plan.json"), auto=True,
