@@ -18,6 +18,7 @@ from typing import Any
 from hil.errors import HilError
 
 from .outputs import STEMS
+from .pairs_campaign import pair_counts
 from .report import summarise
 
 
@@ -82,7 +83,8 @@ def merge_outputs(dirs: list[Path], *, out_dir: Path, allow_mismatch: bool = Fal
                   allow_partial: bool = False) -> dict[str, Any]:
     """Check and merge the outputs in ``dirs``; write ``<stem>.json``, ``<stem>.html`` and the
     logs in ``out_dir``; return the merged summary (``merged_from`` lists the directories,
-    ``shard`` is None, ``code_version``/``config_sha256``/``matrix`` those of the first output).
+    ``shard`` is None, ``code_version``/``config_sha256``/``matrix`` those of the first output;
+compound-fault outputs keep ``pairs``, counted over the merged runs).
 
     Raises:
         MergeError: see the module doc.
@@ -113,6 +115,8 @@ def merge_outputs(dirs: list[Path], *, out_dir: Path, allow_mismatch: bool = Fal
     merged.update(tier=first["tier"], code_version=first.get("code_version"),
                   config_sha256=first.get("config_sha256"), executor={"kind": "merged"}, shard=None,
                   matrix=first.get("matrix"), wall_s=None, merged_from=[str(d) for d in dirs])
+    if any(o.get("pairs") is not None for _, o in outputs):   # compound faults: counted again
+        merged["pairs"] = pair_counts(results)
     if merged["tier"] == "transport":
         for f in merged["failing"]:
             f["replay"] = f"hil campaign --transport {f['scenario']} --seed {f['seed']}"

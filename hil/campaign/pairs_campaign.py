@@ -143,7 +143,7 @@ def run_pairs_campaign(
     summary = summarise(everything, config=str(config))
     summary.update(tier="simulator", code_version=ctx.version, config_sha256=ctx.digest, executor=where,
                    shard=None if shard is None else shard.to_dict(), matrix=matrix_identity(ids),
-                   pairs=_pair_counts(everything), wall_s=round(time.perf_counter() - t_wall, 3))
+                   pairs=pair_counts(everything), wall_s=round(time.perf_counter() - t_wall, 3))
     write_summary(summary, out_dir)
     return summary
 
@@ -183,7 +183,7 @@ def _single_specs(need: list[int], need_singles: dict[int, list[Scenario]],
     return out
 
 
-def _pair_counts(everything: list[dict[str, Any]]) -> dict[str, int]:
+def pair_counts(everything: list[dict[str, Any]]) -> dict[str, int]:
     """The summary's ``pairs``: pair runs, overlapping, in recovery, passed."""
     pair_runs = [r for r in everything if r.get("second_kind")]
     in_recovery = sum(1 for r in pair_runs if str(r["scenario"]).endswith(RECOVERY_SUFFIX))

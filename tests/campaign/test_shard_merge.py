@@ -102,6 +102,37 @@ def test_merge_gives_the_campaign_summary_object(
     assert "glare" in (out / "campaign.html").read_text()
 
 
+def _pair(run_id: str, second: str, *, passed: bool = True) -> dict[str, Any]:
+    rec = _rec(run_id, passed=passed)
+    rec["second_kind"] = second
+    rec["replay"] = rec["replay"].replace("hil campaign ", "hil campaign --pairs ")
+    return rec
+
+
+def test_merging_compound_fault_shards_keeps_the_pair_counts(tmp_path: Path) -> None:
+    """``pairs`` (pair runs, overlapping, in recovery, passed) is counted over the merged runs, and
+    the page is the compound-fault one."""
+    ids = ["baseline_s1", "frame_drop+glare@lock_s1", "glare+tracker_timeout@gate_s1",
+           "robot_disconnect+glare@compensate+recovery_s1"]
+    matrix = matrix_identity(ids)
+    a = _output(tmp_path / "s0", [_rec(ids[0]), _pair(ids[2], "tracker_timeout", passed=False)],
+                shard=(0, 2), matrix=matrix)
+    b = _output(tmp_path / "s1", [_pair(ids[1], "glare"), _pair(ids[3], "glare")], shard=(1, 2),
+                matrix=matrix)
+    for d, n in ((a, 1), (b, 2)):   # as run_pairs_campaign writes it
+        summary = json.loads((d / "campaign.json").read_text())
+        summary["pairs"] = {"runs": n, "overlapping": 1, "recovery": n - 1, "passed": n - 1 if d == a else n}
+        (d / "campaign.json").write_text(json.dumps(summary))
+    merged = merge_outputs([a, b], out_dir=tmp_path / "merged")
+    assert merged["pairs"] == {"runs": 3, "overlapping": 2, "recovery": 1, "passed": 2}
+    assert merged["failing"][0]["replay"].startswith("hil campaign --pairs glare+tracker_timeout@gate ")
+    assert "Compound-fault campaign" in (tmp_path / "merged" / "campaign.html").read_text()
+
+
+def test_merging_single_fault_shards_adds_no_pair_counts(shards: tuple[Path, Path], tmp_path: Path) -> None:
+    assert "pairs" not in merge_outputs(list(shards), out_dir=tmp_path / "merged")
+
+
 def test_merge_table_output(shards: tuple[Path, Path], tmp_path: Path,
                             capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["campaign", "merge", *map(str, shards), "--out", str(tmp_path / "m")]) == 1
