@@ -53,8 +53,8 @@ class Controller(ControllerParts):
         return first
 
     def fault(self, reason: str) -> None:
-        """Record a fault, enter FAULT (or stay there) and stop the robot. A fault repeating while
-        already in FAULT is recorded once."""
+        """Record a fault, enter FAULT (or stay there) and stop the robot. A fault of a kind already
+        recorded in this FAULT (the same reason but for its figures) is recorded once."""
         state = self.state
         if not self.supervisor.record_fault(reason, state):
             return

@@ -9,6 +9,8 @@ is delivered or a later state entry supersedes it.
 
 from __future__ import annotations
 
+import re
+
 from drivers.interfaces.errors import DriverError
 from drivers.interfaces.robot import Robot, RobotMode, RobotState, SafetyStatus
 from hil.controller import events as ev
@@ -19,6 +21,15 @@ from hil.safety.watchdog import WatchdogSet
 from hil.session.log import SessionLog
 
 _log = get_logger(__name__)
+
+_FIGURE = re.compile(r"\d+(?:\.\d+)?(?:e-?\d+)?")
+
+
+def fault_kind(reason: str) -> str:
+    """``reason`` with its figures replaced by ``#`` (``watchdog: camera data # s old > # s``):
+    what stays the same while a fault persists."""
+    return _FIGURE.sub("#", reason)
+
 
 #: States in which the arm must be able to execute commands (or hold under control).
 ROBOT_COMMANDED_STATES = frozenset({State.APPROACH, State.GATE, State.COMPENSATE, State.LOCK, State.RETRACT})
@@ -31,14 +42,21 @@ class Supervisor:
                  session: SessionLog) -> None:
         self.robot, self.safety, self.watchdogs, self.session = robot, safety, watchdogs, session
         self.faults: list[str] = []
+        self._kinds_in_fault: set[str] = set()   # fault_kind of each fault recorded since FAULT
         self._stop_owed: tuple[str, int] | None = None   # (reason, attempts) of an undelivered stop
 
     # ------------------------------------------------------------------ faults
     def record_fault(self, reason: str, state: State) -> bool:
-        """Record a fault (``fault_detected``). Returns False for a fault repeating while already
-        in FAULT (recorded once)."""
-        if state is State.FAULT and self.faults and self.faults[-1] == reason:
-            return False
+        """Record a fault (``fault_detected``). Returns False for a fault of a kind already
+        recorded since the controller entered FAULT (the same reason but for its figures, as a
+        watchdog's growing age while the camera stays silent: recorded once)."""
+        kind = fault_kind(reason)
+        if state is State.FAULT:
+            if kind in self._kinds_in_fault:
+                return False
+        else:
+            self._kinds_in_fault = set()
+        self._kinds_in_fault.add(kind)
         self.faults.append(reason)
         self.session.write(ev.FAULT_DETECTED, reason=reason, state=state)
         _log.warning(ev.FAULT_DETECTED, reason=reason, state=state.value)

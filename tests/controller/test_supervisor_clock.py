@@ -190,3 +190,25 @@ def test_a_robot_fault_during_a_frame_drop_is_acted_on_within_a_supervisor_perio
     both_reason, both_s = _fault_time_s(tmp_path / "both", drop, stop)
     assert alone_reason == both_reason == "robot: protective_stop"
     assert 0.0 <= both_s - alone_s <= PERIOD_S + 1e-6
+
+
+def test_a_fault_persisting_in_fault_is_recorded_once_whatever_its_figures(session: SessionLog) -> None:
+    """While the camera stays silent the supervisor ticks on: the camera watchdog's age grows every
+    tick. Each kind of fault is recorded once per FAULT; a new kind is recorded; leaving FAULT
+    starts afresh."""
+    from hil.controller.fsm import State
+    from hil.controller.supervisor import Supervisor, fault_kind
+
+    none: Any = None
+    sup = Supervisor(none, none, none, session)
+    assert sup.record_fault("watchdog: camera data 0.299 s old > 0.250 s", State.COMPENSATE)
+    assert not sup.record_fault("watchdog: camera data 0.456 s old > 0.250 s", State.FAULT)
+    assert sup.record_fault("camera: no stereo pair within 0.266667 s", State.FAULT)
+    assert not sup.record_fault("watchdog: camera data 0.542 s old > 0.250 s", State.FAULT)
+    assert not sup.record_fault("camera: no stereo pair within 0.266667 s", State.FAULT)
+    assert sup.record_fault("robot: RTDE connection lost", State.FAULT)
+    assert sup.record_fault("watchdog: camera data 0.3 s old > 0.250 s", State.REGISTER)   # a new FAULT
+    assert sup.faults == ["watchdog: camera data 0.299 s old > 0.250 s",
+                          "camera: no stereo pair within 0.266667 s", "robot: RTDE connection lost",
+                          "watchdog: camera data 0.3 s old > 0.250 s"]
+    assert fault_kind("watchdog: robot data 0.058 s old > 0.050 s") == "watchdog: robot data # s old > # s"
