@@ -571,7 +571,6 @@ class UrRtdeRobot(Robot):
             raise DeviceFaultError(self.name, "could not upload the control script")
         rcv = self._rcv
         self._wait_until("control script running", lambda: int(rcv.getRuntimeState()) == RuntimeState.PLAYING)
-        if self.cfg.rtde_watchdog_min_hz > 0:
-            hz = self.cfg.rtde_watchdog_min_hz
-            if not self._call("setWatchdog", lambda: bool(ctrl.setWatchdog(hz))):
-                raise DeviceFaultError(self.name, "the control script refused setWatchdog")
+        hz = self._watchdog_hz()  # the rate the kicker is paced for, as at connect
+        if hz > 0 and not self._call("setWatchdog", lambda: bool(ctrl.setWatchdog(hz))):
+            raise DeviceFaultError(self.name, "the control script refused setWatchdog")

@@ -203,6 +203,18 @@ def test_rtde_watchdog_keeps_an_idle_program_running(robot: UrRtdeRobot, ursim: 
     assert ursim.control.status()["runtime_state"] == "PLAYING"
 
 
+def test_recovery_rearms_the_watchdog_at_the_rate_its_kicker_is_paced_for(
+        robot: UrRtdeRobot, ursim: Ursim) -> None:
+    armed_hz = ursim.control.status()["watchdog_hz"]
+    assert armed_hz == pytest.approx(1.0 / 0.375)  # lowered from the configured 5 Hz
+    ursim.control.stop_program()
+    wait_for(lambda: robot.state_now().mode is RobotMode.STOPPED, what="program stop seen")
+    robot.recover()  # re-uploads the script and arms its watchdog again
+    # the same window as at connect: the kicker (a third of the armed window) and a blocking stop
+    # were sized for it; the configured 5 Hz would let a stop plus one kicker period expire it
+    assert ursim.control.status()["watchdog_hz"] == pytest.approx(armed_hz)
+
+
 def test_slow_controller_responses_still_work(robot: UrRtdeRobot, ursim: Ursim) -> None:
     ursim.control.slow_responses(30.0)
     start = robot.state_now().T_robot_from_tcp
