@@ -255,8 +255,17 @@ class ConsoleApp(App[dict[str, Any]]):
             self.notify(text, severity="warning")
 
     # ---------------------------------------------------------------- refresh
+    @property
+    def shown_view(self) -> ConsoleView | None:
+        """The controller snapshot on screen now (None before the first): what the operator
+        reads and what y / n / c answer. It lags the runner's latest by up to one refresh."""
+        return self._hil_shown
+
     def refresh_view(self) -> None:
-        """Show the latest snapshot (cheap; never waits on the controller)."""
+        """Show the latest snapshot (cheap; never waits on the controller). Does nothing once
+        the app is shutting down: its widgets are being removed before its timers stop."""
+        if not self.is_running:
+            return
         runner = self.session.runner
         v = runner.latest()
         self._show_results()

@@ -33,14 +33,29 @@ def write_setup(tmp: Path, extra: str = "") -> Path:
 
 async def wait_view(pilot: Pilot[object], app: ConsoleApp, cond: Callable[[ConsoleView], bool],
                     what: str) -> ConsoleView:
-    """Let the UI run until the latest controller snapshot satisfies ``cond`` (bounded)."""
+    """Let the UI run until the snapshot on screen satisfies ``cond`` (bounded): what the
+    operator sees, not merely the controller's latest, which the console shows on its next
+    refresh."""
+    return await _wait_snapshot(pilot, app, cond, what, on_screen=True)
+
+
+async def wait_controller(pilot: Pilot[object], app: ConsoleApp, cond: Callable[[ConsoleView], bool],
+                          what: str) -> ConsoleView:
+    """Let the UI run until the controller's latest snapshot satisfies ``cond`` (bounded),
+    whether or not the console has shown it yet (for tests that hold the screen back)."""
+    return await _wait_snapshot(pilot, app, cond, what, on_screen=False)
+
+
+async def _wait_snapshot(pilot: Pilot[object], app: ConsoleApp, cond: Callable[[ConsoleView], bool],
+                         what: str, *, on_screen: bool) -> ConsoleView:
     loop = asyncio.get_running_loop()
     end = loop.time() + DEADLINE_S
     while True:
-        v = app.session.runner.latest()
-        if v is not None and cond(v):
+        seen = app.shown_view if on_screen else app.session.runner.latest()
+        if seen is not None and cond(seen):
             await pilot.pause()
-            return v
+            return seen
+        v = app.session.runner.latest()
         if v is not None and v.error:
             raise AssertionError(f"controller loop failed while waiting for {what}: {v.error}")
         if loop.time() > end:

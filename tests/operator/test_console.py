@@ -26,6 +26,7 @@ from tests.operator.console_helpers import (
     SIM_PLAN,
     SessionOpener,
     quit_app,
+    wait_controller,
     wait_message,
     wait_prompt,
     wait_view,
@@ -206,6 +207,9 @@ async def _fault_shown_and_recovered(tmp_path: Path, open_session: SessionOpener
         v = await wait_view(pilot, app, lambda v: v.state in ("gate", "compensate", "lock"), "recovered")
         assert not app.query_one("#banner", Static).has_class("shown")
         summary = await quit_app(pilot, app)
+    # a refresh tick landing while the app shuts down (its widgets removed before its timers
+    # stop, as when a test fails inside the app) does nothing instead of raising NoMatches
+    app.refresh_view()
     log = Path(str(summary["session_log"]))
     tr = _transitions(log)
     assert tr[:3] == ["start", "register_to_plan", "plan_to_approach"]
@@ -353,10 +357,10 @@ async def _early_repeated_and_declined_confirmations(tmp_path: Path, open_sessio
         await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
         app.refresh_timer.pause()  # the screen keeps showing IDLE: no prompt can open
         await pilot.press("s")
-        await wait_view(pilot, app, lambda v: v.pending == "plan_to_approach", "plan pending (controller)")
+        await wait_controller(pilot, app, lambda v: v.pending == "plan_to_approach", "plan pending")
         assert not isinstance(app.screen, ConfirmScreen)
         await pilot.press("y")  # early: the operator has not seen the prompt
-        await wait_view(pilot, app, lambda v: v.operator_commands_decided == 2, "early y decided")
+        await wait_controller(pilot, app, lambda v: v.operator_commands_decided == 2, "early y decided")
         app.refresh_timer.resume()
         early = await wait_message(pilot, app, lambda m: m.startswith("confirm: rejected"), "early y")
         assert "no prompt was shown when this was pressed" in early
