@@ -241,16 +241,24 @@ class UrRtdeRobot(Robot):
     def _watchdog_hz(self) -> float:
         """The watchdog rate armed: ``rtde_watchdog_min_hz``, lowered when its window would not
         outlast a blocking stop. A stop (servoStop / stopL) blocks the library until the arm is at
-        rest, up to ``max_speed / max_accel`` plus the controller's reply (50 ms here), and the
-        kicker cannot call the library meanwhile; the stop's own command write feeds the watchdog,
-        and the kicker's next kick comes at most one kicker period (a third of the window) after the
-        stop returns. So the window must be >= 1.5 x the longest stop. (Seen: a servoStop at the
-        acceleration limit from following speed outlasting a 200 ms window on the UR emulator, which
-        then stopped the program.)"""
+        rest, and the kicker cannot call the library meanwhile; the stop's own command write feeds
+        the watchdog, and the kicker's next kick comes at most one kicker period (a third of the
+        window) after the stop returns. So the window must be >= 1.5 x the longest stop.
+
+        The longest stop: the tool's linear speed at ``max_accel`` (``max_speed / max_accel``) or
+        its rotation, whichever takes longer, plus the controller's reply (50 ms here). The
+        driver passes stopl one acceleration ``a`` and the controller then decelerates the
+        rotation at ``a`` rad/s^2 too (URScript ``stopl(a, aRot)``: aRot defaults to a), so a
+        rotation at ``max_angular_speed`` takes ``max_angular_speed / a`` to stop. (Seen: a
+        servoStop from a 0.17 rad/s rotation at 0.5 rad/s^2 outlasting a 375 ms window sized for
+        the linear stop alone on the UR emulator, which then stopped the program.)"""
         want = self.cfg.rtde_watchdog_min_hz
         if want <= 0:
             return 0.0
-        longest_stop_s = self.limits.max_speed_mm_s / self.limits.max_accel_mm_s2 + 0.05
+        lim = self.limits
+        a_m_s2 = lim.max_accel_mm_s2 / 1000.0
+        longest_stop_s = max(lim.max_speed_mm_s / lim.max_accel_mm_s2,
+                             lim.max_angular_speed_rad_s / a_m_s2) + 0.05
         hz = min(want, 1.0 / (1.5 * longest_stop_s))
         if hz < want:
             _log.info("rtde_watchdog_lowered", device=self.name, configured_hz=want, armed_hz=round(hz, 3),

@@ -17,8 +17,10 @@ from drivers.interfaces.errors import (
     ProtocolError,
     SafetyStopError,
 )
-from drivers.interfaces.robot import RobotMode, SafetyStatus
+from drivers.interfaces.robot import MotionLimits, RobotMode, SafetyStatus
+from drivers.ur_rtde.config import UrRtdeRobotConfig
 from drivers.ur_rtde.robot import UrRtdeRobot
+from hil.clock import MonotonicClock
 from hil.geometry.transform import RigidTransform
 from hil.kinematics import ur_forward
 from tests.ur_rtde.conftest import Ursim, free_loopback_address, make_robot, wait_for
@@ -196,17 +198,33 @@ def _state_ok(robot: UrRtdeRobot) -> bool:
 
 def test_rtde_watchdog_keeps_an_idle_program_running(robot: UrRtdeRobot, ursim: Ursim) -> None:
     status = ursim.control.status()
-    # configured 5 Hz, armed lower so the window outlasts a stop from 100 mm/s at 500 mm/s^2:
-    # 1 / (1.5 x (0.2 s + 0.05 s)) = 2.667 Hz
-    assert status["watchdog_hz"] == pytest.approx(1.0 / 0.375)
-    time.sleep(4 * 0.375)  # four watchdog windows with no motion command: the kicker feeds it
+    # configured 5 Hz, armed lower so the window outlasts the longest stop at 1000 mm/s^2: from
+    # 200 mm/s, 0.2 s; from 1 rad/s, decelerated at 1 rad/s^2 (stopl's aRot = a), 1 s:
+    # 1 / (1.5 x (1.0 s + 0.05 s)) = 0.635 Hz
+    assert status["watchdog_hz"] == pytest.approx(1.0 / 1.575)
+    time.sleep(2 * 1.575)  # two watchdog windows with no motion command: the kicker feeds it
     assert ursim.control.status()["runtime_state"] == "PLAYING"
+
+
+def test_a_slow_turning_arm_s_watchdog_window_is_set_by_its_linear_stop(ursim: Ursim) -> None:
+    # a slow-turning arm: the linear stop is the longest (100 mm/s at 500 mm/s^2: 0.2 s; 0.05 rad/s
+    # at 0.5 rad/s^2: 0.1 s): 1 / (1.5 x (0.2 s + 0.05 s)) = 2.667 Hz
+    r = UrRtdeRobot("robot", MotionLimits(max_speed_mm_s=100.0, max_accel_mm_s2=500.0,
+                                          max_angular_speed_rad_s=0.05),
+                    UrRtdeRobotConfig(driver="ur_rtde", host=ursim.host, state_max_age_s=1.0,
+                                      controller="cb3"),
+                    MonotonicClock())
+    r.open()
+    try:
+        assert ursim.control.status()["watchdog_hz"] == pytest.approx(1.0 / 0.375)
+    finally:
+        r.close()
 
 
 def test_recovery_rearms_the_watchdog_at_the_rate_its_kicker_is_paced_for(
         robot: UrRtdeRobot, ursim: Ursim) -> None:
     armed_hz = ursim.control.status()["watchdog_hz"]
-    assert armed_hz == pytest.approx(1.0 / 0.375)  # lowered from the configured 5 Hz
+    assert armed_hz == pytest.approx(1.0 / 1.575)  # lowered from the configured 5 Hz
     ursim.control.stop_program()
     wait_for(lambda: robot.state_now().mode is RobotMode.STOPPED, what="program stop seen")
     robot.recover()  # re-uploads the script and arms its watchdog again
