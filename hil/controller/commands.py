@@ -4,7 +4,8 @@ are processed.
 
 - :class:`MoveLinear`: a linear move to a TCP pose (robot frame) at a speed and acceleration.
 - :class:`Track`: a tracking setpoint for the servo loop (COMPENSATE, once per pair).
-- :class:`Hold`: nothing new: keep the last command (the robot holds or finishes its move).
+- :class:`Hold`: the servo loop brings the arm to rest from its current command and holds that
+  pose, commanding it every period (LOCK: the arm stays under servo control and supervision).
 - :class:`Stop`: stop the arm; a stop that cannot be delivered is retried every tick until it is.
 """
 

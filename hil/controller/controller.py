@@ -128,6 +128,7 @@ class Controller(ControllerParts):
             self.supervisor.stop_robot(cmd.reason)
         else:
             assert isinstance(cmd, Hold)
+            self.safety.hold(cmd.reason)
 
     # ------------------------------------------------------------------ the loop
     def run(self, max_duration_s: float | None = None) -> RunSummary:

@@ -32,6 +32,8 @@ class TrackingRobot(Protocol):
 
     def start_tracking(self) -> int: ...
 
+    def hold(self) -> None: ...
+
     def track(self, T_robot_from_tcp: RigidTransform, v_mm_s: FloatArray, w_rad_s: FloatArray, *,
               t_ref_ns: int, valid_until_ns: int, exposure_t_ns: int, frame_seq: int,
               speed_scale: float, max_horizon_s: float, lead_s: float) -> None: ...
@@ -195,6 +197,22 @@ class SafetyLayer:
             self._log("command_sent", {"command": "track", "target_mm": T_robot_from_tcp.t,
                                        "v_mm_s": v_mm_s, "frame_seq": frame_seq,
                                        "speed_scale": speed_scale})
+
+    def hold(self, reason: str) -> None:
+        """Hold the arm under the servo loop (never refused: the loop brings it to rest from its
+        current command at the acceleration limit and commands that pose every period, through
+        its step check and following supervision). Logged as ``command_sent``, command ``hold``.
+
+        Raises:
+            DriverError: the servo loop is gone.
+        """
+        robot = self.robot
+        if not isinstance(robot, TrackingRobot):
+            raise TypeError(f"{type(robot).__name__} has no servo loop (wrap it in hil.servo's ServoRobot)")
+        robot.hold()
+        self.commands_sent += 1
+        if self._log is not None:
+            self._log("command_sent", {"command": "hold", "reason": reason})
 
     def stop(self, reason: str) -> None:
         """Stop the robot (never refused). Forgets the servo history so a later stream restarts

@@ -133,6 +133,22 @@ class ServoRobot(Robot):
             w_rad_s=w_rad_s, t_ref_ns=t_ref_ns, valid_until_ns=valid_until_ns, exposure_t_ns=exposure_t_ns,
             frame_seq=frame_seq, speed_scale=speed_scale, max_horizon_s=max_horizon_s, lead_s=lead_s)
 
+    def hold(self) -> None:
+        """Hold (never blocks): the loop brings the arm to rest from its current command at the
+        acceleration limit and keeps commanding that pose every period, checked and supervised,
+        in the same tracking session (a later :meth:`track` continues it). With no session under
+        way, one starts from the actual pose.
+
+        Raises:
+            LifecycleError: not active.  DisconnectedError: the loop is gone.
+        """
+        self.require_active("hold")
+        self._raise_if_gone()
+        if not self._tracking:
+            self.start_tracking()
+        self.link.regions.block.write_hold(self._track_id)
+        # the in-process loop is stepped by the holding phase on the period grid (no kick here)
+
     def idle(self) -> None:
         """Leave TRACK / STOP: the loop sends nothing (the arm holds)."""
         self._tracking = False

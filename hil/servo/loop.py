@@ -18,6 +18,10 @@ process, or stepped in-process by a simulated run on the manual clock — the sa
      should have brought it to. A refused step or an arm that does not follow stops the arm and is
      reported, and that tracking session is over: the loop holds until the supervisor starts a
      new one (a new ``track_id``) — it never resumes on its own after a refusal;
+   - HOLD: as TRACK with the last command as the target: the arm comes to rest at the
+     acceleration limit and is held there, commanded, checked and supervised every period (LOCK).
+     Holding continues the tracking session (no restart from the actual pose); a HOLD with no
+     session under way starts one from the actual pose, at rest;
    - IDLE: no command (the arm holds, or runs a move a command started);
 4. write the period's record to the state ring and the counters (:class:`~hil.servo.shm.LoopStats`).
 
@@ -130,9 +134,9 @@ class ServoLoop:
         if sp.mode == ServoMode.STOP:
             self._track_id = None
             self._do_stop(sp.stop_id)
-        elif sp.mode == ServoMode.TRACK:
+        elif sp.mode == ServoMode.TRACK or sp.mode == ServoMode.HOLD:
             if st is not None and st.safety is SafetyStatus.NORMAL and sp.track_id != self._halted_track_id:
-                cmd_t_ns = self._track(sp, st, now_ns)
+                cmd_t_ns = self._track(sp, st, now_ns, hold=sp.mode == ServoMode.HOLD)
             else:
                 self.following.stop()
         else:
@@ -180,7 +184,7 @@ class ServoLoop:
         self.report(EV_STOP_DELIVERED, {"stop_id": stop_id, "issued_ns": int(c[Stat.STOP_ISSUE_T_NS]),
                                         "delivered_ns": t})
 
-    def _track(self, sp: Setpoint, st: RobotState, now_ns: int) -> int:
+    def _track(self, sp: Setpoint, st: RobotState, now_ns: int, hold: bool) -> int:
         if sp.track_id != self._track_id:   # a new tracking session: from the actual pose, at rest
             self._track_id = sp.track_id
             self.limiter.reset(st.T_robot_from_tcp)
@@ -189,7 +193,9 @@ class ServoLoop:
             self.following.start(st.T_robot_from_tcp.R, st.T_robot_from_tcp.t)
         prev = self.limiter.command
         assert prev is not None
-        if now_ns > sp.valid_until_ns:
+        if hold:
+            desired = prev   # come to rest at the acceleration limit and hold there
+        elif now_ns > sp.valid_until_ns:
             self.stats.c[Stat.STALE] += 1
             if not self._stale:
                 self._stale = True
@@ -234,7 +240,7 @@ class ServoLoop:
             self._v_prev[:] = v
         t = self.clock.now_ns()
         self.stats.c[Stat.COMMANDS] += 1
-        if sp.seq != self._latency_seq and not self._stale:
+        if sp.seq != self._latency_seq and not self._stale and not hold:
             self._latency_seq = sp.seq
             self.stats.add_latency(t - sp.exposure_t_ns)
         return t

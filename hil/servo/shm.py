@@ -48,6 +48,9 @@ class ServoMode(IntEnum):
     IDLE = 0    # no servo command (the arm holds, or runs a move started by a command)
     TRACK = 1   # follow the setpoint (extrapolated, rate- and acceleration-limited)
     STOP = 2    # stop the arm on the next period, retry until delivered, keep reading it
+    HOLD = 3    # come to rest from the current command at the acceleration limit and hold the
+    #             pose there, commanding it every period (the arm stays under servo control and
+    #             following supervision; the tracking session goes on)
 
 
 class ShmRegion:
@@ -194,6 +197,15 @@ class SetpointBlock:
         f[_SCALE] = speed_scale
         f[_HORIZON] = max_horizon_s
         f[_LEAD] = lead_s
+        self._end()
+
+    def write_hold(self, track_id: int) -> None:
+        """Switch to HOLD in tracking session ``track_id`` (the current one: the loop holds from
+        its last command; a new one: the loop starts it from the actual pose, at rest)."""
+        i = self.region.i
+        self._begin()
+        i[_MODE] = ServoMode.HOLD
+        i[_TRACK_ID] = track_id
         self._end()
 
     def write_mode(self, mode: ServoMode) -> int:

@@ -72,6 +72,24 @@ def test_still_patient_locks_within_half_a_millimetre(tmp_path: Path) -> None:
     for name in ("registration_done", "plan_accepted", "command_sent", "compensation_step", "frame_measured",
                  "transition_applied", "truth_error"):
         assert name in ev
+    # LOCK is held by the servo loop: one hold order at entry, then a command every period
+    in_lock = _records_in(s, "lock")
+    assert [(r["event"], r.get("command")) for r in in_lock if r["event"] in ("command_sent", "stop_sent")] \
+        == [("command_sent", "hold")]
+    stats = [r for r in in_lock if r["event"] == "servo_stats"]
+    assert sum(r["commands"] for r in stats) == sum(r["periods"] for r in stats) > 100
+    assert sum(r["refusals"] + r["following_faults"] for r in stats) == 0
+
+
+def _records_in(summary: RunSummary, state: str) -> list[dict[str, Any]]:
+    """The session log's records written while ``state`` was current."""
+    out, current = [], None
+    for r in read_session_log(summary.session_log):
+        if r["event"] == "state_entered":
+            current = r["state"]
+        if current == state:
+            out.append(r)
+    return out
 
 
 @pytest.mark.slow

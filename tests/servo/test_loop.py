@@ -143,6 +143,37 @@ def test_a_stale_setpoint_brings_the_arm_to_rest_and_holds(rig: Any) -> None:
     assert [k for k, _ in events].count(EV_STALE) == 1
 
 
+def test_hold_brings_the_tracking_command_to_rest_and_keeps_commanding_it(rig: Any) -> None:
+    clock, robot, regions, loop, events = rig
+    _track(regions.block, clock, robot.pose.t, v_mm_s=(40.0, 0.0, 0.0), valid_s=10.0)
+    _run(clock, loop, 50)   # 0.4 s: at 40 mm/s
+    regions.block.write_hold(1)   # the same session (LOCK after COMPENSATE)
+    _run(clock, loop, 75)   # 0.6 s
+    servo = np.array([T.t for kind, T in robot.calls if kind == "servo"])
+    assert len(servo) == 125   # commanded every period, holding included
+    speed = np.linalg.norm(np.diff(servo, axis=0), axis=1) / PERIOD_S
+    assert float(speed[45]) == pytest.approx(40.0, abs=0.5)
+    # continuous: no restart from the actual pose; at rest within 40 / 400 = 0.1 s, then held
+    # where it stopped (the stopping distance v^2 / 2a = 2 mm past the hold order, never back)
+    assert float(speed[49:].max()) <= 40.0 + 1e-6
+    assert float(speed[50 + 13:].max()) == pytest.approx(0.0, abs=1e-9)
+    assert float(np.diff(servo[49:, 0]).min()) >= -1e-9
+    assert servo[-1][0] - servo[49][0] == pytest.approx(2.0, abs=0.4)
+    assert regions.stats.get(Stat.LATENCY_SAMPLES) == 1   # holding is not a camera setpoint
+    assert regions.stats.get(Stat.REFUSALS) == 0
+    assert EV_STALE not in [k for k, _ in events]
+
+
+def test_hold_without_a_session_starts_one_at_the_actual_pose(rig: Any) -> None:
+    clock, robot, regions, loop, _ = rig
+    start = robot.pose.t.copy()
+    regions.block.write_hold(7)
+    _run(clock, loop, 5)
+    servo = [T for kind, T in robot.calls if kind == "servo"]
+    assert len(servo) == 5
+    assert all(np.allclose(T.t, start) for T in servo)
+
+
 def test_a_step_outside_the_workspace_is_refused_and_the_arm_stopped(rig: Any) -> None:
     clock, robot, regions, loop, events = rig
     far = robot.pose.t + np.array([0.0, 0.0, 10_000.0])   # far outside the box: the limiter heads there

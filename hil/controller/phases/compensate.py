@@ -13,7 +13,6 @@ publishes.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from typing import TYPE_CHECKING
@@ -23,9 +22,9 @@ import numpy as np
 from hil.controller import events as ev
 from hil.controller.commands import Track
 from hil.controller.compensation import correction_out_of_bounds, interpolate_pose
-from hil.controller.deadline import DeadlineTimer
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
+from hil.controller.phases.streaming import stream_until_next_pair
 from hil.geometry.transform import RigidTransform
 
 if TYPE_CHECKING:
@@ -94,7 +93,7 @@ class CompensatePhase(Phase):
         t_cmd = ctx.clock.now_ns()
         ctx.latency_ms.append((t_cmd - frame.left.t_ns) * 1e-6)
         if ctx.step_servo is not None:
-            self._stream(frame, now, t_send, ctx.step_servo)
+            stream_until_next_pair(ctx, frame, now, t_send, ctx.step_servo)
         err = est.guide_error_optical_mm()
         dev = est.gate_deviation_mm()
         ctx.session.write(ev.COMPENSATION_STEP, exposure_t_ns=frame.left.t_ns,
@@ -116,39 +115,6 @@ class CompensatePhase(Phase):
             s.settle_since_ns = None
             s.sub = CompensateSub.TRACKING
         return out
-
-    def _stream(self, frame: StereoFrame, now: int, t_send: int, step: Callable[[int], None]) -> None:
-        """The in-process servo loop (a simulated run): step it at the robot's rate until the next
-        pair is due, on absolute deadlines one period apart from the setpoint's slot (a slot missed
-        by more than a period is skipped). The servo process needs none of this: its loop runs on
-        its own clock."""
-        ctx = self.ctx
-        servo_dt = 1.0 / ctx.robot.control_rate_hz
-        timer = DeadlineTimer(ctx.clock, servo_dt)
-        timer.start(t_send)
-        half_ns = timer.period_ns // 2
-        step(t_send)
-        timing = ctx.servo_timing()
-        ready = timing.next_pair_ready
-        if ready is None:  # the next grab blocks this thread: stop half a period before it is due
-            next_ready_ns = now + round(ctx.frame_period_s * 1e9)
-
-            def more() -> bool:
-                return max(timer.next_ns(), ctx.clock.now_ns()) + half_ns <= next_ready_ns
-        else:  # real time: stream until the prefetcher has the next pair (or an error) ready;
-            # capped, and never on a pair the camera watchdog would call stale, so the tick
-            # judges a missing or late pair as it would without the prefetcher
-            cap_ns = min(now + round((2 * ctx.frame_period_s + timing.grab_timeout_s) * 1e9),
-                         frame.left.t_ns + round(timing.camera_max_age_s * 1e9))
-
-            def more() -> bool:
-                return not ready() and max(timer.next_ns(), ctx.clock.now_ns()) <= cap_ns
-        while more():
-            skipped = timer.wait()
-            if skipped:
-                ctx.servo_deadlines_missed += 1
-                ctx.session.write(ev.SERVO_DEADLINE_MISSED, slots_skipped=skipped, period_s=servo_dt)
-            step(ctx.clock.now_ns())
 
     def _publish(self, frame: StereoFrame, now_ns: int) -> tuple[float, RigidTransform]:
         """Publish the frame's tracking setpoint: the TCP pose that keeps the guide on the plan for

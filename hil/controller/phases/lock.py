@@ -1,6 +1,12 @@
-"""LOCK: hold the guide at the corrected entry (the arm stopped) while the needle goes in; watch
-for drift (the guide off the moving entry by more than the alarm distance) and, with the optical
-check, the needle axis; finish after the hold time (or on the operator's word)."""
+"""LOCK: hold the guide at the corrected entry while the needle goes in; watch for drift (the guide
+off the moving entry by more than the alarm distance) and, with the optical check, the needle
+axis; finish after the hold time (or on the operator's word).
+
+The arm is held by the servo loop (:class:`~hil.controller.commands.Hold`): it comes to rest
+from the tracking command at the acceleration limit and is commanded at that pose every period,
+through the loop's step check and following supervision, so a drift or a pushed arm is seen at
+the robot's rate. With the loop in this process (a simulated run) the phase steps it between
+pairs, as COMPENSATE does."""
 
 from __future__ import annotations
 
@@ -9,10 +15,11 @@ from enum import Enum
 from typing import TYPE_CHECKING
 
 from hil.controller import events as ev
-from hil.controller.commands import Stop
+from hil.controller.commands import Hold
 from hil.controller.compensation import correction_out_of_bounds
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
+from hil.controller.phases.streaming import stream_until_next_pair
 from hil.log import get_logger
 
 if TYPE_CHECKING:
@@ -46,9 +53,16 @@ class LockPhase(Phase):
 
     def on_enter(self, transition: str) -> PhaseResult:
         self.s = _Scratch()
-        return PhaseResult().command(Stop("lock"))
+        return PhaseResult().command(Hold("lock"))
 
     def step(self, inputs: TickInputs) -> PhaseResult:
+        now = self.ctx.clock.now_ns()
+        out = self._judge(inputs)
+        if self.ctx.step_servo is not None and not out.events:
+            stream_until_next_pair(self.ctx, inputs.frame, now, now, self.ctx.step_servo)
+        return out
+
+    def _judge(self, inputs: TickInputs) -> PhaseResult:
         ctx, lk, s, est = self.ctx, self.ctx.cfg.lock, self.s, self.ctx.est
         out = PhaseResult()
         if est.T_change_meas is not None:
