@@ -134,6 +134,9 @@ class CompensationConfig(BaseModel):
     max_speed_mm_s: float = Field(60.0, gt=0, description="rate limit of the commanded correction")
     max_accel_mm_s2: float = Field(400.0, gt=0, description="acceleration limit of the correction")
     max_angular_speed_rad_s: float = Field(0.5, gt=0)
+    max_angular_accel_rad_s2: float = Field(
+        2.0, gt=0, description="angular acceleration limit of the correction (noise in the measured "
+                               "attitude otherwise reaches the arm as bursts at the angular speed limit)")
     max_correction_mm: float = Field(25.0, gt=0, description="beyond this change: pause, ask the operator")
     max_correction_deg: float = Field(10.0, gt=0)
     predict_latency: bool = Field(True, description="extrapolate the motion over the measured latency")

@@ -205,7 +205,8 @@ class ControllerParts(abc.ABC):
             return robot
         c = procedure.compensation
         return in_process_servo(robot, limits, RateLimiter(c.max_speed_mm_s, c.max_accel_mm_s2,
-                                                           c.max_angular_speed_rad_s), clock,
+                                                           c.max_angular_speed_rad_s,
+                                                           c.max_angular_accel_rad_s2), clock,
                                 servo_event_logger(session))
 
     def _servo_timing(self) -> ServoTiming:

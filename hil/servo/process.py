@@ -69,14 +69,15 @@ class ServoSpec:
 
     Attributes:
         setup: the validated setup (its robot section is built in the child).
-        limiter: max speed mm/s, max acceleration mm/s², max angular speed rad/s of the tracking.
+        limiter: max speed mm/s, max acceleration mm/s², max angular speed rad/s, max angular
+            acceleration rad/s² of the tracking.
         realtime: ask for SCHED_FIFO / pinning / mlockall.
         priority: the SCHED_FIFO priority (1-99).
         cpu: the CPU to pin to (None: the last one).
     """
 
     setup: SetupConfig
-    limiter: tuple[float, float, float]
+    limiter: tuple[float, float, float, float]
     realtime: bool = True
     priority: int = 80
     cpu: int | None = None

@@ -250,6 +250,45 @@ class TestRateLimiter:
         c = rl.step(RigidTransform.from_translation((100.0, 0.0, 0.0)), 0.1, speed_scale=0.1)
         assert float(c.t[0]) == pytest.approx(0.5)
 
+    def test_rotation_is_acceleration_limited_and_does_not_overshoot(self) -> None:
+        rl = RateLimiter(50.0, 200.0, 0.5, 2.0)
+        rl.reset(RigidTransform.identity())
+        goal = RigidTransform.from_rotvec((0.0, 0.0, 0.2), (0.0, 0.0, 0.0))
+        angles = [0.0]
+        for _ in range(300):
+            c = rl.step(goal, 0.008)
+            angles.append(float(c.as_rotvec()[2]))
+        w = np.diff(angles) / 0.008
+        assert max(angles) <= 0.2 + 1e-9
+        assert angles[-1] == pytest.approx(0.2, abs=1e-9)
+        assert float(np.abs(np.diff(w)).max()) / 0.008 <= 2.0 + 1e-6   # the angular acceleration limit
+        assert float(w.max()) <= 0.5                                        # the angular speed limit
+        assert float(w[0]) == pytest.approx(2.0 * 0.008 * 0.999)           # from rest, not at 0.5 rad/s
+
+    def test_attitude_noise_reaches_the_arm_damped(self) -> None:
+        # the target's attitude jitters by +-1.5 mrad from pair to pair (every 4 periods at 125 Hz)
+        rng = np.random.default_rng(1)
+
+        def peak_rate(rl: RateLimiter) -> float:
+            rl.reset(RigidTransform.identity())
+            angles = [0.0]
+            goal = RigidTransform.identity()
+            for k in range(400):
+                if k % 4 == 0:
+                    jitter_rad = float(rng.uniform(-1.5e-3, 1.5e-3))
+                    goal = RigidTransform.from_rotvec((jitter_rad, 0.0, 0.0), np.zeros(3))
+                angles.append(float(rl.step(goal, 0.008).as_rotvec()[0]))
+            return float(np.abs(np.diff(angles)).max() / 0.008)
+
+        assert peak_rate(RateLimiter(50.0, 200.0, 0.5)) > 0.3                 # bursts at the speed limit
+        assert peak_rate(RateLimiter(50.0, 200.0, 0.5, 2.0)) < 0.08           # sqrt(a * 3 mrad) order
+
+    def test_speed_scale_ramps_the_rotation_too(self) -> None:
+        rl = RateLimiter(50.0, 10_000.0, 0.5)
+        rl.reset(RigidTransform.identity())
+        c = rl.step(RigidTransform.from_rotvec((0.0, 0.0, 1.0), np.zeros(3)), 0.1, speed_scale=0.1)
+        assert c.rotation_angle_rad() == pytest.approx(0.5 * 0.1 * 0.1 * 0.999)
+
     def test_not_reset_refuses(self) -> None:
         with pytest.raises(GeometryError, match="not reset"):
             RateLimiter(1.0, 1.0, 1.0).step(RigidTransform.identity(), 0.1)
