@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         progress=lambda m: print(f"hil soak: {m}", file=sys.stderr, flush=True),
     )
     if args.json:
-        sys.stdout.write(json.dumps(res.to_dict()) + "\n")
+        sys.stdout.write(json.dumps({**res.to_dict(), "passed": res.passed()}) + "\n")
     else:
         out = sys.stdout
         from hil.servo.rt import RtGranted
@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
         out.write(f"servo process        {RtGranted.from_dict(res.rt_granted).summary()}\n")
         out.write(
             f"compensation         {res.compensate_s:.1f} s, {res.servo_commands} servo commands, "
-            f"{res.resumes} resume(s)\n"
+            f"{res.resumes} resume(s), {res.reregistrations} re-registration(s)\n"
         )
         out.write(f"period p50/p99/max   {_fmt(res.period_ms)} ms\n")
         out.write(f"jitter p50/p99/max   {_fmt(res.jitter_ms)} ms\n")
@@ -112,5 +112,7 @@ def run(args: argparse.Namespace) -> int:
             out.write(f"injected {f['kind']:<16} at {f['onset_s']:>7.1f} s for {f['duration_s']:g} s: "
                       f"{f['detected']}{again}\n")
         out.write(f"final state          {res.final_state}; faults: {'; '.join(res.faults) or 'none'}\n")
+        out.write(f"unexplained faults   {'; '.join(res.unexplained_faults) or 'none'}\n")
+        out.write(f"verdict              {'passed' if res.passed() else 'FAILED'}\n")
         out.write(f"session log          {res.session_log}\n")
     return 0 if res.passed() else 1

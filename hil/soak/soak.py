@@ -24,12 +24,19 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
   the controller faults on each).
 - ``transient_faults`` (with ``--faults-every S``): a transient fault injected into the simulated
   devices every S seconds (cycling through :data:`TRANSIENT_FAULTS`); for each, its onset (s after
-  the devices opened), what the controller said (from the onset — less a second's slack, as the
-  devices open up to a second apart — to the next fault's onset: the first fault reason naming the
-  faulted device, else the first reason at all, else ``tolerated``) and, for a detected one, how
-  long after the onset the procedure was compensating again (``back_in_compensation_s``; None if it
-  never came back, or if it was tolerated). The soak operator resumes after every fault, so the soak
-  goes on. The last fault leaves at least one period before the soak's planned end.
+  the devices opened) and the fault records it explains: it is *detected* when a fault is recorded
+  from a second before its onset (the devices open up to a second apart) to a second after its
+  window ends, else ``tolerated``; a detected fault explains every fault record from then until
+  the procedure is compensating again (else until the next fault's onset). ``detected`` is the
+  first reason naming the faulted device, else the first reason at all; ``reasons`` every distinct
+  one (a frame drop is reported by the camera watchdog and by the grab's timeout);
+  ``back_in_compensation_s`` how long after the onset the procedure was compensating again (None
+  if it never came back, or if it was tolerated). The last fault leaves at least one period
+  before the soak's planned end.
+- ``unexplained_faults``: fault reasons no injected fault explains; any one fails the soak.
+- The soak operator confirms every prompt, resumes after every fault, and registers again (pause,
+  then start) when the gate stays shut for :data:`REREGISTER_AFTER_GATE_S` — the patient moved
+  since registration; ``reregistrations`` counts those.
 - ``following_peak_mm``: the largest following error the servo loop measured
   (hil/safety/following.py), and ``following_faults``.
 """
@@ -133,6 +140,10 @@ class SoakResult:
     stop_to_command_ms: dict[str, float | None] = field(default_factory=dict)
     #: the injected transient faults and what became of each (module doc)
     transient_faults: list[dict[str, Any]] = field(default_factory=list)
+    #: fault reasons no injected fault explains (module doc): any one fails the soak
+    unexplained_faults: list[str] = field(default_factory=list)
+    #: times the soak operator registered again because the gate stayed shut (module doc)
+    reregistrations: int = 0
     following_peak_mm: float = 0.0
     following_faults: int = 0
     #: memory of the perception process as ``rss_mb`` (empty: perception ran in the supervisor)
@@ -149,21 +160,37 @@ class SoakResult:
         return asdict(self)
 
     def passed(self) -> bool:
-        """Compensated, no refused step, no fault beyond the injected ones (one reason each), and
-        back in compensation after every injected fault that was detected."""
+        """Compensated, no refused step, no fault that the injected ones do not explain, and back
+        in compensation after every injected fault that was detected."""
         detected = [f for f in self.transient_faults if f["detected"] != "tolerated"]
         came_back = all(f["back_in_compensation_s"] is not None for f in detected)
         return bool(self.compensate_s > 0 and not self.limit_violations and came_back
-                    and len(self.faults) <= len(detected))
+                    and not self.unexplained_faults)
+
+
+#: How long the soak operator waits in GATE for the breath-hold gate to open before it pauses
+#: and re-registers, s. The simulated breathing cycle is about 4 s and an open gate needs 1 s of
+#: stillness, so a gate shut this long means the patient moved since registration (the simulated
+#: patient drifts 3 mm on the table in the first 150 s of configs/sim.toml): what an operator
+#: does then is register again.
+REREGISTER_AFTER_GATE_S = 30.0
 
 
 class SoakOperator:
-    """Starts, confirms, resumes after a pause or fault, and ends the run ``soak_s`` of wall time
-    after the procedure first entered COMPENSATE (or after ``give_up_s`` without reaching it)."""
+    """Starts, confirms, resumes after a pause or fault, re-registers when the gate stays shut for
+    ``reregister_after_s`` (pause, then start: PAUSED -> REGISTER), and ends the run ``soak_s`` of
+    wall time after the procedure first entered COMPENSATE (or after ``give_up_s`` without
+    reaching it)."""
 
     def __init__(self, soak_s: float, give_up_s: float, sample: Callable[[], None],
                  on_compensate: Callable[[], None] | None = None,
-                 progress: Callable[[str], None] | None = None, progress_every_s: float = 30.0) -> None:
+                 progress: Callable[[str], None] | None = None, progress_every_s: float = 30.0,
+                 reregister_after_s: float = REREGISTER_AFTER_GATE_S) -> None:
+        self.reregister_after_s = reregister_after_s
+        #: re-registrations asked for because the gate stayed shut
+        self.reregistrations = 0
+        self._gate_since: float | None = None
+        self._reregister = False
         self.on_compensate = on_compensate
         self.progress = progress
         self.progress_every_s = progress_every_s
@@ -198,6 +225,8 @@ class SoakOperator:
             return Event.START_REQUESTED
         if view.pending is not None:
             return Event.CONFIRM_REQUESTED
+        if self._gate_shut_too_long(view.state, now):
+            return Event.PAUSE_REQUESTED
         halted = view.state in (State.PAUSED, State.FAULT, State.SAFE_STOP) or (
             view.state is State.IDLE and self._started
         )
@@ -210,6 +239,9 @@ class SoakOperator:
         if now - self._last_halt_t < 0.5:  # let the robot stop, then carry on
             return None
         self._last_halt_t = now
+        if self._reregister and view.state is State.PAUSED:
+            self._reregister = False
+            return Event.START_REQUESTED   # PAUSED -> REGISTER
         self.resumes += 1
         if view.state is State.IDLE:
             return Event.START_REQUESTED
@@ -218,6 +250,25 @@ class SoakOperator:
             return Event.RESUME_REQUESTED
         self._tried_resume = False  # resume refused (no plan yet): start over
         return Event.RESET_REQUESTED if view.state is State.FAULT else Event.START_REQUESTED
+
+    def _gate_shut_too_long(self, state: State, now: float) -> bool:
+        """True once per ``reregister_after_s`` spent in GATE without a break (then the operator
+        pauses and, once paused, starts a new registration)."""
+        if state is not State.GATE:
+            self._gate_since = None
+            return False
+        if self._gate_since is None:
+            self._gate_since = now
+            return False
+        if now - self._gate_since < self.reregister_after_s:
+            return False
+        self._gate_since = None
+        self._reregister = True
+        self.reregistrations += 1
+        if self.progress is not None:
+            self.progress(f"soak: the gate stayed shut for {self.reregister_after_s:g} s; "
+                          "pausing to register again")
+        return True
 
     def finished(self, view: OperatorView) -> bool:
         now = time.monotonic()
@@ -363,6 +414,8 @@ def run_soak(
                   summary.faults, str(session.path))
     res.rt_granted = robot.rt.to_dict() if robot.rt is not None else {}
     res.transient_faults = fault_outcomes(schedule, str(session.path), t_open_ns)
+    res.unexplained_faults = unexplained_faults(schedule, str(session.path), t_open_ns)
+    res.reregistrations = operator.reregistrations
     res.following_peak_mm, res.following_faults = figs.following_peak_mm, figs.following_faults
     res.stop_to_command_ms = _stats([x * 1e-6 for x in robot.stop_latency_ns])
     res.perception_rss_mb = _rss_figures(sampler.perception_rss, operator.t_comp, minutes)
@@ -453,30 +506,66 @@ def rss_by_minute(rss: list[tuple[float, float]], t_comp: float | None) -> list[
 
 
 #: The devices open up to about a second apart (the servo process opens the robot in its own
-#: process): a fault reason this long before the scheduled onset still counts as its effect.
+#: process): a fault reason this long before the scheduled onset, or this long after the fault's
+#: window ends, still counts as its effect.
 ATTRIBUTION_SLACK_NS = 1_000_000_000
 
 
-def fault_outcomes(schedule: tuple[FaultSpec, ...], session_log: str, t_open_ns: int) -> list[dict[str, Any]]:
-    """What became of each injected fault, from the session log (module doc). The onsets are
-    relative to the devices' opening (``t_open_ns`` on the controller clock, within the time the
-    devices take to open)."""
+@dataclass(frozen=True)
+class _Attribution:
+    """One injected fault and the fault records it explains (controller clock, ns)."""
+
+    onset_ns: int
+    #: the fault records from ``onset - slack`` until the procedure was compensating again (else
+    #: the next fault's onset); empty: tolerated
+    window: list[tuple[int, str]]
+    #: when the procedure was compensating again after a detected fault (None: never, or tolerated)
+    back_ns: int | None
+
+
+def _attribute(schedule: tuple[FaultSpec, ...], session_log: str,
+               t_open_ns: int) -> tuple[list[_Attribution], list[tuple[int, str]]]:
+    """Each injected fault's attribution (module doc) and every fault record of the log."""
     import json
 
     records = [json.loads(line) for line in Path(session_log).read_text().splitlines() if line.strip()]
     faults = [(r["t_ns"], str(r.get("reason", ""))) for r in records if r.get("event") == "fault_detected"]
     comp = [r["t_ns"] for r in records
             if r.get("event") == "state_entered" and r.get("state") == "compensate"]
-    out: list[dict[str, Any]] = []
+    out: list[_Attribution] = []
     for k, f in enumerate(schedule):
         onset_ns = t_open_ns + round(f.start_s * 1e9)
-        end_ns = (t_open_ns + round(schedule[k + 1].start_s * 1e9)) if k + 1 < len(schedule) else None
-        window = [(t, why) for t, why in faults if onset_ns - ATTRIBUTION_SLACK_NS <= t
-                  and (end_ns is None or t < end_ns)]
-        # the first fault naming the faulted device, else the first one at all in the window
-        said = next((why for _, why in window if f.device in why), window[0][1] if window else None)
-        back = next((t for t in comp if t > onset_ns and (end_ns is None or t < end_ns)), None)
-        back_s = None if said is None or back is None else round((back - onset_ns) * 1e-9, 3)
+        next_ns = (t_open_ns + round(schedule[k + 1].start_s * 1e9)) if k + 1 < len(schedule) else None
+        seen_by_ns = onset_ns + round(f.duration_s * 1e9) + ATTRIBUTION_SLACK_NS
+        if not any(onset_ns - ATTRIBUTION_SLACK_NS <= t <= seen_by_ns for t, _ in faults):
+            out.append(_Attribution(onset_ns, [], None))   # tolerated
+            continue
+        back = next((t for t in comp if t > onset_ns and (next_ns is None or t < next_ns)), None)
+        end_ns = max(seen_by_ns, back if back is not None else (next_ns or max(t for t, _ in faults) + 1))
+        window = [(t, why) for t, why in faults if onset_ns - ATTRIBUTION_SLACK_NS <= t < end_ns]
+        out.append(_Attribution(onset_ns, window, back))
+    return out, faults
+
+
+def fault_outcomes(schedule: tuple[FaultSpec, ...], session_log: str, t_open_ns: int) -> list[dict[str, Any]]:
+    """What became of each injected fault, from the session log (module doc): ``detected`` is the
+    first reason naming the faulted device, else the first reason at all, else ``tolerated``;
+    ``reasons`` every distinct reason it explains. The onsets are relative to the devices'
+    opening (``t_open_ns`` on the controller clock, within the time the devices take to open)."""
+    attributions, _ = _attribute(schedule, session_log, t_open_ns)
+    out: list[dict[str, Any]] = []
+    for f, a in zip(schedule, attributions, strict=True):
+        said = next((why for _, why in a.window if f.device in why), a.window[0][1] if a.window else None)
+        back_s = None if a.back_ns is None else round((a.back_ns - a.onset_ns) * 1e-9, 3)
         out.append({"kind": f.kind.value, "onset_s": f.start_s, "duration_s": f.duration_s,
-                    "detected": "tolerated" if said is None else said, "back_in_compensation_s": back_s})
+                    "detected": "tolerated" if said is None else said, "back_in_compensation_s": back_s,
+                    "reasons": list(dict.fromkeys(why for _, why in a.window))})
     return out
+
+
+def unexplained_faults(schedule: tuple[FaultSpec, ...], session_log: str, t_open_ns: int) -> list[str]:
+    """The fault reasons of the session log that no injected fault explains (module doc): each one
+    is a defect the soak found (with no injected faults, every fault is)."""
+    attributions, faults = _attribute(schedule, session_log, t_open_ns)
+    explained = {fault for a in attributions for fault in a.window}
+    return [why for t, why in faults if (t, why) not in explained]
