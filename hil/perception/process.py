@@ -107,6 +107,9 @@ class PerceptionReady:
     camera_name: str
     pid: int
     cpus: tuple[int, ...]
+    #: when the child's camera had opened (``time.monotonic_ns``, the same clock in every process):
+    #: the origin of its fault schedule, ``[[faults]] start_s`` (drivers/faults.py)
+    opened_ns: int = 0
 
 
 def frame_of(rec: MarkerRecord) -> StereoFrame:
@@ -192,7 +195,7 @@ class PerceptionProcess:
             with contextlib.suppress(OSError, ValueError):
                 select.select([self._notify_r], [], [], ALIVE_CHECK_S)
         self.ready_info = PerceptionReady(str(info["camera_name"]), int(info["pid"]),
-                                          tuple(int(c) for c in info["cpus"]))
+                                          tuple(int(c) for c in info["cpus"]), int(info["opened_ns"]))
         return self.ready_info
 
     def close(self, timeout_s: float = 5.0) -> None:

@@ -54,6 +54,7 @@ def perception_main(conn: Connection, notify_fd: int, parent_pid: int) -> None:
     try:
         camera, locate, world, follower = _build(spec)
         camera.open()
+        opened_ns = time.monotonic_ns()   # a fault schedule's origin (drivers/faults.py), system-wide
     except DriverError as exc:
         send(("failed", error_to_wire(exc)))
         region.close()
@@ -65,7 +66,8 @@ def perception_main(conn: Connection, notify_fd: int, parent_pid: int) -> None:
     channel = threading.Thread(target=_serve, args=(conn, world, closing), name="perception-channel",
                                daemon=True)
     channel.start()
-    send(("ready", {"camera_name": camera.name, "pid": os.getpid(), "cpus": sorted(cpus)}))
+    send(("ready", {"camera_name": camera.name, "pid": os.getpid(), "cpus": sorted(cpus),
+                    "opened_ns": opened_ns}))
     try:
         _run(camera, locate, ring, notify_fd, parent_pid, closing)
     except BaseException:  # noqa: BLE001 - a crash: say why, exit non-zero

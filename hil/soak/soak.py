@@ -66,6 +66,7 @@ from hil.errors import InputFileError
 from hil.servo.client import ServoRobot
 from hil.servo.figures import LoopFigures, StatsCopy, loop_figures
 from hil.session.log import SessionLog
+from hil.soak.attribution import fault_outcomes, unexplained_faults
 
 Progress = Callable[[str], None]
 
@@ -155,6 +156,11 @@ class SoakResult:
     #: one-off step (the C heap keeping the high-water mark of the first full-frame re-acquisition
     #: after a fault) from a steady growth
     rss_mb_by_minute: list[float] = field(default_factory=list)
+    #: the perception process's RSS (MB) at each whole minute, as ``rss_mb_by_minute``
+    perception_rss_mb_by_minute: list[float] = field(default_factory=list)
+    #: the camera was grabbed, rendered and located in the perception process (else in the
+    #: supervisor)
+    perception_process: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -293,10 +299,12 @@ def transient_schedule(minutes: float, every_s: float, warmup_s: float = 60.0) -
 
 
 def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: bool = True,
-               faults: tuple[FaultSpec, ...] = ()) -> SetupConfig:
+               faults: tuple[FaultSpec, ...] = (), perception_process: bool = True) -> SetupConfig:
     """The setup in real time, at ``rate_hz``, staying in compensation (never settles into lock),
-    with the servo loop in its own process (real-time scheduling asked for when ``realtime``) and
-    only the given faults (none by default: the setup's own are left out)."""
+    with the servo loop in its own process (real-time scheduling asked for when ``realtime``),
+    grabbing, rendering and locating in the perception process (``[perception] process = "auto"``;
+    ``perception_process=False``: in the supervisor) and only the given faults (none by default:
+    the setup's own are left out)."""
     robot = setup.robot.model_copy(update={"control_rate_hz": rate_hz})
     proc = setup.procedure
     comp = proc.compensation.model_copy(update={"settle_s": 1e6, "timeout_s": 1e6})
@@ -306,8 +314,9 @@ def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: boo
     )
     sim = setup.simulation.model_copy(update={"real_time": True})
     servo = setup.servo.model_copy(update={"process": "on", "realtime": realtime})
+    perception = setup.perception.model_copy(update={"process": "auto" if perception_process else "off"})
     return setup.model_copy(update={"robot": robot, "procedure": procedure, "simulation": sim,
-                                    "faults": faults, "servo": servo})
+                                    "faults": faults, "servo": servo, "perception": perception})
 
 
 def _check_arguments(minutes: float, rate_hz: float, faults_every_s: float) -> None:
@@ -356,10 +365,13 @@ def run_soak(
     realtime: bool = True,
     progress: Progress | None = None,
     faults_every_s: float = 0.0,
+    perception_process: bool = True,
 ) -> SoakResult:
     """Run the soak (blocking, ``minutes`` of compensation plus the time to reach it). The servo
     process is started and stopped here (the arm is stopped on every path). With
-    ``faults_every_s`` > 0 a transient fault is injected that often (module doc).
+    ``faults_every_s`` > 0 a transient fault is injected that often (module doc). The camera is
+    grabbed, rendered and located in the perception process unless ``perception_process`` is
+    False (or the setup cannot: ``perception_in_process`` is logged with the reason).
 
     Raises:
         InputFileError: a bad argument; ConfigError / InputFileError from the config and plan;
@@ -369,7 +381,7 @@ def run_soak(
     say = progress or (lambda _m: None)
     base = load_setup(config)
     schedule = transient_schedule(minutes, faults_every_s)
-    setup = soak_setup(base, rate_hz, minutes, realtime, schedule)
+    setup = soak_setup(base, rate_hz, minutes, realtime, schedule, perception_process)
     plan_path = Path(plan) if plan else config.resolve().parent / "plans" / f"{config.stem}_plan.json"
     procedure_plan = load_plan(plan_path)
     clock = MonotonicClock()
@@ -413,12 +425,17 @@ def run_soak(
     res = analyse(rate_hz, minutes, figs, ctl, operator, sampler.rss, summary.final_state, summary.states,
                   summary.faults, str(session.path))
     res.rt_granted = robot.rt.to_dict() if robot.rt is not None else {}
-    res.transient_faults = fault_outcomes(schedule, str(session.path), t_open_ns)
-    res.unexplained_faults = unexplained_faults(schedule, str(session.path), t_open_ns)
+    # the perception process opens its own camera, after the robot: its faults count from then
+    info = None if feed is None else feed.ready_info
+    opened = {} if info is None else {"camera": info.opened_ns}
+    res.transient_faults = fault_outcomes(schedule, str(session.path), t_open_ns, opened)
+    res.unexplained_faults = unexplained_faults(schedule, str(session.path), t_open_ns, opened)
     res.reregistrations = operator.reregistrations
     res.following_peak_mm, res.following_faults = figs.following_peak_mm, figs.following_faults
     res.stop_to_command_ms = _stats([x * 1e-6 for x in robot.stop_latency_ns])
     res.perception_rss_mb = _rss_figures(sampler.perception_rss, operator.t_comp, minutes)
+    res.perception_process = feed is not None
+    res.perception_rss_mb_by_minute = rss_by_minute(sampler.perception_rss, operator.t_comp)
     if feed is not None:
         res.locate_ms = feed.locate_figures()
     elif isinstance(ctl.locate, StereoMarkerLocator):
@@ -503,69 +520,3 @@ def rss_by_minute(rss: list[tuple[float, float]], t_comp: float | None) -> list[
         if t >= t0 + 60.0 * len(out):
             out.append(round(mb, 2))
     return out
-
-
-#: The devices open up to about a second apart (the servo process opens the robot in its own
-#: process): a fault reason this long before the scheduled onset, or this long after the fault's
-#: window ends, still counts as its effect.
-ATTRIBUTION_SLACK_NS = 1_000_000_000
-
-
-@dataclass(frozen=True)
-class _Attribution:
-    """One injected fault and the fault records it explains (controller clock, ns)."""
-
-    onset_ns: int
-    #: the fault records from ``onset - slack`` until the procedure was compensating again (else
-    #: the next fault's onset); empty: tolerated
-    window: list[tuple[int, str]]
-    #: when the procedure was compensating again after a detected fault (None: never, or tolerated)
-    back_ns: int | None
-
-
-def _attribute(schedule: tuple[FaultSpec, ...], session_log: str,
-               t_open_ns: int) -> tuple[list[_Attribution], list[tuple[int, str]]]:
-    """Each injected fault's attribution (module doc) and every fault record of the log."""
-    import json
-
-    records = [json.loads(line) for line in Path(session_log).read_text().splitlines() if line.strip()]
-    faults = [(r["t_ns"], str(r.get("reason", ""))) for r in records if r.get("event") == "fault_detected"]
-    comp = [r["t_ns"] for r in records
-            if r.get("event") == "state_entered" and r.get("state") == "compensate"]
-    out: list[_Attribution] = []
-    for k, f in enumerate(schedule):
-        onset_ns = t_open_ns + round(f.start_s * 1e9)
-        next_ns = (t_open_ns + round(schedule[k + 1].start_s * 1e9)) if k + 1 < len(schedule) else None
-        seen_by_ns = onset_ns + round(f.duration_s * 1e9) + ATTRIBUTION_SLACK_NS
-        if not any(onset_ns - ATTRIBUTION_SLACK_NS <= t <= seen_by_ns for t, _ in faults):
-            out.append(_Attribution(onset_ns, [], None))   # tolerated
-            continue
-        back = next((t for t in comp if t > onset_ns and (next_ns is None or t < next_ns)), None)
-        end_ns = max(seen_by_ns, back if back is not None else (next_ns or max(t for t, _ in faults) + 1))
-        window = [(t, why) for t, why in faults if onset_ns - ATTRIBUTION_SLACK_NS <= t < end_ns]
-        out.append(_Attribution(onset_ns, window, back))
-    return out, faults
-
-
-def fault_outcomes(schedule: tuple[FaultSpec, ...], session_log: str, t_open_ns: int) -> list[dict[str, Any]]:
-    """What became of each injected fault, from the session log (module doc): ``detected`` is the
-    first reason naming the faulted device, else the first reason at all, else ``tolerated``;
-    ``reasons`` every distinct reason it explains. The onsets are relative to the devices'
-    opening (``t_open_ns`` on the controller clock, within the time the devices take to open)."""
-    attributions, _ = _attribute(schedule, session_log, t_open_ns)
-    out: list[dict[str, Any]] = []
-    for f, a in zip(schedule, attributions, strict=True):
-        said = next((why for _, why in a.window if f.device in why), a.window[0][1] if a.window else None)
-        back_s = None if a.back_ns is None else round((a.back_ns - a.onset_ns) * 1e-9, 3)
-        out.append({"kind": f.kind.value, "onset_s": f.start_s, "duration_s": f.duration_s,
-                    "detected": "tolerated" if said is None else said, "back_in_compensation_s": back_s,
-                    "reasons": list(dict.fromkeys(why for _, why in a.window))})
-    return out
-
-
-def unexplained_faults(schedule: tuple[FaultSpec, ...], session_log: str, t_open_ns: int) -> list[str]:
-    """The fault reasons of the session log that no injected fault explains (module doc): each one
-    is a defect the soak found (with no injected faults, every fault is)."""
-    attributions, faults = _attribute(schedule, session_log, t_open_ns)
-    explained = {fault for a in attributions for fault in a.window}
-    return [why for t, why in faults if (t, why) not in explained]

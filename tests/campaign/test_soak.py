@@ -22,16 +22,15 @@ import pytest
 from hil.config import default_setup_path
 from hil.errors import InputFileError
 from hil.servo.figures import LoopFigures
+from hil.soak.attribution import fault_outcomes, unexplained_faults
 from hil.soak.soak import (
     TRANSIENT_FAULTS,
     SoakOperator,
     SoakResult,
     analyse,
-    fault_outcomes,
     rss_by_minute,
     run_soak,
     transient_schedule,
-    unexplained_faults,
 )
 
 LATE_FRACTION_BOUND_RT = 0.005
@@ -100,6 +99,8 @@ def test_short_soak_compensates_with_the_servo_loop(short_soak: Any) -> None:
     assert res.servo_commands >= res.compensation_frames
     assert res.limit_violations == 0
     assert res.rt_granted.get("requested") is True
+    assert res.perception_process is True       # grabbed, rendered and located in its own process
+    assert res.locate_ms["p50"] is not None
 
 
 def test_short_soak_late_periods_within_bound(short_soak: Any) -> None:
@@ -108,7 +109,7 @@ def test_short_soak_late_periods_within_bound(short_soak: Any) -> None:
 
 
 def test_short_soak_does_not_grow(short_soak: Any) -> None:
-    for rss in (short_soak.rss_mb, short_soak.servo_rss_mb):
+    for rss in (short_soak.rss_mb, short_soak.servo_rss_mb, short_soak.perception_rss_mb):
         assert rss["growth"] is not None
         assert rss["growth"] <= RSS_GROWTH_BOUND_MB
 
@@ -158,6 +159,13 @@ def test_each_injected_fault_is_matched_to_what_the_controller_said(tmp_path: Pa
     # detected no later than a second after its window: the protective stop at 151.7 s is not its
     assert unexplained_faults(schedule, str(log), t0) == ["robot: protective stop"]
     assert unexplained_faults((), str(log), t0) == [str(r["reason"]) for r in rec if "reason" in r]
+    # the perception process opened its camera 2.5 s after the robot: the camera's faults count from
+    # then, so records from 59.7 to 60.4 s come a second too early for the frame drop at 62.5 s
+    late = fault_outcomes(schedule, str(log), t0, {"camera": t0 + 2_500_000_000})
+    assert (late[0]["detected"], late[1]["detected"]) == ("tolerated", "robot: RTDE connection lost (injected)")
+    assert unexplained_faults(schedule, str(log), t0, {"camera": t0 + 2_500_000_000})[:3] == [
+        "watchdog: robot state 0.06 s old > 0.05 s", "camera: no stereo pair within 0.04 s",
+        "watchdog: camera data 0.3 s old > 0.25 s"]
     res = SoakResult(500.0, 4.0, compensate_s=200.0, transient_faults=out)
     assert res.passed() is False   # it never came back from the disconnect
     out[1]["back_in_compensation_s"] = 8.0
