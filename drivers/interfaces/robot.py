@@ -256,11 +256,18 @@ class Robot(Device):
         s = self.state_now()
         return s.tcp_speed_mm_s < speed_tol_mm_s and s.mode not in (RobotMode.MOVING,)
 
-    def _require_safe(self) -> None:
+    def _safety_and_mode(self) -> tuple[SafetyStatus, RobotMode]:
+        """The arm's safety status and mode now (for the check before every motion command).
+        This reads a whole state; a driver that knows both more cheaply overrides it (the
+        simulated arm: no kinematics in the real-time loop's check)."""
         s = self._state_now()
-        if s.safety is not SafetyStatus.NORMAL:
-            raise SafetyStopError(self.name, f"arm is in {s.safety}; motion refused")
-        if s.mode is RobotMode.STOPPED:
+        return s.safety, s.mode
+
+    def _require_safe(self) -> None:
+        safety, mode = self._safety_and_mode()
+        if safety is not SafetyStatus.NORMAL:
+            raise SafetyStopError(self.name, f"arm is in {safety}; motion refused")
+        if mode is RobotMode.STOPPED:
             raise SafetyStopError(self.name, "arm program is not running (mode stopped); motion refused")
 
     @property

@@ -12,6 +12,7 @@ UR-5/UR-10 Arms" (Georgia Tech, 2013): shoulder (2 branches) x wrist (2) x elbow
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -93,7 +94,7 @@ def dh_params(model: str) -> DHParams:
 
 def _as_q(q_rad: ArrayLike, name: str = "q_rad") -> FloatArray:
     q = np.asarray(q_rad, dtype=np.float64).reshape(-1)
-    if q.shape != (6,) or not np.all(np.isfinite(q)):
+    if q.shape != (6,) or not np.isfinite(q).all():
         raise GeometryError(f"{name} must be 6 finite joint angles (rad), got {q_rad!r}")
     return q
 
@@ -114,18 +115,31 @@ def _dh_matrix(theta: float, d: float, a: float, alpha: float) -> FloatArray:
 def ur_joint_frames(q_rad: ArrayLike, model: str = "ur3") -> list[FloatArray]:
     """The 4x4 matrices ``T_base_from_link_i`` for i = 1..6 (mm), e.g. for drawing or collision checks.
 
+    The six DH matrices are built in one array from plain floats and the model's cached constants
+    (the simulated arm evaluates this several times per servo period, in the real-time loop).
+
     Raises:
         GeometryError: ``q_rad`` is not 6 finite values, or the model is unknown.
     """
     q = _as_q(q_rad)
-    p = dh_params(model)
-    d, a = p.d_mm, p.a_mm
-    T = np.eye(4)
-    frames = []
-    for i in range(6):
-        T = T @ _dh_matrix(float(q[i]), float(d[i]), float(a[i]), p.alpha_rad[i])
-        frames.append(T.copy())
+    rows = []
+    for theta, (d, a, ca, sa) in zip(q.tolist(), _dh_columns(model), strict=True):
+        ct, st = math.cos(theta), math.sin(theta)
+        rows.append((ct, -st * ca, st * sa, a * ct, st, ct * ca, -ct * sa, a * st,
+                     0.0, sa, ca, d, 0.0, 0.0, 0.0, 1.0))
+    A = np.array(rows).reshape(6, 4, 4)
+    frames = [A[0]]
+    for i in range(1, 6):
+        frames.append(frames[-1] @ A[i])
     return frames
+
+
+@functools.cache
+def _dh_columns(model: str) -> tuple[tuple[float, float, float, float], ...]:
+    """Per joint: ``d`` (mm), ``a`` (mm), ``cos(alpha)``, ``sin(alpha)`` of the model."""
+    p = dh_params(model)
+    return tuple((float(p.d_mm[i]), float(p.a_mm[i]), math.cos(p.alpha_rad[i]), math.sin(p.alpha_rad[i]))
+                 for i in range(6))
 
 
 def ur_forward(q_rad: ArrayLike, model: str = "ur3") -> RigidTransform:
