@@ -82,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
 
         out.write(f"servo rate           {res.rate_hz:g} Hz (period {1e3 / res.rate_hz:.3f} ms)\n")
         out.write(f"servo process        {RtGranted.from_dict(res.rt_granted).summary()}\n")
+        out.write(f"servo process CPU    {res.servo_cpu_percent} % of one CPU in compensation\n")
         out.write(
             f"compensation         {res.compensate_s:.1f} s, {res.servo_commands} servo commands, "
             f"{res.resumes} resume(s), {res.reregistrations} re-registration(s)\n"

@@ -19,6 +19,7 @@ import gc
 import os
 import time
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 #: mlockall flags (linux/mman.h)
@@ -37,6 +38,10 @@ class RtGranted:
         mlockall: whether memory is locked.
         gc_frozen: whether the garbage collector was frozen and disabled.
         errors: what was refused, by request (``{"fifo": "PermissionError: ..."}``).
+        rt_cpu_cap: the share of each CPU the kernel lets real-time tasks use per period
+            (``/proc/sys/kernel/sched_rt_runtime_us`` / ``sched_rt_period_us``; Linux's default
+            0.95: a FIFO loop busier than that is paused for the rest of each second, "RT
+            throttling"); None when uncapped or unknown.
     """
 
     requested: bool = False
@@ -45,6 +50,7 @@ class RtGranted:
     mlockall: bool = False
     gc_frozen: bool = False
     errors: dict[str, str] = field(default_factory=dict)
+    rt_cpu_cap: float | None = None
 
     @property
     def realtime(self) -> bool:
@@ -60,7 +66,7 @@ class RtGranted:
     def from_dict(cls, d: dict[str, Any]) -> RtGranted:
         return cls(bool(d.get("requested", False)), d.get("fifo_priority"), d.get("cpu"),
                    bool(d.get("mlockall", False)), bool(d.get("gc_frozen", False)),
-                   dict(d.get("errors", {})))
+                   dict(d.get("errors", {})), d.get("rt_cpu_cap"))
 
     def summary(self) -> str:
         """One line: what was granted and what was not."""
@@ -70,6 +76,8 @@ class RtGranted:
                  f"CPU {self.cpu}" if self.cpu is not None else "not pinned",
                  "memory locked" if self.mlockall else "memory not locked",
                  "GC frozen" if self.gc_frozen else "GC running"]
+        if self.fifo_priority is not None and self.rt_cpu_cap is not None:
+            parts.append(f"RT tasks capped at {100 * self.rt_cpu_cap:.0f} % of a CPU")
         refused = "; ".join(f"{k}: {v}" for k, v in self.errors.items())
         return ", ".join(parts) + (f" (refused: {refused})" if refused else "")
 
@@ -110,7 +118,21 @@ def apply_realtime(priority: int, cpu: int | None) -> RtGranted:
     gc.freeze()
     gc.disable()
     g.gc_frozen = True
+    g.rt_cpu_cap = rt_cpu_cap()
     return g
+
+
+def rt_cpu_cap() -> float | None:
+    """The kernel's cap on real-time tasks' share of a CPU (:class:`RtGranted`), None when
+    uncapped (runtime -1) or unreadable."""
+    try:
+        runtime_us = int(Path("/proc/sys/kernel/sched_rt_runtime_us").read_text())
+        period_us = int(Path("/proc/sys/kernel/sched_rt_period_us").read_text())
+    except (OSError, ValueError):
+        return None
+    if runtime_us < 0 or period_us <= 0:
+        return None
+    return round(runtime_us / period_us, 4)
 
 
 def wait_until(deadline_ns: int, spin_ns: int = SPIN_NS) -> int:

@@ -91,6 +91,17 @@ def rss_mb(pid: int | None = None) -> float:
         return 0.0
 
 
+def cpu_s(pid: int) -> float | None:
+    """CPU time (user + system) the process ``pid`` used so far, s (Linux /proc; None where
+    unavailable)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def _stats(values: list[float]) -> dict[str, float | None]:
     if not values:
         return {"p50": None, "p99": None, "max": None}
@@ -161,6 +172,9 @@ class SoakResult:
     #: the camera was grabbed, rendered and located in the perception process (else in the
     #: supervisor)
     perception_process: bool = False
+    #: the servo process's CPU use in compensation, % of one CPU: near the kernel's RT cap
+    #: (``rt_granted.rt_cpu_cap``) the loop is throttled, paused for the rest of each second
+    servo_cpu_percent: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -339,6 +353,8 @@ class _Sampler:
         self.perception_rss: list[tuple[float, float]] = []   # (monotonic s, perception process MB)
         self.start: StatsCopy | None = None
         self._last = 0.0
+        #: (monotonic s, CPU s) of the servo process when compensation first started
+        self.servo_cpu_start: tuple[float, float] | None = None
 
     def sample(self) -> None:
         now = time.monotonic()
@@ -353,6 +369,21 @@ class _Sampler:
 
     def on_compensate(self) -> None:
         self.start = StatsCopy.of(self.robot.link.regions.stats)
+        used = self._servo_cpu_s()
+        self.servo_cpu_start = None if used is None else (time.monotonic(), used)
+
+    def _servo_cpu_s(self) -> float | None:
+        ready = getattr(self.robot.link, "ready", None)
+        return None if ready is None else cpu_s(ready.pid)
+
+    def servo_cpu_percent(self) -> float | None:
+        """The servo process's CPU use since compensation first started, % of one CPU."""
+        used = self._servo_cpu_s()
+        if self.servo_cpu_start is None or used is None:
+            return None
+        t0, c0 = self.servo_cpu_start
+        elapsed = time.monotonic() - t0
+        return round(100.0 * (used - c0) / elapsed, 1) if elapsed > 0 else None
 
 
 def run_soak(
@@ -414,6 +445,7 @@ def run_soak(
                                operator=operator)
         summary = ctl.run()
         end = StatsCopy.of(robot.link.regions.stats)
+        servo_cpu = sampler.servo_cpu_percent()   # before the servo process ends
     except BaseException as exc:   # Ctrl-C, SIGTERM: the log still ends with session_closed
         devices.close_all()
         session.close(final_state="interrupted" if isinstance(exc, KeyboardInterrupt) else "error",
@@ -425,6 +457,7 @@ def run_soak(
     res = analyse(rate_hz, minutes, figs, ctl, operator, sampler.rss, summary.final_state, summary.states,
                   summary.faults, str(session.path))
     res.rt_granted = robot.rt.to_dict() if robot.rt is not None else {}
+    res.servo_cpu_percent = servo_cpu
     # the perception process opens its own camera, after the robot: its faults count from then
     info = None if feed is None else feed.ready_info
     opened = {} if info is None else {"camera": info.opened_ns}

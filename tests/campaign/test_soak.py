@@ -100,6 +100,8 @@ def test_short_soak_compensates_with_the_servo_loop(short_soak: Any) -> None:
     assert res.limit_violations == 0
     assert res.rt_granted.get("requested") is True
     assert res.perception_process is True       # grabbed, rendered and located in its own process
+    assert res.servo_cpu_percent is not None and 0.0 < res.servo_cpu_percent <= 105.0
+    assert "rt_cpu_cap" in res.rt_granted       # the kernel's cap on a FIFO loop's CPU share
     assert res.locate_ms["p50"] is not None
 
 
