@@ -247,6 +247,8 @@ class SoakOperator:
             return Event.CONFIRM_REQUESTED
         if self._gate_shut_too_long(view.state, now):
             return Event.PAUSE_REQUESTED
+        if view.state is State.COMPENSATE:
+            self._reregister = False   # the gate opened after all (the pause came too late)
         halted = view.state in (State.PAUSED, State.FAULT, State.SAFE_STOP) or (
             view.state is State.IDLE and self._started
         )
