@@ -63,6 +63,7 @@ from hil.controller.operator_input import OperatorView
 from hil.controller.perception import StereoMarkerLocator
 from hil.controller.plan_file import load_plan
 from hil.errors import InputFileError
+from hil.perception.process import PerceptionProcess
 from hil.servo.client import ServoRobot
 from hil.servo.figures import LoopFigures, StatsCopy, loop_figures
 from hil.session.log import SessionLog
@@ -458,15 +459,23 @@ def run_soak(
     figs = loop_figures(sampler.start or end, end, 1.0 / rate_hz)
     res = analyse(rate_hz, minutes, figs, ctl, operator, sampler.rss, summary.final_state, summary.states,
                   summary.faults, str(session.path))
-    res.rt_granted = robot.rt.to_dict() if robot.rt is not None else {}
     res.servo_cpu_percent = servo_cpu
+    res.following_peak_mm, res.following_faults = figs.following_peak_mm, figs.following_faults
     # the perception process opens its own camera, after the robot: its faults count from then
     info = None if feed is None else feed.ready_info
     opened = {} if info is None else {"camera": info.opened_ns}
     res.transient_faults = fault_outcomes(schedule, str(session.path), t_open_ns, opened)
     res.unexplained_faults = unexplained_faults(schedule, str(session.path), t_open_ns, opened)
+    _add_process_figures(res, robot, feed, ctl, sampler, operator, minutes)
+    return res
+
+
+def _add_process_figures(res: SoakResult, robot: ServoRobot, feed: PerceptionProcess | None,
+                         ctl: Controller, sampler: _Sampler, operator: SoakOperator, minutes: float) -> None:
+    """What the servo and perception processes were granted and measured, and the operator's
+    re-registrations, into ``res``."""
+    res.rt_granted = robot.rt.to_dict() if robot.rt is not None else {}
     res.reregistrations = operator.reregistrations
-    res.following_peak_mm, res.following_faults = figs.following_peak_mm, figs.following_faults
     res.stop_to_command_ms = _stats([x * 1e-6 for x in robot.stop_latency_ns])
     res.perception_rss_mb = _rss_figures(sampler.perception_rss, operator.t_comp, minutes)
     res.perception_process = feed is not None
@@ -475,7 +484,6 @@ def run_soak(
         res.locate_ms = feed.locate_figures()
     elif isinstance(ctl.locate, StereoMarkerLocator):
         res.locate_ms = ctl.locate.locate_ms()
-    return res
 
 
 def _rss_figures(rss: list[tuple[float, float]], t_comp: float | None,
