@@ -316,12 +316,12 @@ def transient_schedule(minutes: float, every_s: float, warmup_s: float = 60.0) -
 
 
 def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: bool = True,
-               faults: tuple[FaultSpec, ...] = (), perception_process: bool = True) -> SetupConfig:
+               faults: tuple[FaultSpec, ...] = (), perception_process: bool = False) -> SetupConfig:
     """The setup in real time, at ``rate_hz``, staying in compensation (never settles into lock),
     with the servo loop in its own process (real-time scheduling asked for when ``realtime``),
-    grabbing, rendering and locating in the perception process (``[perception] process = "auto"``;
-    ``perception_process=False``: in the supervisor) and only the given faults (none by default:
-    the setup's own are left out)."""
+    grabbing, rendering and locating in the supervisor (``perception_process``: in the perception
+    process, ``[perception] process = "auto"``) and only the given faults (none by default: the
+    setup's own are left out)."""
     robot = setup.robot.model_copy(update={"control_rate_hz": rate_hz})
     proc = setup.procedure
     comp = proc.compensation.model_copy(update={"settle_s": 1e6, "timeout_s": 1e6})
@@ -399,13 +399,14 @@ def run_soak(
     realtime: bool = True,
     progress: Progress | None = None,
     faults_every_s: float = 0.0,
-    perception_process: bool = True,
+    perception_process: bool = False,
 ) -> SoakResult:
     """Run the soak (blocking, ``minutes`` of compensation plus the time to reach it). The servo
     process is started and stopped here (the arm is stopped on every path). With
-    ``faults_every_s`` > 0 a transient fault is injected that often (module doc). The camera is
-    grabbed, rendered and located in the perception process unless ``perception_process`` is
-    False (or the setup cannot: ``perception_in_process`` is logged with the reason).
+    ``faults_every_s`` > 0 a transient fault is injected that often (module doc). With
+    ``perception_process`` the camera is grabbed, rendered and located in the perception process
+    (unless the setup cannot: ``perception_in_process`` is logged with the reason); by default in
+    the supervisor, which did better on a 2-core machine (docs/benchmarks.md).
 
     Raises:
         InputFileError: a bad argument; ConfigError / InputFileError from the config and plan;

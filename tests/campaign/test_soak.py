@@ -99,7 +99,7 @@ def test_short_soak_compensates_with_the_servo_loop(short_soak: Any) -> None:
     assert res.servo_commands >= res.compensation_frames
     assert res.limit_violations == 0
     assert res.rt_granted.get("requested") is True
-    assert res.perception_process is True       # grabbed, rendered and located in its own process
+    assert res.perception_process is False      # the default: located in the supervisor
     assert res.servo_cpu_percent is not None
     assert 0.0 < res.servo_cpu_percent <= 105.0
     assert "rt_cpu_cap" in res.rt_granted       # the kernel's cap on a FIFO loop's CPU share
@@ -112,7 +112,7 @@ def test_short_soak_late_periods_within_bound(short_soak: Any) -> None:
 
 
 def test_short_soak_does_not_grow(short_soak: Any) -> None:
-    for rss in (short_soak.rss_mb, short_soak.servo_rss_mb, short_soak.perception_rss_mb):
+    for rss in (short_soak.rss_mb, short_soak.servo_rss_mb):
         assert rss["growth"] is not None
         assert rss["growth"] <= RSS_GROWTH_BOUND_MB
 
