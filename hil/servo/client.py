@@ -67,7 +67,7 @@ class ServoRobot(Robot):
         self._track_id = 0
         self._tracking = False
         self._pending: DriverError | SafetyViolationError | None = None
-        self._stop_error: DriverError | None = None
+        self._stop_error: tuple[int, DriverError] | None = None   # (stop request, why it failed)
         self.stop_latency_ns: list[int] = []
         #: what the OS granted the servo process (None: in-process loop, or not started)
         self.rt: RtGranted | None = None
@@ -193,8 +193,8 @@ class ServoRobot(Robot):
         deadline = time.monotonic() + STOP_ACK_TIMEOUT_S
         while stats.get(Stat.STOP_ACK_ID) < stop_id:
             self._drain_events()
-            if self._stop_error is not None:
-                err, self._stop_error = self._stop_error, None
+            if self._stop_error is not None and self._stop_error[0] == stop_id:
+                err, self._stop_error = self._stop_error[1], None
                 raise err
             if time.monotonic() > deadline:
                 raise DeviceTimeoutError(self.name, f"servo loop did not deliver the stop within "
@@ -245,7 +245,7 @@ class ServoRobot(Robot):
                 self._pending = SafetyViolationError("following_error",
                                                      f"servo loop: {fields.get('message')}")
             elif kind == EV_STOP_FAILED:   # raised by the waiting stop (the supervisor retries it)
-                self._stop_error = error_from_wire(*fields["wire"])
+                self._stop_error = (int(fields["stop_id"]), error_from_wire(*fields["wire"]))
             elif kind == EV_COMMAND_FAILED:
                 # a servo command the driver refused or could not send: the controller faults at
                 # its next read, in-process as in the servo process (never retried silently)

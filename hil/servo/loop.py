@@ -108,6 +108,7 @@ class ServoLoop:
         self.following = FollowingMonitor(limits.following(robot.following_model))
         self._v_prev = np.zeros(3)
         self._stop_done_id = 0
+        self._stop_failed_id = 0     # the newest stop request whose failure was reported
         self._last_step_ns: int | None = None
         self._period = 0
         self._latency_seq = -1       # the setpoint whose first command's latency was measured
@@ -170,8 +171,11 @@ class ServoLoop:
             self.robot.stop()
         except DriverError as exc:
             self.stats.c[Stat.COMMAND_ERRORS] += 1
-            if not self._cmd_failing:
-                self._cmd_failing = True
+            if self._stop_failed_id != stop_id:
+                # once per stop request: each waiting stop learns why, at once (a failure
+                # reported only once per streak left a retried request waiting for an ack
+                # that never came - and an in-process loop is not stepped while it waits)
+                self._stop_failed_id = stop_id
                 self.report(EV_STOP_FAILED, {"stop_id": stop_id, "error": type(exc).__name__,
                                              "detail": str(exc), "wire": error_to_wire(exc)})
             return   # retried next period

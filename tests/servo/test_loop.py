@@ -1,5 +1,6 @@
 """The servo loop's period, stepped in-process on a manual clock against an in-memory robot: the
-stop is issued once per request and retried every period until delivered, tracking follows the
+stop is issued once per request and retried every period until delivered (each request's failure
+reported once), tracking follows the
 extrapolated setpoint within the limits, a stale setpoint brings the arm to rest and holds it, and a
 step the merged check refuses never reaches the driver (the arm is stopped instead)."""
 
@@ -101,6 +102,20 @@ def test_an_undelivered_stop_is_retried_every_period_until_delivered(rig: Any) -
     assert robot.calls == [("stop", None)]
     assert regions.stats.get(Stat.STOP_ACK_ID) == sid
     assert [k for k, _ in events] == [EV_STOP_FAILED, EV_STOP_DELIVERED]   # the failure reported once
+
+
+def test_each_stop_request_learns_its_own_failure(rig: Any) -> None:
+    """The supervisor re-requests an undelivered stop once per tick: every request is told why it
+    failed (a failure reported once per streak left the retried request waiting for an ack)."""
+    clock, robot, regions, loop, events = rig
+    robot.down = True
+    sid = regions.block.write_mode(ServoMode.STOP)
+    _run(clock, loop, 3)
+    sid2 = regions.block.write_mode(ServoMode.STOP)
+    _run(clock, loop, 3)
+    assert [(k, f["stop_id"], f["error"]) for k, f in events] == [
+        (EV_STOP_FAILED, sid, "DisconnectedError"), (EV_STOP_FAILED, sid2, "DisconnectedError")]
+    assert regions.stats.get(Stat.COMMAND_ERRORS) == 6
 
 
 def test_extrapolation_stops_at_the_horizon_cap(rig: Any) -> None:
