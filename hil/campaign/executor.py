@@ -171,7 +171,8 @@ def _probe_scheduler(scheduler: str, timeout_s: float) -> None:
 class DaskExecutor(Executor):
     """Each run submitted to a ``distributed.Client``: the scheduler at ``scheduler``
     (``tcp://host:port``), or a LocalCluster of ``workers`` single-threaded worker processes bound
-    to 127.0.0.1 with no dashboard, started here and closed by :meth:`close`.
+    to 127.0.0.1 with no dashboard (its HTTP server on a free loopback port), started here and
+    closed by :meth:`close`.
 
     A worker lost while running a task makes the scheduler fail the task at once on the
     LocalCluster (``allowed-failures`` 0); an external scheduler retries it itself
@@ -209,7 +210,10 @@ class DaskExecutor(Executor):
         with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
             self._cluster = distributed.LocalCluster(
                 n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                dashboard_address=None, silence_logs=logging.ERROR)
+                # the scheduler's HTTP server (health, metrics) always starts: on a free loopback
+                # port, as None means 8787 (and a second campaign on the machine collided there)
+                dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False},
+                silence_logs=logging.ERROR)
         try:
             self._client = distributed.Client(self._cluster, set_as_default=False)
         except BaseException:

@@ -124,6 +124,31 @@ def _free_loopback_port() -> int:
         return int(s.getsockname()[1])
 
 
+def test_two_local_clusters_on_one_machine_do_not_collide() -> None:
+    """The LocalCluster's scheduler HTTP server takes a free loopback port: with 8787 (distributed's
+    default) taken by another campaign it starts without a warning (the suite makes warnings
+    errors; a campaign beside another used to fail to start here)."""
+    holder = socket.socket()
+    try:
+        holder.bind(("127.0.0.1", 8787))
+        holder.listen()
+    except OSError:
+        pass   # someone already holds it: the same collision
+    try:
+        ex = DaskExecutor(workers=1)
+        try:
+            cluster = ex._cluster
+            assert cluster is not None
+            (http_host, http_port), *_ = [sock.getsockname()
+                                          for sock in cluster.scheduler.http_server._sockets.values()]
+            assert http_host == "127.0.0.1"
+            assert http_port != 8787
+        finally:
+            ex.close()
+    finally:
+        holder.close()
+
+
 def test_an_unreachable_scheduler_is_an_error_within_the_bound() -> None:
     address = f"tcp://127.0.0.1:{_free_loopback_port()}"
     expected = rf"^--scheduler {address}: no Dask scheduler answered within 2 s"
