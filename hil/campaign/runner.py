@@ -229,6 +229,29 @@ def _timeline(log_path: Path) -> tuple[int, list[tuple[float, str]], list[tuple[
     return t0, entered, [((r["t_ns"] - t0) * 1e-9, r) for r in recs]
 
 
+def state_path(log_path: Path, *, limit: int = 12) -> str:
+    """Where a run went, for a reason a reader can act on: ``register 0.46 s, plan 3.31 s, ...``
+    (seconds after the log's start), a safe state with the reason it was entered; the first
+    ``limit`` entries, then how many more."""
+    try:
+        recs = list(read_session_log(log_path))
+    except (OSError, ValueError) as exc:
+        return f"session log unreadable: {exc}"
+    if not recs:
+        return "no records"
+    t0 = int(recs[0]["t_ns"])
+    steps = []
+    for r in recs:
+        if r.get("event") != "state_entered":
+            continue
+        step = f"{r.get('state')} {(int(r['t_ns']) - t0) * 1e-9:.2f} s"
+        if r.get("state") in SAFE_STATES:
+            step += f" ({r.get('reason')})"
+        steps.append(step)
+    more = f", ... {len(steps) - limit} more" if len(steps) > limit else ""
+    return ", ".join(steps[:limit]) + more if steps else "no state entered"
+
+
 def state_windows(entered: list[tuple[float, str]], end_s: float) -> dict[str, list[float]]:
     """First window [enter, leave) of every state, seconds after start."""
     out: dict[str, list[float]] = {}

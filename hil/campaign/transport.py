@@ -48,7 +48,7 @@ from .operator import CampaignOperator
 from .pool import Progress, run_parallel
 from .recorder import Recording, RecordingRobot
 from .report import family_of, render_html, summarise, table
-from .runner import RECOVER_SETTLE_S, RunResult, RunSpec, _latency_bound_ms, judge
+from .runner import RECOVER_SETTLE_S, RunResult, RunSpec, _latency_bound_ms, judge, state_path
 from .scenarios import TARGET_STATES, ScenarioSelectionError
 
 Emulator = Literal["ursim", "trackersim", "fakegv"]
@@ -470,7 +470,8 @@ def run_judged(spec: TransportSpec, send: Callable[[str], object], *,
     if onset is None:
         out.onset_s = None
         out.reasons[:] = [r for r in out.reasons if "before the fault" not in r]
-        out.reasons.append(f"the run never stayed {sc.delay_s} s in {sc.state}: fault not sent")
+        out.reasons.append(f"the run never stayed {sc.delay_s} s in {sc.state}: fault not sent "
+                           f"(states: {state_path(log_path)})")
         out.passed = False
     elif out.state_at_onset != sc.state:  # the matrix cell was not tested: the state ended first
         out.reasons.append(f"fault sent in {out.state_at_onset}, not in {sc.state} "

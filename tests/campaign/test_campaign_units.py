@@ -221,3 +221,22 @@ def test_a_tolerated_run_shows_its_following_error_peak_beside_the_bound() -> No
     assert following_note(tolerated) == " (following error peak 0.47 mm, bound 2 mm)"
     assert following_note({**tolerated, "outcome": "safe_state"}) == ""
     assert following_note({**tolerated, "following_peak_mm": None}) == ""
+
+
+def test_state_path_names_where_a_run_went_and_why_it_stopped(tmp_path: Any) -> None:
+    """A transport run whose fault was never sent says where the procedure went instead."""
+    from hil.campaign.runner import state_path
+    from hil.session.log import SessionLog
+
+    clock = ManualClock(5 * 10**9)
+    log = SessionLog(tmp_path / "s.jsonl", clock)
+    steps = [(0.5, "register", "operator"), (2.75, "plan", "FRE 0.02 mm"), (0.125, "approach", "reachable"),
+             (1.0, "fault", "tracker: no data for 0.3 s")]
+    for dt_s, state, reason in steps:
+        clock.advance(dt_s)
+        log.write("state_entered", state=state, reason=reason, transition="x")
+    log.close()
+    assert state_path(tmp_path / "s.jsonl") == (
+        "register 0.50 s, plan 3.25 s, approach 3.38 s, fault 4.38 s (tracker: no data for 0.3 s)")
+    assert state_path(tmp_path / "s.jsonl", limit=2) == "register 0.50 s, plan 3.25 s, ... 2 more"
+    assert state_path(tmp_path / "missing.jsonl").startswith("session log unreadable: ")
