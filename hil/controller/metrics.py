@@ -125,8 +125,7 @@ class TruthMeter:
         T_robot_from_guide = state.T_robot_from_tcp @ self.rig.T_tcp_from_guide
         T_guide = self.truth.T_optical_from_robot @ T_robot_from_guide
         # a simulator with a real rig's errors knows the real arm, not only its (late, imprecise) report
-        true_flange = getattr(self.truth, "T_optical_from_flange", None)
-        if callable(true_flange) and (T_of := true_flange(now := snap.t_ns)) is not None:
+        if (T_of := self.truth.T_optical_from_flange(now := snap.t_ns)) is not None:
             T_guide = T_of @ self.rig.T_flange_from_guide
         entry = np.asarray(self.truth.entry_optical(now), dtype=np.float64)
         target = np.asarray(self.truth.target_optical(now), dtype=np.float64)
