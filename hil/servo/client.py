@@ -116,6 +116,15 @@ class ServoRobot(Robot):
         self._tracking = True
         return self._track_id
 
+    def _session_for(self, what: str) -> int:
+        """The tracking session a setpoint belongs to (one starts when none is under way).
+        Raises LifecycleError (not active) or DisconnectedError (the loop is gone)."""
+        self.require_active(what)
+        self._raise_if_gone()
+        if not self._tracking:
+            self.start_tracking()
+        return self._track_id
+
     def track(self, T_robot_from_tcp: RigidTransform, v_mm_s: np.ndarray[Any, Any],
               w_rad_s: np.ndarray[Any, Any], *, t_ref_ns: int, valid_until_ns: int, exposure_t_ns: int,
               frame_seq: int, speed_scale: float, max_horizon_s: float, lead_s: float) -> None:
@@ -124,12 +133,8 @@ class ServoRobot(Robot):
         Raises:
             LifecycleError: not active.  DisconnectedError: the loop is gone.
         """
-        self.require_active("track")
-        self._raise_if_gone()
-        if not self._tracking:
-            self.start_tracking()
         self.link.regions.block.write_track(
-            track_id=self._track_id, R=T_robot_from_tcp.R, t_mm=T_robot_from_tcp.t, v_mm_s=v_mm_s,
+            track_id=self._session_for("track"), R=T_robot_from_tcp.R, t_mm=T_robot_from_tcp.t, v_mm_s=v_mm_s,
             w_rad_s=w_rad_s, t_ref_ns=t_ref_ns, valid_until_ns=valid_until_ns, exposure_t_ns=exposure_t_ns,
             frame_seq=frame_seq, speed_scale=speed_scale, max_horizon_s=max_horizon_s, lead_s=lead_s)
 
@@ -142,11 +147,7 @@ class ServoRobot(Robot):
         Raises:
             LifecycleError: not active.  DisconnectedError: the loop is gone.
         """
-        self.require_active("hold")
-        self._raise_if_gone()
-        if not self._tracking:
-            self.start_tracking()
-        self.link.regions.block.write_hold(self._track_id)
+        self.link.regions.block.write_hold(self._session_for("hold"))
         # the in-process loop is stepped by the holding phase on the period grid (no kick here)
 
     def idle(self) -> None:
