@@ -106,6 +106,19 @@ class RigidTransform:
         object.__setattr__(self, "R", R)
         object.__setattr__(self, "t", t)
 
+    @classmethod
+    def _composed(cls, R: FloatArray, t: FloatArray) -> RigidTransform:
+        """From the parts of a composition or inverse of valid transforms (fresh float64 arrays,
+        R 3x3 and t (3,), owned by the result): proper and finite by construction, so the checks
+        of ``__post_init__`` are skipped - a servo period composes a few dozen transforms, and
+        the checks were a large part of its cost. Bit-identical to the checked constructor."""
+        out = object.__new__(cls)
+        R.setflags(write=False)
+        t.setflags(write=False)
+        object.__setattr__(out, "R", R)
+        object.__setattr__(out, "t", t)
+        return out
+
     # ------------------------------------------------------------------ constructors
     @classmethod
     def identity(cls) -> RigidTransform:
@@ -198,13 +211,13 @@ class RigidTransform:
     def inverse(self) -> RigidTransform:
         """The inverse: ``T_a_from_b.inverse()`` is ``T_b_from_a``."""
         Rt = self.R.T
-        return RigidTransform(Rt, -Rt @ self.t)
+        return RigidTransform._composed(np.ascontiguousarray(Rt), -Rt @ self.t)
 
     def __matmul__(self, other: RigidTransform) -> RigidTransform:
         """Composition: ``(T_a_from_b @ T_b_from_c)`` is ``T_a_from_c``."""
         if not isinstance(other, RigidTransform):
             return NotImplemented
-        return RigidTransform(self.R @ other.R, self.R @ other.t + self.t)
+        return RigidTransform._composed(self.R @ other.R, self.R @ other.t + self.t)
 
     @overload
     def apply(self, points: FloatArray) -> FloatArray: ...
@@ -281,19 +294,21 @@ def matrix_to_quaternion(R: ArrayLike) -> FloatArray:
     """Unit quaternion (scalar first, q0 >= 0) from a rotation matrix (Shepperd's method)."""
     M = np.asarray(R, dtype=np.float64)
     _check_rotation(M)
-    tr = float(np.trace(M))
+    # plain floats (the same IEEE operations as on the array's elements, several times faster)
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = M.tolist()
+    tr = m00 + m11 + m22
     if tr > 0:
         s = math.sqrt(tr + 1.0) * 2.0
-        q = np.array([0.25 * s, (M[2, 1] - M[1, 2]) / s, (M[0, 2] - M[2, 0]) / s, (M[1, 0] - M[0, 1]) / s])
-    elif M[0, 0] > M[1, 1] and M[0, 0] > M[2, 2]:
-        s = math.sqrt(1.0 + M[0, 0] - M[1, 1] - M[2, 2]) * 2.0
-        q = np.array([(M[2, 1] - M[1, 2]) / s, 0.25 * s, (M[0, 1] + M[1, 0]) / s, (M[0, 2] + M[2, 0]) / s])
-    elif M[1, 1] > M[2, 2]:
-        s = math.sqrt(1.0 + M[1, 1] - M[0, 0] - M[2, 2]) * 2.0
-        q = np.array([(M[0, 2] - M[2, 0]) / s, (M[0, 1] + M[1, 0]) / s, 0.25 * s, (M[1, 2] + M[2, 1]) / s])
+        q = np.array([0.25 * s, (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s])
+    elif m00 > m11 and m00 > m22:
+        s = math.sqrt(1.0 + m00 - m11 - m22) * 2.0
+        q = np.array([(m21 - m12) / s, 0.25 * s, (m01 + m10) / s, (m02 + m20) / s])
+    elif m11 > m22:
+        s = math.sqrt(1.0 + m11 - m00 - m22) * 2.0
+        q = np.array([(m02 - m20) / s, (m01 + m10) / s, 0.25 * s, (m12 + m21) / s])
     else:
-        s = math.sqrt(1.0 + M[2, 2] - M[0, 0] - M[1, 1]) * 2.0
-        q = np.array([(M[1, 0] - M[0, 1]) / s, (M[0, 2] + M[2, 0]) / s, (M[1, 2] + M[2, 1]) / s, 0.25 * s])
+        s = math.sqrt(1.0 + m22 - m00 - m11) * 2.0
+        q = np.array([(m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, 0.25 * s])
     q /= np.linalg.norm(q)
     if q[0] < 0:
         q = -q

@@ -117,13 +117,21 @@ def ur_joint_frames(q_rad: ArrayLike, model: str = "ur3") -> list[FloatArray]:
 
     The six DH matrices are built in one array from plain floats and the model's cached constants
     (the simulated arm evaluates this several times per servo period, in the real-time loop).
+    The latest results are cached by the joint angles' exact bits (a servo period asks again for
+    the pose the previous one ended at): the matrices are read-only, shared between callers.
 
     Raises:
         GeometryError: ``q_rad`` is not 6 finite values, or the model is unknown.
     """
     q = _as_q(q_rad)
+    return list(_joint_frames(q.tobytes(), model))
+
+
+@functools.lru_cache(maxsize=16)
+def _joint_frames(q_bits: bytes, model: str) -> tuple[FloatArray, ...]:
+    """:func:`ur_joint_frames` of the angles whose float64 bytes are ``q_bits`` (read-only)."""
     rows = []
-    for theta, (d, a, ca, sa) in zip(q.tolist(), _dh_columns(model), strict=True):
+    for theta, (d, a, ca, sa) in zip(np.frombuffer(q_bits).tolist(), _dh_columns(model), strict=True):
         ct, st = math.cos(theta), math.sin(theta)
         rows.append((ct, -st * ca, st * sa, a * ct, st, ct * ca, -ct * sa, a * st,
                      0.0, sa, ca, d, 0.0, 0.0, 0.0, 1.0))
@@ -131,7 +139,9 @@ def ur_joint_frames(q_rad: ArrayLike, model: str = "ur3") -> list[FloatArray]:
     frames = [A[0]]
     for i in range(1, 6):
         frames.append(frames[-1] @ A[i])
-    return frames
+    for f in frames:
+        f.setflags(write=False)
+    return tuple(frames)
 
 
 @functools.cache

@@ -157,3 +157,16 @@ def test_as_points_refuses_non_numbers_with_a_geometry_error(points: object) -> 
     integer beyond float range, as a JSON file can hold) becomes the documented GeometryError."""
     with pytest.raises(GeometryError, match="fiducials_mm is not an array of numbers"):
         as_points(points, "fiducials_mm")
+
+
+def test_composition_and_inverse_are_read_only_contiguous_and_exact() -> None:
+    """``@`` and ``inverse`` skip the constructor's checks (their inputs were checked): the result
+    is the same product, as read-only C-contiguous float64 arrays."""
+    A = RigidTransform.from_rotvec([0.3, -0.2, 0.9], [10.0, -5.0, 2.5])
+    B = RigidTransform.from_rotvec([-1.1, 0.4, 0.2], [-3.0, 7.0, 120.0])
+    for T, (R, t) in [(A @ B, (A.R @ B.R, A.R @ B.t + A.t)), (A.inverse(), (A.R.T, -A.R.T @ A.t))]:
+        assert T.R.tobytes() == np.ascontiguousarray(R).tobytes()
+        assert T.t.tobytes() == t.tobytes()
+        assert T.R.flags.c_contiguous
+        assert not T.R.flags.writeable
+        assert not T.t.flags.writeable

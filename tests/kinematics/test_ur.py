@@ -138,3 +138,23 @@ def test_bad_input_raises_geometry_error() -> None:
         ur_forward([0.0, 1.0])
     with pytest.raises(GeometryError, match="q_near"):
         ur_inverse(ur_forward(np.zeros(6)), "ur3", q_near=[math.nan] * 6)
+
+
+def test_joint_frames_are_cached_by_exact_angles_and_read_only() -> None:
+    """The simulated arm asks again for the pose the previous servo period ended at: the frames
+    come from a cache keyed on the angles' exact bits, shared, so nobody may change them."""
+    from hil.kinematics.ur import _dh_matrix, ur_joint_frames
+
+    q = np.array([0.3, -1.2, 1.1, -0.4, 1.3, 0.2])
+    first, again = ur_joint_frames(q), ur_joint_frames(q.copy())
+    assert all(a is b for a, b in zip(first, again, strict=True))
+    expected = np.eye(4)
+    for i, (theta, d, a, alpha) in enumerate(zip(q, UR_DH["ur3"].d_mm, UR_DH["ur3"].a_mm,
+                                                  UR_DH["ur3"].alpha_rad, strict=True)):
+        expected = expected @ _dh_matrix(theta, d, a, alpha)
+        np.testing.assert_allclose(first[i], expected, atol=1e-9)
+    with pytest.raises(ValueError, match="read-only"):
+        first[-1][0, 3] = 0.0
+    # one ulp away is another pose, computed afresh
+    other = ur_joint_frames(np.nextafter(q, 1.0))
+    assert other[-1] is not first[-1]

@@ -236,7 +236,7 @@ class UrController:
 
     # ------------------------------------------------------------------ kinematics (m)
     def fk(self, q: FloatArray) -> FloatArray:
-        T = ur_joint_frames(q, self.model)[-1]
+        T = ur_joint_frames(q, self.model)[-1].copy()   # (the frames are shared, read-only)
         T[:3, 3] /= 1000.0
         return T
 
