@@ -34,6 +34,7 @@ QUICK_ARGS: dict[str, list[str]] = {
     "registration": ["--trials", "5"],
     "accuracy": ["--runs", "2"],
     "loop": ["--seconds", "20"],
+    "step": ["--periods", "500", "--repeats", "3"],
     "pose004": ["--trials", "60"],
 }
 
@@ -176,6 +177,14 @@ FIGURES: list[Figure] = [
         _get("frame_to_command_ms", "p50"),
         _const(1e3 / 15.0),
         "camera frame period (15 Hz)",
+    ),
+    Figure(
+        "step",
+        "servo period CPU (simulated arm, 500 Hz)",
+        "us",
+        _get("cpu_per_period_us", "median"),
+        _get("period_us"),
+        "robot servo period",
     ),
     Figure(
         "pose004",
