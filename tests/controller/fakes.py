@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.interfaces.camera import StereoCamera
+from drivers.interfaces.errors import DisconnectedError
 from drivers.interfaces.robot import FollowingModel, MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
 from hil.clock import ManualClock
 from hil.geometry.transform import RigidTransform
@@ -55,6 +56,17 @@ class FakeRobot(Robot):
     def _state_now(self) -> RobotState:
         return RobotState(self.pose, np.zeros(6), RobotMode.IDLE, self.safety_status,
                           self.clock.now_ns() - self.state_delay_ns)
+
+
+class DroppingRobot(FakeRobot):
+    """Its stop raises while ``down`` (a lost link)."""
+
+    down = False
+
+    def _stop(self, decel_mm_s2: float) -> None:
+        if self.down:
+            raise DisconnectedError(self.name, "link lost (test)")
+        super()._stop(decel_mm_s2)
 
 
 class StubCamera(StereoCamera):

@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.interfaces.errors import DisconnectedError
 from drivers.interfaces.robot import MotionLimits
 from hil.clock import ManualClock
 from hil.geometry.transform import RigidTransform
@@ -19,21 +18,10 @@ from hil.servo.limiter import RateLimiter
 from hil.servo.link import Regions
 from hil.servo.loop import EV_FOLLOWING, EV_REFUSED, EV_STALE, EV_STOP_DELIVERED, EV_STOP_FAILED, ServoLoop
 from hil.servo.shm import ServoMode, SetpointBlock, ShmRegion, Stat
-from tests.controller.fakes import FakeRobot
+from tests.controller.fakes import DroppingRobot
 
 PERIOD_S = 0.008
 LIMITS = MotionLimits(max_speed_mm_s=100.0, max_accel_mm_s2=500.0, max_angular_speed_rad_s=1.0)
-
-
-class DroppingRobot(FakeRobot):
-    """Its stop raises while ``down`` (a lost link)."""
-
-    down = False
-
-    def _stop(self, decel_mm_s2: float) -> None:
-        if self.down:
-            raise DisconnectedError(self.name, "link lost (test)")
-        super()._stop(decel_mm_s2)
 
 
 @pytest.fixture
