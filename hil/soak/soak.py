@@ -68,8 +68,16 @@ from hil.servo.client import ServoRobot
 from hil.servo.figures import LoopFigures, StatsCopy, loop_figures
 from hil.session.log import SessionLog
 from hil.soak.attribution import fault_outcomes, unexplained_faults
+from hil.soak.host import StealSample, sample_steal, steal_percent
 
 Progress = Callable[[str], None]
+
+#: The documented bound on late intervals (docs/benchmarks.md), a share of all intervals: with
+#: SCHED_FIFO and a pinned CPU granted, and without. A figure to print beside the measurement, not
+#: a pass/fail of the soak: on a virtual machine the host's steal (``host_steal_percent``) adds
+#: late periods no setting in the guest can prevent.
+LATE_FRACTION_BOUND_RT = 0.005
+LATE_FRACTION_BOUND = 0.05
 
 #: The transient faults ``--faults-every`` cycles through: kind, window length (s) — the simulator
 #: tier's profiles (hil/campaign/scenarios.py) for a camera, a robot link and a robot safety fault.
@@ -176,9 +184,18 @@ class SoakResult:
     #: the servo process's CPU use in compensation, % of one CPU: near the kernel's RT cap
     #: (``rt_granted.rt_cpu_cap``) the loop is throttled, paused for the rest of each second
     servo_cpu_percent: float | None = None
+    #: the host's steal in compensation, % of wall time (hil/soak/host.py): ``loop_cpu`` of the
+    #: CPU the servo loop was pinned to (absent when it was not pinned), ``all_cpus`` the mean of
+    #: all; empty where /proc/stat cannot be read. Late periods on a host that took the loop's
+    #: CPU measure the host, not the loop.
+    host_steal_percent: dict[str, float | None] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+    def late_fraction_bound(self) -> float:
+        """The documented bound on ``missed_fraction`` for what the OS granted this run."""
+        return LATE_FRACTION_BOUND_RT if self.rt_granted.get("realtime") else LATE_FRACTION_BOUND
 
     def passed(self) -> bool:
         """Compensated, no refused step, no fault that the injected ones do not explain, and back
@@ -358,6 +375,8 @@ class _Sampler:
         self._last = 0.0
         #: (monotonic s, CPU s) of the servo process when compensation first started
         self.servo_cpu_start: tuple[float, float] | None = None
+        #: the host's steal counters when compensation first started: the loop's CPU, all CPUs
+        self.steal_start: dict[str, StealSample | None] = {}
 
     def sample(self) -> None:
         now = time.monotonic()
@@ -374,6 +393,24 @@ class _Sampler:
         self.start = StatsCopy.of(self.robot.link.regions.stats)
         used = self._servo_cpu_s()
         self.servo_cpu_start = None if used is None else (time.monotonic(), used)
+        self.steal_start = self._steal_now()
+
+    def _steal_now(self) -> dict[str, StealSample | None]:
+        rt = self.robot.rt
+        out = {"all_cpus": sample_steal(None)}
+        if rt is not None and rt.cpu is not None:
+            out["loop_cpu"] = sample_steal(rt.cpu)
+        return out
+
+    def host_steal_percent(self) -> dict[str, float | None]:
+        """The host's steal since compensation first started, % (:class:`SoakResult`)."""
+        end = self._steal_now()
+        out: dict[str, float | None] = {}
+        for key, s0 in self.steal_start.items():
+            s1 = end.get(key)
+            if s0 is not None and s1 is not None:
+                out[key] = steal_percent(s0, s1, (os.cpu_count() or 1) if key == "all_cpus" else 1)
+        return out
 
     def _servo_cpu_s(self) -> float | None:
         ready = getattr(self.robot.link, "ready", None)
@@ -450,6 +487,7 @@ def run_soak(
         summary = ctl.run()
         end = StatsCopy.of(robot.link.regions.stats)
         servo_cpu = sampler.servo_cpu_percent()   # before the servo process ends
+        steal = sampler.host_steal_percent()
     except BaseException as exc:   # Ctrl-C, SIGTERM: the log still ends with session_closed
         devices.close_all()
         session.close(final_state="interrupted" if isinstance(exc, KeyboardInterrupt) else "error",
@@ -461,6 +499,7 @@ def run_soak(
     res = analyse(rate_hz, minutes, figs, ctl, operator, sampler.rss, summary.final_state, summary.states,
                   summary.faults, str(session.path))
     res.servo_cpu_percent = servo_cpu
+    res.host_steal_percent = steal
     res.following_peak_mm, res.following_faults = figs.following_peak_mm, figs.following_faults
     # the perception process opens its own camera, after the robot: its faults count from then
     info = None if feed is None else feed.ready_info
