@@ -59,6 +59,15 @@ class LoopFigures:
     following_faults: int = 0
     #: the largest following error (hil.safety.following) seen since the counters were reset, mm
     following_peak_mm: float = 0.0
+    #: where late periods came from (the real-time host's words, hil/servo/shm.py ``Stat``):
+    #: periods woken more than a period after their deadline, periods whose work ran more than a
+    #: period past the next deadline (both in the window); the longest wake-up delay, step and
+    #: overrun, ms (maxima since the loop's warm-up, not of the window)
+    late_wakes: int = 0
+    overruns: int = 0
+    wake_late_max_ms: float = 0.0
+    step_max_ms: float = 0.0
+    overrun_max_ms: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -104,7 +113,11 @@ def loop_figures(before: StatsCopy, after: StatsCopy, period_s: float) -> LoopFi
         period_ms=period_stats, jitter_ms=jitter_stats, latency_ms=_weighted_stats(lat_centres, lat),
         refusals=d[Stat.REFUSALS], stale_periods=d[Stat.STALE], read_errors=d[Stat.READ_ERRORS],
         command_errors=d[Stat.COMMAND_ERRORS], stops_sent=d[Stat.STOPS_SENT],
-        following_faults=d[Stat.FOLLOWING_FAULTS], following_peak_mm=after.get(Stat.FOLLOWING_PEAK_UM) * 1e-3)
+        following_faults=d[Stat.FOLLOWING_FAULTS], following_peak_mm=after.get(Stat.FOLLOWING_PEAK_UM) * 1e-3,
+        late_wakes=d[Stat.LATE_WAKES], overruns=d[Stat.OVERRUNS],
+        wake_late_max_ms=round(after.get(Stat.WAKE_LATE_MAX_NS) * 1e-6, 3),
+        step_max_ms=round(after.get(Stat.STEP_NS_MAX) * 1e-6, 3),
+        overrun_max_ms=round(after.get(Stat.WORST_OVERRUN_NS) * 1e-6, 3))
 
 
 class StatsEverySecond:
@@ -112,7 +125,8 @@ class StatsEverySecond:
     (``servo_stats``): the audit trail of the periods without a record per period.
 
     :meth:`due` returns the record's fields when a second has passed since the last one (else
-    None): periods, commands, late, stale periods, refusals, read / command errors in that second,
+    None): periods, commands, late, stale periods, refusals, read / command errors, following
+    faults, and the late periods' causes (woken late, overran) in that second; the following peak
     and the longest interval so far (ms).
     """
 
@@ -136,6 +150,7 @@ class StatsEverySecond:
         return {"periods": d(Stat.PERIODS), "commands": d(Stat.COMMANDS), "late": d(Stat.LATE),
                 "stale_periods": d(Stat.STALE), "refusals": d(Stat.REFUSALS),
                 "read_errors": d(Stat.READ_ERRORS), "command_errors": d(Stat.COMMAND_ERRORS),
-                "following_faults": d(Stat.FOLLOWING_FAULTS),
+                "following_faults": d(Stat.FOLLOWING_FAULTS), "late_wakes": d(Stat.LATE_WAKES),
+                "overruns": d(Stat.OVERRUNS),
                 "following_peak_mm": round(c[Stat.FOLLOWING_PEAK_UM] * 1e-3, 3),
                 "longest_interval_ms": round(c[Stat.MAX_INTERVAL_NS] * 1e-6, 3)}

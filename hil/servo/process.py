@@ -55,12 +55,16 @@ from hil.servo.limiter import RateLimiter
 from hil.servo.link import Regions
 from hil.servo.loop import ServoLoop
 from hil.servo.rt import RtGranted, apply_realtime, default_cpu, wait_until
+from hil.servo.shm import Stat
 from hil.servo.wire import error_from_wire, error_to_wire
 
 #: How long the child may take to start (a fresh interpreter importing numpy and the driver).
 START_TIMEOUT_S = 60.0
 #: Periods between two checks that the parent is still alive.
 PARENT_CHECK_PERIODS = 50
+#: periods after the start before the loop's timing maxima and late causes are counted (the first
+#: periods pay for first calls: caches, lazy imports in the driver)
+TIMING_WARMUP_PERIODS = 100
 
 
 @dataclass(frozen=True)
@@ -367,18 +371,39 @@ def _stop_quietly(robot: Any) -> None:
 
 def _run(loop: ServoLoop, parent_pid: int, closing: threading.Event) -> None:
     period_ns = loop.period_ns
+    c = loop.stats.c
     next_ns = time.monotonic_ns() + period_ns
     k = 0
     while not closing.is_set():
         now = wait_until(next_ns)
         loop.step(now)
+        done = time.monotonic_ns()
         k += 1
         if k % PARENT_CHECK_PERIODS == 0 and os.getppid() != parent_pid:
             return   # the supervisor is gone: stop the arm (the caller) and exit
+        if k > TIMING_WARMUP_PERIODS:
+            _count_late_causes(c, now - next_ns, done - now, done - next_ns - period_ns, period_ns)
         next_ns += period_ns
-        late = time.monotonic_ns() - next_ns
+        late = done - next_ns
         if late > period_ns:   # missed more than one period: skip the slots, never bunch them
             next_ns += (late // period_ns) * period_ns
+
+
+def _count_late_causes(c: Any, wake_late_ns: int, step_ns: int, overrun_ns: int, period_ns: int) -> None:
+    """Where a late period came from (:class:`~hil.servo.shm.Stat` words marked (*)): the loop
+    woke more than a period after its deadline (the OS or the host did not run it: ``LATE_WAKES``)
+    or its work ran more than a period past the next deadline (``OVERRUNS``); and the longest of
+    each. No allocation: a few integer compares per period."""
+    if wake_late_ns > c[Stat.WAKE_LATE_MAX_NS]:
+        c[Stat.WAKE_LATE_MAX_NS] = wake_late_ns
+    if wake_late_ns > period_ns:
+        c[Stat.LATE_WAKES] += 1
+    if step_ns > c[Stat.STEP_NS_MAX]:
+        c[Stat.STEP_NS_MAX] = step_ns
+    if overrun_ns > c[Stat.WORST_OVERRUN_NS]:
+        c[Stat.WORST_OVERRUN_NS] = overrun_ns
+    if overrun_ns > period_ns:
+        c[Stat.OVERRUNS] += 1
 
 
 def _serve(conn: Connection, robot: Any, send: Any, closing: threading.Event) -> None:

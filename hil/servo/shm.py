@@ -354,12 +354,19 @@ class Stat(IntEnum):
     INTERVALS = 11            # intervals measured (histogram total)
     LATENCY_SAMPLES = 12      # setpoints whose first command was measured
     LAST_PERIOD_T_NS = 13
-    WORST_OVERRUN_NS = 14     # longest time a period's work took past its deadline
-    STEP_NS_MAX = 15          # longest step() work, ns
+    WORST_OVERRUN_NS = 14     # longest time a period's work ran past the next deadline, ns (*)
+    STEP_NS_MAX = 15          # longest step() work, ns (*)
     STOP_ISSUE_ID = 16        # the last stop request the loop began to send
     STOP_ISSUE_T_NS = 17      # when it began (the driver's stop call may then block until rest)
     FOLLOWING_FAULTS = 18     # tracking sessions ended because the arm did not follow
     FOLLOWING_PEAK_UM = 19    # the largest following error seen, µm (hil.safety.following)
+    WAKE_LATE_MAX_NS = 20     # longest the loop woke after its deadline, ns (*)
+    LATE_WAKES = 21           # periods woken more than a period after their deadline (the OS or
+                              # the host did not run the loop) (*)
+    OVERRUNS = 22             # periods whose work ran more than a period past the next deadline
+                              # (wall time: a preemption during the work counts here too) (*)
+    # (*) written by the real-time host (hil/servo/process.py), from its 100th period on; an
+    #     in-process loop stepped on a manual clock leaves them 0
 
 
 STAT_WORDS = 32

@@ -39,6 +39,14 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
   since registration; ``reregistrations`` counts those.
 - ``following_peak_mm``: the largest following error the servo loop measured
   (hil/safety/following.py), and ``following_faults``.
+- ``late_causes``: where late intervals came from, as the servo process timed each period after
+  its first 100: ``woke_late`` periods it woke more than a period after their deadline (the OS or
+  the host did not run the loop), ``overran`` periods whose work ran more than a period past the
+  next deadline (wall time: a preemption during the work counts here), both in compensation; and
+  ``longest_wake_delay_ms``, ``longest_step_ms``, ``longest_overrun_ms`` since the servo process
+  started (its warm-up periods left out).
+- ``host_steal_percent`` and ``steal_free``: what the hypervisor took of the loop's CPU, and the
+  late intervals over the windows it took none (hil/soak/host.py).
 """
 
 from __future__ import annotations
@@ -65,10 +73,10 @@ from hil.controller.plan_file import load_plan
 from hil.errors import InputFileError
 from hil.perception.process import PerceptionProcess
 from hil.servo.client import ServoRobot
-from hil.servo.figures import LoopFigures, StatsCopy, loop_figures
+from hil.servo.figures import LoopFigures, loop_figures
 from hil.session.log import SessionLog
 from hil.soak.attribution import fault_outcomes, unexplained_faults
-from hil.soak.host import StealSample, sample_steal, steal_percent
+from hil.soak.sampler import Sampler
 
 Progress = Callable[[str], None]
 
@@ -88,27 +96,6 @@ TRANSIENT_FAULTS: tuple[tuple[FaultKind, float], ...] = (
     (FaultKind.OCCLUSION, 1.0),
     (FaultKind.MOTION_LAG, 1.5),
 )
-_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
-
-
-def rss_mb(pid: int | None = None) -> float:
-    """Resident set size of this process (or ``pid``), MB (Linux /proc; 0 where unavailable)."""
-    try:
-        with open(f"/proc/{pid or 'self'}/statm") as fh:
-            return int(fh.read().split()[1]) * _PAGE / 2**20
-    except (OSError, ValueError, IndexError):
-        return 0.0
-
-
-def cpu_s(pid: int) -> float | None:
-    """CPU time (user + system) the process ``pid`` used so far, s (Linux /proc; None where
-    unavailable)."""
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            fields = fh.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
-        return None
 
 
 def _stats(values: list[float]) -> dict[str, float | None]:
@@ -167,6 +154,8 @@ class SoakResult:
     reregistrations: int = 0
     following_peak_mm: float = 0.0
     following_faults: int = 0
+    #: where the late intervals came from (module doc)
+    late_causes: dict[str, float | int] = field(default_factory=dict)
     #: memory of the perception process as ``rss_mb`` (empty: perception ran in the supervisor)
     perception_rss_mb: dict[str, float | None] = field(default_factory=dict)
     #: p50 / p95 of the time to locate the markers of one pair, ms (in the perception process when
@@ -189,12 +178,17 @@ class SoakResult:
     #: all; empty where /proc/stat cannot be read. Late periods on a host that took the loop's
     #: CPU measure the host, not the loop.
     host_steal_percent: dict[str, float | None] = field(default_factory=dict)
+    #: the late intervals over the windows in which the host took none of the loop's CPU
+    #: (hil.soak.host.StealFreeFigures as a dict; empty where /proc/stat cannot be read): what
+    #: the documented bound judges
+    steal_free: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     def late_fraction_bound(self) -> float:
-        """The documented bound on ``missed_fraction`` for what the OS granted this run."""
+        """The documented bound on the late share (``steal_free["late_fraction"]``) for what the OS
+        granted this run."""
         return LATE_FRACTION_BOUND_RT if self.rt_granted.get("realtime") else LATE_FRACTION_BOUND
 
     def passed(self) -> bool:
@@ -363,69 +357,6 @@ def _check_arguments(minutes: float, rate_hz: float, faults_every_s: float) -> N
         raise InputFileError("--rate", f"must be 125 (CB3) or 500 (e-Series), got {rate_hz:g}")
 
 
-class _Sampler:
-    """Once a second (called by the soak operator every tick): RSS of the supervisor, the servo
-    process and the perception process; and the loop's counters when compensation starts."""
-
-    def __init__(self, robot: ServoRobot, perception_pid: Callable[[], int | None] | None) -> None:
-        self.robot, self.perception_pid = robot, perception_pid
-        self.rss: list[tuple[float, float, float]] = []   # (monotonic s, supervisor MB, servo MB)
-        self.perception_rss: list[tuple[float, float]] = []   # (monotonic s, perception process MB)
-        self.start: StatsCopy | None = None
-        self._last = 0.0
-        #: (monotonic s, CPU s) of the servo process when compensation first started
-        self.servo_cpu_start: tuple[float, float] | None = None
-        #: the host's steal counters when compensation first started: the loop's CPU, all CPUs
-        self.steal_start: dict[str, StealSample | None] = {}
-
-    def sample(self) -> None:
-        now = time.monotonic()
-        if now - self._last < 1.0:
-            return
-        self._last = now
-        ready = getattr(self.robot.link, "ready", None)
-        self.rss.append((now, rss_mb(), rss_mb(ready.pid) if ready is not None else 0.0))
-        pid = None if self.perception_pid is None else self.perception_pid()
-        if pid is not None:
-            self.perception_rss.append((now, rss_mb(pid)))
-
-    def on_compensate(self) -> None:
-        self.start = StatsCopy.of(self.robot.link.regions.stats)
-        used = self._servo_cpu_s()
-        self.servo_cpu_start = None if used is None else (time.monotonic(), used)
-        self.steal_start = self._steal_now()
-
-    def _steal_now(self) -> dict[str, StealSample | None]:
-        rt = self.robot.rt
-        out = {"all_cpus": sample_steal(None)}
-        if rt is not None and rt.cpu is not None:
-            out["loop_cpu"] = sample_steal(rt.cpu)
-        return out
-
-    def host_steal_percent(self) -> dict[str, float | None]:
-        """The host's steal since compensation first started, % (:class:`SoakResult`)."""
-        end = self._steal_now()
-        out: dict[str, float | None] = {}
-        for key, s0 in self.steal_start.items():
-            s1 = end.get(key)
-            if s0 is not None and s1 is not None:
-                out[key] = steal_percent(s0, s1, (os.cpu_count() or 1) if key == "all_cpus" else 1)
-        return out
-
-    def _servo_cpu_s(self) -> float | None:
-        ready = getattr(self.robot.link, "ready", None)
-        return None if ready is None else cpu_s(ready.pid)
-
-    def servo_cpu_percent(self) -> float | None:
-        """The servo process's CPU use since compensation first started, % of one CPU."""
-        used = self._servo_cpu_s()
-        if self.servo_cpu_start is None or used is None:
-            return None
-        t0, c0 = self.servo_cpu_start
-        elapsed = time.monotonic() - t0
-        return round(100.0 * (used - c0) / elapsed, 1) if elapsed > 0 else None
-
-
 def run_soak(
     minutes: float,
     rate_hz: float,
@@ -475,7 +406,7 @@ def run_soak(
         clock,
         {"setup": str(config), "soak_minutes": minutes, "rate_hz": rate_hz, "realtime": realtime},
     )
-    sampler = _Sampler(robot, None if feed is None else lambda: feed.pid)
+    sampler = Sampler(robot, None if feed is None else lambda: feed.pid)
     operator = SoakOperator(minutes * 60.0, give_up_s=120.0, sample=sampler.sample,
                             on_compensate=sampler.on_compensate, progress=say)
     devices.open_all()
@@ -485,9 +416,7 @@ def run_soak(
         ctl = build_controller(setup, procedure_plan, devices, clock=clock, session=session,
                                operator=operator)
         summary = ctl.run()
-        end = StatsCopy.of(robot.link.regions.stats)
-        servo_cpu = sampler.servo_cpu_percent()   # before the servo process ends
-        steal = sampler.host_steal_percent()
+        end = sampler.finish()   # before the servo process ends
     except BaseException as exc:   # Ctrl-C, SIGTERM: the log still ends with session_closed
         devices.close_all()
         session.close(final_state="interrupted" if isinstance(exc, KeyboardInterrupt) else "error",
@@ -495,11 +424,10 @@ def run_soak(
         raise
     devices.close_all()
     session.close(final_state=summary.final_state)
-    figs = loop_figures(sampler.start or end, end, 1.0 / rate_hz)
+    figs = loop_figures(sampler.start or end.stats, end.stats, 1.0 / rate_hz)
     res = analyse(rate_hz, minutes, figs, ctl, operator, sampler.rss, summary.final_state, summary.states,
                   summary.faults, str(session.path))
-    res.servo_cpu_percent = servo_cpu
-    res.host_steal_percent = steal
+    res.servo_cpu_percent, res.host_steal_percent, res.steal_free = end.cpu_percent, end.steal, end.steal_free
     res.following_peak_mm, res.following_faults = figs.following_peak_mm, figs.following_faults
     # the perception process opens its own camera, after the robot: its faults count from then
     info = None if feed is None else feed.ready_info
@@ -511,7 +439,7 @@ def run_soak(
 
 
 def _add_process_figures(res: SoakResult, robot: ServoRobot, feed: PerceptionProcess | None,
-                         ctl: Controller, sampler: _Sampler, operator: SoakOperator, minutes: float) -> None:
+                         ctl: Controller, sampler: Sampler, operator: SoakOperator, minutes: float) -> None:
     """What the servo and perception processes were granted and measured, and the operator's
     re-registrations, into ``res``."""
     res.rt_granted = robot.rt.to_dict() if robot.rt is not None else {}
@@ -580,6 +508,9 @@ def analyse(
     res.missed_deadlines = figs.late
     res.missed_fraction = figs.late_fraction
     res.longest_gap_ms = figs.longest_ms
+    res.late_causes = {"woke_late": figs.late_wakes, "overran": figs.overruns,
+                       "longest_wake_delay_ms": figs.wake_late_max_ms, "longest_step_ms": figs.step_max_ms,
+                       "longest_overrun_ms": figs.overrun_max_ms}
     res.frame_to_command_ms = figs.latency_ms
     res.stale_periods, res.read_errors, res.command_errors = figs.stale_periods, figs.read_errors, \
         figs.command_errors

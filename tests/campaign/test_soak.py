@@ -1,12 +1,15 @@
 """The soak: its figures from known loop figures (exact), the host's steal, and a short real-time
 soak.
 
-The short soak asserts counts and growth, not timing (docs/benchmarks.md): it reached compensation,
-the loop ran at its rate (not the camera's), no step was refused, what the OS granted and what the
-host took are reported, and the memory of either process grew by no more than 5 MB after the
-warm-up (measured: < 0.1 MB). The share of late periods is a figure of ``hil soak``, printed beside
-its documented bound and the host's steal of the loop's CPU: on this project's VM, 10 s soaks with
-5-30 % steal on the loop's CPU missed 0.4-3.9 % of their periods, with < 0.5 % steal 0-0.06 %.
+Documented bounds of the short soak (docs/benchmarks.md), counts only, no timing value asserted:
+
+- The servo loop runs in its own process (hil/servo) and never waits for a camera, the session log
+  or the supervisor. Intervals over two servo periods, counted over the windows in which the host
+  took none of the loop's CPU (hil/soak/host.py): at most 0.5 % when the OS granted SCHED_FIFO and
+  a pinned CPU (as root: what CI runs), at most 5 % otherwise. Counted over the whole run, the
+  late share follows the hypervisor's steal (0.2 % late at 1 % steal, 12 % at 43 %, on this
+  project's VM): that test failed about one CI run in five.
+- Memory of either process must not grow by more than 5 MB after the warm-up (measured: < 0.1 MB).
 """
 
 from __future__ import annotations
@@ -17,12 +20,21 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from hil.config import default_setup_path
 from hil.errors import InputFileError
 from hil.servo.figures import LoopFigures
 from hil.soak.attribution import fault_outcomes, unexplained_faults
-from hil.soak.host import StealSample, parse_steal_s, sample_steal, steal_percent
+from hil.soak.host import (
+    StealFreeFigures,
+    StealFreeLate,
+    StealSample,
+    parse_steal_s,
+    sample_steal,
+    steal_percent,
+)
 from hil.soak.soak import (
     LATE_FRACTION_BOUND,
     LATE_FRACTION_BOUND_RT,
@@ -43,7 +55,8 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
                        longest_ms=30.0, period_ms={"p50": 2.005, "p99": 2.015, "max": 30.0},
                        jitter_ms={"p50": 0.005, "p99": 0.015, "max": 28.0},
                        latency_ms={"p50": 41.25, "p99": 60.05, "max": 60.05}, refusals=1, stale_periods=7,
-                       read_errors=0, command_errors=0, stops_sent=0)
+                       read_errors=0, command_errors=0, stops_sent=0, late_wakes=1, overruns=1,
+                       wake_late_max_ms=26.0, step_max_ms=3.5, overrun_max_ms=2.5)
     ctl = SimpleNamespace(latency_ms=[30.0, 40.0, 50.0], servo_deadlines_missed=0, frames_overwritten=4)
     op = SoakOperator(60.0, 60.0, lambda: None)
     op.t_comp = 0.0
@@ -56,6 +69,8 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     assert res.missed_deadlines == 2
     assert res.missed_fraction == 0.002002
     assert res.longest_gap_ms == 30.0
+    assert res.late_causes == {"woke_late": 1, "overran": 1, "longest_wake_delay_ms": 26.0,
+                               "longest_step_ms": 3.5, "longest_overrun_ms": 2.5}
     assert res.jitter_ms == figs.jitter_ms
     assert res.frame_to_command_ms == figs.latency_ms
     assert res.stale_periods == 7
@@ -106,13 +121,26 @@ def test_short_soak_compensates_with_the_servo_loop(short_soak: Any) -> None:
     assert res.locate_ms["p50"] is not None
 
 
-def test_short_soak_reports_the_hosts_steal_and_the_late_bound(short_soak: Any) -> None:
+def test_short_soak_late_periods_within_bound(short_soak: Any) -> None:
+    """The documented bound on late intervals, over the windows in which the host took none of
+    the loop's CPU (hil/soak/host.py): what the loop and the guest's kernel did, not the
+    hypervisor. Those windows must hold a tenth of the run at least."""
     res = short_soak
     assert res.rt_granted["realtime"] is True          # CI runs as root: FIFO and a pinned CPU
     assert res.late_fraction_bound() == LATE_FRACTION_BOUND_RT
+    free = res.steal_free
+    assert free["intervals"] >= res.intervals // 10, (
+        f"the host took the loop's CPU in {free['windows'] - free['clean_windows']} of {free['windows']} "
+        f"windows (steal {res.host_steal_percent} %)")
+    assert free["late_fraction"] <= res.late_fraction_bound()
+
+
+def test_short_soak_reports_the_hosts_steal(short_soak: Any) -> None:
+    res = short_soak
     assert set(res.host_steal_percent) == {"loop_cpu", "all_cpus"}
     assert all(0.0 <= v <= 100.0 for v in res.host_steal_percent.values())
-    assert 0 <= res.missed_deadlines <= res.intervals
+    assert 0 <= res.steal_free["late"] <= res.missed_deadlines
+    assert res.steal_free["intervals"] <= res.intervals
     assert res.missed_fraction == round(res.missed_deadlines / res.intervals, 6)
     assert SoakResult(125.0, 1.0).late_fraction_bound() == LATE_FRACTION_BOUND   # nothing granted
 
@@ -141,6 +169,17 @@ def test_steal_is_read_per_cpu_from_proc_stat(tmp_path: Path) -> None:
     assert (got.cpu, got.steal_s) == (1, 627 / ticks_per_s)
     assert sample_steal(1, tmp_path / "missing") is None       # not Linux: no figure, not a wrong one
     assert sample_steal(7, path) is None
+
+
+@given(st.lists(st.integers(0, 2**48), min_size=8, max_size=10), st.integers(0, 255))
+def test_steal_is_the_eighth_value_of_a_cpus_line(values: list[int], cpu: int) -> None:
+    import os
+
+    other = [v + 1 for v in values]
+    text = (f"cpu  {' '.join(map(str, other))}\ncpu{cpu}0 {' '.join(map(str, other))}\n"
+            f"cpu{cpu} {' '.join(map(str, values))}\nctxt 5\n")
+    assert parse_steal_s(text, cpu) == values[7] / os.sysconf("SC_CLK_TCK")
+    assert parse_steal_s(text, None) == other[7] / os.sysconf("SC_CLK_TCK")
 
 
 def test_steal_percent_is_of_the_wall_time_between_samples() -> None:
@@ -254,3 +293,28 @@ def test_the_soak_operator_registers_again_when_the_gate_stays_shut(monkeypatch:
     assert poll(State.PAUSED, 120.0) is None
     assert poll(State.PAUSED, 120.6) is Event.RESUME_REQUESTED   # a later pause is resumed
     assert (op.reregistrations, op.resumes) == (2, 2)
+
+
+def test_late_intervals_count_only_where_the_host_left_the_loops_cpu_alone(tmp_path: Path) -> None:
+    path = tmp_path / "stat"
+    counts = [0, 0]          # the loop's cumulative (late, intervals)
+
+    def window(steal_ticks: int, late: int, intervals: int) -> None:
+        path.write_text(f"cpu  1 0 1 1 0 0 0 {steal_ticks} 0 0\ncpu1 1 0 1 1 0 0 0 {steal_ticks} 0 0\n")
+        counts[0] += late
+        counts[1] += intervals
+        free.sample()
+
+    free = StealFreeLate(1, lambda: (counts[0], counts[1]), window_s=0.0, stat_path=path)
+    window(100, 0, 0)
+    free.start()
+    window(100, 1, 50)       # 0: clean
+    window(100, 0, 50)       # 1: clean
+    window(100, 4, 50)       # 2: next to the steal: left out (the late intervals it caused)
+    window(102, 0, 50)       # 3: steal
+    window(102, 0, 50)       # 4: next to the steal
+    window(102, 2, 50)       # 5: clean
+    assert free.figures() == StealFreeFigures(intervals=150, late=3, late_fraction=0.02, windows=7,
+                                              clean_windows=4)   # 0, 1, 5 and the empty one figures() closed
+    assert StealFreeLate(None, lambda: (0, 0), stat_path=tmp_path / "missing").figures() == \
+        StealFreeFigures(0, 0, 0.0, 0, 0)   # no /proc/stat: no windows, no figure

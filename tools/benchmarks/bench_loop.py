@@ -5,11 +5,12 @@ Run: ``tools/bench loop [--seconds S] [--rate 125|500] [--no-rt] [--json]``
 
 Printed: what the OS granted the servo process (``rt_granted``), servo period p50/p99/max and its
 jitter against the robot's period (8 ms CB3 / 2 ms e-Series), late periods (intervals > 2
-periods), the longest interval, frame-to-command latency (exposure -> the first servo command
-computed from that pair's setpoint), operator stop -> stop command, and RSS growth of both
-processes. ``--no-rt`` runs the same without asking for real-time scheduling (the comparison).
-Wall-clock figures: they depend on the machine and on its load (this is a shared 2-core machine).
-Definitions: hil/soak/soak.py and docs/benchmarks.md.
+periods; also over the windows in which the host's hypervisor took none of the loop's CPU, with
+the host's steal, hil/soak/host.py), the longest interval, frame-to-command latency (exposure ->
+the first servo command computed from that pair's setpoint), operator stop -> stop command, and
+RSS growth of both processes. ``--no-rt`` runs the same without asking for real-time scheduling
+(the comparison). Wall-clock figures: they depend on the machine and on its load (this is a shared
+2-core machine). Definitions: hil/soak/soak.py and docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -61,6 +62,8 @@ def main(argv: list[str] | None = None) -> int:
         "missed_deadlines": res.missed_deadlines,
         "missed_fraction": res.missed_fraction,
         "longest_gap_ms": res.longest_gap_ms,
+        "host_steal_percent": res.host_steal_percent,
+        "steal_free": res.steal_free,
         "frame_to_command_ms": res.frame_to_command_ms,
         "stop_to_command_ms": res.stop_to_command_ms,
         "stale_periods": res.stale_periods,
@@ -87,6 +90,11 @@ def main(argv: list[str] | None = None) -> int:
         f"missed deadlines          {res.missed_deadlines} ({100 * res.missed_fraction:.2f} % of intervals), "
         f"longest gap {res.longest_gap_ms} ms"
     )
+    free = res.steal_free
+    if free:
+        print(f"  without host steal      {free['late']} of {free['intervals']} intervals "
+              f"({100 * free['late_fraction']:.2f} %), {free['clean_windows']} of {free['windows']} "
+              f"windows; host steal {res.host_steal_percent} %")
     f = res.frame_to_command_ms
     print(f"frame->command            {f.get('p50')} / {f.get('p99')} / {f.get('max')} ms (p50/p99/max)")
     print(f"RSS supervisor / servo    {res.rss_mb} / {res.servo_rss_mb}")
