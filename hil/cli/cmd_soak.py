@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
         out.write(f"host steal           {_steal(res.host_steal_percent, res.rt_granted.get('cpu'))}\n")
         out.write(f"frames               {res.compensation_frames} in compensation, "
                   f"{res.frames_overwritten} overwritten; {res.stale_periods} period(s) on a stale "
-                  "setpoint\n")
+                  f"setpoint, {res.setpoint_busy_periods} on the last one (a write in progress)\n")
         out.write(f"frame->command       {_fmt(res.frame_to_command_ms)} ms (p50/p99/max)\n")
         out.write(f"stop->command        {_fmt(res.stop_to_command_ms)} ms (p50/p99/max)\n")
         where = "perception process" if res.perception_rss_mb else "supervisor"

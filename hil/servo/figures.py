@@ -65,6 +65,9 @@ class LoopFigures:
     #: overrun, ms (maxima since the loop's warm-up, not of the window)
     late_wakes: int = 0
     overruns: int = 0
+    #: periods the setpoint block was being written for the whole read (the loop went on with its
+    #: last copy; hil/servo/shm.py), in the window
+    setpoint_busy: int = 0
     wake_late_max_ms: float = 0.0
     step_max_ms: float = 0.0
     overrun_max_ms: float = 0.0
@@ -114,7 +117,7 @@ def loop_figures(before: StatsCopy, after: StatsCopy, period_s: float) -> LoopFi
         refusals=d[Stat.REFUSALS], stale_periods=d[Stat.STALE], read_errors=d[Stat.READ_ERRORS],
         command_errors=d[Stat.COMMAND_ERRORS], stops_sent=d[Stat.STOPS_SENT],
         following_faults=d[Stat.FOLLOWING_FAULTS], following_peak_mm=after.get(Stat.FOLLOWING_PEAK_UM) * 1e-3,
-        late_wakes=d[Stat.LATE_WAKES], overruns=d[Stat.OVERRUNS],
+        late_wakes=d[Stat.LATE_WAKES], overruns=d[Stat.OVERRUNS], setpoint_busy=d[Stat.SETPOINT_BUSY],
         wake_late_max_ms=round(after.get(Stat.WAKE_LATE_MAX_NS) * 1e-6, 3),
         step_max_ms=round(after.get(Stat.STEP_NS_MAX) * 1e-6, 3),
         overrun_max_ms=round(after.get(Stat.WORST_OVERRUN_NS) * 1e-6, 3))

@@ -130,7 +130,9 @@ class ServoLoop:
         self._last_step_ns = now_ns
         c[Stat.LAST_PERIOD_T_NS] = now_ns
         st = self._read_state()
-        sp = self.block.read(self._sp)
+        sp = self._sp
+        if self.block.read(sp) is None:   # a write in progress throughout: the last copy
+            c[Stat.SETPOINT_BUSY] += 1
         cmd_t_ns = 0
         if sp.mode == ServoMode.STOP:
             self._track_id = None

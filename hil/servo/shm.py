@@ -5,7 +5,8 @@ One writer per region, any number of readers, no locks:
 
 - :class:`SetpointBlock` is a *seqlock*: the writer makes the sequence word odd, writes the
   fields, makes it even again; a reader copies the fields between two reads of the sequence word
-  and retries when the word was odd or changed. A reader therefore never sees half a setpoint.
+  and retries when the word was odd or changed, for at most 50 µs (then it keeps its last copy:
+  the real-time loop never waits for a preempted writer). A reader never sees half a setpoint.
 - :class:`StateRing` is a ring of per-period records (robot state, what was commanded). The
   writer fills slot ``head % N`` and then increments ``head``; a reader copies slot ``head - 1``
   and accepts it when ``head`` did not move by ``N - 1`` or more meanwhile (the slot was not
@@ -28,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import mmap
 import os
+import time
 from dataclasses import dataclass, field
 from enum import IntEnum
 from multiprocessing import shared_memory
@@ -122,6 +124,9 @@ _POSE = 8          # 12 words: R (row-major 9), t (3)
 _VEL = 20          # 6 words: v (mm/s, robot frame), w (rad/s, robot frame)
 _SCALE, _HORIZON, _LEAD = 26, 27, 28
 SETPOINT_WORDS = 32
+#: how long a reader retries while a write is in progress, ns: a running writer finishes a write
+#: in ~10 µs; longer means it was preempted mid-write (see :meth:`SetpointBlock.read`)
+READ_MAX_WAIT_NS = 50_000
 
 
 @dataclass
@@ -170,6 +175,7 @@ class SetpointBlock:
             raise ValueError(f"setpoint block needs {SETPOINT_WORDS} words, region has {region.words}")
         self.region = region
         self._pose = np.zeros(12)
+        self._vel = np.zeros(6)
 
     # ------------------------------------------------------------------ writer
     def _begin(self) -> None:
@@ -220,27 +226,40 @@ class SetpointBlock:
         return stop_id
 
     # ------------------------------------------------------------------ reader
-    def read(self, out: Setpoint) -> Setpoint:
-        """Copy the block into ``out`` (consistent: retried while a write is in progress)."""
+    def read(self, out: Setpoint, max_wait_ns: int = READ_MAX_WAIT_NS) -> Setpoint | None:
+        """Copy the block into ``out`` and return it; retried while a write is in progress, for at
+        most ``max_wait_ns``. Then None, and ``out`` is left as it was: the writer (the supervisor,
+        a normal-priority process) can be preempted in the middle of a write for milliseconds,
+        and a real-time reader must not spin until it runs again (it did: servo periods of 9-100 ms
+        that burned the CPU, and a robot-state watchdog fault). The caller goes on with its last
+        copy for this period and reads again the next; a copy that stays old goes stale by its
+        ``valid_until_ns``. Never a torn copy: fields land in ``out`` only after a consistent read.
+        """
         i, f = self.region.i, self.region.f
+        give_up_ns = 0
         while True:
             s1 = int(i[_SEQ])
-            if s1 & 1:
-                continue
-            mode, track_id, t_ref = int(i[_MODE]), int(i[_TRACK_ID]), int(i[_T_REF])
-            valid, exposure, stop_id, frame_seq = (int(i[_VALID_UNTIL]), int(i[_EXPOSURE]),
-                                                   int(i[_STOP_ID]), int(i[_FRAME_SEQ]))
-            self._pose[:] = f[_POSE:_POSE + 12]
-            out.v_mm_s[:] = f[_VEL:_VEL + 3]
-            out.w_rad_s[:] = f[_VEL + 3:_VEL + 6]
-            scale, horizon, lead = float(f[_SCALE]), float(f[_HORIZON]), float(f[_LEAD])
-            if int(i[_SEQ]) == s1:
-                break
+            if not s1 & 1:
+                mode, track_id, t_ref = int(i[_MODE]), int(i[_TRACK_ID]), int(i[_T_REF])
+                valid, exposure, stop_id, frame_seq = (int(i[_VALID_UNTIL]), int(i[_EXPOSURE]),
+                                                       int(i[_STOP_ID]), int(i[_FRAME_SEQ]))
+                self._pose[:] = f[_POSE:_POSE + 12]
+                self._vel[:] = f[_VEL:_VEL + 6]
+                scale, horizon, lead = float(f[_SCALE]), float(f[_HORIZON]), float(f[_LEAD])
+                if int(i[_SEQ]) == s1:
+                    break
+            now = time.monotonic_ns()   # only once a write got in the way
+            if give_up_ns == 0:
+                give_up_ns = now + max_wait_ns
+            elif now >= give_up_ns:
+                return None
         out.seq, out.mode, out.track_id, out.t_ref_ns = s1, mode, track_id, t_ref
         out.valid_until_ns, out.exposure_t_ns = valid, exposure
         out.stop_id, out.frame_seq = stop_id, frame_seq
         out.R[:] = self._pose[:9].reshape(3, 3)
         out.t_mm[:] = self._pose[9:]
+        out.v_mm_s[:] = self._vel[:3]
+        out.w_rad_s[:] = self._vel[3:]
         out.speed_scale, out.max_horizon_s, out.lead_s = scale, horizon, lead
         return out
 
@@ -365,6 +384,8 @@ class Stat(IntEnum):
                               # the host did not run the loop) (*)
     OVERRUNS = 22             # periods whose work ran more than a period past the next deadline
                               # (wall time: a preemption during the work counts here too) (*)
+    SETPOINT_BUSY = 23        # periods the setpoint block was being written for the whole read
+                              # (the loop went on with its last copy)
     # (*) written by the real-time host (hil/servo/process.py), from its 100th period on; an
     #     in-process loop stepped on a manual clock leaves them 0
 

@@ -156,6 +156,9 @@ class SoakResult:
     following_faults: int = 0
     #: where the late intervals came from (module doc)
     late_causes: dict[str, float | int] = field(default_factory=dict)
+    #: periods the loop went on with its last setpoint because the supervisor was writing the
+    #: block throughout the read (a writer preempted mid-write; hil/servo/shm.py)
+    setpoint_busy_periods: int = 0
     #: memory of the perception process as ``rss_mb`` (empty: perception ran in the supervisor)
     perception_rss_mb: dict[str, float | None] = field(default_factory=dict)
     #: p50 / p95 of the time to locate the markers of one pair, ms (in the perception process when
@@ -514,6 +517,7 @@ def analyse(
     res.frame_to_command_ms = figs.latency_ms
     res.stale_periods, res.read_errors, res.command_errors = figs.stale_periods, figs.read_errors, \
         figs.command_errors
+    res.setpoint_busy_periods = figs.setpoint_busy
     res.stream_deadlines_missed = ctl.servo_deadlines_missed
     res.compensation_frames = len(ctl.latency_ms)
     res.frames_overwritten = ctl.frames_overwritten

@@ -132,6 +132,20 @@ def test_tracking_follows_the_extrapolated_setpoint_within_the_limits(rig: Any) 
     assert regions.stats.get(Stat.LATENCY_SAMPLES) == 1   # one setpoint: its first command measured
 
 
+def test_a_write_in_progress_never_holds_the_period(rig: Any) -> None:
+    clock, robot, regions, loop, _ = rig
+    _track(regions.block, clock, (1.0, 0.0, 0.0))
+    _run(clock, loop, 3)
+    servos = sum(1 for kind, _ in robot.calls if kind == "servo")
+    regions.block._begin()                       # the supervisor preempted half-way through a write
+    _run(clock, loop, 4)                         # each read gives up after READ_MAX_WAIT_NS
+    assert regions.stats.get(Stat.SETPOINT_BUSY) == 4
+    assert sum(1 for kind, _ in robot.calls if kind == "servo") == servos + 4   # on the last copy
+    regions.block._end()
+    _run(clock, loop, 1)
+    assert regions.stats.get(Stat.SETPOINT_BUSY) == 4
+
+
 def test_a_stale_setpoint_brings_the_arm_to_rest_and_holds(rig: Any) -> None:
     clock, robot, regions, loop, events = rig
     _track(regions.block, clock, robot.pose.t, v_mm_s=(40.0, 0.0, 0.0), valid_s=0.5)

@@ -50,6 +50,30 @@ def test_a_setpoint_reads_back_exactly(t: Vec3, v: Vec3, w: Vec3, t_ref: int, sc
     assert sp.seq % 2 == 0
 
 
+def test_a_read_during_a_preempted_write_gives_up_and_leaves_the_copy_as_it_was() -> None:
+    import time
+
+    block = SetpointBlock(ShmRegion.local(SETPOINT_WORDS))
+    block.write_track(track_id=4, R=np.eye(3), t_mm=np.array([1.0, 2.0, 3.0]),
+                      v_mm_s=np.array([4.0, 5.0, 6.0]), w_rad_s=np.zeros(3), t_ref_ns=7, valid_until_ns=8,
+                      exposure_t_ns=6, frame_seq=2,
+                      speed_scale=1.0, max_horizon_s=0.1, lead_s=0.0)
+    sp = block.read(Setpoint())
+    assert sp is not None
+    block._begin()                               # the writer stops half-way (preempted)
+    block.region.f[20:26] = 99.0                 # the velocities already overwritten
+    t0 = time.monotonic_ns()
+    assert block.read(sp, max_wait_ns=2_000_000) is None
+    assert time.monotonic_ns() - t0 >= 2_000_000  # it retried for the time it was given, no longer
+    assert (sp.track_id, sp.t_ref_ns) == (4, 7)  # the last consistent copy, untouched
+    assert tuple(sp.t_mm) == (1.0, 2.0, 3.0)
+    assert tuple(sp.v_mm_s) == (4.0, 5.0, 6.0)
+    block._end()
+    got = block.read(sp)
+    assert got is sp
+    assert tuple(sp.v_mm_s) == (99.0, 99.0, 99.0)
+
+
 def test_stop_requests_are_numbered() -> None:
     block = SetpointBlock(ShmRegion.local(SETPOINT_WORDS))
     assert block.write_mode(ServoMode.STOP) == 1
