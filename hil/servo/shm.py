@@ -229,11 +229,12 @@ class SetpointBlock:
     def read(self, out: Setpoint, max_wait_ns: int = READ_MAX_WAIT_NS) -> Setpoint | None:
         """Copy the block into ``out`` and return it; retried while a write is in progress, for at
         most ``max_wait_ns``. Then None, and ``out`` is left as it was: the writer (the supervisor,
-        a normal-priority process) can be preempted in the middle of a write for milliseconds,
-        and a real-time reader must not spin until it runs again (it did: servo periods of 9-100 ms
-        that burned the CPU, and a robot-state watchdog fault). The caller goes on with its last
-        copy for this period and reads again the next; a copy that stays old goes stale by its
-        ``valid_until_ns``. Never a torn copy: fields land in ``out`` only after a consistent read.
+        a normal-priority process whose thread can also lose its interpreter lock mid-write) can
+        be preempted in the middle of a write for milliseconds, and a real-time reader spinning
+        until it runs again would miss its periods at 100 % CPU — priority inversion. The caller
+        goes on with its last copy for this period and reads again the next; a copy that stays
+        old goes stale by its ``valid_until_ns``. Never a torn copy: fields land in ``out`` only
+        after a consistent read.
         """
         i, f = self.region.i, self.region.f
         give_up_ns = 0
