@@ -129,8 +129,10 @@ def run(args: argparse.Namespace) -> int:
         out.write(f"late bound           {_late_bound(res)}\n")
         lc = res.late_causes
         out.write(f"late causes          woke late {lc['woke_late']} (the OS or host did not run the loop), "
-                  f"work overran {lc['overran']}; longest wake-up delay {lc['longest_wake_delay_ms']} ms, "
-                  f"step {lc['longest_step_ms']} ms\n")
+                  f"work overran {lc['overran']} ({lc['overran_off_cpu']} with the loop off its CPU for "
+                  f"over a period); longest wake-up delay {lc['longest_wake_delay_ms']} ms, step "
+                  f"{lc['longest_step_ms']} ms ({lc['longest_step_cpu_ms']} ms on its CPU, "
+                  f"{lc['longest_off_cpu_ms']} ms off)\n")
         out.write(f"host steal           {_steal(res.host_steal_percent, res.rt_granted.get('cpu'))}\n")
         out.write(f"frames               {res.compensation_frames} in compensation, "
                   f"{res.frames_overwritten} overwritten; {res.stale_periods} period(s) on a stale "

@@ -62,15 +62,20 @@ class LoopFigures:
     #: where late periods came from (the real-time host's words, hil/servo/shm.py ``Stat``):
     #: periods woken more than a period after their deadline, periods whose work ran more than a
     #: period past the next deadline (both in the window); the longest wake-up delay, step and
-    #: overrun, ms (maxima since the loop's warm-up, not of the window)
+    #: overrun, ms (maxima since the loop's warm-up, not of the window); the overruns during whose
+    #: work the loop thread was off its CPU for more than a period (the host or the OS took it),
+    #: and the longest step in the thread's own CPU time and off its CPU, ms
     late_wakes: int = 0
     overruns: int = 0
+    overruns_off_cpu: int = 0
     #: periods the setpoint block was being written for the whole read (the loop went on with its
     #: last copy; hil/servo/shm.py), in the window
     setpoint_busy: int = 0
     wake_late_max_ms: float = 0.0
     step_max_ms: float = 0.0
     overrun_max_ms: float = 0.0
+    step_cpu_max_ms: float = 0.0
+    step_off_cpu_max_ms: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -120,7 +125,10 @@ def loop_figures(before: StatsCopy, after: StatsCopy, period_s: float) -> LoopFi
         late_wakes=d[Stat.LATE_WAKES], overruns=d[Stat.OVERRUNS], setpoint_busy=d[Stat.SETPOINT_BUSY],
         wake_late_max_ms=round(after.get(Stat.WAKE_LATE_MAX_NS) * 1e-6, 3),
         step_max_ms=round(after.get(Stat.STEP_NS_MAX) * 1e-6, 3),
-        overrun_max_ms=round(after.get(Stat.WORST_OVERRUN_NS) * 1e-6, 3))
+        overrun_max_ms=round(after.get(Stat.WORST_OVERRUN_NS) * 1e-6, 3),
+        overruns_off_cpu=d[Stat.OVERRUNS_OFF_CPU],
+        step_cpu_max_ms=round(after.get(Stat.STEP_CPU_NS_MAX) * 1e-6, 3),
+        step_off_cpu_max_ms=round(after.get(Stat.STEP_OFF_CPU_NS_MAX) * 1e-6, 3))
 
 
 class StatsEverySecond:
@@ -129,7 +137,8 @@ class StatsEverySecond:
 
     :meth:`due` returns the record's fields when a second has passed since the last one (else
     None): periods, commands, late, stale periods, refusals, read / command errors, following
-    faults, and the late periods' causes (woken late, overran) in that second; the following peak
+    faults, and the late periods' causes (woken late, overran, of those overruns the ones with the
+    loop off its CPU for more than a period) in that second; the following peak
     and the longest interval so far (ms).
     """
 
@@ -154,6 +163,6 @@ class StatsEverySecond:
                 "stale_periods": d(Stat.STALE), "refusals": d(Stat.REFUSALS),
                 "read_errors": d(Stat.READ_ERRORS), "command_errors": d(Stat.COMMAND_ERRORS),
                 "following_faults": d(Stat.FOLLOWING_FAULTS), "late_wakes": d(Stat.LATE_WAKES),
-                "overruns": d(Stat.OVERRUNS),
+                "overruns": d(Stat.OVERRUNS), "overruns_off_cpu": d(Stat.OVERRUNS_OFF_CPU),
                 "following_peak_mm": round(c[Stat.FOLLOWING_PEAK_UM] * 1e-3, 3),
                 "longest_interval_ms": round(c[Stat.MAX_INTERVAL_NS] * 1e-6, 3)}

@@ -376,34 +376,55 @@ def _run(loop: ServoLoop, parent_pid: int, closing: threading.Event) -> None:
     k = 0
     while not closing.is_set():
         now = wait_until(next_ns)
+        cpu0 = time.thread_time_ns()
         loop.step(now)
         done = time.monotonic_ns()
+        cpu_ns = time.thread_time_ns() - cpu0
         k += 1
         if k % PARENT_CHECK_PERIODS == 0 and os.getppid() != parent_pid:
             return   # the supervisor is gone: stop the arm (the caller) and exit
         if k > TIMING_WARMUP_PERIODS:
-            _count_late_causes(c, now - next_ns, done - now, done - next_ns - period_ns, period_ns)
+            _count_late_causes(c, now - next_ns, done - now, done - next_ns - period_ns, period_ns, cpu_ns)
         next_ns += period_ns
         late = done - next_ns
         if late > period_ns:   # missed more than one period: skip the slots, never bunch them
             next_ns += (late // period_ns) * period_ns
 
 
-def _count_late_causes(c: Any, wake_late_ns: int, step_ns: int, overrun_ns: int, period_ns: int) -> None:
+def _count_late_causes(c: Any, wake_late_ns: int, step_ns: int, overrun_ns: int, period_ns: int,
+                       step_cpu_ns: int) -> None:
     """Where a late period came from (:class:`~hil.servo.shm.Stat` words marked (*)): the loop
     woke more than a period after its deadline (the OS or the host did not run it: ``LATE_WAKES``)
     or its work ran more than a period past the next deadline (``OVERRUNS``); and the longest of
-    each. A few integer compares per period (about a microsecond), nothing logged or sent."""
+    each. An overrun during whose work the loop thread was off its CPU for more than a period
+    (``step_ns - step_cpu_ns``: wall time the thread's CPU clock did not see, which on a virtual
+    machine with steal accounting includes the time the host ran other guests on this CPU) is
+    counted in ``OVERRUNS_OFF_CPU`` too; the rest ran long on the CPU. A few integer compares per
+    period (about a microsecond), nothing logged or sent.
+
+    Args:
+        wake_late_ns: when the loop woke after its deadline, ns. step_ns: the step's wall time, ns.
+        overrun_ns: how far the step ended past the next deadline, ns (negative: in time).
+        period_ns: the loop's period, ns. step_cpu_ns: the step's time on the loop thread's CPU
+            clock (``CLOCK_THREAD_CPUTIME_ID``), ns.
+    """
     if wake_late_ns > c[Stat.WAKE_LATE_MAX_NS]:
         c[Stat.WAKE_LATE_MAX_NS] = wake_late_ns
     if wake_late_ns > period_ns:
         c[Stat.LATE_WAKES] += 1
     if step_ns > c[Stat.STEP_NS_MAX]:
         c[Stat.STEP_NS_MAX] = step_ns
+    if step_cpu_ns > c[Stat.STEP_CPU_NS_MAX]:
+        c[Stat.STEP_CPU_NS_MAX] = step_cpu_ns
+    off_cpu_ns = step_ns - step_cpu_ns
+    if off_cpu_ns > c[Stat.STEP_OFF_CPU_NS_MAX]:
+        c[Stat.STEP_OFF_CPU_NS_MAX] = off_cpu_ns
     if overrun_ns > c[Stat.WORST_OVERRUN_NS]:
         c[Stat.WORST_OVERRUN_NS] = overrun_ns
     if overrun_ns > period_ns:
         c[Stat.OVERRUNS] += 1
+        if off_cpu_ns > period_ns:
+            c[Stat.OVERRUNS_OFF_CPU] += 1
 
 
 def _serve(conn: Connection, robot: Any, send: Any, closing: threading.Event) -> None:

@@ -42,9 +42,12 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
 - ``late_causes``: where late intervals came from, as the servo process timed each period after
   its first 100: ``woke_late`` periods it woke more than a period after their deadline (the OS or
   the host did not run the loop), ``overran`` periods whose work ran more than a period past the
-  next deadline (wall time: a preemption during the work counts here), both in compensation; and
-  ``longest_wake_delay_ms``, ``longest_step_ms``, ``longest_overrun_ms`` since the servo process
-  started (its warm-up periods left out).
+  next deadline (wall time: a preemption during the work counts here), of those ``overran_off_cpu``
+  the ones during whose work the loop thread was off its CPU for more than a period (wall time
+  its CPU clock did not see: the host or the OS took the CPU), all in compensation; and
+  ``longest_wake_delay_ms``, ``longest_step_ms`` (wall), ``longest_step_cpu_ms`` (the thread's
+  CPU time), ``longest_off_cpu_ms`` (off its CPU during one step), ``longest_overrun_ms`` since
+  the servo process started (its warm-up periods left out).
 - ``host_steal_percent`` and ``steal_free``: what the hypervisor took of the loop's CPU, and the
   late intervals over the windows it took none (hil/soak/host.py).
 """
@@ -512,7 +515,10 @@ def analyse(
     res.missed_fraction = figs.late_fraction
     res.longest_gap_ms = figs.longest_ms
     res.late_causes = {"woke_late": figs.late_wakes, "overran": figs.overruns,
+                       "overran_off_cpu": figs.overruns_off_cpu,
                        "longest_wake_delay_ms": figs.wake_late_max_ms, "longest_step_ms": figs.step_max_ms,
+                       "longest_step_cpu_ms": figs.step_cpu_max_ms,
+                       "longest_off_cpu_ms": figs.step_off_cpu_max_ms,
                        "longest_overrun_ms": figs.overrun_max_ms}
     res.frame_to_command_ms = figs.latency_ms
     res.stale_periods, res.read_errors, res.command_errors = figs.stale_periods, figs.read_errors, \

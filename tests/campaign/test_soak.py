@@ -56,7 +56,8 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
                        jitter_ms={"p50": 0.005, "p99": 0.015, "max": 28.0},
                        latency_ms={"p50": 41.25, "p99": 60.05, "max": 60.05}, refusals=1, stale_periods=7,
                        read_errors=0, command_errors=0, stops_sent=0, late_wakes=1, overruns=1,
-                       wake_late_max_ms=26.0, step_max_ms=3.5, overrun_max_ms=2.5)
+                       wake_late_max_ms=26.0, step_max_ms=3.5, overrun_max_ms=2.5, overruns_off_cpu=1,
+                       step_cpu_max_ms=0.9, step_off_cpu_max_ms=2.6)
     ctl = SimpleNamespace(latency_ms=[30.0, 40.0, 50.0], servo_deadlines_missed=0, frames_overwritten=4)
     op = SoakOperator(60.0, 60.0, lambda: None)
     op.t_comp = 0.0
@@ -69,8 +70,10 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     assert res.missed_deadlines == 2
     assert res.missed_fraction == 0.002002
     assert res.longest_gap_ms == 30.0
-    assert res.late_causes == {"woke_late": 1, "overran": 1, "longest_wake_delay_ms": 26.0,
-                               "longest_step_ms": 3.5, "longest_overrun_ms": 2.5}
+    assert res.late_causes == {"woke_late": 1, "overran": 1, "overran_off_cpu": 1,
+                               "longest_wake_delay_ms": 26.0, "longest_step_ms": 3.5,
+                               "longest_step_cpu_ms": 0.9, "longest_off_cpu_ms": 2.6,
+                               "longest_overrun_ms": 2.5}
     assert res.jitter_ms == figs.jitter_ms
     assert res.frame_to_command_ms == figs.latency_ms
     assert res.stale_periods == 7

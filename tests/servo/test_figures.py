@@ -51,13 +51,15 @@ def test_one_stats_record_per_second_of_controller_time() -> None:
     rec = every.due(1_000_000_000)
     assert rec == {"periods": 125, "commands": 120, "late": 1, "stale_periods": 0, "refusals": 0,
                    "read_errors": 0, "command_errors": 0, "following_faults": 0, "late_wakes": 0,
-                   "overruns": 0, "following_peak_mm": 0.412, "longest_interval_ms": 17.0}
+                   "overruns": 0, "overruns_off_cpu": 0, "following_peak_mm": 0.412,
+                   "longest_interval_ms": 17.0}
     assert every.due(1_500_000_000) is None
     stats.c[Stat.FOLLOWING_FAULTS] += 1
     stats.c[Stat.LATE_WAKES] += 2
     assert every.due(2_000_000_000) == {"periods": 0, "commands": 0, "late": 0, "stale_periods": 0,
                                         "refusals": 0, "read_errors": 0, "command_errors": 0,
                                         "following_faults": 1, "late_wakes": 2, "overruns": 0,
+                                        "overruns_off_cpu": 0,
                                         "following_peak_mm": 0.412,
                                         "longest_interval_ms": 17.0}
 
@@ -67,11 +69,14 @@ def test_the_real_time_host_counts_where_a_late_period_came_from() -> None:
 
     stats = LoopStats(ShmRegion.local(stats_words()))
     c, period_ns = stats.c, 2_000_000
-    _count_late_causes(c, 5_000, 600_000, -1_400_000, period_ns)         # on time
-    _count_late_causes(c, 2_000_001, 700_000, 700_001, period_ns)        # woke 2 ms late
-    _count_late_causes(c, 10_000, 4_100_000, 2_100_000, period_ns)       # work ran 4.1 ms
-    _count_late_causes(c, 2_000_000, 500_000, 0, period_ns)              # exactly a period: not late
+    _count_late_causes(c, 5_000, 600_000, -1_400_000, period_ns, 590_000)        # on time
+    _count_late_causes(c, 2_000_001, 700_000, 700_001, period_ns, 690_000)       # woke 2 ms late
+    _count_late_causes(c, 10_000, 4_100_000, 2_100_000, period_ns, 4_000_000)    # ran 4.1 ms on its CPU
+    _count_late_causes(c, 20_000, 4_600_000, 2_620_000, period_ns, 600_000)      # 4.0 ms off its CPU
+    _count_late_causes(c, 10_000, 4_000_000, 2_010_000, period_ns, 2_000_000)    # exactly a period off
+    _count_late_causes(c, 2_000_000, 500_000, 0, period_ns, 500_000)             # exactly a period: not late
     zero = StatsCopy.of(LoopStats(ShmRegion.local(stats_words())))
     figs = loop_figures(zero, StatsCopy.of(stats), 0.002)
-    assert (figs.late_wakes, figs.overruns) == (1, 1)
-    assert (figs.wake_late_max_ms, figs.step_max_ms, figs.overrun_max_ms) == (2.0, 4.1, 2.1)
+    assert (figs.late_wakes, figs.overruns, figs.overruns_off_cpu) == (1, 3, 1)
+    assert (figs.wake_late_max_ms, figs.step_max_ms, figs.overrun_max_ms) == (2.0, 4.6, 2.62)
+    assert (figs.step_cpu_max_ms, figs.step_off_cpu_max_ms) == (4.0, 4.0)
