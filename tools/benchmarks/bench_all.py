@@ -35,6 +35,7 @@ QUICK_ARGS: dict[str, list[str]] = {
     "accuracy": ["--runs", "2"],
     "loop": ["--seconds", "20"],
     "step": ["--periods", "500", "--repeats", "3"],
+    "host": ["--seconds", "10"],
     "pose004": ["--trials", "60"],
 }
 
@@ -185,6 +186,14 @@ FIGURES: list[Figure] = [
         _get("cpu_per_period_us", "median"),
         _get("period_us"),
         "robot servo period",
+    ),
+    Figure(
+        "host",
+        "late intervals, fixed work alone (the machine)",
+        "fraction",
+        _get("late_fraction"),
+        _const(1e-4),
+        "1 in 10,000 (issue 16)",
     ),
     Figure(
         "pose004",
