@@ -13,7 +13,9 @@ what the controller said and how long it took to compensate again. Stdout: the f
 (``--json``: one object, with ``passed``). Exit code 0 when the run compensated without refused
 steps and without a fault that the injected ones do not explain, and came back from every
 injected fault it detected; 1 otherwise (late periods over their bound are printed, not a
-failure: the host's steal can cause them).
+failure: the host's steal can cause them). ``--probe-host S`` (default 10) runs S seconds of fixed
+work with the servo's real-time set-up before and after the soak (hil/soak/probe.py) and prints
+its late periods beside the soak's (JSON ``host_probe``): what the machine alone does.
 """
 
 from __future__ import annotations
@@ -51,6 +53,11 @@ def add_parser(sub: Any) -> None:
                    help="inject a transient fault every S seconds (>= 10; default 0: none), cycling "
                         "through camera frame drop, robot disconnect, protective stop, occlusion, motion "
                         "lag; the soak resumes after each and reports it")
+    p.add_argument("--probe-host", type=float, default=10.0, metavar="S",
+                   help="before and after the soak, run S seconds of fixed work at the servo rate with the "
+                        "servo's real-time set-up and none of our code (tools/bench host), so the soak's "
+                        "late periods can be read against what the machine alone does (default 10; 0: no "
+                        "probe)")
     p.add_argument("--config", help="simulated setup TOML (default: the embedded configs/sim.toml)")
     p.add_argument("--plan", help="plan JSON (default: plans/<config name>_plan.json next to the config)")
     p.add_argument("--session-dir", default="sessions", help="where the session log goes (default sessions/)")
@@ -91,11 +98,43 @@ def _late_bound(res: Any) -> str:
             f"documented {100 * bound:g} % ({granted})")
 
 
+#: the probe's figures the soak keeps (hil/soak/probe.py)
+PROBE_KEYS = ("seconds", "intervals", "late", "longest_interval_ms", "work_wall_ms", "stretched_over_2x",
+              "host_steal_percent", "rt_summary")
+
+
+def _probe(seconds: float, rate_hz: float, when: str) -> dict[str, Any]:
+    """The host probe's figures (:data:`PROBE_KEYS` and ``late_per_10k``), or ``{"error": why}``."""
+    from hil.soak.probe import per_10k, probe_in_subprocess
+
+    print(f"hil soak: probing the host for {seconds:g} s {when} the soak (fixed work, none of our code)",
+          file=sys.stderr, flush=True)
+    try:
+        out = probe_in_subprocess(seconds, rate_hz)
+    except RuntimeError as exc:
+        print(f"hil soak: {exc}", file=sys.stderr, flush=True)
+        return {"error": str(exc)}
+    return {**{k: out[k] for k in PROBE_KEYS}, "late_per_10k": round(per_10k(out), 1)}
+
+
+def _probe_text(p: dict[str, Any]) -> str:
+    if "error" in p:
+        return f"n/a ({p['error']})"
+    return (f"{p['late']} late of {p['intervals']} ({p['late_per_10k']:g} in 10,000), longest "
+            f"{p['longest_interval_ms']} ms, steal {p['host_steal_percent'].get('loop_cpu')} %")
+
+
 def run(args: argparse.Namespace) -> int:
     from hil.config import default_setup_path
     from hil.soak.soak import run_soak
 
+    if not args.probe_host >= 0:
+        print(f"hil soak: --probe-host must be >= 0 s, got {args.probe_host}", file=sys.stderr)
+        return 2
     config = Path(args.config) if args.config else default_setup_path()
+    probe: dict[str, Any] = {}
+    if args.probe_host > 0:
+        probe["before"] = _probe(args.probe_host, float(args.rate), "before")
     res = run_soak(
         args.minutes,
         float(args.rate),
@@ -107,8 +146,10 @@ def run(args: argparse.Namespace) -> int:
         faults_every_s=args.faults_every,
         progress=lambda m: print(f"hil soak: {m}", file=sys.stderr, flush=True),
     )
+    if args.probe_host > 0:
+        probe["after"] = _probe(args.probe_host, float(args.rate), "after")
     if args.json:
-        sys.stdout.write(json.dumps({**res.to_dict(), "passed": res.passed()}) + "\n")
+        sys.stdout.write(json.dumps({**res.to_dict(), "host_probe": probe, "passed": res.passed()}) + "\n")
     else:
         out = sys.stdout
         from hil.servo.rt import RtGranted
@@ -127,6 +168,8 @@ def run(args: argparse.Namespace) -> int:
             f"({100 * res.missed_fraction:.2f} %), longest gap {res.longest_gap_ms} ms\n"
         )
         out.write(f"late bound           {_late_bound(res)}\n")
+        for when, p in probe.items():
+            out.write(f"machine alone {when:<7}{_probe_text(p)} (fixed work, tools/bench host)\n")
         lc = res.late_causes
         out.write(f"late causes          woke late {lc['woke_late']} (the OS or host did not run the loop), "
                   f"work overran {lc['overran']} ({lc['overran_off_cpu']} with the loop off its CPU for "
