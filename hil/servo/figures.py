@@ -63,7 +63,8 @@ class LoopFigures:
     #: periods woken more than a period after their deadline, periods whose work ran more than a
     #: period past the next deadline (both in the window); the longest wake-up delay, step and
     #: overrun, ms (maxima since the loop's warm-up, not of the window); the overruns during whose
-    #: work the loop thread was off its CPU for more than a period (the host or the OS took it),
+    #: work the loop thread was off its CPU for more than a period (the host or the OS took it, or
+    #: a driver call blocked),
     #: and the longest step in the thread's own CPU time and off its CPU, ms
     late_wakes: int = 0
     overruns: int = 0

@@ -398,9 +398,9 @@ def _count_late_causes(c: Any, wake_late_ns: int, step_ns: int, overrun_ns: int,
     or its work ran more than a period past the next deadline (``OVERRUNS``); and the longest of
     each. An overrun during whose work the loop thread was off its CPU for more than a period
     (``step_ns - step_cpu_ns``: wall time the thread's CPU clock did not see, which on a virtual
-    machine with steal accounting includes the time the host ran other guests on this CPU) is
-    counted in ``OVERRUNS_OFF_CPU`` too; the rest ran long on the CPU. A few integer compares per
-    period (about a microsecond), nothing logged or sent.
+    machine with steal accounting includes the time the host ran other guests on this CPU; also a
+    driver call that blocked) is counted in ``OVERRUNS_OFF_CPU`` too; the rest ran long on the CPU.
+    A few integer compares per period (about a microsecond), nothing logged or sent.
 
     Args:
         wake_late_ns: when the loop woke after its deadline, ns. step_ns: the step's wall time, ns.

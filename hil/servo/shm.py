@@ -389,7 +389,8 @@ class Stat(IntEnum):
                               # (the loop went on with its last copy)
     OVERRUNS_OFF_CPU = 24     # overruns during whose work the loop's thread was off its CPU for
                               # more than a period (wall time minus the thread's CPU time: the
-                              # host or the OS took the CPU; the rest of OVERRUNS ran long on it) (*)
+                              # host or the OS took the CPU, or the step blocked; the rest of
+                              # OVERRUNS ran long on it) (*)
     STEP_CPU_NS_MAX = 25      # longest step() work in the loop thread's own CPU time, ns (*)
     STEP_OFF_CPU_NS_MAX = 26  # longest time the loop thread was off its CPU during one step, ns (*)
     # (*) written by the real-time host (hil/servo/process.py), from its 100th period on; an

@@ -44,7 +44,8 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
   the host did not run the loop), ``overran`` periods whose work ran more than a period past the
   next deadline (wall time: a preemption during the work counts here), of those ``overran_off_cpu``
   the ones during whose work the loop thread was off its CPU for more than a period (wall time
-  its CPU clock did not see: the host or the OS took the CPU), all in compensation; and
+  its CPU clock did not see: the host or the OS took the CPU, or a driver call blocked), all in
+  compensation; and
   ``longest_wake_delay_ms``, ``longest_step_ms`` (wall), ``longest_step_cpu_ms`` (the thread's
   CPU time), ``longest_off_cpu_ms`` (off its CPU during one step), ``longest_overrun_ms`` since
   the servo process started (its warm-up periods left out).
