@@ -148,6 +148,17 @@ def test_short_soak_reports_the_hosts_steal(short_soak: Any) -> None:
     assert SoakResult(125.0, 1.0).late_fraction_bound() == LATE_FRACTION_BOUND   # nothing granted
 
 
+def test_short_soak_says_where_late_periods_came_from(short_soak: Any) -> None:
+    """The servo process timed every period after its warm-up, on the wall clock and on its
+    thread's CPU clock (hil/servo/process.py ``_count_late_causes``)."""
+    lc = short_soak.late_causes
+    assert set(lc) == {"woke_late", "overran", "overran_off_cpu", "longest_wake_delay_ms", "longest_step_ms",
+                       "longest_step_cpu_ms", "longest_off_cpu_ms", "longest_overrun_ms"}
+    assert 0 <= lc["overran_off_cpu"] <= lc["overran"]
+    assert 0.0 < lc["longest_step_cpu_ms"] <= lc["longest_step_ms"] + 0.01   # clocks read microseconds apart
+    assert 0.0 <= lc["longest_off_cpu_ms"] <= lc["longest_step_ms"]
+
+
 STAT = """cpu  32067 0 1883 64097 201 0 280 1127 0 0
 cpu0 16000 0 900 32000 100 0 140 500 0 0
 cpu1 16067 0 983 32097 101 0 140 627 0 0
