@@ -15,7 +15,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.interfaces.errors import LimitViolationError, SafetyStopError
+from drivers.interfaces.errors import DeviceFaultError, LimitViolationError, SafetyStopError
 from drivers.interfaces.lifecycle import Device
 from hil.geometry.transform import RigidTransform
 
@@ -209,6 +209,7 @@ class Robot(Device):
             LifecycleError: not active.
             LimitViolationError: outside workspace/speed/acceleration limits (nothing was sent).
             SafetyStopError: the arm is in a protective or emergency stop (or enters one).
+            DeviceFaultError: the arm's program is not running (mode stopped: nothing was sent).
             DisconnectedError, DeviceTimeoutError: transport problems.
         """
         self.require_active("move_linear")
@@ -225,7 +226,8 @@ class Robot(Device):
         must respect the speed limits over ``period_s``.
 
         Raises:
-            LifecycleError, LimitViolationError, SafetyStopError, DisconnectedError.
+            LifecycleError, LimitViolationError, SafetyStopError, DisconnectedError;
+            DeviceFaultError when the arm's program is not running.
         """
         self.require_active("servo")
         self.limits.check_position(self.name, T_robot_from_tcp.t)
@@ -268,7 +270,10 @@ class Robot(Device):
         if safety is not SafetyStatus.NORMAL:
             raise SafetyStopError(self.name, f"arm is in {safety}; motion refused")
         if mode is RobotMode.STOPPED:
-            raise SafetyStopError(self.name, "arm program is not running (mode stopped); motion refused")
+            # not a safety stop: the controller's program stopped (pendant, RTDE watchdog); the
+            # same error class as a driver that learns it from the command's refusal
+            raise DeviceFaultError(self.name, "arm program (control script) is not running (mode stopped); "
+                                              "motion refused (recover() restarts it)")
 
     @property
     def following_model(self) -> FollowingModel:
