@@ -46,6 +46,7 @@ from drivers.interfaces.robot import (
     SafetyStatus,
 )
 from drivers.ur_rtde.config import UrRtdeRobotConfig
+from drivers.ur_rtde.dashboard import UrDashboard, wait_until
 from drivers.ur_rtde.stream_age import StreamAge
 from drivers.ur_rtde.wire import (
     DASHBOARD_PORT,
@@ -139,7 +140,7 @@ class UrRtdeRobot(Robot):
         self._io = threading.RLock()
         self._ctrl: Any = None
         self._rcv: Any = None
-        self._dash: Any = None
+        self._dashboard = UrDashboard(name, cfg, clock, self._io)
         self._servoing = False
         self._last_servo_ns = 0
         self._stream_age = StreamAge()
@@ -184,16 +185,12 @@ class UrRtdeRobot(Robot):
         cfg = self.cfg
         for port in (RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT):
             _probe(cfg.host, port, cfg.connect_timeout_s, self.name)
-        import dashboard_client
         import rtde_control
         import rtde_receive
 
         with self._io:
             try:
-                dash = dashboard_client.DashboardClient(cfg.host)
-                dash.connect(int(cfg.connect_timeout_s * 1000))
-                self._dash = dash
-                version = str(dash.polyscopeVersion())
+                version = self._dashboard.connect()
                 self._check_version(version)
                 self._rcv = rtde_receive.RTDEReceiveInterface(cfg.host, cfg.rate_hz, RECEIVE_VARIABLES)
                 self._ctrl = rtde_control.RTDEControlInterface(cfg.host, cfg.rate_hz)
@@ -229,12 +226,13 @@ class UrRtdeRobot(Robot):
 
     def _teardown(self) -> None:
         """Disconnect and drop all three clients (never the control interface's own reconnect)."""
-        for attr in ("_ctrl", "_rcv", "_dash"):
+        for attr in ("_ctrl", "_rcv"):
             client = getattr(self, attr)
             if client is not None:
                 with contextlib.suppress(RuntimeError):
                     client.disconnect()
             setattr(self, attr, None)
+        self._dashboard.disconnect()
         self._servoing = False
 
     # ------------------------------------------------------------------ the RTDE watchdog
@@ -488,9 +486,12 @@ class UrRtdeRobot(Robot):
             self._reconnect()
         if safety_from_bits(self._rcv_bits()) is SafetyStatus.EMERGENCY_STOP:
             raise SafetyStopError(self.name, "emergency stop engaged: release it, then recover()")
-        self._power_on()
+        self._require_connected()
+        rcv = self._rcv
+        self._dashboard.power_on(lambda: int(rcv.getRobotMode()))
         if safety_from_bits(self._rcv_bits()) is SafetyStatus.PROTECTIVE_STOP:
-            self._unlock_protective_stop()
+            self._dashboard.unlock_protective_stop(
+                lambda: safety_from_bits(self._rcv_bits()) is SafetyStatus.NORMAL)
         self._require_connected()
         if int(self._rcv.getRuntimeState()) != RuntimeState.PLAYING:
             self._restart_script()
@@ -524,61 +525,14 @@ class UrRtdeRobot(Robot):
         raise DisconnectedError(self.name, f"reconnect failed after {self.cfg.reconnect_attempts} attempts: "
                                            f"{last}")
 
-    def _dashboard(self, what: str, fn: Callable[[Any], T]) -> T:
-        with self._io:
-            if self._dash is None or not self._dash.isConnected():
-                import dashboard_client
-
-                self._dash = dashboard_client.DashboardClient(self.cfg.host)
-                try:
-                    self._dash.connect(int(self.cfg.connect_timeout_s * 1000))
-                except RuntimeError as exc:
-                    raise DisconnectedError(self.name, f"dashboard: {exc}") from exc
-            try:
-                return fn(self._dash)
-            except RuntimeError as exc:  # includes std::logic_error from unlockProtectiveStop
-                raise DeviceFaultError(self.name, f"dashboard {what}: {exc}") from exc
-
-    def _wait_until(self, what: str, cond: Callable[[], bool]) -> None:
-        deadline = self.clock.now_ns() + int(self.cfg.ready_timeout_s * 1e9)
-        while not cond():
-            if self.clock.now_ns() > deadline:
-                raise DeviceTimeoutError(self.name, f"{what} not reached within {self.cfg.ready_timeout_s} s")
-            self.clock.sleep(0.02)
-
-    def _power_on(self) -> None:
-        self._require_connected()
-        rcv = self._rcv
-        mode = int(rcv.getRobotMode())
-        if mode == RobotModeCode.RUNNING:
-            return
-        if mode <= RobotModeCode.POWER_OFF:
-            self._dashboard("power on", lambda d: d.powerOn())
-        self._dashboard("brake release", lambda d: d.brakeRelease())
-        self._wait_until("robot mode RUNNING", lambda: int(rcv.getRobotMode()) == RobotModeCode.RUNNING)
-
-    def _unlock_protective_stop(self) -> None:
-        deadline = self.clock.now_ns() + int(self.cfg.ready_timeout_s * 1e9)
-        while True:
-            try:
-                self._dashboard("close safety popup", lambda d: d.closeSafetyPopup())
-                self._dashboard("unlock protective stop", lambda d: d.unlockProtectiveStop())
-                break
-            except DeviceFaultError:
-                # CB3 refuses an unlock during the first 5 s after the stop: retry until the deadline
-                if self.clock.now_ns() > deadline:
-                    raise
-                self.clock.sleep(0.5)
-        self._wait_until("protective stop cleared",
-                         lambda: safety_from_bits(self._rcv_bits()) is SafetyStatus.NORMAL)
-
     def _restart_script(self) -> None:
         ctrl = self._ctrl
         ok = self._call("reuploadScript", lambda: bool(ctrl.reuploadScript()))
         if not ok:
             raise DeviceFaultError(self.name, "could not upload the control script")
         rcv = self._rcv
-        self._wait_until("control script running", lambda: int(rcv.getRuntimeState()) == RuntimeState.PLAYING)
+        wait_until(self.clock, self.name, self.cfg.ready_timeout_s, "control script running",
+                   lambda: int(rcv.getRuntimeState()) == RuntimeState.PLAYING)
         hz = self._watchdog_hz()  # the rate the kicker is paced for, as at connect
         if hz > 0 and not self._call("setWatchdog", lambda: bool(ctrl.setWatchdog(hz))):
             raise DeviceFaultError(self.name, "the control script refused setWatchdog")
