@@ -1,0 +1,15 @@
+"""Type stub of the compiled kernel (hil/vision/_kernel.c); the docstrings there state the contract."""
+
+from typing import Any
+
+def ring_geometry(outer: Any, inner: Any, theta: Any, r_out: Any, r_in: Any, n_samples: Any) -> int: ...
+def ray_maps(origin: Any, cos_t: Any, sin_t: Any, mapx: Any, mapy: Any) -> None: ...
+def ring_edges(
+    grey: Any, dark_on_light: Any, origin: Any, cos_t: Any, sin_t: Any, r_out: Any, r_in: Any,
+    n_samples: Any, min_contrast: float, min_valid_fraction: float, xo: Any, yo: Any, mo: Any,
+    xi: Any, yi: Any, mi: Any, frac: Any, ok: Any,
+) -> None: ...
+def fit_ellipses(
+    X: Any, Y: Any, M: Any, conic: Any, center: Any, a: Any, b: Any, angle: Any, residual: Any,
+    n_points: Any, good: Any, used: Any,
+) -> None: ...
