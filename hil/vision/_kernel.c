@@ -692,6 +692,213 @@ done:
     return ret;
 }
 
+/* ---- stereo: plane-normal perspective correction ----------------------------------------- */
+
+/* Eigen-decomposition of a symmetric 3x3 matrix by cyclic Jacobi rotations (Golub & Van Loan,
+ * 8.5): eigenvalues w ascending, eigenvectors the columns of V (unit, sign arbitrary). */
+static void eigh3(const double *A_in, double *w, double V[3][3])
+{
+    double A[3][3];
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) {
+            A[i][j] = A_in[3 * i + j];
+            V[i][j] = i == j ? 1.0 : 0.0;
+        }
+    static const int pq[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+    for (int sweep = 0; sweep < 60; sweep++) {
+        double off = fabs(A[0][1]) + fabs(A[0][2]) + fabs(A[1][2]);
+        if (off == 0.0) break;
+        for (int r = 0; r < 3; r++) {
+            int p = pq[r][0], q = pq[r][1];
+            double apq = A[p][q];
+            if (apq == 0.0) continue;
+            double g = 100.0 * fabs(apq);
+            if (sweep > 3 && fabs(A[p][p]) + g == fabs(A[p][p]) && fabs(A[q][q]) + g == fabs(A[q][q])) {
+                A[p][q] = A[q][p] = 0.0;
+                continue;
+            }
+            double theta = (A[q][q] - A[p][p]) / (2.0 * apq);
+            double t = 1.0 / (fabs(theta) + sqrt(theta * theta + 1.0));
+            if (theta < 0) t = -t;
+            if (!isfinite(theta)) t = 0.5 / theta;
+            double c = 1.0 / sqrt(t * t + 1.0), s = t * c;
+            for (int k = 0; k < 3; k++) {  /* A <- J^T A J, V <- V J */
+                double akp = A[k][p], akq = A[k][q];
+                A[k][p] = c * akp - s * akq;
+                A[k][q] = s * akp + c * akq;
+            }
+            for (int k = 0; k < 3; k++) {
+                double apk = A[p][k], aqk = A[q][k];
+                A[p][k] = c * apk - s * aqk;
+                A[q][k] = s * apk + c * aqk;
+            }
+            A[p][q] = A[q][p] = 0.0;
+            for (int k = 0; k < 3; k++) {
+                double vkp = V[k][p], vkq = V[k][q];
+                V[k][p] = c * vkp - s * vkq;
+                V[k][q] = s * vkp + c * vkq;
+            }
+        }
+    }
+    int ord[3] = {0, 1, 2};
+    double d[3] = {A[0][0], A[1][1], A[2][2]};
+    for (int i = 0; i < 3; i++)
+        for (int j = i + 1; j < 3; j++)
+            if (d[ord[j]] < d[ord[i]]) { int t = ord[i]; ord[i] = ord[j]; ord[j] = t; }
+    double W[3][3];
+    for (int j = 0; j < 3; j++) {
+        w[j] = d[ord[j]];
+        for (int i = 0; i < 3; i++) W[i][j] = V[i][ord[j]];
+    }
+    memcpy(V, W, sizeof(W));
+}
+
+/* ellipse.circle_normals_from_cones of one cone Q = K^T C K (Shiu & Ahmad 1989): the two
+ * candidate unit normals towards the camera; returns ok. */
+static int cone_normals(const double *Q, double *n1, double *n2)
+{
+    double lam[3], V[3][3];
+    eigh3(Q, lam, V);
+    int flip = (lam[0] > 0) + (lam[1] > 0) + (lam[2] > 0) == 1;
+    double l1 = flip ? -lam[0] : lam[2], l2 = flip ? -lam[1] : lam[1], l3 = flip ? -lam[2] : lam[0];
+    int c1 = flip ? 0 : 2, c3 = flip ? 2 : 0;
+    int ok = l1 >= l2 && l2 > 0 && l3 < 0;
+    double den = ok ? l1 - l3 : 1.0;
+    double gg = (l1 - l2) / den, hh = (l2 - l3) / den;
+    double g = sqrt(gg > 0.0 || isnan(gg) ? gg : 0.0), h = sqrt(hh > 0.0 || isnan(hh) ? hh : 0.0);
+    double *out[2] = {n1, n2};
+    for (int m = 0; m < 2; m++) {
+        double sg = m == 0 ? 1.0 : -1.0, nn = 0;
+        for (int i = 0; i < 3; i++) {
+            out[m][i] = V[i][c3] * h + sg * (V[i][c1] * g);
+            nn += out[m][i] * out[m][i];
+        }
+        nn = sqrt(nn);
+        double flip_sign = out[m][2] / nn > 0 ? -1.0 : 1.0;
+        for (int i = 0; i < 3; i++) out[m][i] = flip_sign * (out[m][i] / nn);
+    }
+    return ok;
+}
+
+/* K^T C K of a 3x3 conic (row-major) and an upper-triangular K */
+static void cone_of(const double *C, const double *K, double *Q)
+{
+    double T[9];
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            T[3 * i + j] = K[i] * C[j] + K[3 + i] * C[3 + j] + K[6 + i] * C[6 + j];
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            Q[3 * i + j] = T[3 * i] * K[j] + T[3 * i + 1] * K[3 + j] + T[3 * i + 2] * K[6 + j];
+}
+
+/* pole of line l w.r.t. conic C minus the conic's centre (ellipse.poles_of_lines,
+ * conics.conic_centers) */
+static void pole_shift(const double *C, const double *l, double *out)
+{
+    double a = C[0], b = C[1], d = C[2], c = C[4], e = C[5], f = C[8];
+    double A00 = c * f - e * e, A01 = d * e - b * f, A02 = b * e - c * d;
+    double A11 = a * f - d * d, A12 = b * d - a * e, A22 = a * c - b * b;
+    double p0 = A00 * l[0] + A01 * l[1] + A02 * l[2];
+    double p1 = A01 * l[0] + A11 * l[1] + A12 * l[2];
+    double p2 = A02 * l[0] + A12 * l[1] + A22 * l[2];
+    double det = a * c - b * b;
+    out[0] = p0 / p2 - (b * e - c * d) / det;
+    out[1] = p1 / p2 - (b * d - a * e) / det;
+}
+
+/* ellipse.vanishing_lines: l = K^-T n for an upper-triangular K */
+static void vanishing_line(const double *K, const double *n, double *l)
+{
+    l[0] = n[0] / K[0];
+    l[1] = (n[1] - K[1] * l[0]) / K[4];
+    l[2] = n[2] - K[2] * l[0] - K[5] * l[1];
+}
+
+/* stereo._normal_correction of pair k (see its docstring) */
+static void correct_pair(const double *C, const double *w, const double *KL, const double *KR,
+                         const double *Rrl, Py_ssize_t P, Py_ssize_t k, double *UL, double *UR,
+                         double *normal, unsigned char *ok_out)
+{
+    double Q[9], l1[3], l2[3], c1[3], c2[3], r1[3], r2[3], n[3], nR[3], lL[3], lR[3];
+    cone_of(C + 9 * k, KL, Q);
+    int okL = cone_normals(Q, l1, l2);
+    cone_of(C + 9 * (P + k), KR, Q);
+    int okR = cone_normals(Q, c1, c2);
+    for (int j = 0; j < 3; j++) {  /* R_rl^T c: the right candidates in the left frame */
+        r1[j] = c1[0] * Rrl[j] + c1[1] * Rrl[3 + j] + c1[2] * Rrl[6 + j];
+        r2[j] = c2[0] * Rrl[j] + c2[1] * Rrl[3 + j] + c2[2] * Rrl[6 + j];
+    }
+    const double *L[2] = {l1, l2}, *Rr[2] = {r1, r2};
+    int best = 0;
+    double bd = -INFINITY;
+    for (int m = 0; m < 4; m++) {  /* the best-agreeing candidates, the first maximum */
+        const double *a = L[m / 2], *b = Rr[m % 2];
+        double dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        if (isnan(dot)) { best = m; break; }  /* np.argmax: a NaN wins */
+        if (dot > bd) { bd = dot; best = m; }
+    }
+    double nn = 0;
+    for (int j = 0; j < 3; j++) { n[j] = L[best / 2][j] + Rr[best % 2][j]; nn += n[j] * n[j]; }
+    nn = sqrt(nn);
+    for (int j = 0; j < 3; j++) n[j] /= nn;
+    for (int j = 0; j < 3; j++) nR[j] = n[0] * Rrl[3 * j] + n[1] * Rrl[3 * j + 1] + n[2] * Rrl[3 * j + 2];
+    int ok = okL && okR;
+    ok_out[k] = (unsigned char)ok;
+    for (int j = 0; j < 3; j++) normal[3 * k + j] = n[j];
+    if (!ok) return;
+    vanishing_line(KL, n, lL);
+    vanishing_line(KR, nR, lR);
+    double so[2], si[2];
+    pole_shift(C + 9 * k, lL, so);            /* left outer, left inner */
+    pole_shift(C + 9 * (2 * P + k), lL, si);
+    for (int j = 0; j < 2; j++) UL[2 * k + j] += w[2 * k] * so[j] + w[2 * k + 1] * si[j];
+    pole_shift(C + 9 * (P + k), lR, so);      /* right outer, right inner */
+    pole_shift(C + 9 * (3 * P + k), lR, si);
+    for (int j = 0; j < 2; j++) UR[2 * k + j] += w[2 * (P + k)] * so[j] + w[2 * (P + k) + 1] * si[j];
+}
+
+PyDoc_STRVAR(normal_correction_doc,
+"normal_correction(C, w, K_left, K_right, R_right_from_left, UL, UR, normals, ok) -> None\n\n"
+"hil.vision.stereo._normal_correction for P pairs: C (4P, 3, 3) the paired conics in ideal pixels\n"
+"(left outer, right outer, left inner, right inner), w (2P, 2) the centre weights (left then\n"
+"right), K_left / K_right (3, 3) upper triangular, R_right_from_left (3, 3); moves the ideal\n"
+"centres UL, UR (P, 2) px in place where both views gave a normal, writes normals (P, 3)\n"
+"(optical frame) and ok (P,) bool.");
+
+static PyObject *k_normal_correction(PyObject *self, PyObject *args)
+{
+    PyObject *o[9];
+    if (!PyArg_ParseTuple(args, "OOOOOOOOO:normal_correction", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &o[7], &o[8])) {
+        return NULL;
+    }
+    BufSet bs = {.count = 0};
+    PyObject *ret = NULL;
+    Py_ssize_t sh[3] = {-1, 2, -1}, got[3];
+    double *UL = get_buf(&bs, o[5], "UL", 'd', 2, sh, 1, got);
+    if (!UL) goto done;
+    Py_ssize_t P = got[0];
+    Py_ssize_t shP2[2] = {P, 2}, sh4[3] = {4 * P, 3, 3}, sh22[2] = {2 * P, 2}, sh33[2] = {3, 3};
+    Py_ssize_t shP3[2] = {P, 3}, shP[1] = {P};
+    double *UR = get_buf(&bs, o[6], "UR", 'd', 2, shP2, 1, NULL);
+    const double *C = UR ? get_buf(&bs, o[0], "C", 'd', 3, sh4, 0, NULL) : NULL;
+    const double *w = C ? get_buf(&bs, o[1], "w", 'd', 2, sh22, 0, NULL) : NULL;
+    const double *KL = w ? get_buf(&bs, o[2], "K_left", 'd', 2, sh33, 0, NULL) : NULL;
+    const double *KR = KL ? get_buf(&bs, o[3], "K_right", 'd', 2, sh33, 0, NULL) : NULL;
+    const double *R = KR ? get_buf(&bs, o[4], "R_right_from_left", 'd', 2, sh33, 0, NULL) : NULL;
+    double *normals = R ? get_buf(&bs, o[7], "normals", 'd', 2, shP3, 1, NULL) : NULL;
+    unsigned char *ok = normals ? get_buf(&bs, o[8], "ok", '?', 1, shP, 1, NULL) : NULL;
+    if (!ok) goto done;
+    for (Py_ssize_t k = 0; k < P; k++) {
+        correct_pair(C, w, KL, KR, R, P, k, UL, UR, normals, ok);
+    }
+    ret = Py_NewRef(Py_None);
+done:
+    bufs_release(&bs);
+    return ret;
+}
+
 /* ---- module ------------------------------------------------------------------------------- */
 
 static PyMethodDef kernel_methods[] = {
@@ -699,6 +906,7 @@ static PyMethodDef kernel_methods[] = {
     {"ray_maps", k_ray_maps, METH_VARARGS, ray_maps_doc},
     {"ring_edges", k_ring_edges, METH_VARARGS, ring_edges_doc},
     {"fit_ellipses", k_fit_ellipses, METH_VARARGS, fit_ellipses_doc},
+    {"normal_correction", k_normal_correction, METH_VARARGS, normal_correction_doc},
     {NULL, NULL, 0, NULL},
 };
 

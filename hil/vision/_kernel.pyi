@@ -13,3 +13,7 @@ def fit_ellipses(
     X: Any, Y: Any, M: Any, conic: Any, center: Any, a: Any, b: Any, angle: Any, residual: Any,
     n_points: Any, good: Any, used: Any,
 ) -> None: ...
+def normal_correction(
+    C: Any, w: Any, K_left: Any, K_right: Any, R_right_from_left: Any, UL: Any, UR: Any, normals: Any,
+    ok: Any,
+) -> None: ...

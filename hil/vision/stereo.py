@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from hil.geometry.triangulation import triangulate_dlt, triangulate_midpoint
+from hil.vision import kernel
 from hil.vision.camera_model import StereoCalibration, undistort_pixels
 from hil.vision.conics import concentric_center, conic_center, conic_centers
 from hil.vision.detect import RingDetection
@@ -191,6 +192,12 @@ def _normal_correction(
     KL, KR, R_rl = cal.K_left, cal.K_right, cal.R_right_from_left
     P = len(left)
     C, w = _conic_stacks(left, right, HL, HR)
+    k = kernel.active()
+    if k is not None:  # the same arithmetic compiled (hil/vision/_kernel.c), results equal to rounding
+        normals, ok_k = np.empty((P, 3)), np.empty(P, dtype=bool)
+        c8 = [np.ascontiguousarray(a, np.float64) for a in (C, w, KL, KR, R_rl)]
+        k.normal_correction(*c8, UL, UR, normals, ok_k)
+        return [normals[i] if ok_k[i] else None for i in range(P)]
     wl, wr = w[:P], w[P:]
     c1, c2, okc = circle_normals_from_cones(np.concatenate([KL.T @ C[:P] @ KL, KR.T @ C[P : 2 * P] @ KR]))
     l1, l2, okL = c1[:P], c2[:P], okc[:P]
