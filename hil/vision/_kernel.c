@@ -692,6 +692,72 @@ done:
     return ret;
 }
 
+/* ---- ring check ---------------------------------------------------------------------------- */
+
+PyDoc_STRVAR(ring_check_doc,
+"ring_check(a, b, center, residual, n_points, good, max_residual, concentric_tol, ratio,\n"
+"           ratio_tol, eccentricity_tol, ok, ring_center, sigma, resid) -> None\n\n"
+"The ring check and centre estimate of hil.vision.detect.fit_rings for m rings whose outer\n"
+"ellipses are rows 0..m-1 and inner ellipses rows m..2m-1 of the fit outputs a, b, residual\n"
+"(2m,) float64, center (2m, 2), n_points (2m,) int64, good (2m,) bool. Writes ok (m,) bool, the\n"
+"edge-length-weighted centre ring_center (m, 2) px, its sigma (m,) px and the RMS residual over\n"
+"both edges resid (m,) px.");
+
+static PyObject *k_ring_check(PyObject *self, PyObject *args)
+{
+    PyObject *o[10];
+    double max_res, ctol, ior, rtol, etol;
+    if (!PyArg_ParseTuple(args, "OOOOOOdddddOOOO:ring_check", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &max_res, &ctol, &ior, &rtol, &etol, &o[6], &o[7], &o[8], &o[9])) {
+        return NULL;
+    }
+    BufSet bs = {.count = 0};
+    PyObject *ret = NULL;
+    Py_ssize_t sh[1] = {-1}, got[1];
+    const double *a = get_buf(&bs, o[0], "a", 'd', 1, sh, 0, got);
+    if (!a) goto done;
+    Py_ssize_t m2 = got[0], m = m2 / 2;
+    if (m2 % 2) {
+        PyErr_SetString(PyExc_ValueError, "a: expected an even length (outer then inner rows)");
+        goto done;
+    }
+    Py_ssize_t sh2[1] = {m2}, shc[2] = {m2, 2}, shm[1] = {m}, shm2[2] = {m, 2};
+    const double *b = get_buf(&bs, o[1], "b", 'd', 1, sh2, 0, NULL);
+    const double *c = b ? get_buf(&bs, o[2], "center", 'd', 2, shc, 0, NULL) : NULL;
+    const double *r = c ? get_buf(&bs, o[3], "residual", 'd', 1, sh2, 0, NULL) : NULL;
+    const long long *np_ = r ? get_buf(&bs, o[4], "n_points", 'q', 1, sh2, 0, NULL) : NULL;
+    const unsigned char *good = np_ ? get_buf(&bs, o[5], "good", '?', 1, sh2, 0, NULL) : NULL;
+    unsigned char *ok = good ? get_buf(&bs, o[6], "ok", '?', 1, shm, 1, NULL) : NULL;
+    double *rc = ok ? get_buf(&bs, o[7], "ring_center", 'd', 2, shm2, 1, NULL) : NULL;
+    double *sigma = rc ? get_buf(&bs, o[8], "sigma", 'd', 1, shm, 1, NULL) : NULL;
+    double *resid = sigma ? get_buf(&bs, o[9], "resid", 'd', 1, shm, 1, NULL) : NULL;
+    if (!resid) goto done;
+    for (Py_ssize_t k = 0; k < m; k++) {
+        Py_ssize_t i = m + k;
+        double ao = a[k], bo = b[k], ai = a[i], bi = b[i], ro = r[k], ri = r[i];
+        double ratio = sqrt(ai * bi / (ao * bo));
+        double ecc = fabs(bo / ao - bi / ai);
+        double sep = hypot(c[2 * k] - c[2 * i], c[2 * k + 1] - c[2 * i + 1]);
+        ok[k] = (unsigned char)(good[k] && good[i] && ro <= max_res && ri <= max_res
+                                && sep <= ctol * ao + 0.15 && fabs(ratio - ior) <= rtol && ecc <= etol);
+        double po = ao + bo, pi = ai + bi;
+        double wo = po / (po + pi), wi = pi / (po + pi);
+        rc[2 * k] = wo * c[2 * k] + wi * c[2 * i];
+        rc[2 * k + 1] = wo * c[2 * k + 1] + wi * c[2 * i + 1];
+        double no = (double)np_[k], ni = (double)np_[i];
+        double mo = ro >= 0.01 || isnan(ro) ? ro : 0.01, mi = ri >= 0.01 || isnan(ri) ? ri : 0.01;
+        double var_o = 2.0 * (mo * mo) / (no >= 1 ? no : 1.0);
+        double var_i = 2.0 * (mi * mi) / (ni >= 1 ? ni : 1.0);
+        sigma[k] = sqrt(wo * wo * var_o + wi * wi * var_i);
+        double nn = (double)(np_[k] + np_[i]);
+        resid[k] = sqrt((ro * ro * no + ri * ri * ni) / (nn >= 1 ? nn : 1.0));
+    }
+    ret = Py_NewRef(Py_None);
+done:
+    bufs_release(&bs);
+    return ret;
+}
+
 /* ---- stereo: plane-normal perspective correction ----------------------------------------- */
 
 /* Eigen-decomposition of a symmetric 3x3 matrix by cyclic Jacobi rotations (Golub & Van Loan,
@@ -907,6 +973,7 @@ static PyMethodDef kernel_methods[] = {
     {"ring_edges", k_ring_edges, METH_VARARGS, ring_edges_doc},
     {"fit_ellipses", k_fit_ellipses, METH_VARARGS, fit_ellipses_doc},
     {"normal_correction", k_normal_correction, METH_VARARGS, normal_correction_doc},
+    {"ring_check", k_ring_check, METH_VARARGS, ring_check_doc},
     {NULL, NULL, 0, NULL},
 };
 

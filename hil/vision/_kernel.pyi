@@ -17,3 +17,8 @@ def normal_correction(
     C: Any, w: Any, K_left: Any, K_right: Any, R_right_from_left: Any, UL: Any, UR: Any, normals: Any,
     ok: Any,
 ) -> None: ...
+def ring_check(
+    a: Any, b: Any, center: Any, residual: Any, n_points: Any, good: Any, max_residual: float,
+    concentric_tol: float, ratio: float, ratio_tol: float, eccentricity_tol: float, ok: Any,
+    ring_center: Any, sigma: Any, resid: Any,
+) -> None: ...

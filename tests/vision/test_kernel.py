@@ -32,7 +32,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hil.vision import kernel
-from hil.vision.detect import DetectParams, begin_search, detect_rings_multi
+from hil.vision.detect import DetectParams, _ring_check, _ring_check_kernel, begin_search, detect_rings_multi
 from hil.vision.ellipse import fit_ellipse_arrays_numpy, fit_ellipse_arrays_used
 from hil.vision.render import RenderOptions, RingMarker3D, render_stereo
 from hil.vision.ring_edges import RingEdges, RingSeeds, ring_edges_multi, ring_edges_multi_numpy
@@ -119,6 +119,12 @@ def test_edges_and_fits_equal_the_numpy_code_on_the_bench_sequence(pairs: list[o
         n_rings += idx.size
         X, Y = np.concatenate([ref.xo[idx], ref.xi[idx]]), np.concatenate([ref.yo[idx], ref.yi[idx]])
         _assert_same_fits(X, Y, np.concatenate([ref.mo[idx], ref.mi[idx]]))
+        fits, _ = fit_ellipse_arrays_numpy(X, Y, np.concatenate([ref.mo[idx], ref.mi[idx]]))
+        check_ref = _ring_check(fits, idx.size, DP)
+        check = _ring_check_kernel(kernel._module, fits, idx.size, DP)
+        np.testing.assert_array_equal(check[0], check_ref[0])  # the rings accepted
+        for u, v in zip(check[1:], check_ref[1:], strict=True):  # centres, sigmas, residuals
+            np.testing.assert_allclose(u, v, rtol=0, atol=PX_TOL)
     assert n_rings >= 12 * 14
 
 
