@@ -965,6 +965,104 @@ done:
     return ret;
 }
 
+/* ---- stereo: DLT triangulation ------------------------------------------------------------ */
+
+/* The right singular vector of the smallest singular value of a 4x4 matrix (row-major), by
+ * one-sided Jacobi rotations (Hestenes; Demmel & Veselic 1992: high relative accuracy). */
+static void null_vector4(const double *A, double *x)
+{
+    double U[4][4], V[4][4];
+    for (int i = 0; i < 4; i++)
+        for (int j = 0; j < 4; j++) {
+            U[i][j] = A[4 * i + j];
+            V[i][j] = i == j ? 1.0 : 0.0;
+        }
+    for (int sweep = 0; sweep < 40; sweep++) {
+        int rotated = 0;
+        for (int p = 0; p < 3; p++)
+            for (int q = p + 1; q < 4; q++) {
+                double al = 0, be = 0, ga = 0;
+                for (int i = 0; i < 4; i++) {
+                    al += U[i][p] * U[i][p];
+                    be += U[i][q] * U[i][q];
+                    ga += U[i][p] * U[i][q];
+                }
+                if (ga == 0.0 || fabs(ga) <= 1e-17 * sqrt(al * be)) continue;
+                rotated = 1;
+                double zeta = (be - al) / (2.0 * ga);
+                double t = 1.0 / (fabs(zeta) + sqrt(1.0 + zeta * zeta));
+                if (zeta < 0) t = -t;
+                double c = 1.0 / sqrt(1.0 + t * t), sn = c * t;
+                for (int i = 0; i < 4; i++) {
+                    double up = U[i][p], uq = U[i][q];
+                    U[i][p] = c * up - sn * uq;
+                    U[i][q] = sn * up + c * uq;
+                    double vp = V[i][p], vq = V[i][q];
+                    V[i][p] = c * vp - sn * vq;
+                    V[i][q] = sn * vp + c * vq;
+                }
+            }
+        if (!rotated) break;
+    }
+    int best = 0;
+    double bn = INFINITY;
+    for (int j = 0; j < 4; j++) {
+        double nn = 0;
+        for (int i = 0; i < 4; i++) nn += U[i][j] * U[i][j];
+        if (nn < bn) { bn = nn; best = j; }
+    }
+    for (int i = 0; i < 4; i++) x[i] = V[i][best];
+}
+
+PyDoc_STRVAR(triangulate_dlt_doc,
+"triangulate_dlt(P_left, P_right, uv_left, uv_right, points, ok) -> None\n\n"
+"hil.geometry.triangulation.triangulate_dlt (Hartley & Zisserman 12.2, rows equilibrated) of N\n"
+"correspondences: P_left / P_right (3, 4) float64, uv_left / uv_right (N, 2) undistorted px;\n"
+"writes points (N, 3) mm and ok (N,) bool (False: the point is at infinity, |w| <= 1e-12 |X|).");
+
+static PyObject *k_triangulate_dlt(PyObject *self, PyObject *args)
+{
+    PyObject *o[6];
+    if (!PyArg_ParseTuple(args, "OOOOOO:triangulate_dlt", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5])) {
+        return NULL;
+    }
+    BufSet bs = {.count = 0};
+    PyObject *ret = NULL;
+    Py_ssize_t sh34[2] = {3, 4}, sh[2] = {-1, 2}, got[2];
+    const double *PL = get_buf(&bs, o[0], "P_left", 'd', 2, sh34, 0, NULL);
+    const double *PR = PL ? get_buf(&bs, o[1], "P_right", 'd', 2, sh34, 0, NULL) : NULL;
+    const double *a = PR ? get_buf(&bs, o[2], "uv_left", 'd', 2, sh, 0, got) : NULL;
+    if (!a) goto done;
+    Py_ssize_t N = got[0];
+    Py_ssize_t shN2[2] = {N, 2}, shN3[2] = {N, 3}, shN[1] = {N};
+    const double *b = get_buf(&bs, o[3], "uv_right", 'd', 2, shN2, 0, NULL);
+    double *pts = b ? get_buf(&bs, o[4], "points", 'd', 2, shN3, 1, NULL) : NULL;
+    unsigned char *ok = pts ? get_buf(&bs, o[5], "ok", '?', 1, shN, 1, NULL) : NULL;
+    if (!ok) goto done;
+    for (Py_ssize_t k = 0; k < N; k++) {
+        double A[16], X[4];
+        const double *uv[2] = {a + 2 * k, b + 2 * k}, *Pm[2] = {PL, PR};
+        for (int r = 0; r < 4; r++) {  /* u P[2] - P[0], v P[2] - P[1] per camera */
+            const double *P = Pm[r / 2];
+            double c = uv[r / 2][r % 2], nn = 0;
+            for (int j = 0; j < 4; j++) {
+                A[4 * r + j] = c * P[8 + j] - P[4 * (r % 2) + j];
+                nn += A[4 * r + j] * A[4 * r + j];
+            }
+            nn = sqrt(nn);
+            for (int j = 0; j < 4; j++) A[4 * r + j] /= nn;
+        }
+        null_vector4(A, X);
+        double w = X[3], scale = sqrt(X[0] * X[0] + X[1] * X[1] + X[2] * X[2]);
+        ok[k] = (unsigned char)(fabs(w) > 1e-12 * scale);
+        for (int j = 0; j < 3; j++) pts[3 * k + j] = X[j] / w;
+    }
+    ret = Py_NewRef(Py_None);
+done:
+    bufs_release(&bs);
+    return ret;
+}
+
 /* ---- module ------------------------------------------------------------------------------- */
 
 static PyMethodDef kernel_methods[] = {
@@ -974,6 +1072,7 @@ static PyMethodDef kernel_methods[] = {
     {"fit_ellipses", k_fit_ellipses, METH_VARARGS, fit_ellipses_doc},
     {"normal_correction", k_normal_correction, METH_VARARGS, normal_correction_doc},
     {"ring_check", k_ring_check, METH_VARARGS, ring_check_doc},
+    {"triangulate_dlt", k_triangulate_dlt, METH_VARARGS, triangulate_dlt_doc},
     {NULL, NULL, 0, NULL},
 };
 

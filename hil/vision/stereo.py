@@ -238,6 +238,19 @@ def _concentric_correction(
             UR[k] += ccr - (wr[k, 0] * conic_center(CoR[k]) + wr[k, 1] * conic_center(CiR[k]))
 
 
+def _triangulate(PL: FloatArray, PR: FloatArray, UL: FloatArray, UR: FloatArray) -> FloatArray:
+    """:func:`hil.geometry.triangulation.triangulate_dlt` by the compiled kernel when it is selected
+    (the null vector by one-sided Jacobi rotations instead of LAPACK's SVD: the same points to
+    rounding); the numpy function (and its errors) for non-finite input or a point at infinity."""
+    k = kernel.active()
+    if k is None or not (np.isfinite(UL).all() and np.isfinite(UR).all()):
+        return triangulate_dlt(PL, PR, UL, UR)
+    pts, ok = np.empty((UL.shape[0], 3)), np.empty(UL.shape[0], dtype=bool)
+    k.triangulate_dlt(np.ascontiguousarray(PL, np.float64), np.ascontiguousarray(PR, np.float64),
+                      np.ascontiguousarray(UL, np.float64), np.ascontiguousarray(UR, np.float64), pts, ok)
+    return pts if ok.all() else triangulate_dlt(PL, PR, UL, UR)
+
+
 def match_and_triangulate(
     cal: StereoCalibration,
     left: list[RingDetection],
@@ -294,7 +307,7 @@ def match_and_triangulate(
         normals = _normal_correction(cal, paired_l, paired_r, HL, HR, UL, UR)
     elif params.correction == "concentric":
         _concentric_correction(paired_l, paired_r, HL, HR, UL, UR)
-    pts = triangulate_dlt(const.P_left, const.P_right, UL, UR)
+    pts = _triangulate(const.P_left, const.P_right, UL, UR)
     ones = np.ones((len(UL), 1))
     dirs_l = np.hstack([UL, ones]) @ const.K_left_inv.T
     dirs_r = (np.hstack([UR, ones]) @ const.K_right_inv.T) @ R_rl

@@ -1,5 +1,5 @@
-"""The compiled kernel (hil/vision/_kernel.c: ring edges, robust ellipse fits, the stereo stage's
-plane-normal correction) against the numpy reference it replaces.
+"""The compiled kernel (hil/vision/_kernel.c: ring edges, robust ellipse fits, ring check, the
+stereo stage's plane-normal correction and DLT) against the numpy reference it replaces.
 
 Tolerances (the kernel does the reference's arithmetic in the same order except for a few sums --
 numpy's pairwise sums and BLAS products -- and libm's cos/sin/acos, so the two differ by rounding):
@@ -12,6 +12,8 @@ numpy's pairwise sums and BLAS products -- and libm's cos/sin/acos, so the two d
   the numpy code's own change when the points are reversed (an ill-conditioned fit -- a tiny
   ellipse with few noisy points, points exactly on an ellipse -- moves by more than 1e-9 under
   reordering alone);
+- DLT points (the null vector by one-sided Jacobi rotations, numpy by LAPACK's SVD) within
+  1e-11 x depth x max(depth / baseline, 1) mm;
 - full-frame 3D points within 1e-8 mm; tracked 3D points within 1e-6 mm (the tracker carries
   last-digit differences from pair to pair through its predictions).
 """
@@ -31,6 +33,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from hil.geometry.triangulation import triangulate_dlt
 from hil.vision import kernel
 from hil.vision.detect import DetectParams, _ring_check, _ring_check_kernel, begin_search, detect_rings_multi
 from hil.vision.ellipse import fit_ellipse_arrays_numpy, fit_ellipse_arrays_used
@@ -342,6 +345,28 @@ def test_normal_correction_rejects_bad_buffers_naming_them() -> None:
     bad[2] = np.eye(3)[:, ::-1]
     with pytest.raises(ValueError, match="K_left: must be C-contiguous"):
         k.normal_correction(*bad)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), depth=st.floats(300.0, 3000.0), spread=st.floats(1.0, 400.0),
+       n=st.integers(1, 40))
+def test_dlt_triangulation_equals_the_numpy_svd(seed: int, depth: float, spread: float, n: int) -> None:
+    k = kernel._module
+    assert k is not None
+    const = scaled_rig(1920).constants
+    rng = np.random.default_rng(seed)
+    X = np.column_stack([rng.uniform(-spread, spread, (n, 2)), depth + rng.uniform(-spread, spread, n)])
+    uv = []
+    for P in (const.P_left, const.P_right):
+        h = np.column_stack([X, np.ones(n)]) @ P.T
+        uv.append(h[:, :2] / h[:, 2:] + rng.normal(0.0, 0.05, (n, 2)))
+    ref = triangulate_dlt(const.P_left, const.P_right, uv[0], uv[1])
+    pts, ok = np.empty((n, 3)), np.empty(n, dtype=bool)
+    k.triangulate_dlt(np.ascontiguousarray(const.P_left), np.ascontiguousarray(const.P_right), uv[0], uv[1],
+                      pts, ok)
+    assert ok.all()
+    # both are accurate to rounding times the depth's conditioning (baseline 120 mm)
+    np.testing.assert_allclose(pts, ref, rtol=0, atol=1e-11 * depth * max(depth / 120.0, 1.0))
 
 
 def test_many_calls_leak_neither_memory_nor_references(pairs: list[object]) -> None:
