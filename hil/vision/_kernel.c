@@ -1063,6 +1063,66 @@ done:
     return ret;
 }
 
+/* ---- stereo: ray gaps ---------------------------------------------------------------------- */
+
+PyDoc_STRVAR(ray_gaps_doc,
+"ray_gaps(UL, UR, K_left_inv, K_right_inv, R_right_from_left, right_center, gaps, ok) -> None\n\n"
+"The distance (mm) between the left ray through UL (N, 2) ideal px (from the origin) and the right\n"
+"ray through UR (from right_center (3,), directions rotated by R_right_from_left^T into the left\n"
+"frame): the skew-ray gap of hil.geometry.triangulation.triangulate_midpoint (seed 003 eq 4).\n"
+"Writes gaps (N,) and ok (N,) bool (False: a zero direction or parallel rays).");
+
+static PyObject *k_ray_gaps(PyObject *self, PyObject *args)
+{
+    PyObject *o[8];
+    if (!PyArg_ParseTuple(args, "OOOOOOOO:ray_gaps", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7])) {
+        return NULL;
+    }
+    BufSet bs = {.count = 0};
+    PyObject *ret = NULL;
+    Py_ssize_t sh[2] = {-1, 2}, got[2], sh33[2] = {3, 3}, sh3[1] = {3};
+    const double *UL = get_buf(&bs, o[0], "UL", 'd', 2, sh, 0, got);
+    if (!UL) goto done;
+    Py_ssize_t N = got[0];
+    Py_ssize_t shN2[2] = {N, 2}, shN[1] = {N};
+    const double *UR = get_buf(&bs, o[1], "UR", 'd', 2, shN2, 0, NULL);
+    const double *KLi = UR ? get_buf(&bs, o[2], "K_left_inv", 'd', 2, sh33, 0, NULL) : NULL;
+    const double *KRi = KLi ? get_buf(&bs, o[3], "K_right_inv", 'd', 2, sh33, 0, NULL) : NULL;
+    const double *R = KRi ? get_buf(&bs, o[4], "R_right_from_left", 'd', 2, sh33, 0, NULL) : NULL;
+    const double *ob = R ? get_buf(&bs, o[5], "right_center", 'd', 1, sh3, 0, NULL) : NULL;
+    double *gaps = ob ? get_buf(&bs, o[6], "gaps", 'd', 1, shN, 1, NULL) : NULL;
+    unsigned char *ok = gaps ? get_buf(&bs, o[7], "ok", '?', 1, shN, 1, NULL) : NULL;
+    if (!ok) goto done;
+    double w0[3] = {0.0 - ob[0], 0.0 - ob[1], 0.0 - ob[2]};
+    for (Py_ssize_t k = 0; k < N; k++) {
+        double xl[3] = {UL[2 * k], UL[2 * k + 1], 1.0}, xr[3] = {UR[2 * k], UR[2 * k + 1], 1.0};
+        double u[3], e3[3], v[3];
+        for (int i = 0; i < 3; i++) {
+            u[i] = xl[0] * KLi[3 * i] + xl[1] * KLi[3 * i + 1] + xl[2] * KLi[3 * i + 2];
+            e3[i] = xr[0] * KRi[3 * i] + xr[1] * KRi[3 * i + 1] + xr[2] * KRi[3 * i + 2];
+        }
+        for (int j = 0; j < 3; j++) v[j] = e3[0] * R[j] + e3[1] * R[3 + j] + e3[2] * R[6 + j];
+        double nu = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+        double nv = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+        for (int i = 0; i < 3; i++) { u[i] /= nu; v[i] /= nv; }
+        double b = u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+        double d = u[0] * w0[0] + u[1] * w0[1] + u[2] * w0[2];
+        double e = v[0] * w0[0] + v[1] * w0[1] + v[2] * w0[2];
+        double denom = 1.0 - b * b;
+        ok[k] = (unsigned char)(nu != 0.0 && nv != 0.0 && denom > 1e-12);
+        double s = (b * e - d) / denom, t = (e - b * d) / denom, g = 0;
+        for (int i = 0; i < 3; i++) {
+            double pa = 0.0 + s * u[i], pb = ob[i] + t * v[i];
+            g += (pa - pb) * (pa - pb);
+        }
+        gaps[k] = sqrt(g);
+    }
+    ret = Py_NewRef(Py_None);
+done:
+    bufs_release(&bs);
+    return ret;
+}
+
 /* ---- module ------------------------------------------------------------------------------- */
 
 static PyMethodDef kernel_methods[] = {
@@ -1073,6 +1133,7 @@ static PyMethodDef kernel_methods[] = {
     {"normal_correction", k_normal_correction, METH_VARARGS, normal_correction_doc},
     {"ring_check", k_ring_check, METH_VARARGS, ring_check_doc},
     {"triangulate_dlt", k_triangulate_dlt, METH_VARARGS, triangulate_dlt_doc},
+    {"ray_gaps", k_ray_gaps, METH_VARARGS, ray_gaps_doc},
     {NULL, NULL, 0, NULL},
 };
 

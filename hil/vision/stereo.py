@@ -251,6 +251,25 @@ def _triangulate(PL: FloatArray, PR: FloatArray, UL: FloatArray, UR: FloatArray)
     return pts if ok.all() else triangulate_dlt(PL, PR, UL, UR)
 
 
+def _ray_gaps(cal: StereoCalibration, UL: FloatArray, UR: FloatArray) -> FloatArray:
+    """The skew-ray gap (mm) of each pair (seed 003; :func:`triangulate_midpoint`), by the compiled
+    kernel when it is selected and the rays are usable, else by the numpy function (and its errors)."""
+    const, R_rl = cal.constants, cal.R_right_from_left
+    k = kernel.active()
+    if k is not None and np.isfinite(UL).all() and np.isfinite(UR).all():
+        gaps, ok = np.empty(UL.shape[0]), np.empty(UL.shape[0], dtype=bool)
+        c8 = [np.ascontiguousarray(a, np.float64) for a in (UL, UR, const.K_left_inv, const.K_right_inv, R_rl,
+                                                            const.right_center_mm)]
+        k.ray_gaps(*c8, gaps, ok)
+        if ok.all():
+            return gaps
+    ones = np.ones((len(UL), 1))
+    dirs_l = np.hstack([UL, ones]) @ const.K_left_inv.T
+    dirs_r = (np.hstack([UR, ones]) @ const.K_right_inv.T) @ R_rl
+    _, gaps = triangulate_midpoint(np.zeros(3), dirs_l, const.right_center_mm, dirs_r)
+    return gaps
+
+
 def match_and_triangulate(
     cal: StereoCalibration,
     left: list[RingDetection],
@@ -262,7 +281,6 @@ def match_and_triangulate(
     Raises:
         GeometryError (from the triangulation) only for degenerate input such as parallel rays.
     """
-    R_rl = cal.R_right_from_left
     const = cal.constants
     nl, nr = len(left), len(right)
     if nl == 0 or nr == 0:
@@ -308,10 +326,7 @@ def match_and_triangulate(
     elif params.correction == "concentric":
         _concentric_correction(paired_l, paired_r, HL, HR, UL, UR)
     pts = _triangulate(const.P_left, const.P_right, UL, UR)
-    ones = np.ones((len(UL), 1))
-    dirs_l = np.hstack([UL, ones]) @ const.K_left_inv.T
-    dirs_r = (np.hstack([UR, ones]) @ const.K_right_inv.T) @ R_rl
-    _, gaps = triangulate_midpoint(np.zeros(3), dirs_l, const.right_center_mm, dirs_r)
+    gaps = _ray_gaps(cal, UL, UR)
     epi = np.abs(_rectify(cal, "left", UL)[:, 1] - _rectify(cal, "right", UR)[:, 1]).tolist()
     gap_list = gaps.tolist()
     good: list[StereoPoint] = []

@@ -1,5 +1,5 @@
 """The compiled kernel (hil/vision/_kernel.c: ring edges, robust ellipse fits, ring check, the
-stereo stage's plane-normal correction and DLT) against the numpy reference it replaces.
+stereo stage's plane-normal correction, DLT and ray gaps) against the numpy reference it replaces.
 
 Tolerances (the kernel does the reference's arithmetic in the same order except for a few sums --
 numpy's pairwise sums and BLAS products -- and libm's cos/sin/acos, so the two differ by rounding):
@@ -14,6 +14,7 @@ numpy's pairwise sums and BLAS products -- and libm's cos/sin/acos, so the two d
   reordering alone);
 - DLT points (the null vector by one-sided Jacobi rotations, numpy by LAPACK's SVD) within
   1e-11 x depth x max(depth / baseline, 1) mm;
+- ray gaps within 1e-9 relative;
 - full-frame 3D points within 1e-8 mm; tracked 3D points within 1e-6 mm (the tracker carries
   last-digit differences from pair to pair through its predictions).
 """
@@ -34,7 +35,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hil.geometry.triangulation import triangulate_dlt
-from hil.vision import kernel
+from hil.vision import kernel, stereo
 from hil.vision.detect import DetectParams, _ring_check, _ring_check_kernel, begin_search, detect_rings_multi
 from hil.vision.ellipse import fit_ellipse_arrays_numpy, fit_ellipse_arrays_used
 from hil.vision.render import RenderOptions, RingMarker3D, render_stereo
@@ -367,6 +368,29 @@ def test_dlt_triangulation_equals_the_numpy_svd(seed: int, depth: float, spread:
     assert ok.all()
     # both are accurate to rounding times the depth's conditioning (baseline 120 mm)
     np.testing.assert_allclose(pts, ref, rtol=0, atol=1e-11 * depth * max(depth / 120.0, 1.0))
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), depth=st.floats(300.0, 3000.0), n=st.integers(1, 30))
+def test_ray_gaps_equal_the_numpy_midpoint_gaps(seed: int, depth: float, n: int) -> None:
+    cal = scaled_rig(1920)
+    const, R = cal.constants, cal.R_right_from_left
+    rng = np.random.default_rng(seed)
+    UL = rng.uniform(0, 1920, (n, 2))
+    UR = UL - np.array([1394.0 * 120.0 / depth, 0.0]) + rng.normal(0.0, 2.0, (n, 2))
+    ref = stereo._ray_gaps(cal, UL, UR)  # the kernel when built
+    previous = kernel.use_kernel(False)
+    try:
+        want = stereo._ray_gaps(cal, UL, UR)
+    finally:
+        kernel.use_kernel(previous)
+    assert kernel._module is not None
+    np.testing.assert_allclose(ref, want, rtol=1e-9, atol=1e-12)
+    gaps, ok = np.empty(n), np.empty(n, dtype=bool)
+    mats = [np.ascontiguousarray(a) for a in (const.K_left_inv, const.K_right_inv, R, const.right_center_mm)]
+    kernel._module.ray_gaps(UL, UR, *mats, gaps, ok)
+    assert ok.all()
+    np.testing.assert_allclose(gaps, want, rtol=1e-9, atol=1e-12)
 
 
 def test_many_calls_leak_neither_memory_nor_references(pairs: list[object]) -> None:
