@@ -14,7 +14,9 @@ numpy's pairwise sums and BLAS products -- and libm's cos/sin/acos, so the two d
   reordering alone);
 - DLT points (the null vector by one-sided Jacobi rotations, numpy by LAPACK's SVD) within
   1e-11 x depth x max(depth / baseline, 1) mm;
-- ray gaps within 1e-9 relative;
+- ray gaps within 1e-9 relative; the plane-normal correction (random circles seen by the rig,
+  each view's normal and centre perturbed): the same corrected pairs, centres within
+  1e-9 px and normals within 1e-9;
 - full-frame 3D points within 1e-8 mm; tracked 3D points within 1e-6 mm (the tracker carries
   last-digit differences from pair to pair through its predictions).
 """
@@ -36,8 +38,16 @@ from hypothesis import strategies as st
 
 from hil.geometry.triangulation import triangulate_dlt
 from hil.vision import kernel, stereo
-from hil.vision.detect import DetectParams, _ring_check, _ring_check_kernel, begin_search, detect_rings_multi
-from hil.vision.ellipse import fit_ellipse_arrays_numpy, fit_ellipse_arrays_used
+from hil.vision.conics import circle_image_conic
+from hil.vision.detect import (
+    DetectParams,
+    RingDetection,
+    _ring_check,
+    _ring_check_kernel,
+    begin_search,
+    detect_rings_multi,
+)
+from hil.vision.ellipse import ellipse_from_conic, fit_ellipse_arrays_numpy, fit_ellipse_arrays_used
 from hil.vision.render import RenderOptions, RingMarker3D, render_stereo
 from hil.vision.ring_edges import RingEdges, RingSeeds, ring_edges_multi, ring_edges_multi_numpy
 from hil.vision.stereo import match_and_triangulate
@@ -391,6 +401,53 @@ def test_ray_gaps_equal_the_numpy_midpoint_gaps(seed: int, depth: float, n: int)
     kernel._module.ray_gaps(UL, UR, *mats, gaps, ok)
     assert ok.all()
     np.testing.assert_allclose(gaps, want, rtol=1e-9, atol=1e-12)
+
+
+def _detection(C_outer: np.ndarray, C_inner: np.ndarray) -> RingDetection:
+    outer, inner = ellipse_from_conic(C_outer), ellipse_from_conic(C_inner)
+    assert outer is not None
+    assert inner is not None
+    return RingDetection(outer.center_px, 0.01, outer, inner, 0.05, True, 1.0)
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 12), tilt=st.floats(0.0, 1.2),
+       noise=st.floats(0.0, 0.05))
+def test_plane_normal_correction_equals_the_numpy_code(seed: int, n: int, tilt: float, noise: float) -> None:
+    cal = scaled_rig(1920)
+    R, t = cal.R_right_from_left, cal.t_right_from_left_mm.reshape(3)
+    rng = np.random.default_rng(seed)
+    left, right = [], []
+    for _ in range(n):
+        c = np.array([rng.uniform(-200, 200), rng.uniform(-120, 120), rng.uniform(500, 1500)])
+        az = rng.uniform(0, 2 * math.pi)
+        normal = np.array([math.sin(tilt) * math.cos(az), math.sin(tilt) * math.sin(az), -math.cos(tilt)])
+        cones = []
+        for K, cc, nn in ((cal.K_left, c, normal), (cal.K_right, R @ c + t, R @ normal)):
+            nn = nn + rng.normal(0.0, noise, 3)  # each view its own (measurement-like) error
+            cc = cc + rng.normal(0.0, 5.0 * noise, 3)
+            cones.append(_detection(*(circle_image_conic(K, cc, nn / np.linalg.norm(nn), radius)
+                                      for radius in (3.5, 1.5))))
+        left.append(cones[0])
+        right.append(cones[1])
+    UL0 = np.array([d.center_px for d in left])
+    UR0 = np.array([d.center_px for d in right])
+    out = {}
+    for on in (False, True):
+        previous = kernel.use_kernel(on)
+        try:
+            UL, UR = UL0.copy(), UR0.copy()
+            normals = stereo._normal_correction(cal, left, right, None, None, UL, UR)
+        finally:
+            kernel.use_kernel(previous)
+        out[on] = (UL, UR, normals)
+    (UL_n, UR_n, N_n), (UL_k, UR_k, N_k) = out[False], out[True]
+    assert [v is None for v in N_k] == [v is None for v in N_n]  # the same pairs corrected
+    np.testing.assert_allclose(UL_k, UL_n, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(UR_k, UR_n, rtol=0, atol=1e-9)
+    for a, b in zip(N_k, N_n, strict=True):
+        if a is not None and b is not None:
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
 
 
 def test_many_calls_leak_neither_memory_nor_references(pairs: list[object]) -> None:
