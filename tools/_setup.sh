@@ -53,11 +53,12 @@ ensure_venv() {
         local pip_log="$VENV/pip-install.log"
         if ! { "$VENV/bin/python" -m pip install --upgrade pip &&
                "$VENV/bin/python" -m pip install -e "$HIL_ROOT[$extras]"; } >"$pip_log" 2>&1; then
-            if grep -q "_kernel.c" "$pip_log"; then
-                log "building the compiled vision kernel (hil/vision/_kernel.c) failed: see $pip_log"
-            else
-                log "pip install failed; the last lines of $pip_log:"
+            if grep -q "_kernel.c:[0-9]*:[0-9]*: error" "$pip_log"; then
+                log "building the compiled vision kernel (hil/vision/_kernel.c) failed; the compiler's errors (all in $pip_log):"
+                grep -m 10 "_kernel.c:[0-9]*:[0-9]*: error" "$pip_log" >&2
+                return 1
             fi
+            log "pip install failed; the last lines of $pip_log:"
             grep -v "is ignored: it is neither a file nor a directory" "$pip_log" | tail -n 30 >&2
             return 1
         fi
