@@ -40,20 +40,40 @@ ensure_venv() {
     fi
     local stamp="$VENV/.hil-installed"
     local extras="${HIL_EXTRAS:-$HIL_DEFAULT_EXTRAS}"
-    # Reinstall only when pyproject.toml or the extras changed since the last install.
+    # Reinstall only when pyproject.toml, setup.py, the C sources of the compiled kernel
+    # (hil/vision/_kernel.c) or the extras changed since the last install, or the built kernel is
+    # gone (the editable install builds it next to its source).
     local want
-    want="$(sha256sum "$HIL_ROOT/pyproject.toml" | cut -d' ' -f1) $extras"
-    if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+    want="$(cat "$HIL_ROOT/pyproject.toml" "$HIL_ROOT/setup.py" "$HIL_ROOT"/hil/vision/*.c |
+            sha256sum | cut -d' ' -f1) $extras"
+    if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] ||
+       ! compgen -G "$HIL_ROOT/hil/vision/_kernel*.so" >/dev/null; then
+        ensure_c_compiler || return 1
         log "installing the project into $VENV (extras: $extras)"
         local pip_log="$VENV/pip-install.log"
         if ! { "$VENV/bin/python" -m pip install --upgrade pip &&
                "$VENV/bin/python" -m pip install -e "$HIL_ROOT[$extras]"; } >"$pip_log" 2>&1; then
+            if grep -q "_kernel.c:[0-9]*:[0-9]*: error" "$pip_log"; then
+                log "building the compiled vision kernel (hil/vision/_kernel.c) failed; the compiler's errors (all in $pip_log):"
+                grep -m 10 "_kernel.c:[0-9]*:[0-9]*: error" "$pip_log" >&2
+                return 1
+            fi
             log "pip install failed; the last lines of $pip_log:"
             grep -v "is ignored: it is neither a file nor a directory" "$pip_log" | tail -n 30 >&2
             return 1
         fi
         echo "$want" > "$stamp"
     fi
+}
+
+ensure_c_compiler() {
+    # The editable install compiles hil/vision/_kernel.c: it needs a C compiler (Debian gcc) and
+    # the Python headers (pyenv and python3-dev provide them).
+    command -v "${CC:-gcc}" >/dev/null 2>&1 && return 0
+    apt_install_missing gcc libc6-dev || true
+    command -v "${CC:-gcc}" >/dev/null 2>&1 && return 0
+    log "no C compiler (gcc) to build the vision kernel hil/vision/_kernel.c: install gcc (apt-get install gcc)"
+    return 1
 }
 
 ensure_device_support() {

@@ -28,14 +28,16 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from hil.errors import VisionError
+from hil.vision import kernel
 from hil.vision.conics import concentric_center, conic_center
-from hil.vision.ellipse import Ellipse, fit_conic_paper, fit_ellipse_arrays
+from hil.vision.ellipse import Ellipse, EllipseArrays, fit_conic_paper, fit_ellipse_arrays
 from hil.vision.ring_edges import RingEdges, RingSeeds, ring_edges, ring_edges_multi
 
 FloatArray = NDArray[np.float64]
@@ -344,6 +346,27 @@ def fit_rings(edges: RingEdges, params: DetectParams) -> list[RingDetection | No
         np.concatenate([edges.yo[idx], edges.yi[idx]]),
         np.concatenate([edges.mo[idx], edges.mi[idx]]),
     )
+    kern = kernel.active()
+    check = _ring_check(f, m, params) if kern is None else _ring_check_kernel(kern, f, m, params)
+    ok, center, sigma, resid = check
+    keep = np.nonzero(ok)[0]
+    outers, inners = f.ellipses(keep), f.ellipses(keep + m)
+    rows = idx[keep]
+    centers = center[keep]
+    sig, res = sigma[keep].tolist(), resid[keep].tolist()
+    dol, frac = edges.dark_on_light[rows].tolist(), edges.frac[rows].tolist()
+    for k, j in enumerate(rows.tolist()):
+        out[j] = RingDetection(centers[k], sig[k], outers[k], inners[k], res[k], dol[k], frac[k])
+    return out
+
+
+_RingCheck = tuple[NDArray[np.bool_], FloatArray, FloatArray, FloatArray]
+
+
+def _ring_check(f: EllipseArrays, m: int, params: DetectParams) -> _RingCheck:
+    """The ring check and centre of :func:`fit_rings` (numpy reference): m rings whose outer
+    ellipses are rows ``0..m-1`` of ``f`` and inner ellipses rows ``m..2m-1``. Returns ok (m,),
+    centres (m, 2) px, their sigma (m,) px and the RMS residual over both edges (m,) px."""
     o, i = slice(0, m), slice(m, 2 * m)
     ao, bo, ai, bi = f.a_px[o], f.b_px[o], f.a_px[i], f.b_px[i]
     ro, ri = f.residual_rms_px[o], f.residual_rms_px[i]
@@ -367,15 +390,16 @@ def fit_rings(edges: RingEdges, params: DetectParams) -> list[RingDetection | No
     var_i = 2.0 * np.maximum(ri, 0.01) ** 2 / np.maximum(ni, 1)
     sigma = np.sqrt(wo * wo * var_o + wi * wi * var_i)
     resid = np.sqrt((ro**2 * no + ri**2 * ni) / np.maximum(no + ni, 1))
-    keep = np.nonzero(ok)[0]
-    outers, inners = f.ellipses(keep), f.ellipses(keep + m)
-    rows = idx[keep]
-    centers = center[keep]
-    sig, res = sigma[keep].tolist(), resid[keep].tolist()
-    dol, frac = edges.dark_on_light[rows].tolist(), edges.frac[rows].tolist()
-    for k, j in enumerate(rows.tolist()):
-        out[j] = RingDetection(centers[k], sig[k], outers[k], inners[k], res[k], dol[k], frac[k])
-    return out
+    return ok, center, sigma, resid
+
+
+def _ring_check_kernel(k: Any, f: EllipseArrays, m: int, params: DetectParams) -> _RingCheck:
+    """:func:`_ring_check` by the compiled kernel (hil/vision/_kernel.c; the same arithmetic)."""
+    ok, center, sigma, resid = np.empty(m, dtype=bool), np.empty((m, 2)), np.empty(m), np.empty(m)
+    k.ring_check(f.a_px, f.b_px, f.center_px, f.residual_rms_px, f.n_points, f.good,
+                 float(params.max_residual_px), float(params.concentric_tol), float(params.inner_outer_ratio),
+                 float(params.ratio_tol), float(params.eccentricity_tol), ok, center, sigma, resid)
+    return ok, center, sigma, resid
 
 
 def _refine_hypotheses(

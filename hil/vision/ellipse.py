@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from hil.vision import kernel
 from hil.vision.sym3 import adj_sym3, det_sym3, ellipse_eigvec
 
 FloatArray = NDArray[np.float64]
@@ -290,9 +291,33 @@ class EllipseArrays:
 
 
 def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> EllipseArrays:
-    """Robust direct ellipse fits of E point sets (X, Y (E, R), M the used points): a fit, the
+    """Robust direct ellipse fits of E point sets (X, Y (E, R) px, M the used points): a fit, the
     points beyond 3 MAD of the Sampson distances (and 0.05 px) dropped, a re-fit. Same result as
-    fitting each set on its own, with far fewer numpy calls."""
+    fitting each set on its own. By the compiled kernel when it is selected
+    (:mod:`hil.vision.kernel`; the same results to rounding), else :func:`fit_ellipse_arrays_numpy`."""
+    return fit_ellipse_arrays_used(X, Y, M)[0]
+
+
+def fit_ellipse_arrays_used(
+    X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]
+) -> tuple[EllipseArrays, NDArray[np.bool_]]:
+    """:func:`fit_ellipse_arrays` and the points of each final fit (E, R) (the re-fit's inliers)."""
+    k = kernel.active()
+    if k is None:
+        return fit_ellipse_arrays_numpy(X, Y, M)
+    E, R = X.shape
+    C, centers = np.empty((E, 3, 3)), np.empty((E, 2))
+    a, b, ang, res = np.empty(E), np.empty(E), np.empty(E), np.empty(E)
+    n_pts, good, used = np.empty(E, dtype=np.int64), np.empty(E, dtype=bool), np.empty((E, R), dtype=bool)
+    k.fit_ellipses(np.ascontiguousarray(X, dtype=np.float64), np.ascontiguousarray(Y, dtype=np.float64),
+                   np.ascontiguousarray(M, dtype=np.bool_), C, centers, a, b, ang, res, n_pts, good, used)
+    return EllipseArrays(C, centers, a, b, ang, res, n_pts, good), used
+
+
+def fit_ellipse_arrays_numpy(
+    X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]
+) -> tuple[EllipseArrays, NDArray[np.bool_]]:
+    """The numpy reference of :func:`fit_ellipse_arrays_used` (batched array operations)."""
     W = M.astype(np.float64)
     C, ok = _direct_fit_batch(X, Y, W)
     P = _homogeneous(X, Y)
@@ -327,7 +352,7 @@ def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> El
     res = np.sqrt(np.where(M, d * d, 0.0).sum(axis=1) / np.maximum(n_pts, 1))
     centers = np.empty((C.shape[0], 2))
     centers[:, 0], centers[:, 1] = cx, cy
-    return EllipseArrays(C, centers, a_ax, b_ax, angle, res, n_pts, good)
+    return EllipseArrays(C, centers, a_ax, b_ax, angle, res, n_pts, good), M
 
 
 def fit_ellipses_robust_batch(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> list[Ellipse | None]:

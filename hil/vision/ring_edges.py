@@ -24,6 +24,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from hil.vision import kernel
+
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 U8Image = NDArray[np.uint8]
@@ -179,6 +181,59 @@ def _crossings(prof: Any, jr3: Any, jmin: Any, valid3: Any, r: Any, t_out: Any,
 
 
 def ring_edges_multi(
+    parts: Sequence[tuple[U8Image, RingSeeds]], n_rays: int, min_contrast: float, min_valid_fraction: float
+) -> RingEdges:
+    """:func:`ring_edges_multi_numpy` by the compiled kernel when it is selected
+    (:mod:`hil.vision.kernel`; the same results to rounding), else by the numpy code.
+
+    Raises:
+        ValueError: (kernel) a seed's radius is not finite or needs more than 1e6 samples.
+    """
+    k = kernel.active()
+    if k is None:
+        return ring_edges_multi_numpy(parts, n_rays, min_contrast, min_valid_fraction)
+    return _ring_edges_kernel(k, parts, n_rays, min_contrast, min_valid_fraction)
+
+
+def _ring_edges_kernel(
+    k: Any, parts: Sequence[tuple[U8Image, RingSeeds]], n_rays: int, min_contrast: float,
+    min_valid_fraction: float,
+) -> RingEdges:
+    """:func:`ring_edges_multi_numpy` with the per-ring work in ``hil.vision._kernel``: the rays'
+    radii, the sample positions, one ``cv2.remap`` per image (the same bicubic samples), then the
+    levels, crossings and checks of every ring in one compiled call."""
+    seeds = parts[0][1] if len(parts) == 1 else RingSeeds.stack([sd for _, sd in parts])
+    E, n = seeds.count, n_rays
+    theta, cos_t, sin_t = _ray_dirs(n)
+    if E == 0:
+        z, zb = np.zeros((0, n)), np.zeros((0, n), dtype=bool)
+        return RingEdges(z, z, zb, z, z, zb, np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool))
+    origin = np.ascontiguousarray(seeds.origin_px, dtype=np.float64)
+    dol = np.ascontiguousarray(seeds.dark_on_light, dtype=np.bool_)
+    r_out, r_in = np.empty((E, n)), np.empty((E, n))
+    n_samples = np.empty(E, dtype=np.int64)
+    S = k.ring_geometry(np.ascontiguousarray(seeds.outer, dtype=np.float64),
+                        np.ascontiguousarray(seeds.inner, dtype=np.float64), theta, r_out, r_in, n_samples)
+    mapx, mapy = np.empty((E, n, S), dtype=np.float32), np.empty((E, n, S), dtype=np.float32)
+    k.ray_maps(origin, cos_t, sin_t, mapx, mapy)
+    grey = np.empty((E, n, S), dtype=np.uint8)
+    start = 0
+    for img, sd in parts:
+        stop = start + sd.count
+        if stop > start:
+            mx, my = mapx[start:stop].reshape(-1, S), mapy[start:stop].reshape(-1, S)
+            grey[start:stop] = cv2.remap(img, mx, my, cv2.INTER_CUBIC,
+                                         borderMode=cv2.BORDER_REPLICATE).reshape(-1, n, S)
+        start = stop
+    xo, yo, xi, yi = np.empty((E, n)), np.empty((E, n)), np.empty((E, n)), np.empty((E, n))
+    mo, mi = np.empty((E, n), dtype=bool), np.empty((E, n), dtype=bool)
+    frac, ok = np.empty(E), np.empty(E, dtype=bool)
+    k.ring_edges(grey, dol, origin, cos_t, sin_t, r_out, r_in, n_samples, float(min_contrast),
+                 float(min_valid_fraction), xo, yo, mo, xi, yi, mi, frac, ok)
+    return RingEdges(xo, yo, mo, xi, yi, mi, frac, ok, dol.copy())
+
+
+def ring_edges_multi_numpy(
     parts: Sequence[tuple[U8Image, RingSeeds]], n_rays: int, min_contrast: float, min_valid_fraction: float
 ) -> RingEdges:
     """Sub-pixel outer and inner edge points of every seeded ring (see the module doc) of several

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from hil.geometry.triangulation import triangulate_dlt, triangulate_midpoint
+from hil.vision import kernel
 from hil.vision.camera_model import StereoCalibration, undistort_pixels
 from hil.vision.conics import concentric_center, conic_center, conic_centers
 from hil.vision.detect import RingDetection
@@ -191,6 +192,12 @@ def _normal_correction(
     KL, KR, R_rl = cal.K_left, cal.K_right, cal.R_right_from_left
     P = len(left)
     C, w = _conic_stacks(left, right, HL, HR)
+    k = kernel.active()
+    if k is not None:  # the same arithmetic compiled (hil/vision/_kernel.c), results equal to rounding
+        normals, ok_k = np.empty((P, 3)), np.empty(P, dtype=bool)
+        c8 = [np.ascontiguousarray(a, np.float64) for a in (C, w, KL, KR, R_rl)]
+        k.normal_correction(*c8, UL, UR, normals, ok_k)
+        return [normals[i] if ok_k[i] else None for i in range(P)]
     wl, wr = w[:P], w[P:]
     c1, c2, okc = circle_normals_from_cones(np.concatenate([KL.T @ C[:P] @ KL, KR.T @ C[P : 2 * P] @ KR]))
     l1, l2, okL = c1[:P], c2[:P], okc[:P]
@@ -231,6 +238,38 @@ def _concentric_correction(
             UR[k] += ccr - (wr[k, 0] * conic_center(CoR[k]) + wr[k, 1] * conic_center(CiR[k]))
 
 
+def _triangulate(PL: FloatArray, PR: FloatArray, UL: FloatArray, UR: FloatArray) -> FloatArray:
+    """:func:`hil.geometry.triangulation.triangulate_dlt` by the compiled kernel when it is selected
+    (the null vector by one-sided Jacobi rotations instead of LAPACK's SVD: the same points to
+    rounding); the numpy function (and its errors) for non-finite input or a point at infinity."""
+    k = kernel.active()
+    if k is None or not (np.isfinite(UL).all() and np.isfinite(UR).all()):
+        return triangulate_dlt(PL, PR, UL, UR)
+    pts, ok = np.empty((UL.shape[0], 3)), np.empty(UL.shape[0], dtype=bool)
+    k.triangulate_dlt(np.ascontiguousarray(PL, np.float64), np.ascontiguousarray(PR, np.float64),
+                      np.ascontiguousarray(UL, np.float64), np.ascontiguousarray(UR, np.float64), pts, ok)
+    return pts if ok.all() else triangulate_dlt(PL, PR, UL, UR)
+
+
+def _ray_gaps(cal: StereoCalibration, UL: FloatArray, UR: FloatArray) -> FloatArray:
+    """The skew-ray gap (mm) of each pair (seed 003; :func:`triangulate_midpoint`), by the compiled
+    kernel when it is selected and the rays are usable, else by the numpy function (and its errors)."""
+    const, R_rl = cal.constants, cal.R_right_from_left
+    k = kernel.active()
+    if k is not None and np.isfinite(UL).all() and np.isfinite(UR).all():
+        gaps, ok = np.empty(UL.shape[0]), np.empty(UL.shape[0], dtype=bool)
+        c8 = [np.ascontiguousarray(a, np.float64) for a in (UL, UR, const.K_left_inv, const.K_right_inv, R_rl,
+                                                            const.right_center_mm)]
+        k.ray_gaps(*c8, gaps, ok)
+        if ok.all():
+            return gaps
+    ones = np.ones((len(UL), 1))
+    dirs_l = np.hstack([UL, ones]) @ const.K_left_inv.T
+    dirs_r = (np.hstack([UR, ones]) @ const.K_right_inv.T) @ R_rl
+    _, gaps = triangulate_midpoint(np.zeros(3), dirs_l, const.right_center_mm, dirs_r)
+    return gaps
+
+
 def match_and_triangulate(
     cal: StereoCalibration,
     left: list[RingDetection],
@@ -242,7 +281,6 @@ def match_and_triangulate(
     Raises:
         GeometryError (from the triangulation) only for degenerate input such as parallel rays.
     """
-    R_rl = cal.R_right_from_left
     const = cal.constants
     nl, nr = len(left), len(right)
     if nl == 0 or nr == 0:
@@ -287,11 +325,8 @@ def match_and_triangulate(
         normals = _normal_correction(cal, paired_l, paired_r, HL, HR, UL, UR)
     elif params.correction == "concentric":
         _concentric_correction(paired_l, paired_r, HL, HR, UL, UR)
-    pts = triangulate_dlt(const.P_left, const.P_right, UL, UR)
-    ones = np.ones((len(UL), 1))
-    dirs_l = np.hstack([UL, ones]) @ const.K_left_inv.T
-    dirs_r = (np.hstack([UR, ones]) @ const.K_right_inv.T) @ R_rl
-    _, gaps = triangulate_midpoint(np.zeros(3), dirs_l, const.right_center_mm, dirs_r)
+    pts = _triangulate(const.P_left, const.P_right, UL, UR)
+    gaps = _ray_gaps(cal, UL, UR)
     epi = np.abs(_rectify(cal, "left", UL)[:, 1] - _rectify(cal, "right", UR)[:, 1]).tolist()
     gap_list = gaps.tolist()
     good: list[StereoPoint] = []

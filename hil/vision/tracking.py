@@ -221,13 +221,17 @@ class ImageTracker:
         v = np.array([t.velocity_px_s for t in self._tracks])
         return np.asarray(c + v * dt, dtype=np.float64)
 
-    def _gates(self, preds: FloatArray) -> FloatArray:
-        """Per track, the largest accepted distance of a detection from its prediction (px)."""
-        half = np.array([_window_half_px(t.det, self.params.window_margin_px) for t in self._tracks])
-        if preds.shape[0] > 1:
-            d = _distances(preds, preds)
-            np.fill_diagonal(d, np.inf)
-            half = np.minimum(half, 0.5 * d.min(axis=1))
+    def _gates(self, preds: FloatArray) -> list[float]:
+        """Per track, the largest accepted distance of a detection from its prediction (px): its
+        window's half side, at most half the distance to the nearest other prediction. Plain
+        floats (a few markers: cheaper than array calls; the same IEEE arithmetic)."""
+        half = [_window_half_px(t.det, self.params.window_margin_px) for t in self._tracks]
+        p = preds.tolist()
+        if len(p) > 1:
+            for i, (xi, yi) in enumerate(p):
+                near = min(math.sqrt((xi - xj) * (xi - xj) + (yi - yj) * (yi - yj))
+                           for j, (xj, yj) in enumerate(p) if j != i)
+                half[i] = min(half[i], 0.5 * near)
         return half
 
     def _windowed(
@@ -237,12 +241,14 @@ class ImageTracker:
         found = list(found)
         gates = self._gates(preds)
         h, w = img.shape
-        centres = np.array([[np.nan, np.nan] if d is None else d.center_px for d in found])
-        dd = centres - preds
-        dist = np.sqrt(dd[:, 0] * dd[:, 0] + dd[:, 1] * dd[:, 1])
-        for i in np.nonzero(~(dist <= gates))[0]:
+        nan = math.nan
+        p = preds.tolist()
+        centres = [(nan, nan) if d is None else tuple(d.center_px.tolist()) for d in found]
+        dist = [math.sqrt((c[0] - q[0]) * (c[0] - q[0]) + (c[1] - q[1]) * (c[1] - q[1]))
+                for c, q in zip(centres, p, strict=True)]
+        for i in [i for i in range(len(found)) if not dist[i] <= gates[i]]:
             half = _window_half_px(tracks[i].det, self.params.window_margin_px)
-            x, y = preds[i]
+            x, y = p[i]
             box = (
                 max(int(x - half), 0),
                 max(int(y - half), 0),
@@ -252,17 +258,16 @@ class ImageTracker:
             det = refine_in_box(img, box, self.detect_params) if box[2] > box[0] and box[3] > box[1] else None
             ok = det is not None and float(np.linalg.norm(det.center_px - preds[i])) <= gates[i]
             found[i] = det if ok else None
-            centres[i] = det.center_px if det is not None and ok else np.nan
-            dist[i] = float(np.linalg.norm(centres[i] - preds[i]))
+            centres[i] = tuple(det.center_px.tolist()) if det is not None and ok else (nan, nan)
+            dist[i] = float(np.linalg.norm(np.array(centres[i]) - preds[i]))
         # two markers never take the same detection: the one nearer its prediction keeps it
-        if len(found) > 1:
-            sep = _distances(centres, centres)
-            b = np.array([np.nan if d is None else d.outer.b_px for d in found])
-            close = sep < 0.5 * np.minimum(b[:, None], b[None, :])
-            np.fill_diagonal(close, False)
-            for i, j in zip(*np.nonzero(np.triu(close)), strict=True):
-                if found[i] is not None and found[j] is not None:
-                    found[int(j) if dist[i] <= dist[j] else int(i)] = None
+        b = [nan if d is None else d.outer.b_px for d in found]
+        for i in range(len(found)):
+            for j in range(i + 1, len(found)):
+                dx, dy = centres[i][0] - centres[j][0], centres[i][1] - centres[j][1]
+                close = math.sqrt(dx * dx + dy * dy) < 0.5 * _nan_min(b[i], b[j])
+                if close and found[i] is not None and found[j] is not None:
+                    found[j if dist[i] <= dist[j] else i] = None
         return found
 
     def _advance(self, dets: list[RingDetection], dt: float) -> None:
@@ -291,7 +296,7 @@ class ImageTracker:
         old = self._tracks
         new: list[_Track] = []
         used: set[int] = set()
-        gates = self._gates(preds) if old else np.zeros(0)
+        gates = self._gates(preds) if old else []
         for det in dets:
             v = np.zeros(2)
             if old:
@@ -308,11 +313,9 @@ class ImageTracker:
             self._missing_since = self.stats.frames
 
 
-def _distances(p: FloatArray, q: FloatArray) -> FloatArray:
-    """Pairwise distances (len(p), len(q)) of two point sets (N, 2), (M, 2), px."""
-    dx = p[:, None, 0] - q[None, :, 0]
-    dy = p[:, None, 1] - q[None, :, 1]
-    return np.asarray(np.sqrt(dx * dx + dy * dy), dtype=np.float64)
+def _nan_min(a: float, b: float) -> float:
+    """``np.minimum`` of two floats: NaN when either is NaN."""
+    return a if a <= b or math.isnan(a) else b
 
 
 def _window_half_px(det: RingDetection, margin_px: float) -> float:
