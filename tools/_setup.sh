@@ -68,12 +68,23 @@ ensure_venv() {
 
 ensure_c_compiler() {
     # The editable install compiles hil/vision/_kernel.c: it needs a C compiler (Debian gcc) and
-    # the Python headers (pyenv and python3-dev provide them).
-    command -v "${CC:-gcc}" >/dev/null 2>&1 && return 0
-    apt_install_missing gcc libc6-dev || true
-    command -v "${CC:-gcc}" >/dev/null 2>&1 && return 0
-    log "no C compiler (gcc) to build the vision kernel hil/vision/_kernel.c: install gcc (apt-get install gcc)"
-    return 1
+    # the Python headers (pyenv builds have them; Debian's own python3 needs python3-dev).
+    if ! command -v "${CC:-gcc}" >/dev/null 2>&1; then
+        apt_install_missing gcc libc6-dev || true
+        if ! command -v "${CC:-gcc}" >/dev/null 2>&1; then
+            log "no C compiler (gcc) to build the vision kernel hil/vision/_kernel.c: install gcc (apt-get install gcc)"
+            return 1
+        fi
+    fi
+    local include
+    include="$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
+    if [ ! -f "$include/Python.h" ]; then
+        apt_install_missing python3-dev || true
+        if [ ! -f "$include/Python.h" ]; then
+            log "no Python headers ($include/Python.h) to build the vision kernel: install python3-dev (Debian's python3) or use a Python built with its headers"
+            return 1
+        fi
+    fi
 }
 
 ensure_device_support() {
