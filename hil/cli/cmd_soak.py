@@ -24,9 +24,12 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil.soak.host import STEAL_WINDOW_S
+
+if TYPE_CHECKING:
+    from hil.soak.soak import SoakResult
 
 
 def add_parser(sub: Any) -> None:
@@ -151,60 +154,65 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         sys.stdout.write(json.dumps({**res.to_dict(), "host_probe": probe, "passed": res.passed()}) + "\n")
     else:
-        out = sys.stdout
-        from hil.servo.rt import RtGranted
-
-        out.write(f"servo rate           {res.rate_hz:g} Hz (period {1e3 / res.rate_hz:.3f} ms)\n")
-        out.write(f"servo process        {RtGranted.from_dict(res.rt_granted).summary()}\n")
-        out.write(f"servo process CPU    {res.servo_cpu_percent} % of one CPU in compensation\n")
-        out.write(
-            f"compensation         {res.compensate_s:.1f} s, {res.servo_commands} servo commands, "
-            f"{res.resumes} resume(s), {res.reregistrations} re-registration(s)\n"
-        )
-        out.write(f"period p50/p99/max   {_fmt(res.period_ms)} ms\n")
-        out.write(f"jitter p50/p99/max   {_fmt(res.jitter_ms)} ms\n")
-        out.write(
-            f"missed deadlines     {res.missed_deadlines} of {res.intervals} intervals "
-            f"({100 * res.missed_fraction:.2f} %), longest gap {res.longest_gap_ms} ms\n"
-        )
-        out.write(f"late bound           {_late_bound(res)}\n")
-        for when, p in probe.items():
-            out.write(f"machine alone {when:<7}{_probe_text(p)} (fixed work, tools/bench host)\n")
-        lc = res.late_causes
-        out.write(f"late causes          woke late {lc['woke_late']} (the OS or host did not run the loop), "
-                  f"work overran {lc['overran']} ({lc['overran_off_cpu']} with the loop off its CPU for "
-                  f"over a period); longest wake-up delay {lc['longest_wake_delay_ms']} ms, step "
-                  f"{lc['longest_step_ms']} ms ({lc['longest_step_cpu_ms']} ms on its CPU, "
-                  f"{lc['longest_off_cpu_ms']} ms off)\n")
-        out.write(f"host steal           {_steal(res.host_steal_percent, res.rt_granted.get('cpu'))}\n")
-        out.write(f"frames               {res.compensation_frames} in compensation, "
-                  f"{res.frames_overwritten} overwritten; {res.stale_periods} period(s) on a stale "
-                  f"setpoint, {res.setpoint_busy_periods} on the last one (a write in progress)\n")
-        out.write(f"frame->command       {_fmt(res.frame_to_command_ms)} ms (p50/p99/max)\n")
-        out.write(f"stop->command        {_fmt(res.stop_to_command_ms)} ms (p50/p99/max)\n")
-        where = "perception process" if res.perception_rss_mb else "supervisor"
-        loc = " / ".join("n/a" if res.locate_ms.get(k) is None else f"{res.locate_ms[k]:.2f}"
-                         for k in ("p50", "p95"))
-        out.write(f"locate               {loc} ms (p50/p95, {where})\n")
-        mems = [("memory supervisor", res.rss_mb), ("memory servo proc.", res.servo_rss_mb)]
-        if res.perception_rss_mb:
-            mems.append(("memory perception", res.perception_rss_mb))
-        for label, r in mems:
-            out.write(
-                f"{label:<21}{r.get('after_warmup')} -> {r.get('end')} MB, "
-                f"growth {r.get('growth')} MB, slope {r.get('slope_mb_per_min')} MB/min\n"
-            )
-        out.write(f"refused steps        {res.limit_violations} (the loop's limit check; none reached "
-                  "the driver)\n")
-        out.write(f"following error      peak {res.following_peak_mm:.3f} mm, "
-                  f"{res.following_faults} fault(s)\n")
-        for f in res.transient_faults:
-            back = f["back_in_compensation_s"]
-            again = "" if back is None else f"; compensating again after {back:.1f} s"
-            out.write(f"injected {f['kind']:<16} at {f['onset_s']:>7.1f} s for {f['duration_s']:g} s: "
-                      f"{f['detected']}{again}\n")
-        out.write(f"final state          {res.final_state}; faults: {'; '.join(res.faults) or 'none'}\n")
-        out.write(f"unexplained faults   {'; '.join(res.unexplained_faults) or 'none'}\n")
-        out.write(f"verdict              {'passed' if res.passed() else 'FAILED'}\n")
-        out.write(f"session log          {res.session_log}\n")
+        _print_text(res, probe)
     return 0 if res.passed() else 1
+
+
+def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
+    """The soak's figures as text lines on stdout (the module doc lists them)."""
+    out = sys.stdout
+    from hil.servo.rt import RtGranted
+
+    out.write(f"servo rate           {res.rate_hz:g} Hz (period {1e3 / res.rate_hz:.3f} ms)\n")
+    out.write(f"servo process        {RtGranted.from_dict(res.rt_granted).summary()}\n")
+    out.write(f"servo process CPU    {res.servo_cpu_percent} % of one CPU in compensation\n")
+    out.write(
+        f"compensation         {res.compensate_s:.1f} s, {res.servo_commands} servo commands, "
+        f"{res.resumes} resume(s), {res.reregistrations} re-registration(s)\n"
+    )
+    out.write(f"period p50/p99/max   {_fmt(res.period_ms)} ms\n")
+    out.write(f"jitter p50/p99/max   {_fmt(res.jitter_ms)} ms\n")
+    out.write(
+        f"missed deadlines     {res.missed_deadlines} of {res.intervals} intervals "
+        f"({100 * res.missed_fraction:.2f} %), longest gap {res.longest_gap_ms} ms\n"
+    )
+    out.write(f"late bound           {_late_bound(res)}\n")
+    for when, p in probe.items():
+        out.write(f"machine alone {when:<7}{_probe_text(p)} (fixed work, tools/bench host)\n")
+    lc = res.late_causes
+    out.write(f"late causes          woke late {lc['woke_late']} (the OS or host did not run the loop), "
+              f"work overran {lc['overran']} ({lc['overran_off_cpu']} with the loop off its CPU for "
+              f"over a period); longest wake-up delay {lc['longest_wake_delay_ms']} ms, step "
+              f"{lc['longest_step_ms']} ms ({lc['longest_step_cpu_ms']} ms on its CPU, "
+              f"{lc['longest_off_cpu_ms']} ms off)\n")
+    out.write(f"host steal           {_steal(res.host_steal_percent, res.rt_granted.get('cpu'))}\n")
+    out.write(f"frames               {res.compensation_frames} in compensation, "
+              f"{res.frames_overwritten} overwritten; {res.stale_periods} period(s) on a stale "
+              f"setpoint, {res.setpoint_busy_periods} on the last one (a write in progress)\n")
+    out.write(f"frame->command       {_fmt(res.frame_to_command_ms)} ms (p50/p99/max)\n")
+    out.write(f"stop->command        {_fmt(res.stop_to_command_ms)} ms (p50/p99/max)\n")
+    where = "perception process" if res.perception_rss_mb else "supervisor"
+    loc = " / ".join("n/a" if res.locate_ms.get(k) is None else f"{res.locate_ms[k]:.2f}"
+                     for k in ("p50", "p95"))
+    out.write(f"locate               {loc} ms (p50/p95, {where})\n")
+    mems = [("memory supervisor", res.rss_mb), ("memory servo proc.", res.servo_rss_mb)]
+    if res.perception_rss_mb:
+        mems.append(("memory perception", res.perception_rss_mb))
+    for label, r in mems:
+        out.write(
+            f"{label:<21}{r.get('after_warmup')} -> {r.get('end')} MB, "
+            f"growth {r.get('growth')} MB, slope {r.get('slope_mb_per_min')} MB/min\n"
+        )
+    out.write(f"refused steps        {res.limit_violations} (the loop's limit check; none reached "
+              "the driver)\n")
+    out.write(f"following error      peak {res.following_peak_mm:.3f} mm, "
+              f"{res.following_faults} fault(s)\n")
+    for f in res.transient_faults:
+        back = f["back_in_compensation_s"]
+        again = "" if back is None else f"; compensating again after {back:.1f} s"
+        out.write(f"injected {f['kind']:<16} at {f['onset_s']:>7.1f} s for {f['duration_s']:g} s: "
+                  f"{f['detected']}{again}\n")
+    out.write(f"final state          {res.final_state}; faults: {'; '.join(res.faults) or 'none'}\n")
+    out.write(f"unexplained faults   {'; '.join(res.unexplained_faults) or 'none'}\n")
+    out.write(f"verdict              {'passed' if res.passed() else 'FAILED'}\n")
+    out.write(f"session log          {res.session_log}\n")
