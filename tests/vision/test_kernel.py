@@ -49,7 +49,7 @@ from hil.vision.detect import (
     detect_rings_multi,
 )
 from hil.vision.ellipse import ellipse_from_conic, fit_ellipse_arrays_numpy, fit_ellipse_arrays_used
-from hil.vision.render import RenderOptions, RingMarker3D, render_stereo
+from hil.vision.render import RenderedPair, RenderOptions, RingMarker3D, render_stereo
 from hil.vision.ring_edges import RingEdges, RingSeeds, ring_edges_multi, ring_edges_multi_numpy
 from hil.vision.stereo import match_and_triangulate
 from hil.vision.tracking import MarkerTracker, TrackingParams
@@ -76,7 +76,7 @@ def test_the_kernel_is_built_and_selected_by_default() -> None:
     assert kernel.kernel_status() == ("numpy (selected)" if numpy_asked else "compiled kernel")
 
 
-def _sequence_pairs(count: int) -> list[object]:
+def _sequence_pairs(count: int) -> list[RenderedPair]:
     cal = scaled_rig(1920)
     layout, offsets, hidden = breathing_sequence(8, 90, 7)
     rng = np.random.default_rng(1007)
@@ -89,7 +89,7 @@ def _sequence_pairs(count: int) -> list[object]:
 
 
 @pytest.fixture(scope="module")
-def pairs() -> list[object]:
+def pairs() -> list[RenderedPair]:
     return _sequence_pairs(12)
 
 
@@ -124,10 +124,10 @@ def _assert_same_fits(
 
 
 @pytest.mark.usefixtures("compiled")
-def test_edges_and_fits_equal_the_numpy_code_on_the_bench_sequence(pairs: list[object]) -> None:
+def test_edges_and_fits_equal_the_numpy_code_on_the_bench_sequence(pairs: list[RenderedPair]) -> None:
     n_rings = 0
     for p in pairs:
-        parts = [(s.frame, s.seeds) for s in (begin_search(p.left, DP), begin_search(p.right, DP))]  # type: ignore[attr-defined]
+        parts = [(s.frame, s.seeds) for s in (begin_search(p.left, DP), begin_search(p.right, DP))]
         ref = ring_edges_multi_numpy(parts, DP.n_rays, DP.min_contrast, DP.min_valid_fraction)
         got = ring_edges_multi(parts, DP.n_rays, DP.min_contrast, DP.min_valid_fraction)
         _assert_same_edges(got, ref)
@@ -144,22 +144,22 @@ def test_edges_and_fits_equal_the_numpy_code_on_the_bench_sequence(pairs: list[o
     assert n_rings >= 12 * 14
 
 
-def _locate_all(pairs: list[object], on: bool) -> tuple[list[np.ndarray], list[np.ndarray], object]:
+def _locate_all(pairs: list[RenderedPair], on: bool) -> tuple[list[np.ndarray], list[np.ndarray], object]:
     previous = kernel.use_kernel(on)
     try:
         cal = scaled_rig(1920)
         tracker = MarkerTracker(cal, TrackingParams())
         full, tracked = [], []
         for k, p in enumerate(pairs):
-            dl, dr = detect_rings_multi([(p.left, "left"), (p.right, "right")])  # type: ignore[attr-defined]
+            dl, dr = detect_rings_multi([(p.left, "left"), (p.right, "right")])
             full.append(match_and_triangulate(cal, dl, dr).points_mm)
-            tracked.append(tracker.locate(p.left, p.right, k / 30.0).points_mm)  # type: ignore[attr-defined]
+            tracked.append(tracker.locate(p.left, p.right, k / 30.0).points_mm)
         return full, tracked, tracker.stats
     finally:
         kernel.use_kernel(previous)
 
 
-def test_located_points_equal_the_numpy_code_on_the_bench_sequence(pairs: list[object]) -> None:
+def test_located_points_equal_the_numpy_code_on_the_bench_sequence(pairs: list[RenderedPair]) -> None:
     full_ref, tracked_ref, stats_ref = _locate_all(pairs, False)
     full, tracked, stats = _locate_all(pairs, True)
     assert stats == stats_ref
@@ -452,11 +452,11 @@ def test_plane_normal_correction_equals_the_numpy_code(seed: int, n: int, tilt: 
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
 
 
-def test_many_calls_leak_neither_memory_nor_references(pairs: list[object]) -> None:
+def test_many_calls_leak_neither_memory_nor_references(pairs: list[RenderedPair]) -> None:
     k = kernel._module
     assert k is not None
     p = pairs[0]
-    parts = [(begin_search(p.left, DP).frame, begin_search(p.left, DP).seeds)]  # type: ignore[attr-defined]
+    parts = [(begin_search(p.left, DP).frame, begin_search(p.left, DP).seeds)]
     ref = ring_edges_multi_numpy(parts, DP.n_rays, DP.min_contrast, DP.min_valid_fraction)
     fit_args = _fit_args(ref.xo.shape[0], DP.n_rays)
     fit_args[0], fit_args[1], fit_args[2] = ref.xo, ref.yo, ref.mo
