@@ -98,8 +98,7 @@ class ServoLink(Protocol):
 
     def wait_period(self) -> float:
         """Let one servo period pass (in-process: the clock sleeps a period, then the loop is
-        stepped; the process loop runs by itself: a 5 ms sleep). Returns the time waited, s (the
-        clock's; in-process exactly one period)."""
+        stepped; the process loop runs by itself: a 5 ms sleep). Returns the time waited, s."""
         ...
 
     def close(self) -> None: ...
