@@ -531,8 +531,12 @@ class UrRtdeRobot(Robot):
         if not ok:
             raise DeviceFaultError(self.name, "could not upload the control script")
         rcv = self._rcv
+        # both RTDE streams must see the script running: the control interface refuses commands
+        # (setWatchdog returns False) while its own stream still shows the stopped program, even
+        # when the receive interface's already shows it PLAYING (a race a loaded machine exposes)
         wait_until(self.clock, self.name, self.cfg.ready_timeout_s, "control script running",
-                   lambda: int(rcv.getRuntimeState()) == RuntimeState.PLAYING)
+                   lambda: int(rcv.getRuntimeState()) == RuntimeState.PLAYING
+                   and bool(ctrl.isProgramRunning()))
         hz = self._watchdog_hz()  # the rate the kicker is paced for, as at connect
         if hz > 0 and not self._call("setWatchdog", lambda: bool(ctrl.setWatchdog(hz))):
             raise DeviceFaultError(self.name, "the control script refused setWatchdog")
