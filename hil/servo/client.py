@@ -5,7 +5,8 @@ the servo loop that owns the arm (:mod:`hil.servo.link`).
   velocity, validity); the loop extrapolates, limits, checks and commands it every period.
 - ``stop`` writes STOP to the setpoint block and returns once the loop delivered it (the loop
   retries every period; :data:`STOP_ACK_TIMEOUT_S` bounds the wait, then DeviceTimeoutError).
-- ``move_linear`` and ``recover`` go over the command channel (the loop leaves TRACK first).
+- ``move_linear`` writes a MOVE setpoint: the loop streams the straight-line move every period
+  (:mod:`hil.servo.trajectory`); ``recover`` goes over the command channel.
 - ``servo`` (a single target, for callers outside the procedure's tracking) publishes a
   zero-velocity setpoint valid for two periods.
 - ``state_now`` is the loop's newest ring record (process link; never blocks) or the robot's own
@@ -26,7 +27,7 @@ import numpy as np
 
 from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError, LifecycleError
 from drivers.interfaces.lifecycle import DeviceState
-from drivers.interfaces.robot import FollowingModel, MotionLimits, Robot, RobotMode, RobotState
+from drivers.interfaces.robot import FollowingModel, MotionLimits, Robot, RobotState
 from hil.clock import Clock
 from hil.geometry.transform import RigidTransform
 from hil.safety.layer import SafetyViolationError
@@ -158,23 +159,32 @@ class ServoRobot(Robot):
     # ------------------------------------------------------------------ Robot driver API
     def _move_linear(self, T_robot_from_tcp: RigidTransform, speed_mm_s: float, accel_mm_s2: float,
                      blocking: bool) -> None:
-        self.idle()
+        """A straight-line MOVE streamed by the loop (:mod:`hil.servo.trajectory`), in a session
+        of its own (a later :meth:`track` or :meth:`hold` starts another, from the actual pose).
+        Blocking: returns once the arm is at rest within 0.5 mm of the target (the in-process
+        loop is stepped on its clock meanwhile); DeviceTimeoutError after the profile's time
+        x 1.5 + 5 s; the loop's refusal or a following fault raises SafetyViolationError."""
         start = self._state_now().T_robot_from_tcp
-        self.link.request("move_linear", T_robot_from_tcp.as_matrix().tolist(), speed_mm_s, accel_mm_s2,
-                          blocking and self.link.in_process)
-        if blocking and not self.link.in_process:
-            # the arm reports rest near the target (bounded by the profile time x 1.5 + 5 s)
-            dist_mm = float(np.linalg.norm(T_robot_from_tcp.t - start.t))
-            deadline = time.monotonic() + 1.5 * (dist_mm / speed_mm_s + speed_mm_s / accel_mm_s2) + 5.0
-            while True:
-                st = self._state_now()
-                if (st.mode is not RobotMode.MOVING and st.tcp_speed_mm_s < 0.5
-                        and float(np.linalg.norm(st.T_robot_from_tcp.t - T_robot_from_tcp.t)) < 0.5):
-                    return
-                if time.monotonic() > deadline:
-                    where = np.round(T_robot_from_tcp.t, 1).tolist()
-                    raise DeviceTimeoutError(self.name, f"move to {where} mm did not finish in time")
-                time.sleep(0.005)
+        self._track_id += 1
+        move_id = self._track_id
+        self._tracking = False
+        self.link.regions.block.write_move(track_id=move_id, R=T_robot_from_tcp.R, t_mm=T_robot_from_tcp.t,
+                                           speed_mm_s=speed_mm_s, accel_mm_s2=accel_mm_s2)
+        if not blocking:
+            return
+        dist_mm = float(np.linalg.norm(T_robot_from_tcp.t - start.t))
+        budget_s = 1.5 * (dist_mm / speed_mm_s + speed_mm_s / accel_mm_s2) + 5.0
+        waited_s = 0.0
+        while True:
+            waited_s += self.link.wait_period()
+            st = self._state_now()
+            if (self.link.regions.stats.get(Stat.MOVE_DONE_ID) >= move_id and st.tcp_speed_mm_s < 0.5
+                    and float(np.linalg.norm(st.T_robot_from_tcp.t - T_robot_from_tcp.t)) < 0.5):
+                return
+            if waited_s > budget_s:
+                where = np.round(T_robot_from_tcp.t, 1).tolist()
+                raise DeviceTimeoutError(self.name,
+                                         f"move to {where} mm did not finish within {budget_s:.1f} s")
 
     def _servo(self, T_robot_from_tcp: RigidTransform, period_s: float) -> None:
         now = time.monotonic_ns() if not self.link.in_process else self._state_now().t_ns

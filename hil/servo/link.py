@@ -8,16 +8,14 @@ Two links with one contract (:class:`ServoLink`):
 - :class:`~hil.servo.process.ServoProcess`: the loop runs in its own real-time process that owns
   the robot driver; commands travel over a pipe and are answered.
 
-Command channel (rare, not per period): ``move_linear`` (pose, speed, acceleration; non-blocking
-on the arm), ``recover``, ``close``. Errors come back as the driver's own error class, device
-and message.
+Command channel (rare, not per period): ``recover``, ``close``. Errors come back as the driver's
+own error class, device and message. Motion of every kind (moves, tracking, hold, stop) goes
+through the setpoint block.
 """
 
 from __future__ import annotations
 
 from typing import Any, Protocol
-
-import numpy as np
 
 from drivers.interfaces.robot import FollowingModel, MotionLimits, Robot
 from hil.clock import Clock
@@ -98,6 +96,11 @@ class ServoLink(Protocol):
         """After a STOP was written: step the in-process loop now (the process loop needs none)."""
         ...
 
+    def wait_period(self) -> float:
+        """Let one servo period pass (in-process: the clock sleeps a period, then the loop is
+        stepped; the process loop runs by itself: a 5 ms sleep). Returns the time waited, s."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -143,10 +146,6 @@ class InProcessLink:
         self.loop.step(now_ns)
 
     def request(self, command: str, *args: Any, timeout_s: float = 5.0) -> Any:
-        if command == "move_linear":
-            M, speed, accel, blocking = args
-            self.robot.move_linear(RigidTransform.from_matrix(np.asarray(M)), speed, accel, blocking=blocking)
-            return None
         if command == "recover":
             self.robot.recover()
             return None
@@ -163,6 +162,11 @@ class InProcessLink:
 
     def kick(self) -> None:
         self.loop.step(self.clock.now_ns())
+
+    def wait_period(self) -> float:
+        self.clock.sleep(self.loop.period_s)
+        self.loop.step(self.clock.now_ns())
+        return self.loop.period_s
 
     def close(self) -> None:
         self.regions.close()

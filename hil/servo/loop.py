@@ -22,10 +22,20 @@ process, or stepped in-process by a simulated run on the manual clock — the sa
      acceleration limit and is held there, commanded, checked and supervised every period (LOCK).
      Holding continues the tracking session (no restart from the actual pose); a HOLD with no
      session under way starts one from the actual pose, at rest;
-   - IDLE: no command (the arm holds, or runs a move a command started);
+   - MOVE (APPROACH, RETRACT): a straight-line move from the actual pose at rest to the setpoint
+     pose (:class:`~hil.servo.trajectory.LinearMove`, a trapezoidal profile in the move's speed
+     and acceleration, each capped by the robot's limits), one profile sample per period, then
+     the target held; each sample goes through the same step check and command as TRACK. The
+     following supervision starts when the profile has ended (the arm settling on and holding the
+     target): during the profile, at approach speeds, the age of the reported pose alone (RTDE
+     transport, an emulator or a host that pauses for tens of ms) makes millimetres of apparent
+     error, and a move is bounded by its arrival tolerance and timeout like a ``moveL``. A new
+     move (a new ``track_id``) restarts from the actual pose;
+   - IDLE: no command (the arm holds);
 4. write the period's record to the state ring and the counters (:class:`~hil.servo.shm.LoopStats`).
 
-Events (refusals, delivered stops, the first of a run of errors) go to ``report(kind, fields)``:
+Events (refusals, delivered stops, the first of a run of errors, a move's start and the end of
+its profile) go to ``report(kind, fields)``:
 rare, so they may allocate; the hot path otherwise builds only the transforms of the limiter.
 
 Frames: poses are ``T_robot_from_tcp`` (mm, robot base frame); the setpoint velocity is the TCP's
@@ -49,6 +59,7 @@ from hil.safety.following import FollowingMonitor
 from hil.safety.servo_check import servo_step_violation
 from hil.servo.limiter import RateLimiter
 from hil.servo.shm import LoopStats, RingRecord, ServoMode, Setpoint, SetpointBlock, Stat, StateRing
+from hil.servo.trajectory import LinearMove
 from hil.servo.wire import error_to_wire
 
 #: Enum <-> code tables for the ring (declaration order).
@@ -68,6 +79,8 @@ EV_READ_FAILED = "servo_state_read_failed"
 EV_COMMAND_FAILED = "servo_command_failed"
 EV_STALE = "servo_setpoint_stale"
 EV_FOLLOWING = "servo_following_error"
+EV_MOVE_STARTED = "servo_move_started"
+EV_MOVE_DONE = "servo_move_profile_done"
 
 
 def record_to_state(rec: RingRecord) -> RobotState:
@@ -118,6 +131,8 @@ class ServoLoop:
         self._last_state: RobotState | None = None
         self._pose_buf = np.zeros(12)
         self._zero6 = np.zeros(6)
+        self._trajectory: LinearMove | None = None
+        self._move_periods = 0
 
     # ------------------------------------------------------------------ the period
     def step(self, now_ns: int) -> None:
@@ -137,9 +152,12 @@ class ServoLoop:
         if sp.mode == ServoMode.STOP:
             self._track_id = None
             self._do_stop(sp.stop_id)
-        elif sp.mode == ServoMode.TRACK or sp.mode == ServoMode.HOLD:
+        elif sp.mode == ServoMode.TRACK or sp.mode == ServoMode.HOLD or sp.mode == ServoMode.MOVE:
             if st is not None and st.safety is SafetyStatus.NORMAL and sp.track_id != self._halted_track_id:
-                cmd_t_ns = self._track(sp, st, now_ns, hold=sp.mode == ServoMode.HOLD)
+                if sp.mode == ServoMode.MOVE:
+                    cmd_t_ns = self._move(sp, st, now_ns)
+                else:
+                    cmd_t_ns = self._track(sp, st, now_ns, hold=sp.mode == ServoMode.HOLD)
             else:
                 self.following.stop()
         else:
@@ -216,10 +234,85 @@ class ServoLoop:
                 self._refuse(sp, ("setpoint", str(exc)))
                 return 0
         cmd = self.limiter.step(desired, self.period_s, sp.speed_scale)
+        if not self._send(sp, st, prev, cmd, now_ns):
+            return 0
+        v = self.limiter.velocity_mm_s
+        if v is not None:
+            self._v_prev[:] = v
+        t = self.clock.now_ns()
+        self.stats.c[Stat.COMMANDS] += 1
+        if sp.seq != self._latency_seq and not self._stale and not hold:
+            self._latency_seq = sp.seq
+            self.stats.add_latency(t - sp.exposure_t_ns)
+        return t
+
+    def _move(self, sp: Setpoint, st: RobotState, now_ns: int) -> int:
+        """One period of a MOVE (:mod:`hil.servo.trajectory`): the profile's pose at this period,
+        checked, sent and supervised like a tracking command; the rate limiter follows the
+        profile, so a HOLD in the same session comes to rest from where the move is."""
+        if sp.track_id != self._track_id and not self._start_move(sp, st):   # a new move
+            return 0
+        move = self._trajectory
+        assert move is not None
+        prev = self.limiter.command
+        assert prev is not None
+        self._move_periods += 1
+        t_s = self._move_periods * self.period_s
+        cmd, v_mm_s, w_rad_s = move.pose_at(t_s)
+        done = move.done(t_s)
+        if done and not self.following.active:   # the profile has ended: supervise the hold
+            self.following.start(st.T_robot_from_tcp.R, st.T_robot_from_tcp.t)
+        if not self._send(sp, st, prev, cmd, now_ns, supervise=done):
+            return 0
+        self.limiter.command = cmd
+        self.limiter.velocity_mm_s = v_mm_s
+        self.limiter.angular_velocity_rad_s = w_rad_s
+        self._v_prev[:] = (cmd.t - prev.t) / self.period_s   # what the step check compares with
+        c = self.stats.c
+        if done and c[Stat.MOVE_DONE_ID] != sp.track_id:
+            c[Stat.MOVE_DONE_ID] = sp.track_id
+            self.report(EV_MOVE_DONE, {"move_id": sp.track_id, "duration_s": round(move.duration_s, 4)})
+        t = self.clock.now_ns()
+        c[Stat.COMMANDS] += 1
+        return t
+
+    def _start_move(self, sp: Setpoint, st: RobotState) -> bool:
+        """A new move ``sp`` from the actual pose at rest (False: its target was refused)."""
+        start = st.T_robot_from_tcp
+        self._track_id = sp.track_id
+        self._stale = False
+        try:
+            target = RigidTransform(sp.R.copy(), sp.t_mm.copy())
+            self._trajectory = LinearMove(
+                start, target, speed_mm_s=min(sp.move_speed_mm_s, self.limits.max_speed_mm_s),
+                accel_mm_s2=min(sp.move_accel_mm_s2, self.limits.max_accel_mm_s2),
+                angular_speed_rad_s=min(self.limiter.max_angular_speed_rad_s,
+                                        self.limits.max_angular_speed_rad_s),
+                angular_accel_rad_s2=self.limiter.max_angular_accel_rad_s2)
+        except GeometryError as exc:   # a non-finite or improper target: never moved on
+            self._refuse(sp, ("setpoint", str(exc)))
+            return False
+        self._move_periods = 0
+        self.limiter.reset(start)
+        self._v_prev[:] = 0.0
+        self.following.stop()   # supervised once the profile has ended (module doc)
+        self.report(EV_MOVE_STARTED, {"move_id": sp.track_id, "from_mm": start.t.round(3).tolist(),
+                                      "to_mm": target.t.round(3).tolist(),
+                                      "distance_mm": round(self._trajectory.distance_mm, 3),
+                                      "angle_deg": round(math.degrees(self._trajectory.angle_rad), 3),
+                                      "duration_s": round(self._trajectory.duration_s, 4)})
+        return True
+
+    def _send(self, sp: Setpoint, st: RobotState, prev: RigidTransform, cmd: RigidTransform,
+              now_ns: int, supervise: bool = True) -> bool:
+        """The merged step check, the servo command and (``supervise``) the following supervision
+        of one period's command ``cmd`` after ``prev``. False when it was refused, failed or the
+        arm does not follow (reported; a refusal or following fault ended the session and stopped
+        the arm)."""
         why = servo_step_violation(self.limits, prev.R, prev.t, self._v_prev, cmd.R, cmd.t, self.period_s)
         if why is not None:
             self._refuse(sp, why)
-            return 0
+            return False
         try:
             self.robot.servo(cmd, self.period_s)
         except DriverError as exc:
@@ -230,8 +323,10 @@ class ServoLoop:
                                                 "wire": error_to_wire(exc)})
             self._track_id = None   # restart from the actual pose once it works again
             self.following.stop()
-            return 0
+            return False
         self._cmd_failing = False
+        if not supervise:
+            return True
         T_act = st.T_robot_from_tcp
         fault = self.following.update(now_ns, cmd.R, cmd.t, T_act.R, T_act.t)
         if fault is not None:
@@ -239,17 +334,9 @@ class ServoLoop:
             self._halt(sp)
             self.report(EV_FOLLOWING, {"message": fault.message(), "frame_seq": sp.frame_seq,
                                        **fault.fields()})
-            return 0
+            return False
         self._note_peak()
-        v = self.limiter.velocity_mm_s
-        if v is not None:
-            self._v_prev[:] = v
-        t = self.clock.now_ns()
-        self.stats.c[Stat.COMMANDS] += 1
-        if sp.seq != self._latency_seq and not self._stale and not hold:
-            self._latency_seq = sp.seq
-            self.stats.add_latency(t - sp.exposure_t_ns)
-        return t
+        return True
 
     def _extrapolate(self, sp: Setpoint, now_ns: int) -> RigidTransform:
         h = (now_ns - sp.t_ref_ns) * 1e-9 + sp.lead_s

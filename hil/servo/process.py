@@ -7,7 +7,7 @@ sends it the spec over a socket pair, waits for it to report ready (the real-tim
 robot's rate and TCP), and answers the channel commands.
 
 Child side: :func:`servo_main`. It builds the setup's robot through the driver registry on the
-wall clock and opens it, starts a command thread (channel commands such as a moveL or a reconnect
+wall clock and opens it, starts a command thread (channel commands such as a recovery
 may block for tens of ms; the loop never waits for them), asks for real time for the loop's thread
 (:func:`~hil.servo.rt.apply_realtime`), and then every period: waits for the deadline (sleep, then
 spin) and steps the :class:`~hil.servo.loop.ServoLoop`. A period missed by more than one is
@@ -246,6 +246,10 @@ class ServoProcess:
     def kick(self) -> None:
         """Nothing: the process loop reads the block every period."""
 
+    def wait_period(self) -> float:
+        time.sleep(0.005)
+        return 0.005
+
     # ------------------------------------------------------------------ channel
     def _pump(self, timeout_s: float, want: Any) -> Any:
         """Receive messages for up to ``timeout_s``; events are queued; returns the first message
@@ -432,17 +436,13 @@ def _serve(conn: Connection, robot: Any, send: Any, closing: threading.Event) ->
     supervisor is gone); then tell the loop to end."""
     try:
         while not closing.is_set():
-            command, rid, args = conn.recv()
+            command, rid, _args = conn.recv()
             if command == "close":
                 break
             try:
-                if command == "move_linear":
-                    M, speed, accel, _blocking = args   # the supervisor waits for rest itself
-                    robot.move_linear(RigidTransform.from_matrix(np.asarray(M)), speed, accel, blocking=False)
-                    result: Any = None
-                elif command == "recover":
+                if command == "recover":
                     robot.recover()
-                    result = None
+                    result: Any = None
                 else:
                     raise ValueError(f"unknown servo command {command!r}")
                 send(("reply", rid, True, result))

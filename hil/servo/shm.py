@@ -53,6 +53,9 @@ class ServoMode(IntEnum):
     HOLD = 3    # come to rest from the current command at the acceleration limit and hold the
     #             pose there, commanding it every period (the arm stays under servo control and
     #             following supervision; the tracking session goes on)
+    MOVE = 4    # a straight-line move to the setpoint pose from the actual pose at rest
+    #             (hil.servo.trajectory: a trapezoidal profile streamed every period, checked and
+    #             supervised like tracking), then hold the target; each move is its own session
 
 
 class ShmRegion:
@@ -123,6 +126,7 @@ _SEQ, _MODE, _TRACK_ID, _T_REF, _VALID_UNTIL, _EXPOSURE, _STOP_ID, _FRAME_SEQ = 
 _POSE = 8          # 12 words: R (row-major 9), t (3)
 _VEL = 20          # 6 words: v (mm/s, robot frame), w (rad/s, robot frame)
 _SCALE, _HORIZON, _LEAD = 26, 27, 28
+_MOVE_SPEED, _MOVE_ACCEL = 29, 30
 SETPOINT_WORDS = 32
 #: how long a reader retries while a write is in progress, ns: a running writer finishes a write
 #: in ~10 µs; longer means it was preempted mid-write (see :meth:`SetpointBlock.read`)
@@ -148,6 +152,8 @@ class Setpoint:
         speed_scale: (0, 1]: scales the speed limit (resume ramp).
         max_horizon_s: the loop never extrapolates further than this past ``t_ref_ns``.
         lead_s: the arm's actuation lag added to the extrapolation.
+        move_speed_mm_s, move_accel_mm_s2: a MOVE's TCP speed and acceleration (the pose is its
+            target; ``track_id`` its session).
     """
 
     seq: int = 0
@@ -165,6 +171,8 @@ class Setpoint:
     speed_scale: float = 1.0
     max_horizon_s: float = 0.0
     lead_s: float = 0.0
+    move_speed_mm_s: float = 0.0
+    move_accel_mm_s2: float = 0.0
 
 
 class SetpointBlock:
@@ -203,6 +211,22 @@ class SetpointBlock:
         f[_SCALE] = speed_scale
         f[_HORIZON] = max_horizon_s
         f[_LEAD] = lead_s
+        self._end()
+
+    def write_move(self, *, track_id: int, R: FloatArray, t_mm: FloatArray, speed_mm_s: float,
+                   accel_mm_s2: float) -> None:
+        """Start a straight-line MOVE to ``(R, t_mm)`` in the new session ``track_id`` (see
+        :class:`Setpoint`)."""
+        i, f = self.region.i, self.region.f
+        self._begin()
+        i[_MODE] = ServoMode.MOVE
+        i[_TRACK_ID] = track_id
+        f[_POSE:_POSE + 9] = np.asarray(R, dtype=np.float64).reshape(9)
+        f[_POSE + 9:_POSE + 12] = t_mm
+        f[_VEL:_VEL + 6] = 0.0
+        f[_SCALE] = 1.0   # a HOLD in the move's session decelerates at the full limits
+        f[_MOVE_SPEED] = speed_mm_s
+        f[_MOVE_ACCEL] = accel_mm_s2
         self._end()
 
     def write_hold(self, track_id: int) -> None:
@@ -247,6 +271,7 @@ class SetpointBlock:
                 self._pose[:] = f[_POSE:_POSE + 12]
                 self._vel[:] = f[_VEL:_VEL + 6]
                 scale, horizon, lead = float(f[_SCALE]), float(f[_HORIZON]), float(f[_LEAD])
+                move_speed, move_accel = float(f[_MOVE_SPEED]), float(f[_MOVE_ACCEL])
                 if int(i[_SEQ]) == s1:
                     break
             now = time.monotonic_ns()   # only once a write got in the way
@@ -262,6 +287,7 @@ class SetpointBlock:
         out.v_mm_s[:] = self._vel[:3]
         out.w_rad_s[:] = self._vel[3:]
         out.speed_scale, out.max_horizon_s, out.lead_s = scale, horizon, lead
+        out.move_speed_mm_s, out.move_accel_mm_s2 = move_speed, move_accel
         return out
 
 
@@ -393,6 +419,8 @@ class Stat(IntEnum):
                               # OVERRUNS ran long on it) (*)
     STEP_CPU_NS_MAX = 25      # longest step() work in the loop thread's own CPU time, ns (*)
     STEP_OFF_CPU_NS_MAX = 26  # longest time the loop thread was off its CPU during one step, ns (*)
+    MOVE_DONE_ID = 27         # the session id of the last MOVE whose profile has ended (the
+                              # command is its target; the arm settles within its servo lag)
     # (*) written by the real-time host (hil/servo/process.py), from its 100th period on; an
     #     in-process loop stepped on a manual clock leaves them 0
 

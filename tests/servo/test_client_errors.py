@@ -18,7 +18,7 @@ from hil.geometry.transform import RigidTransform
 from hil.servo.client import ServoRobot, in_process_servo
 from hil.servo.limiter import RateLimiter
 from hil.servo.link import InProcessLink
-from hil.servo.loop import EV_COMMAND_FAILED, EV_STOP_DELIVERED, EV_STOP_FAILED
+from hil.servo.loop import EV_COMMAND_FAILED, EV_MOVE_DONE, EV_MOVE_STARTED, EV_STOP_DELIVERED, EV_STOP_FAILED
 from tests.controller.fakes import DroppingRobot, FakeRobot
 
 
@@ -77,3 +77,23 @@ def test_every_retried_stop_raises_the_link_error_in_process() -> None:
         robot.stop()
         robot.state_now()   # (takes the loop's newest events)
         assert events == [EV_STOP_FAILED] * 3 + [EV_STOP_DELIVERED]
+
+
+def test_a_blocking_move_in_process_steps_the_loop_on_its_clock_until_the_arm_is_there() -> None:
+    with _in_process(FakeRobot) as (clock, inner, robot, events):
+        start = inner.pose
+        target = RigidTransform(start.R, start.t + np.array([0.0, 25.0, 0.0]))   # 0.5 s + 0.25 s at 50, 200
+        t0 = clock.now_ns()
+        robot.move_linear(target, 50.0, 200.0)
+        assert np.allclose(inner.pose.t, target.t, atol=1e-9)
+        assert (clock.now_ns() - t0) * 1e-9 == pytest.approx(0.75, abs=2 / robot.control_rate_hz)
+        assert [c for c, _ in inner.calls].count("servo") >= 0.75 * robot.control_rate_hz
+        assert "move_linear" not in [c for c, _ in inner.calls]   # streamed, never a moveL
+        assert events == [EV_MOVE_STARTED, EV_MOVE_DONE]
+
+
+def test_a_move_the_loop_refuses_raises_at_the_wait() -> None:
+    with _in_process(RejectingRobot) as (_, inner, robot, _events):
+        target = RigidTransform(inner.pose.R, inner.pose.t + np.array([0.0, 25.0, 0.0]))
+        with pytest.raises(DeviceFaultError, match="motion command rejected"):
+            robot.move_linear(target, 50.0, 200.0)

@@ -2,7 +2,8 @@
 stop is issued once per request and retried every period until delivered (each request's failure
 reported once), tracking follows the
 extrapolated setpoint within the limits, a stale setpoint brings the arm to rest and holds it, and a
-step the merged check refuses never reaches the driver (the arm is stopped instead)."""
+step the merged check refuses never reaches the driver (the arm is stopped instead). A MOVE
+streams its straight line from the actual pose within the robot's limits and holds the target."""
 
 from __future__ import annotations
 
@@ -16,7 +17,16 @@ from hil.clock import ManualClock
 from hil.geometry.transform import RigidTransform
 from hil.servo.limiter import RateLimiter
 from hil.servo.link import Regions
-from hil.servo.loop import EV_FOLLOWING, EV_REFUSED, EV_STALE, EV_STOP_DELIVERED, EV_STOP_FAILED, ServoLoop
+from hil.servo.loop import (
+    EV_FOLLOWING,
+    EV_MOVE_DONE,
+    EV_MOVE_STARTED,
+    EV_REFUSED,
+    EV_STALE,
+    EV_STOP_DELIVERED,
+    EV_STOP_FAILED,
+    ServoLoop,
+)
 from hil.servo.shm import ServoMode, SetpointBlock, ShmRegion, Stat
 from tests.controller.fakes import DroppingRobot
 
@@ -263,3 +273,94 @@ def test_a_refused_session_is_never_resumed_by_the_loop(rig: Any) -> None:
 def test_region_layouts_refuse_a_short_buffer() -> None:
     with pytest.raises(ValueError, match="words"):
         SetpointBlock(ShmRegion.local(4))
+
+
+def test_a_move_streams_the_straight_line_from_the_actual_pose_and_holds_the_target(rig: Any) -> None:
+    clock, robot, regions, loop, events = rig
+    start = robot.pose.t.copy()
+    target = start + np.array([30.0, -40.0, 0.0])   # 50 mm at 50 mm/s, 200 mm/s^2: 1.25 s
+    regions.block.write_move(track_id=3, R=robot.pose.R, t_mm=target, speed_mm_s=50.0, accel_mm_s2=200.0)
+    _run(clock, loop, 200)   # 1.6 s
+    servo = np.array([T.t for kind, T in robot.calls if kind == "servo"])
+    assert len(servo) == 200
+    assert np.allclose(servo[-1], target, atol=1e-9)
+    assert np.allclose(servo[-20:], target, atol=1e-9)   # the target is held after the profile
+    u = (target - start) / 50.0
+    assert np.allclose(start + np.outer((servo - start) @ u, u), servo, atol=1e-9)   # on the line
+    speeds = np.linalg.norm(np.diff(servo, axis=0), axis=1) / PERIOD_S
+    assert speeds.max() == pytest.approx(50.0, rel=1e-9)
+    started = [f for k, f in events if k == EV_MOVE_STARTED]
+    assert len(started) == 1
+    assert started[0]["move_id"] == 3
+    assert started[0]["duration_s"] == pytest.approx(1.25)
+    assert started[0]["distance_mm"] == pytest.approx(50.0)
+    assert [f["move_id"] for k, f in events if k == EV_MOVE_DONE] == [3]
+    assert regions.stats.get(Stat.MOVE_DONE_ID) == 3
+    assert regions.stats.get(Stat.REFUSALS) == 0
+    assert regions.stats.get(Stat.LATENCY_SAMPLES) == 0   # a move has no camera latency
+
+
+def test_a_move_faster_than_the_robot_limits_is_capped_to_them(rig: Any) -> None:
+    clock, robot, regions, loop, _ = rig
+    target = robot.pose.t + np.array([0.0, 0.0, -200.0])
+    regions.block.write_move(track_id=1, R=robot.pose.R, t_mm=target, speed_mm_s=500.0, accel_mm_s2=5000.0)
+    _run(clock, loop, 400)
+    servo = np.array([T.t for kind, T in robot.calls if kind == "servo"])
+    speeds = np.linalg.norm(np.diff(servo, axis=0), axis=1) / PERIOD_S
+    assert speeds.max() == pytest.approx(LIMITS.max_speed_mm_s, rel=1e-9)
+    assert regions.stats.get(Stat.REFUSALS) == 0
+
+
+def test_a_move_out_of_the_workspace_is_refused_where_it_leaves_it(rig: Any) -> None:
+    clock, robot, regions, loop, events = rig
+    far = robot.pose.t + np.array([0.0, 0.0, 10_000.0])
+    regions.block.write_move(track_id=1, R=robot.pose.R, t_mm=far, speed_mm_s=100.0, accel_mm_s2=500.0)
+    _run(clock, loop, 2000)
+    servo = [T for kind, T in robot.calls if kind == "servo"]
+    assert servo
+    assert all(float(T.t[2]) <= LIMITS.workspace_max_mm[2] for T in servo)
+    assert robot.calls[-1] == ("stop", None)
+    assert [f["check"] for k, f in events if k == EV_REFUSED] == ["workspace"]
+
+
+def test_a_stop_during_a_move_stops_the_arm_on_the_next_period(rig: Any) -> None:
+    clock, robot, regions, loop, _ = rig
+    regions.block.write_move(track_id=1, R=robot.pose.R, t_mm=robot.pose.t + np.array([100.0, 0.0, 0.0]),
+                             speed_mm_s=50.0, accel_mm_s2=200.0)
+    _run(clock, loop, 50)
+    regions.block.write_mode(ServoMode.STOP)
+    _run(clock, loop, 5)
+    k_stop = max(i for i, (kind, _) in enumerate(robot.calls) if kind == "stop")
+    assert k_stop == 50
+    assert len(robot.calls) == 51
+
+
+def test_a_hold_in_the_moves_session_comes_to_rest_from_the_moving_command(rig: Any) -> None:
+    clock, robot, regions, loop, _events = rig
+    start = robot.pose.t.copy()
+    regions.block.write_move(track_id=4, R=robot.pose.R, t_mm=start + np.array([100.0, 0.0, 0.0]),
+                             speed_mm_s=50.0, accel_mm_s2=200.0)
+    _run(clock, loop, 100)   # cruising at 50 mm/s
+    regions.block.write_hold(4)
+    _run(clock, loop, 100)
+    servo = np.array([T.t for kind, T in robot.calls if kind == "servo"])
+    speeds = np.linalg.norm(np.diff(servo, axis=0), axis=1) / PERIOD_S
+    assert speeds[98] == pytest.approx(50.0)
+    assert np.all(np.abs(np.diff(speeds)) / PERIOD_S <= 400.0 * 1.001)   # the limiter's deceleration
+    assert speeds[-10:].max() == 0.0
+    assert servo[-1][0] < start[0] + 100.0
+    assert regions.stats.get(Stat.REFUSALS) == 0
+
+
+def test_a_moves_following_is_supervised_once_its_profile_has_ended(rig: Any) -> None:
+    clock, robot, regions, loop, events = rig
+    robot.stall = True   # the arm does not move at all
+    regions.block.write_move(track_id=1, R=robot.pose.R, t_mm=robot.pose.t + np.array([50.0, 0.0, 0.0]),
+                             speed_mm_s=50.0, accel_mm_s2=200.0)   # a 1.25 s profile
+    _run(clock, loop, 156)   # to 1.248 s: the profile is still running
+    assert [k for k, _ in events if k == EV_FOLLOWING] == []
+    _run(clock, loop, 30)    # the profile ended: the stalled arm is 50 mm off its target
+    fe = [f for k, f in events if k == EV_FOLLOWING]
+    assert len(fe) == 1
+    assert fe[0]["duration_ms"] == pytest.approx(104.0)   # judged from the profile's end
+    assert robot.calls[-1] == ("stop", None)

@@ -172,8 +172,9 @@ def test_a_robot_that_cannot_be_opened_fails_the_start_with_its_own_error(tmp_pa
 def test_a_blocking_move_returns_with_the_arm_at_rest_on_the_target(robot: ServoRobot) -> None:
     start = robot.state_now().T_robot_from_tcp
     target = RigidTransform(start.R, start.t + np.array([10.0, 0.0, 0.0]))
-    robot.move_linear(target, 50.0, 200.0)   # blocking: over the channel, then the ring says at rest
+    robot.move_linear(target, 50.0, 200.0)   # blocking: the loop streams it, the ring says at rest
     st = robot.state_now()
+    assert robot.link.regions.stats.get(Stat.MOVE_DONE_ID) >= 1   # streamed by the loop, not a moveL
     assert float(np.linalg.norm(st.T_robot_from_tcp.t - target.t)) < 0.5
     assert st.tcp_speed_mm_s < 0.5
 

@@ -1,6 +1,10 @@
 """APPROACH: move to the stand-off pose above the entry, then check it optically and correct
 (the closed-loop bias ``T_bias``, seed 001 §2.3) until the guide is within tolerance.
 
+The move is a straight line the servo loop streams every period (:mod:`hil.servo.trajectory`),
+then holds at its target while the optical check runs; with the loop in this process (a
+simulated run) the phase steps it until the next pair is due.
+
 Entering after a resume or recovery restarts from the pose the robot reports now, at a reduced
 speed; after a fault recovery the robot is recovered first."""
 
@@ -19,6 +23,7 @@ from hil.controller.compensation import interpolate_pose
 from hil.controller.estimate import mean_transform
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
+from hil.controller.phases.streaming import stream_until_next_pair
 from hil.geometry.transform import RigidTransform
 
 if TYPE_CHECKING:
@@ -65,6 +70,13 @@ class ApproachPhase(Phase):
         return MoveLinear(target, a.speed_mm_s * f if resumed else a.speed_mm_s, a.accel_mm_s2 * f)
 
     def step(self, inputs: TickInputs) -> PhaseResult:
+        now = self.ctx.clock.now_ns()
+        out = self._judge(inputs)
+        if self.ctx.step_servo is not None and not out.events:
+            stream_until_next_pair(self.ctx, inputs.frame, now, now, self.ctx.step_servo)
+        return out
+
+    def _judge(self, inputs: TickInputs) -> PhaseResult:
         ctx, s, a, est = self.ctx, self.s, self.ctx.cfg.approach, self.ctx.est
         out = PhaseResult()
         st = est.last_state

@@ -1,4 +1,5 @@
-"""RETRACT: back off along the guide axis from where the robot is now, then finish."""
+"""RETRACT: back off along the guide axis from where the robot is now, then finish (a straight
+line the servo loop streams; in-process, the phase steps the loop until the next pair)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from drivers.interfaces.robot import RobotMode
 from hil.controller.commands import MoveLinear
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseResult
+from hil.controller.phases.streaming import stream_until_next_pair
 from hil.geometry.transform import RigidTransform
 
 if TYPE_CHECKING:
@@ -29,6 +31,13 @@ class RetractPhase(Phase):
         return PhaseResult().command(move)
 
     def step(self, inputs: TickInputs) -> PhaseResult:
+        now = self.ctx.clock.now_ns()
+        out = self._judge()
+        if self.ctx.step_servo is not None and not out.events:
+            stream_until_next_pair(self.ctx, inputs.frame, now, now, self.ctx.step_servo)
+        return out
+
+    def _judge(self) -> PhaseResult:
         lk, out = self.ctx.cfg.lock, PhaseResult()
         st = self.ctx.est.last_state
         assert st is not None

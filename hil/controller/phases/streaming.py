@@ -1,5 +1,6 @@
-"""The in-process servo loop of a simulated run, stepped by the phase that commands it (COMPENSATE
-while tracking, LOCK while holding) between two stereo pairs. The servo process needs none of
+"""The in-process servo loop of a simulated run, stepped by the phase that commands it (APPROACH
+and RETRACT while moving, COMPENSATE while tracking, LOCK while holding) between two stereo
+pairs. The servo process needs none of
 this: its loop runs on its own clock."""
 
 from __future__ import annotations
