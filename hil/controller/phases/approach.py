@@ -23,7 +23,7 @@ from hil.controller.compensation import interpolate_pose
 from hil.controller.estimate import mean_transform
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
-from hil.controller.phases.streaming import stream_until_next_pair
+from hil.controller.phases.streaming import judge_then_stream
 from hil.geometry.transform import RigidTransform
 
 if TYPE_CHECKING:
@@ -70,11 +70,7 @@ class ApproachPhase(Phase):
         return MoveLinear(target, a.speed_mm_s * f if resumed else a.speed_mm_s, a.accel_mm_s2 * f)
 
     def step(self, inputs: TickInputs) -> PhaseResult:
-        now = self.ctx.clock.now_ns()
-        out = self._judge(inputs)
-        if self.ctx.step_servo is not None and not out.events:
-            stream_until_next_pair(self.ctx, inputs.frame, now, now, self.ctx.step_servo)
-        return out
+        return judge_then_stream(self.ctx, inputs, lambda: self._judge(inputs))
 
     def _judge(self, inputs: TickInputs) -> PhaseResult:
         ctx, s, a, est = self.ctx, self.s, self.ctx.cfg.approach, self.ctx.est

@@ -19,7 +19,7 @@ from hil.controller.commands import Hold
 from hil.controller.compensation import correction_out_of_bounds
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
-from hil.controller.phases.streaming import stream_until_next_pair
+from hil.controller.phases.streaming import judge_then_stream
 from hil.log import get_logger
 
 if TYPE_CHECKING:
@@ -56,11 +56,7 @@ class LockPhase(Phase):
         return PhaseResult().command(Hold("lock"))
 
     def step(self, inputs: TickInputs) -> PhaseResult:
-        now = self.ctx.clock.now_ns()
-        out = self._judge(inputs)
-        if self.ctx.step_servo is not None and not out.events:
-            stream_until_next_pair(self.ctx, inputs.frame, now, now, self.ctx.step_servo)
-        return out
+        return judge_then_stream(self.ctx, inputs, lambda: self._judge(inputs))
 
     def _judge(self, inputs: TickInputs) -> PhaseResult:
         ctx, lk, s, est = self.ctx, self.ctx.cfg.lock, self.s, self.ctx.est

@@ -11,7 +11,7 @@ from drivers.interfaces.robot import RobotMode
 from hil.controller.commands import MoveLinear
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseResult
-from hil.controller.phases.streaming import stream_until_next_pair
+from hil.controller.phases.streaming import judge_then_stream
 from hil.geometry.transform import RigidTransform
 
 if TYPE_CHECKING:
@@ -31,11 +31,7 @@ class RetractPhase(Phase):
         return PhaseResult().command(move)
 
     def step(self, inputs: TickInputs) -> PhaseResult:
-        now = self.ctx.clock.now_ns()
-        out = self._judge()
-        if self.ctx.step_servo is not None and not out.events:
-            stream_until_next_pair(self.ctx, inputs.frame, now, now, self.ctx.step_servo)
-        return out
+        return judge_then_stream(self.ctx, inputs, self._judge)
 
     def _judge(self) -> PhaseResult:
         lk, out = self.ctx.cfg.lock, PhaseResult()

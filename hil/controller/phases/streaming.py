@@ -13,7 +13,8 @@ from hil.controller.deadline import DeadlineTimer
 
 if TYPE_CHECKING:
     from drivers.interfaces.camera import StereoFrame
-    from hil.controller.phases.base import PhaseContext
+    from hil.controller.inputs import TickInputs
+    from hil.controller.phases.base import PhaseContext, PhaseResult
 
 
 def stream_until_next_pair(ctx: PhaseContext, frame: StereoFrame, now_ns: int, t_send_ns: int,
@@ -51,3 +52,13 @@ def stream_until_next_pair(ctx: PhaseContext, frame: StereoFrame, now_ns: int, t
             ctx.servo_deadlines_missed += 1
             ctx.session.write(ev.SERVO_DEADLINE_MISSED, slots_skipped=skipped, period_s=servo_dt)
         step(ctx.clock.now_ns())
+
+
+def judge_then_stream(ctx: PhaseContext, inputs: TickInputs, judge: Callable[[], PhaseResult]) -> PhaseResult:
+    """A holding or moving phase's step: ``judge`` the pair, then (in-process loop, and the
+    phase fired no event) stream the loop from the step's start until the next pair is due."""
+    now = ctx.clock.now_ns()
+    out = judge()
+    if ctx.step_servo is not None and not out.events:
+        stream_until_next_pair(ctx, inputs.frame, now, now, ctx.step_servo)
+    return out
