@@ -98,7 +98,8 @@ class ServoLink(Protocol):
 
     def wait_period(self) -> float:
         """Let one servo period pass (in-process: the clock sleeps a period, then the loop is
-        stepped; the process loop runs by itself: a 5 ms sleep). Returns the time waited, s."""
+        stepped; the process loop runs by itself: a 5 ms sleep). Returns the time waited, s (the
+        clock's; in-process exactly one period)."""
         ...
 
     def close(self) -> None: ...

@@ -247,8 +247,9 @@ class ServoProcess:
         """Nothing: the process loop reads the block every period."""
 
     def wait_period(self) -> float:
+        t0 = time.monotonic()
         time.sleep(0.005)
-        return 0.005
+        return time.monotonic() - t0
 
     # ------------------------------------------------------------------ channel
     def _pump(self, timeout_s: float, want: Any) -> Any:
