@@ -248,8 +248,10 @@ class ServoLoop:
 
     def _move(self, sp: Setpoint, st: RobotState, now_ns: int) -> int:
         """One period of a MOVE (:mod:`hil.servo.trajectory`): the profile's pose at this period,
-        checked, sent and supervised like a tracking command; the rate limiter follows the
-        profile, so a HOLD in the same session comes to rest from where the move is."""
+        checked and sent like a tracking command, and supervised once the profile has ended (module
+        doc); the rate limiter follows the profile, so a HOLD in the same session comes to rest
+        from where the move is. A command the driver could not send ends the move: the next
+        period starts it again from the actual pose, at rest."""
         if sp.track_id != self._track_id and not self._start_move(sp, st):   # a new move
             return 0
         move = self._trajectory
