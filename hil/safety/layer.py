@@ -161,6 +161,15 @@ class SafetyLayer:
             self._log("command_sent", {"command": "servo", "target_mm": T_robot_from_tcp.t,
                                        "period_s": period_s, "speed_mm_s": speed})
 
+    def move_profile_done(self) -> bool:
+        """Whether the servo loop has streamed the last move's whole profile (its target is now
+        commanded and held). A phase's arrival check needs it besides the arm's pose and speed: a
+        short correction move starts within the arrival tolerance of its target, and the state
+        read on the tick after the command may precede the move. True for a robot without a servo
+        loop (its state's MOVING mode covers a move it runs itself)."""
+        done = getattr(self.robot, "move_profile_done", None)
+        return True if done is None else bool(done())
+
     def start_tracking(self) -> None:
         """A new tracking session: the servo loop restarts from the actual pose, at rest."""
         self.forget_stream()

@@ -66,6 +66,7 @@ class ServoRobot(Robot):
         self.on_event = on_event
         self._rec = RingRecord()
         self._track_id = 0
+        self._last_move_id = 0
         self._tracking = False
         self._pending: DriverError | SafetyViolationError | None = None
         self._stop_error: tuple[int, DriverError] | None = None   # (stop request, why it failed)
@@ -166,7 +167,7 @@ class ServoRobot(Robot):
         x 1.5 + 5 s; the loop's refusal or a following fault raises SafetyViolationError."""
         start = self._state_now().T_robot_from_tcp
         self._track_id += 1
-        move_id = self._track_id
+        move_id = self._last_move_id = self._track_id
         self._tracking = False
         self.link.regions.block.write_move(track_id=move_id, R=T_robot_from_tcp.R, t_mm=T_robot_from_tcp.t,
                                            speed_mm_s=speed_mm_s, accel_mm_s2=accel_mm_s2)
@@ -178,13 +179,19 @@ class ServoRobot(Robot):
         while True:
             waited_s += self.link.wait_period()
             st = self._state_now()
-            if (self.link.regions.stats.get(Stat.MOVE_DONE_ID) >= move_id and st.tcp_speed_mm_s < 0.5
+            if (self.move_profile_done() and st.tcp_speed_mm_s < 0.5
                     and float(np.linalg.norm(st.T_robot_from_tcp.t - T_robot_from_tcp.t)) < 0.5):
                 return
             if waited_s > budget_s:
                 where = np.round(T_robot_from_tcp.t, 1).tolist()
                 raise DeviceTimeoutError(self.name,
                                          f"move to {where} mm did not finish within {budget_s:.1f} s")
+
+    def move_profile_done(self) -> bool:
+        """Whether the loop has streamed the whole profile of the last :meth:`move_linear` (the
+        target is now commanded and held; the arm settles through its servo lag). True before
+        any move. Never blocks."""
+        return self.link.regions.stats.get(Stat.MOVE_DONE_ID) >= self._last_move_id
 
     def _servo(self, T_robot_from_tcp: RigidTransform, period_s: float) -> None:
         now = time.monotonic_ns() if not self.link.in_process else self._state_now().t_ns

@@ -82,7 +82,8 @@ class ApproachPhase(Phase):
         if self.elapsed_s() > a.timeout_s:
             return out.fire(Event.TIMED_OUT, f"stand-off not reached within {a.timeout_s} s")
         if s.sub is ApproachSub.MOVING:
-            arrived = (st.mode is not RobotMode.MOVING and st.tcp_speed_mm_s < a.arrived_speed_mm_s
+            arrived = (ctx.safety.move_profile_done() and st.mode is not RobotMode.MOVING
+                       and st.tcp_speed_mm_s < a.arrived_speed_mm_s
                        and float(np.linalg.norm(st.T_robot_from_tcp.t - s.target.t)) < a.arrived_mm)
             if arrived:
                 s.sub = ApproachSub.MEASURING

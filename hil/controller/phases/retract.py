@@ -41,6 +41,7 @@ class RetractPhase(Phase):
         if self.elapsed_s() > lk.retract_timeout_s:
             return out.fire(Event.TIMED_OUT, f"retract not finished within {lk.retract_timeout_s:g} s")
         left_mm = float(np.linalg.norm(st.T_robot_from_tcp.t - self.target.t))
-        if st.mode is not RobotMode.MOVING and left_mm < lk.retract_arrived_mm:
+        if self.ctx.safety.move_profile_done() and st.mode is not RobotMode.MOVING \
+                and left_mm < lk.retract_arrived_mm:
             return out.fire(Event.RETRACTED, f"backed off {lk.retract_mm} mm along the guide axis")
         return out
