@@ -110,6 +110,10 @@ class ApproachConfig(BaseModel):
     arrived_speed_mm_s: float = Field(0.5, gt=0, description="and slower than this (mm/s)")
     measure_frames: int = Field(5, ge=1, le=100, description="pairs averaged for each optical check of "
                                 "the stand-off pose")
+    settle_s: float = Field(0.5, ge=0, le=5, description="the optical check uses only pairs exposed at "
+                            "least this long after the arm came to rest (s): its vibration dies out, "
+                            "and pairs already on their way, whose images still show it moving, are "
+                            "left out")
 
 
 class GateConfig(BaseModel):

@@ -79,6 +79,18 @@ def test_still_patient_locks_within_half_a_millimetre(tmp_path: Path) -> None:
     stats = [r for r in in_lock if r["event"] == "servo_stats"]
     assert sum(r["commands"] for r in stats) == sum(r["periods"] for r in stats) > 100
     assert sum(r["refusals"] + r["following_faults"] for r in stats) == 0
+    # APPROACH checks the stand-off optically only on pairs exposed settle_s after the arm was
+    # seen at rest; the pairs exposed in between were left out
+    a = load_setup(CONFIG).procedure.approach
+    in_approach = _records_in(s, "approach")
+    checks = [r for r in in_approach if r["event"] == "approach_measured"]
+    exposures = [r["exposure_t_ns"] for r in in_approach if r["event"] == "frame_measured"]
+    assert checks
+    for r in checks:
+        settled_ns = r["rest_ns"] + round(a.settle_s * 1e9)
+        assert r["pairs"] == a.measure_frames
+        assert r["first_exposure_ns"] >= settled_ns
+        assert any(r["rest_ns"] <= e < settled_ns for e in exposures)
 
 
 def _records_in(summary: RunSummary, state: str) -> list[dict[str, Any]]:

@@ -3,7 +3,11 @@
 
 The move is a straight line the servo loop streams every period (:mod:`hil.servo.trajectory`),
 then holds at its target while the optical check runs; with the loop in this process (a
-simulated run) the phase steps it until the next pair is due.
+simulated run) the phase steps it until the next pair is due. The optical check averages only
+pairs exposed ``settle_s`` after the arm was seen at rest (config ``[procedure.approach]``): a
+pair exposed earlier may show the arm still moving or ringing, and averaging it into ``T_bias``
+would correct for motion that is over (on the GigE tier, whose images arrive 0.15-0.4 s after
+they were rendered, that made the corrections wander by 1-3 mm).
 
 Entering after a resume or recovery restarts from the pose the robot reports now, at a reduced
 speed; after a fault recovery the robot is recovered first."""
@@ -41,6 +45,8 @@ class _Scratch:
     sub: ApproachSub = ApproachSub.MOVING
     biases: list[RigidTransform] = field(default_factory=list)
     corrections: int = 0
+    rest_ns: int = 0           # controller clock when the arm was seen at rest at the target
+    first_exposure_ns: int = 0  # exposure of the first pair of the optical check
 
 
 class ApproachPhase(Phase):
@@ -87,10 +93,15 @@ class ApproachPhase(Phase):
                        and float(np.linalg.norm(st.T_robot_from_tcp.t - s.target.t)) < a.arrived_mm)
             if arrived:
                 s.sub = ApproachSub.MEASURING
+                s.rest_ns = inputs.t_ns
                 s.biases.clear()
             return out
+        if inputs.frame.left.t_ns < s.rest_ns + round(a.settle_s * 1e9):
+            return out  # exposed before the arm settled (its images may still show it moving)
         D = est.bias_measurement(inputs.frame)
         if D is not None:
+            if not s.biases:
+                s.first_exposure_ns = inputs.frame.left.t_ns
             s.biases.append(D)
         if len(s.biases) < a.measure_frames:
             return out
@@ -100,7 +111,8 @@ class ApproachPhase(Phase):
         err = D_mean.inverse() @ commanded @ est.rig.T_tcp_from_guide
         want = est.guide_plan.T_robot_from_tcp @ est.rig.T_tcp_from_guide
         e_mm = float(np.linalg.norm(err.t - want.t))
-        ctx.session.write(ev.APPROACH_MEASURED, guide_error_mm=e_mm, correction=s.corrections, T_bias=D_mean)
+        ctx.session.write(ev.APPROACH_MEASURED, guide_error_mm=e_mm, correction=s.corrections, T_bias=D_mean,
+                          rest_ns=s.rest_ns, first_exposure_ns=s.first_exposure_ns, pairs=len(s.biases))
         if e_mm <= a.tolerance_mm:
             return out.fire(Event.STANDOFF_REACHED,
                             f"guide within {e_mm:.3f} mm of the stand-off pose (optical)")
