@@ -144,7 +144,8 @@ def test_drift_while_locked_raises_the_alarm_and_retracts(tmp_path: Path) -> Non
 @pytest.mark.slow
 def test_sudden_shift_beyond_bounds_pauses_and_re_registers(tmp_path: Path) -> None:
     comp = load_setup(CONFIG).procedure.compensation.model_copy(update={"settle_s": 3.0})
-    s = _run(_setup({"shifts": (ShiftConfig(at_s=7.0, translation_mm=(30.0, 0.0, 0.0)),)},
+    # the shift lands in COMPENSATE (entered at ~7.2 s of simulated time, held >= settle_s)
+    s = _run(_setup({"shifts": (ShiftConfig(at_s=8.0, translation_mm=(30.0, 0.0, 0.0)),)},
                     {"compensation": comp}), tmp_path)
     assert s.states[:7] == ["idle", "register", "plan", "approach", "gate", "compensate", "paused"]
     paused = next(r for r in s.timeline if r["state"] == "paused")
