@@ -138,6 +138,7 @@ _FORWARD: dict[tuple[State, Event], Goto] = {
     (State.APPROACH, Event.TIMED_OUT): Goto(State.FAULT, "approach_timed_out"),
     (State.GATE, Event.GATE_OPENED): Goto(State.COMPENSATE, "gate_to_compensate"),
     (State.GATE, Event.TIMED_OUT): Goto(State.GATE, "gate_timed_out"),
+    (State.GATE, Event.CORRECTION_OUT_OF_BOUNDS): Goto(State.PAUSED, "gate_out_of_bounds"),
     (State.COMPENSATE, Event.ALIGNED): Goto(State.LOCK, "compensate_to_lock"),
     (State.COMPENSATE, Event.CORRECTION_OUT_OF_BOUNDS): Goto(State.PAUSED, "correction_out_of_bounds"),
     (State.COMPENSATE, Event.TIMED_OUT): Goto(State.GATE, "compensate_timed_out"),

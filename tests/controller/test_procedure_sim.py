@@ -158,6 +158,25 @@ def test_sudden_shift_beyond_bounds_pauses_and_re_registers(tmp_path: Path) -> N
     assert s.lock_error_mm < 0.5
 
 
+@pytest.mark.slow
+def test_shift_beyond_bounds_while_gated_pauses_instead_of_asking_for_breath_holds(tmp_path: Path) -> None:
+    # the shift lands in GATE (entered at ~5.1 s of simulated time, opened at ~7.2 s unshifted):
+    # no breath-hold brings the markers back, so the operator decides (the auto operator
+    # re-registers on the shifted patient) -- before, GATE asked for breath-holds until aborted
+    s = _run(_setup({"shifts": (ShiftConfig(at_s=6.0, translation_mm=(30.0, 0.0, 0.0)),)}), tmp_path)
+    assert s.states == ["idle", "register", "plan", "approach", "gate", "paused",
+                        "register", "plan", "approach", "gate", "compensate", "lock", "done"]
+    paused = next(r for r in s.timeline if r["state"] == "paused")
+    assert paused["event"] == "correction_out_of_bounds"
+    assert "bound 25.0 mm" in paused["reason"]
+    t_shift_s = 6.0
+    assert t_shift_s < paused["t_s"] < t_shift_s + 0.5
+    rec = next(r for r in read_session_log(s.session_log) if r["event"] == "correction_out_of_bounds")
+    assert rec["reason"].startswith("patient moved 3")
+    assert s.lock_error_mm is not None
+    assert s.lock_error_mm < 0.5
+
+
 def test_protective_stop_enters_fault_and_stops(tmp_path: Path) -> None:
     s = _run(_setup(faults=(FaultSpec(kind=FaultKind.PROTECTIVE_STOP, start_s=3.0, duration_s=5.0),)),
              tmp_path)

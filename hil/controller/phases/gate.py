@@ -1,5 +1,10 @@
 """GATE: hold position and wait for the hold-breath gate to open (the live skin markers back
-within tolerance of the reference for the dwell time, seed 002)."""
+within tolerance of the reference for the dwell time, seed 002).
+
+A patient who moved beyond the correction bounds (``[procedure.compensation] max_correction_mm`` /
+``max_correction_deg``, the rigid change of the skin markers about the planned entry) will not
+bring the markers back by holding the breath: GATE pauses for an operator decision (re-register,
+or resume), as COMPENSATE and LOCK do, instead of asking for breath-holds until it times out."""
 
 from __future__ import annotations
 
@@ -7,6 +12,7 @@ from typing import TYPE_CHECKING
 
 from hil.controller import events as ev
 from hil.controller.commands import Stop
+from hil.controller.compensation import correction_out_of_bounds
 from hil.controller.fsm import Event, State
 from hil.controller.gate import BreathHoldGate
 from hil.controller.phases.base import Phase, PhaseResult
@@ -36,6 +42,12 @@ class GatePhase(Phase):
         status = est.gate.update(est.live_mm, inputs.frame.left.t_ns)
         self.ctx.session.write(ev.GATE_MEASURED, deviation_rms_mm=status.deviation_rms_mm,
                                markers=status.markers, dwell_s=status.dwell_s, open=status.open)
+        if est.T_change_meas is not None:
+            change = est.local(est.T_change_meas)
+            why = correction_out_of_bounds(change, self.ctx.cfg.compensation)
+            if why is not None:
+                self.ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=why, T_change=change)
+                return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, why + "; operator decision needed")
         if status.open:
             return out.fire(Event.GATE_OPENED, status.justification)
         if status.timed_out:
