@@ -333,9 +333,9 @@ class ServoLoop:
         fault = self.following.update(now_ns, cmd.R, cmd.t, T_act.R, T_act.t)
         if fault is not None:
             self.stats.c[Stat.FOLLOWING_FAULTS] += 1
-            self._halt(sp)
             self.report(EV_FOLLOWING, {"message": fault.message(), "frame_seq": sp.frame_seq,
                                        **fault.fields()})
+            self._halt(sp)   # after the report: the stop can block (see _refuse)
             return False
         self._note_peak()
         return True
@@ -353,8 +353,10 @@ class ServoLoop:
 
     def _refuse(self, sp: Setpoint, why: tuple[str, str]) -> None:
         self.stats.c[Stat.REFUSALS] += 1
-        self._halt(sp)
+        # reported before the stop: a stop can block on a controller that stopped answering, and
+        # the supervisor (in its own process) must learn of the refusal at once
         self.report(EV_REFUSED, {"check": why[0], "detail": why[1], "frame_seq": sp.frame_seq})
+        self._halt(sp)
 
     def _halt(self, sp: Setpoint) -> None:
         """End the tracking session ``sp`` belongs to for good and stop the arm."""

@@ -257,6 +257,23 @@ def test_an_arm_that_stops_following_is_stopped_and_the_session_ends(rig: Any) -
     assert [kind for kind, _ in robot.calls[k_stop + 1:]] == ["servo"] * 3
 
 
+def test_a_refusal_is_reported_before_the_stop_that_may_block(rig: Any) -> None:
+    # a stop can block for as long as a controller does not answer (an RTDE stream that paused):
+    # the supervisor, in its own process, must have the refusal before that
+    clock, robot, regions, loop, events = rig
+    seen_at_stop: list[list[str]] = []
+    stop = robot.stop
+
+    def stop_noting_the_events() -> None:
+        seen_at_stop.append([k for k, _ in events])
+        stop()
+
+    robot.stop = stop_noting_the_events
+    _track(regions.block, clock, (np.nan, 0.0, 300.0), valid_s=10.0)
+    _run(clock, loop, 1)
+    assert seen_at_stop == [[EV_REFUSED]]
+
+
 def test_a_refused_session_is_never_resumed_by_the_loop(rig: Any) -> None:
     clock, robot, regions, loop, events = rig
     _track(regions.block, clock, (np.nan, 0.0, 300.0), valid_s=10.0)
