@@ -143,11 +143,14 @@ def _setup_for(spec: RunSpec) -> SetupConfig:
 
 def _latency_bound_ms(setup: SetupConfig, device: str, frame_rate_hz: float) -> float:
     """Detectable -> safe state, per device: the device's watchdog age, plus the camera's grab
-    timeout for the camera, plus two control ticks (one to see it, one to act)."""
+    timeout for the camera (``camera_silence_ms``, else 4 frame periods and at least 0.2 s, as
+    :meth:`hil.controller.pipeline.DevicePipeline.grab_timeout_s`), plus two control ticks (one to
+    see it, one to act)."""
     sf = setup.safety
     tick_s = 1.0 / frame_rate_hz
     if device == "camera":
-        age_s = sf.camera_frame_max_age_ms / 1e3 + max(4 * tick_s, 0.2)
+        silence_s = sf.camera_silence_ms / 1e3 if sf.camera_silence_ms is not None else max(4 * tick_s, 0.2)
+        age_s = sf.camera_frame_max_age_ms / 1e3 + silence_s
     elif device == "robot":
         age_s = sf.robot_state_max_age_ms / 1e3
     else:

@@ -44,6 +44,11 @@ class SafetyConfig(BaseModel):
                                       description="watchdog: newest tracker sample")
     robot_state_max_age_ms: float = Field(50.0, gt=0, le=MAX_ROBOT_STATE_AGE_MS,
                                           description="watchdog: newest robot state")
+    camera_silence_ms: float | None = Field(
+        None, gt=0, le=MAX_WATCHDOG_AGE_MS,
+        description="how long no stereo pair may arrive before the camera counts as lost, ms (unset: 4 "
+                    "frame periods, at least 200 ms); set it with camera_frame_max_age_ms for a camera or "
+                    "simulator that is slower than its frame rate")
     # Camera cross-check of the robot's reported pose (docs/safety.md; GATE, COMPENSATE, LOCK).
     camera_discrepancy_mm: float = Field(
         2.0, gt=0, le=50,

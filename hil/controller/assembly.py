@@ -180,6 +180,7 @@ def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, 
         tracker_use=_tracker_use(setup, world is not None),
         crosscheck=CrossCheckBounds(sf.camera_discrepancy_mm, sf.camera_discrepancy_deg,
                                     sf.camera_discrepancy_s),
+        camera_silence_s=None if sf.camera_silence_ms is None else sf.camera_silence_ms / 1e3,
     )
 
 

@@ -90,6 +90,8 @@ class ControllerParts(abc.ABC):
         procedure: tolerances and policies.
         limits: the safety layer's motion limits.
         watchdog_ages_s: ``{"camera": s, "robot": s, "tracker": s}``.
+        camera_silence_s: how long no stereo pair may arrive before the camera is lost, s (None:
+            4 frame periods, at least 0.2 s; :meth:`DevicePipeline.grab_timeout_s`).
         session: the session log (every event, transition, command, measurement, fault).
         observers: called with a frozen snapshot at the end of every tick (display, stream), in
             the controller's thread; their exceptions are logged (``observer_failed``) and never
@@ -112,6 +114,7 @@ class ControllerParts(abc.ABC):
         tracker_use: TrackerUse | None = None,
         hooks: HookCaller | None = None,
         crosscheck: CrossCheckBounds | None = None,
+        camera_silence_s: float | None = None,
     ) -> None:
         robot = self._servo_robot(robot, limits, procedure, clock, session)
         self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
@@ -136,7 +139,8 @@ class ControllerParts(abc.ABC):
         self.metrics = RunMetrics()
         sup_ms = procedure.supervisor_period_ms
         self.pipeline = DevicePipeline(camera, robot, tracker, clock, locate, self.watchdogs, session,
-                                       self.metrics, None if sup_ms is None else sup_ms / 1e3)
+                                       self.metrics, None if sup_ms is None else sup_ms / 1e3,
+                                       camera_silence_s)
         self.supervisor = Supervisor(robot, self.safety, self.watchdogs, session)
         self.markers = MarkerTracker(procedure.registration.match_tolerance_mm)
         self.crosscheck = CameraCrossCheck(crosscheck or CrossCheckBounds())

@@ -76,11 +76,14 @@ class DevicePipeline:
 
     def __init__(self, camera: StereoCamera, robot: Robot, tracker: PoseTracker | None, clock: Clock,
                  locate: MarkerLocator, watchdogs: WatchdogSet, session: SessionLog,
-                 metrics: RunMetrics, supervisor_period_s: float | None = None) -> None:
+                 metrics: RunMetrics, supervisor_period_s: float | None = None,
+                 camera_silence_s: float | None = None) -> None:
         self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
         self.locate = locate
         self.watchdogs, self.session, self.metrics = watchdogs, session, metrics
         self.frame_period_s = 1.0 / camera.frame_rate_hz
+        #: ``[safety] camera_silence_ms`` in s (None: the default, :meth:`grab_timeout_s`)
+        self.camera_silence_s = camera_silence_s
         #: the longest a tick waits for a pair before it supervises without one, s (module doc)
         self.supervisor_period_s = (SUPERVISOR_PERIOD_FRAMES * self.frame_period_s
                                     if supervisor_period_s is None else supervisor_period_s)
@@ -98,6 +101,10 @@ class DevicePipeline:
         self.last_located: LocatedMarkers | None = None
 
     def grab_timeout_s(self) -> float:
+        """How long no pair may arrive before the camera is lost, s: ``[safety]
+        camera_silence_ms`` when set, else 4 frame periods and at least 0.2 s."""
+        if self.camera_silence_s is not None:
+            return self.camera_silence_s
         return max(4 * self.frame_period_s, 0.2)
 
     def prime(self, timeout_s: float = 2.0) -> None:

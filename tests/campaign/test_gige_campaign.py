@@ -212,6 +212,7 @@ def test_camera_setup_is_the_aravis_driver_on_the_simulated_world(tmp_path: Path
         "pairing": "trigger_id"}
     assert (str(setup.robot.driver), str(setup.tracker.driver if setup.tracker else None)) == ("sim", "sim")
     assert (setup.simulation.seed, setup.simulation.real_time) == (3, True)
+    assert setup.safety.camera_silence_ms is None   # the camera under test keeps the 4-period grab timeout
     assert aravis_camera_section(setup).startswith('[camera]\ndriver = "aravis"\n')
 
 

@@ -153,6 +153,9 @@ def test_written_setups_point_the_real_drivers_at_the_emulators(tmp_path: Path) 
                               "sensors": {"reference": 0}}
     assert raw["robot"]["driver"] == "sim"
     assert raw["safety"]["tracker_max_age_ms"] == 1000.0
+    # the camera is not under test here: it may fall silent as long as its age bound allows
+    assert (raw["safety"]["camera_frame_max_age_ms"], raw["safety"]["camera_silence_ms"]) == (1500.0, 1500.0)
+    assert setup.safety.camera_silence_ms == 1500.0
 
 
 def _view(state: State, t_s: float, pending: str | None = None) -> OperatorView:

@@ -88,14 +88,14 @@ def _arrived(p: DevicePipeline) -> bool:
     return p.pair_arrived
 
 
-def _pipeline(clock: ManualClock, cam: ScriptedCamera, session: SessionLog,
-              period_s: float | None = None) -> tuple[DevicePipeline, ClockRobot, WatchdogSet]:
+def _pipeline(clock: ManualClock, cam: ScriptedCamera, session: SessionLog, period_s: float | None = None,
+              silence_s: float | None = None) -> tuple[DevicePipeline, ClockRobot, WatchdogSet]:
     robot = ClockRobot(clock)
     wd = WatchdogSet({"camera": 10.0, "robot": 0.05})
     cam_any: Any = cam
     robot_any: Any = robot
     return (DevicePipeline(cam_any, robot_any, None, clock, lambda f: np.zeros((0, 3)), wd, session,
-                           RunMetrics(), period_s), robot, wd)
+                           RunMetrics(), period_s, silence_s), robot, wd)
 
 
 def test_without_a_pair_the_tick_still_reads_the_robot_every_supervisor_period(session: SessionLog) -> None:
@@ -139,6 +139,26 @@ def test_the_camera_fault_comes_after_the_whole_grab_timeout(session: SessionLog
     assert p.read(est) is not None
     assert not _arrived(p)
     assert cam.timeouts_s[-1] == pytest.approx(PERIOD_S)
+
+
+def test_a_configured_camera_silence_replaces_the_four_period_grab_timeout(session: SessionLog) -> None:
+    clock = ManualClock(0)
+    cam = ScriptedCamera(clock, [0.0, 0.9])        # a pair, then none for 0.9 s (a starved simulator)
+    p, _, _ = _pipeline(clock, cam, session, silence_s=0.95)
+    est: Any = Est()
+    p.read(est)
+    arrivals = []
+    for _ in range(11):                            # 10 periods without a pair, then the late one
+        p.read(est)
+        arrivals.append(_arrived(p))
+    assert arrivals == [False] * 10 + [True]
+    assert clock.now_ns() == 900_000_000
+    t0 = clock.now_ns()
+    for _ in range(11):                            # 11 periods without a pair: no fault yet
+        p.read(est)
+    with pytest.raises(DeviceTimeoutError, match=r"^camera: no stereo pair within 0\.95 s$"):
+        p.read(est)                                # the 12th waits the rest of the 0.95 s
+    assert clock.now_ns() - t0 == 950_000_000
 
 
 def test_a_supervisor_period_as_long_as_the_grab_timeout_waits_in_one_grab(session: SessionLog) -> None:
