@@ -15,6 +15,7 @@ from hil.config import build_devices, load_setup
 from hil.config.faults import FAULT_DEVICE, FaultKind, FaultSpec
 from hil.config.setup import SetupConfig
 from hil.controller.fsm import State
+from hil.controller.pipeline import camera_silence_s
 from hil.controller.plan_file import load_plan
 from hil.session.log import SessionLog, file_sha256, read_session_log, verify_session_log
 
@@ -143,13 +144,13 @@ def _setup_for(spec: RunSpec) -> SetupConfig:
 
 def _latency_bound_ms(setup: SetupConfig, device: str, frame_rate_hz: float) -> float:
     """Detectable -> safe state, per device: the device's watchdog age, plus the camera's grab
-    timeout for the camera (``camera_silence_ms``, else 4 frame periods and at least 0.2 s, as
-    :meth:`hil.controller.pipeline.DevicePipeline.grab_timeout_s`), plus two control ticks (one to
-    see it, one to act)."""
+    timeout for the camera (:func:`hil.controller.pipeline.camera_silence_s`), plus two control
+    ticks (one to see it, one to act)."""
     sf = setup.safety
     tick_s = 1.0 / frame_rate_hz
     if device == "camera":
-        silence_s = sf.camera_silence_ms / 1e3 if sf.camera_silence_ms is not None else max(4 * tick_s, 0.2)
+        configured_s = None if sf.camera_silence_ms is None else sf.camera_silence_ms / 1e3
+        silence_s = camera_silence_s(tick_s, configured_s)
         age_s = sf.camera_frame_max_age_ms / 1e3 + silence_s
     elif device == "robot":
         age_s = sf.robot_state_max_age_ms / 1e3

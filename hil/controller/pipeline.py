@@ -70,6 +70,14 @@ def perception_feed(camera: StereoCamera) -> PairFeed | None:
     return feed if isinstance(feed, PairFeed) else None
 
 
+def camera_silence_s(frame_period_s: float, configured_s: float | None = None) -> float:
+    """How long no stereo pair may arrive before the camera is lost, s: ``configured_s``
+    (``[safety] camera_silence_ms``) when set, else 4 frame periods and at least 0.2 s."""
+    if configured_s is not None:
+        return configured_s
+    return max(4 * frame_period_s, 0.2)
+
+
 class DevicePipeline:
     """Reads the devices for the controller (module doc). ``locate``: stereo pair -> marker
     centres (optical frame, mm)."""
@@ -101,11 +109,8 @@ class DevicePipeline:
         self.last_located: LocatedMarkers | None = None
 
     def grab_timeout_s(self) -> float:
-        """How long no pair may arrive before the camera is lost, s: ``[safety]
-        camera_silence_ms`` when set, else 4 frame periods and at least 0.2 s."""
-        if self.camera_silence_s is not None:
-            return self.camera_silence_s
-        return max(4 * self.frame_period_s, 0.2)
+        """How long no pair may arrive before the camera is lost, s (:func:`camera_silence_s`)."""
+        return camera_silence_s(self.frame_period_s, self.camera_silence_s)
 
     def prime(self, timeout_s: float = 2.0) -> None:
         """Grab and discard one stereo pair, once, before the first tick judges any.
