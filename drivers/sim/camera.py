@@ -27,6 +27,8 @@ uses (:attr:`SimStereoCamera.calibration` stays the told one); with ``camera_tim
 from __future__ import annotations
 
 import math
+import statistics
+from collections import deque
 from typing import Literal
 
 from pydantic import BaseModel, Field
@@ -45,6 +47,8 @@ from plugins.registry import DriverContext
 
 #: never render further ahead of the clock than this (real time only; see SimStereoCamera.grab)
 _MAX_RENDER_LEAD_NS = 500_000_000
+#: the lead is the median of this many of the last render times (SimStereoCamera.render_lead_ns)
+_RENDER_LEAD_WINDOW = 5
 
 
 class SimCameraConfig(BaseModel):
@@ -103,7 +107,8 @@ class SimStereoCamera(StereoCamera):
         self.last_truth: tuple[MarkerTruth, ...] = ()        # markers at the left exposure
         self.last_truth_right: tuple[MarkerTruth, ...] = ()  # markers at the right exposure
         self.frames_rendered = 0
-        self._render_lead_ns = 0  # clock time a render is expected to take (peak-hold, decaying)
+        # clock time the last renders took (none on a manual clock); their median is the lead
+        self._render_ns: deque[int] = deque(maxlen=_RENDER_LEAD_WINDOW)
 
     def _open(self) -> None:
         self._t0_ns = self.clock.now_ns()
@@ -129,6 +134,22 @@ class SimStereoCamera(StereoCamera):
     @property
     def image_size(self) -> tuple[int, int]:
         return self.calibration.image_size
+
+    @property
+    def render_lead_ns(self) -> int:
+        """How long before a pair is due its render starts (ns of clock time): the median of the
+        last :data:`_RENDER_LEAD_WINDOW` render times, at most :data:`_MAX_RENDER_LEAD_NS`; 0 before
+        the first render and on a manual clock (rendering takes no simulated time).
+
+        A median, not a peak: a render stretched by a stall of the whole process (the host, or a
+        library holding the interpreter lock -- ur_rtde's client constructors do, for ~0.65 s, when
+        recover() rebuilds them) says nothing of the next one. A peak-hold took that stall as the
+        lead, so the camera then rendered a pair that far ahead and delivered nothing until it was
+        due: every stall was followed by a silence as long again (a transport run's camera data
+        1.5 s old after the robot's recovery). A real camera delivers the next frame on time."""
+        if not self._render_ns:
+            return 0
+        return min(round(statistics.median_low(self._render_ns)), _MAX_RENDER_LEAD_NS)
 
     def exposure_time_ns(self, k: int) -> int:
         return self._t0_ns + k * self._period_ns
@@ -160,7 +181,7 @@ class SimStereoCamera(StereoCamera):
         # here, so nothing changes; with it (real time) a servo command sent during the render
         # that changes the motion before the exposure is not in the image -- at most the
         # command's change of velocity times that small lead.
-        lead = min(self._render_lead_ns, round(timeout_s * 1e9))
+        lead = min(self.render_lead_ns, round(timeout_s * 1e9))
         newest = math.floor((now + lead - self._latency_ns - self._t0_ns) / self._period_ns)
         k = max(newest, self._last_k + 1)
         ready_ns = self.exposure_time_ns(k) + self._latency_ns
@@ -188,12 +209,7 @@ class SimStereoCamera(StereoCamera):
             self.last_truth_right = skewed.truth
         self.frames_rendered += 1
         done_ns = self.clock.now_ns()
-        # peak-hold, halving per frame: a lead above one period makes the camera skip pairs (it
-        # delivers one per lead), so a single slow render (the first, cold caches, or a load spike)
-        # must not hold the frame rate down for long -- it is back to the measured render time
-        # within ~3 frames (a 0.9 decay took ~12: the first 2 s of a real-time run at 4-5 Hz)
-        self._render_lead_ns = min(max(done_ns - t_render_ns, self._render_lead_ns // 2),
-                                   _MAX_RENDER_LEAD_NS)
+        self._render_ns.append(done_ns - t_render_ns)
         if done_ns < ready_ns:
             self.clock.sleep((ready_ns - done_ns) * 1e-9)  # never before the camera would deliver it
         stamp_ns, source = t_exp, FrameTime.EXPOSURE

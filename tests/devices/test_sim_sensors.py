@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -54,6 +56,54 @@ def test_late_grab_returns_the_newest_pair(clock: ManualClock) -> None:
     p = cam.grab(1.0)
     assert p.left.seq == 10
     assert cam.frames_rendered == 1     # skipped frames were never rendered
+
+
+def _rendering_takes(clock: ManualClock, monkeypatch: pytest.MonkeyPatch, durations_s: list[float]) -> None:
+    """Each render advances ``clock`` by the next of ``durations_s``: rendering taking clock time,
+    as it does on the wall clock."""
+    from hil.vision.render import render_stereo
+
+    left = iter(durations_s)
+
+    def timed(*args: Any, **kwargs: Any) -> Any:
+        clock.advance(next(left))
+        return render_stereo(*args, **kwargs)
+
+    monkeypatch.setattr("drivers.sim.camera.render_stereo", timed)
+
+
+def test_a_render_starts_its_render_time_before_the_pair_is_due(
+        clock: ManualClock, monkeypatch: pytest.MonkeyPatch) -> None:
+    _rendering_takes(clock, monkeypatch, [0.040] * 4)
+    cam = _camera(clock, frame_rate_hz=10.0, latency_ms=30.0)
+    cam.open()
+    t0 = clock.now_ns()
+    first = cam.grab(1.0)      # no render time known yet: rendered when due, delivered 40 ms late
+    assert (first.left.seq, clock.now_ns() - t0) == (0, 70_000_000)
+    assert cam.render_lead_ns == 40_000_000
+    second = cam.grab(1.0)     # due at 130 ms: rendered from 90 ms, delivered on time
+    assert (second.left.seq, clock.now_ns() - t0) == (1, 130_000_000)
+
+
+def test_one_stalled_render_is_not_followed_by_a_silence(
+        clock: ManualClock, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A render stretched by a stall of the whole process (0.7 s: ur_rtde's constructors hold the
+    interpreter lock when the robot is recovered) is delivered late, and the next pair comes on
+    time: the lead stays the usual render time, never the stall (which made the camera render the
+    next pair 0.5 s ahead and deliver nothing until then)."""
+    _rendering_takes(clock, monkeypatch, [0.040] * 5 + [0.700] + [0.040] * 3)
+    cam = _camera(clock, frame_rate_hz=10.0, latency_ms=30.0)
+    cam.open()
+    t0 = clock.now_ns()
+    for _ in range(5):
+        cam.grab(1.0)
+    assert cam.render_lead_ns == 40_000_000
+    stalled = cam.grab(1.0)                                # due at 530 ms, done at 1,190 ms
+    assert (stalled.left.seq, clock.now_ns() - t0) == (5, 1_190_000_000)
+    assert cam.render_lead_ns == 40_000_000
+    after = cam.grab(1.0)          # the newest pair due once rendered: seq 12, due at 1,230 ms
+    assert (after.left.seq, clock.now_ns() - t0) == (12, 1_230_000_000)
+    assert after.left.t_ns - t0 == 1_200_000_000
 
 
 def test_grab_timeout(clock: ManualClock) -> None:
