@@ -196,7 +196,7 @@ def _control_socket_path(what: str) -> Path:
     return Path("/tmp") / f"hil-{what}-{os.getpid()}-{random.randint(0, 1 << 30)}.sock"
 
 
-def _spawn(args: list[str], log_path: Path, *, die_with_parent: bool = False
+def _spawn(args: list[str], log_path: Path, *, tied_to_parent: bool = False
            ) -> tuple[subprocess.Popen[bytes], str]:
     """Start ``python -m <args>`` (stderr to ``log_path``); return it and its first stdout line
     (empty when none came within ``START_TIMEOUT_S``)."""
@@ -204,7 +204,7 @@ def _spawn(args: list[str], log_path: Path, *, die_with_parent: bool = False
     with log_path.open("wb") as log:
         proc = subprocess.Popen([sys.executable, "-m", *args], env=_env(tools), stdout=subprocess.PIPE,
                                 stderr=log, cwd=tools,
-                                preexec_fn=_die_with_parent if die_with_parent else None)
+                                preexec_fn=die_with_parent if tied_to_parent else None)
     assert proc.stdout is not None
     ready, _, _ = select.select([proc.stdout], [], [], START_TIMEOUT_S)
     return proc, proc.stdout.readline().decode(errors="replace").strip() if ready else ""
@@ -329,8 +329,10 @@ def start_trackersim(log_dir: Path, *, seed: int = 0, protocol: str = "fob") -> 
     return sim
 
 
-def _die_with_parent() -> None:
-    """preexec_fn: the child gets SIGKILL when the process that started it dies (PR_SET_PDEATHSIG)."""
+def die_with_parent() -> None:
+    """preexec_fn: the child gets SIGKILL when the process that started it dies (PR_SET_PDEATHSIG),
+    so an emulator never outlives a test or campaign process that crashed (no teardown ran). The
+    signal follows the *thread* that started the child: start it from a thread that outlives it."""
     libc = ctypes.CDLL(None, use_errno=True)
     libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
 
@@ -373,7 +375,7 @@ def start_fakegv(log_dir: Path, shm_name: str, *, left: str = "127.0.0.1",
     log_path = log_dir / "fakegv.log"
     control = _control_socket_path("fakegv")
     proc, line = _spawn(["emulators.fakegv", "--shm", shm_name, "--address", left, "--right-address", right,
-                         "--control", str(control)], log_path, die_with_parent=True)
+                         "--control", str(control)], log_path, tied_to_parent=True)
     try:
         cameras = json.loads(line)["cameras"]
     except (ValueError, KeyError, TypeError):

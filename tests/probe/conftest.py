@@ -20,6 +20,7 @@ from typing import Any
 
 import pytest
 
+from hil.campaign.emulators import die_with_parent
 from hil.cli import main as hil_main
 from tests.ur_rtde.conftest import Ursim, start_ursim
 
@@ -55,7 +56,7 @@ def _start_trackersim(args: list[str]) -> TrackerSim:
     env = dict(os.environ)
     env["PYTHONPATH"] = str(TOOLS) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     proc = subprocess.Popen([sys.executable, "-m", "emulators.trackersim", *args], env=env, cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, preexec_fn=die_with_parent)
     assert proc.stdout is not None
     line = b""
     deadline = time.monotonic() + 20.0

@@ -24,6 +24,7 @@ import pytest
 from drivers.interfaces.robot import MotionLimits
 from drivers.ur_rtde.config import UrRtdeRobotConfig
 from drivers.ur_rtde.robot import UrRtdeRobot
+from hil.campaign.emulators import die_with_parent
 from hil.campaign.ursim_control import UrsimControl
 from hil.clock import MonotonicClock
 
@@ -84,7 +85,8 @@ def start_ursim(version: str, log_dir: Path) -> Ursim:
         proc = subprocess.Popen(
             [sys.executable, "-m", "emulators.ursim", "--host", host, "--controller-version", version,
              "--verbose"],
-            env=env, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
+            env=env, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
+            preexec_fn=die_with_parent)   # a crashed test process leaves no emulator behind
     deadline = time.monotonic() + START_TIMEOUT_S
     while True:
         if proc.poll() is not None:
