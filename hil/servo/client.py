@@ -46,6 +46,9 @@ from hil.servo.rt import RtGranted
 from hil.servo.shm import RingRecord, ServoMode, Stat
 from hil.servo.wire import error_from_wire
 
+#: session-log event: the servo process had ended on its own and recover() started a new one
+EV_PROCESS_RESTARTED = "servo_process_restarted"
+
 #: How long ``stop`` waits for the loop to deliver the stop, s (a UR's servoStop / stopL returns
 #: once the arm is at rest: a fraction of a second from following speed).
 STOP_ACK_TIMEOUT_S = 2.0
@@ -238,10 +241,35 @@ class ServoRobot(Robot):
         return record_to_state(rec)
 
     def recover(self) -> None:
+        """Recover the arm through the loop (the driver's own recover: reconnect, restart its
+        program, release a protective stop). A servo process that ended on its own (a crash of the
+        robot library, as ur-rtde's reconnect can on a dropped link) is started again instead:
+        the robot is opened anew there, which is that recovery; the session log gets
+        ``servo_process_restarted`` with the reason and the new pid.
+
+        Raises:
+            LifecycleError: not active, or the servo process was closed.
+            DriverError: the driver's (a link still down, a stop that cannot be released), from
+                the restarted process too (a later recover tries again).
+        """
+        if isinstance(self.link, ServoProcess) and self.state is DeviceState.ACTIVE:
+            why = self.link.gone()
+            if why is not None and not self.link.closed:
+                self._restart_process(why)
+                return
         self._raise_if_gone()
         self.idle()
         self._pending = None
         self.link.request("recover", timeout_s=30.0)
+
+    def _restart_process(self, why: str) -> None:
+        assert isinstance(self.link, ServoProcess)
+        self._pending, self._stop_error = None, None
+        self._tracking = False
+        ready = self.link.restart()
+        self.rt = ready.rt
+        if self.on_event is not None:
+            self.on_event(EV_PROCESS_RESTARTED, {"reason": why, "pid": ready.pid})
 
     def state_view(self) -> Robot:
         """A read-only robot for observers (a simulated world following the arm): its

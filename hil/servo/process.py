@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError
+from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError, LifecycleError
 from drivers.interfaces.robot import FollowingModel
 from hil.clock import MonotonicClock
 from hil.config.setup import SetupConfig
@@ -117,12 +117,15 @@ class ServoProcess:
         self.ready: ServoReady | None = None
         self._closed = False
         self._started = False
+        self._child_ended = False   # this child's channel and regions are freed (close, failed start)
         #: one reader of the channel at a time (the controller's thread, observers' threads)
         self._channel_lock = threading.RLock()
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> ServoReady:
-        """Create the shared regions and the channel, start the child, wait until it is ready."""
+        """Create the shared regions and the channel, start the child, wait until it is ready.
+        A failed start ends the child and frees the regions; :meth:`restart` may try again."""
+        self._child_ended = False
         self.regions = Regions.create(shared=True)
         ours, theirs = socket.socketpair()
         self._conn = Connection(ours.detach())
@@ -137,16 +140,16 @@ class ServoProcess:
             self._conn.send((self.spec, self.regions.names()))
             msg = self._wait_for(lambda m: m[0] in ("ready", "failed"), START_TIMEOUT_S)
         except BaseException:
-            self.close()
+            self._end_child()
             raise
         if msg[0] == "failed":
-            self.close()
+            self._end_child()
             raise error_from_wire(*msg[1])
         info = msg[1]
         deadline = time.monotonic() + START_TIMEOUT_S
         while self.regions.ring.head == 0:   # the first period's record: state reads work from here
             if self._proc.poll() is not None or time.monotonic() > deadline:
-                self.close()
+                self._end_child()
                 raise DeviceTimeoutError(self._name, "servo loop did not read the robot after starting")
             time.sleep(0.001)
         self.ready = ServoReady(info["robot_name"], float(info["control_rate_hz"]),
@@ -155,13 +158,39 @@ class ServoProcess:
                                 FollowingModel(**info["following"]))
         return self.ready
 
+    def restart(self) -> ServoReady:
+        """Start a new child in place of one that ended on its own (:meth:`gone` says why: the
+        robot library or the interpreter crashed, the OS killed it): the robot is built and opened
+        anew in it -- new connections, its control program started again -- on new shared regions.
+        The arm was not commanded meanwhile (a UR stops its program when its RTDE watchdog sees no
+        kick). Blocks like :meth:`start` and raises what it raises; a failed restart may be tried
+        again.
+
+        Raises:
+            LifecycleError: after :meth:`close`, or while the child runs (nothing to restart).
+        """
+        if self._closed:
+            raise LifecycleError(self._name, "restart() after close()")
+        if self._started and self._crash is None and self._proc.poll() is None:
+            raise LifecycleError(self._name, "restart() while the servo process runs")
+        self._end_child()
+        self._crash, self.ready = None, None
+        self._events.clear()
+        return self.start()
+
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop the arm and end the child (module doc). Idempotent; never raises."""
         if self._closed:
             return
         self._closed = True
-        if not self._started:
+        self._end_child(timeout_s)
+
+    def _end_child(self, timeout_s: float = 5.0) -> None:
+        """Ask the child to stop the arm and exit, then terminate, then kill it; free the channel
+        and the regions. Once per child; never raises."""
+        if not self._started or self._child_ended:
             return
+        self._child_ended = True
         if self._proc.poll() is None:
             with contextlib.suppress(OSError, ValueError):
                 self._conn.send(("close", -1, ()))
@@ -176,6 +205,11 @@ class ServoProcess:
             self._proc.wait()
         self._conn.close()
         self.regions.close()
+
+    @property
+    def closed(self) -> bool:
+        """:meth:`close` was called (a child that ended on its own leaves this False)."""
+        return self._closed
 
     @property
     def exitcode(self) -> int | None:

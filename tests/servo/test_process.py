@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.interfaces.errors import DisconnectedError
+from drivers.interfaces.errors import DisconnectedError, LifecycleError
 from hil.config import default_setup_path, load_setup
 from hil.geometry.transform import RigidTransform
-from hil.servo.client import ServoRobot
+from hil.servo.client import EV_PROCESS_RESTARTED, ServoRobot
 from hil.servo.process import ServoProcess, ServoSpec
 from hil.servo.shm import Stat
 
@@ -102,6 +102,41 @@ def test_a_killed_servo_process_makes_the_robot_disconnected(robot: ServoRobot) 
     _wait(lambda: link.gone() is not None, "the parent to see the child gone")
     with pytest.raises(DisconnectedError, match="servo process"):
         robot.state_now()
+
+
+def test_recover_starts_a_new_servo_process_in_place_of_one_that_died(robot: ServoRobot) -> None:
+    """A servo process that ended on its own (here SIGKILL; in the field the robot library's crash
+    on a dropped link, reference/ur-rtde.md trap 2) faults the controller at its next read, and
+    recover() starts a new one that owns a freshly opened robot; the session log says so."""
+    link = robot.link
+    assert isinstance(link, ServoProcess)
+    assert link.ready is not None
+    events: list[tuple[str, dict[str, object]]] = []
+    robot.on_event = lambda kind, fields: events.append((kind, fields))
+    old_pid = link.ready.pid
+    with pytest.raises(LifecycleError, match="while the servo process runs"):
+        link.restart()
+    os.kill(old_pid, signal.SIGKILL)
+    _wait(lambda: link.gone() is not None, "the parent to see the child gone")
+    with pytest.raises(DisconnectedError, match=r"servo process exited \(code -9\)"):
+        robot.state_now()
+    robot.recover()
+    assert link.gone() is None
+    assert link.ready.pid != old_pid
+    assert [(k, f) for k, f in events if k == EV_PROCESS_RESTARTED] == [
+        (EV_PROCESS_RESTARTED, {"reason": "servo process exited (code -9)", "pid": link.ready.pid})]
+    _wait(lambda: link.regions.stats.get(Stat.PERIODS) > 10, "the new loop to run")
+    start = robot.state_now().T_robot_from_tcp
+    target = RigidTransform(start.R, start.t + np.array([10.0, 0.0, 0.0]))
+    robot.move_linear(target, 50.0, 200.0)           # the new loop commands the arm
+    assert float(np.linalg.norm(robot.state_now().T_robot_from_tcp.t - target.t)) < 0.05
+    new_pid = link.ready.pid
+    robot.recover()                                   # a live process: the driver's own recover
+    assert link.ready.pid == new_pid
+    assert len([k for k, _ in events if k == EV_PROCESS_RESTARTED]) == 1
+    robot.close()
+    with pytest.raises(LifecycleError, match="after close"):
+        link.restart()
 
 
 _PARENT = textwrap.dedent("""
