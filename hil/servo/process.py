@@ -162,9 +162,9 @@ class ServoProcess:
         """Start a new child in place of one that ended on its own (:meth:`gone` says why: the
         robot library or the interpreter crashed, the OS killed it): the robot is built and opened
         anew in it -- new connections, its control program started again -- on new shared regions.
-        The arm was not commanded meanwhile (a UR stops its program when its RTDE watchdog sees no
-        kick). Blocks like :meth:`start` and raises what it raises; a failed restart may be tried
-        again.
+        Nothing commanded the arm meanwhile: a UR rests on its last servo target, and its control
+        program stops when the RTDE watchdog sees no kick or is replaced by the new driver's.
+        Blocks like :meth:`start` and raises what it raises; a failed restart may be tried again.
 
         Raises:
             LifecycleError: after :meth:`close`, or while the child runs (nothing to restart).
