@@ -70,6 +70,11 @@ def why_not_runnable() -> str | None:
         return "the camera scenario needs a private network namespace (unshare(CLONE_NEWNET)): run as root"
     if shutil.which("ip") is None:
         return "iproute2 ('ip') is missing: tools/setup_aravis.sh installs it"
+    return aravis_missing()
+
+
+def aravis_missing() -> str | None:
+    """Why Aravis 0.8 cannot be imported here through PyGObject (one line), or None."""
     try:
         import gi
 
