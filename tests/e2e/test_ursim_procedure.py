@@ -256,8 +256,7 @@ def test_drop_connection_fault_is_recovered_through_the_servo_process(
     assert fault["state"] == "compensate", (fault["reason"], [(r["t_s"], r["state"]) for r in s.timeline])
     restarts = [r for r in records if r["event"] == EV_PROCESS_RESTARTED]
     assert len(restarts) <= 1, restarts
-    if restarts:    # the library crashed the servo process: the fault and the restart say so
-        assert "servo process" in fault["reason"], fault
+    if restarts:    # the library crashed the servo process (before or after the drop was seen)
         assert restarts[0]["reason"].startswith("servo process"), restarts[0]
     recover = next(r for r in records if r["event"] == "state_entered" and r["transition"] == "recover")
     assert _ramp_checks(records, recover["t_ns"], config) > 0
