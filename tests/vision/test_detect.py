@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import given
@@ -10,7 +11,7 @@ from hypothesis import strategies as st
 from hil.errors import VisionError
 from hil.vision.camera_model import StereoCalibration
 from hil.vision.conics import circle_image_conic, concentric_center, conic_center
-from hil.vision.detect import detect_rings, detect_rings_paper, validate_image
+from hil.vision.detect import detect_rings, detect_rings_paper, local_mean, validate_image
 from hil.vision.ellipse import (
     circle_normals_from_conic,
     ellipse_from_conic,
@@ -207,3 +208,33 @@ def test_bad_images_raise_vision_error(img: object, message: str) -> None:
 def test_wrong_size_names_both_sizes() -> None:
     with pytest.raises(VisionError, match="640x480 but the calibration is for 1920x1080"):
         validate_image(np.zeros((480, 640), np.uint8), "left image", (1920, 1080))
+
+
+@pytest.mark.parametrize("shape", [(540, 960), (539, 959), (60, 80)])
+@pytest.mark.parametrize("k", [7, 25])
+def test_local_mean_of_a_constant_image_is_the_constant(shape: tuple[int, int], k: int) -> None:
+    out = local_mean(np.full(shape, 173, np.uint8), k)
+    assert out.shape == shape
+    assert out.dtype == np.uint8
+    assert np.all(out == 173)
+
+
+def test_local_mean_with_a_small_box_is_opencvs_box_filter() -> None:
+    img = np.random.default_rng(3).integers(0, 256, (120, 200), dtype=np.uint8)
+    assert np.array_equal(local_mean(img, 7), cv2.blur(img, (7, 7)))
+
+
+def test_local_mean_with_a_large_box_is_the_box_mean_to_a_grey_level() -> None:
+    """The half-resolution path against OpenCV's 25-px box: on a ramp (any box mean of a linear
+    image is its centre value) and around a dark 10-px disc on a bright ground (the contrast a
+    candidate is found by), away from the image border."""
+    h, w = 540, 960
+    ramp = np.tile(np.linspace(20.0, 230.0, w), (h, 1)).round().astype(np.uint8)
+    inner = (slice(30, h - 30), slice(30, w - 30))
+    diff = local_mean(ramp, 25).astype(int) - cv2.blur(ramp, (25, 25)).astype(int)
+    assert np.abs(diff[inner]).max() <= 1
+    disc = np.full((h, w), 200, np.uint8)
+    cv2.circle(disc, (480, 270), 5, 40, -1)
+    ours, box = local_mean(disc, 25).astype(int), cv2.blur(disc, (25, 25)).astype(int)
+    assert abs(ours[270, 480] - box[270, 480]) <= 3
+    assert ours[270, 480] - 40 > 100  # the disc stands out from its mean (box: 179, ours: 181)
