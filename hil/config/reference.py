@@ -15,7 +15,14 @@ from typing import Any
 from pydantic import BaseModel
 
 from hil.config.faults import FaultChannelConfig, FaultSpec
-from hil.config.setup import CalibrationConfig, FramesConfig, SafetyConfig, SetupConfig
+from hil.config.setup import (
+    CalibrationConfig,
+    FramesConfig,
+    PerceptionConfig,
+    SafetyConfig,
+    ServoConfig,
+    SetupConfig,
+)
 from hil.config.simulation import (
     BreathHoldConfig,
     BreathingConfig,
@@ -91,6 +98,8 @@ def config_reference_markdown(registry: DriverRegistry) -> str:
         model_table("[simulation.rig_errors]", RigErrorsConfig),
         model_table("[[faults]]", FaultSpec),
         model_table("[fault_channel]", FaultChannelConfig),
+        model_table("[servo]", ServoConfig),
+        model_table("[perception]", PerceptionConfig),
     ]
     for d in registry.drivers():
         parts.append(model_table(f'[{d.kind}] driver = "{d.name}" ({d.origin})', d.config_model))

@@ -4,6 +4,7 @@ that puts it in a setup's devices (:func:`with_perception_process`)."""
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Iterator
 from typing import Protocol, runtime_checkable
 
@@ -23,6 +24,16 @@ _log = get_logger(__name__)
 
 #: structlog event: ``[perception] process = "auto"`` stays in-process, and why
 EV_PERCEPTION_IN_PROCESS = "perception_in_process"
+
+#: ``auto`` starts the perception process only with at least this many usable CPUs: one for the
+#: servo loop, one for the supervisor, one for perception. On two, perception would share the
+#: supervisor's CPU and gains nothing measurable (docs/benchmarks.md, "The perception process").
+AUTO_MIN_CPUS = 3
+
+
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, not the machine's count)."""
+    return len(os.sched_getaffinity(0))
 
 
 class PerceptionCamera(StereoCamera):
@@ -94,9 +105,10 @@ def with_perception_process(setup: SetupConfig, devices: Devices, clock: Clock) 
     :func:`~hil.controller.assembly.with_servo_process`.
 
     ``auto`` runs it on the wall clock unless the setup needs the images in the supervisor (a
-    ``[procedure.lock.needle_check]``) or has a simulated world while the servo loop runs in the
-    supervisor (the perception process's world could not see the arm); ``perception_in_process``
-    is logged with the reason. A simulated world relays its breath-holds to the process.
+    ``[procedure.lock.needle_check]``), has a simulated world while the servo loop runs in the
+    supervisor (the perception process's world could not see the arm), or the process may use
+    fewer than :data:`AUTO_MIN_CPUS` CPUs (:func:`usable_cpus`); ``perception_in_process`` is
+    logged with the reason. A simulated world relays its breath-holds to the process.
 
     Raises:
         ConfigError: ``on`` where ``auto`` would stay in-process (names the reason and the key).
@@ -117,6 +129,9 @@ def with_perception_process(setup: SetupConfig, devices: Devices, clock: Clock) 
         why = "a simulated world needs the servo loop in its own process ([servo] process)"
     elif world is not None and not isinstance(world, _World):
         why = f"the simulated world ({type(world).__name__}) cannot follow a perception process"
+    elif mode == "auto" and (cpus := usable_cpus()) < AUTO_MIN_CPUS:   # a preference: "on" runs anyway
+        why = (f"{cpus} usable CPUs, fewer than {AUTO_MIN_CPUS}: perception would share the supervisor's "
+               'CPU and gain nothing ("on" starts it anyway)')
     if why is not None:
         if mode == "on":
             raise ConfigError("setup", [f'perception.process: "on" cannot be used: {why}; use "auto" '

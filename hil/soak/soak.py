@@ -338,7 +338,8 @@ def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: boo
     """The setup in real time, at ``rate_hz``, staying in compensation (never settles into lock),
     with the servo loop in its own process (real-time scheduling asked for when ``realtime``),
     grabbing, rendering and locating in the supervisor (``perception_process``: in the perception
-    process, ``[perception] process = "auto"``) and only the given faults (none by default: the
+    process, ``[perception] process = "on"``, on any number of CPUs; a setup that cannot run it,
+    e.g. with a needle check, is a ConfigError naming why) and only the given faults (none by default: the
     setup's own are left out)."""
     robot = setup.robot.model_copy(update={"control_rate_hz": rate_hz})
     proc = setup.procedure
@@ -349,7 +350,7 @@ def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: boo
     )
     sim = setup.simulation.model_copy(update={"real_time": True})
     servo = setup.servo.model_copy(update={"process": "on", "realtime": realtime})
-    perception = setup.perception.model_copy(update={"process": "auto" if perception_process else "off"})
+    perception = setup.perception.model_copy(update={"process": "on" if perception_process else "off"})
     return setup.model_copy(update={"robot": robot, "procedure": procedure, "simulation": sim,
                                     "faults": faults, "servo": servo, "perception": perception})
 

@@ -23,7 +23,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hil.config import default_setup_path
+from hil.config import default_setup_path, load_setup
 from hil.errors import InputFileError
 from hil.servo.figures import LoopFigures
 from hil.soak.attribution import fault_outcomes, unexplained_faults
@@ -44,6 +44,7 @@ from hil.soak.soak import (
     analyse,
     rss_by_minute,
     run_soak,
+    soak_setup,
     transient_schedule,
 )
 
@@ -372,3 +373,15 @@ def test_late_intervals_count_only_where_the_host_left_the_loops_cpu_alone(tmp_p
                                               clean_windows=4)   # 0, 1, 5 and the empty one figures() closed
     assert StealFreeLate(None, lambda: (0, 0), stat_path=tmp_path / "missing").figures() == \
         StealFreeFigures(0, 0, 0.0, 0, 0)   # no /proc/stat: no windows, no figure
+
+
+@pytest.mark.parametrize(("perception_process", "mode"), [(False, "off"), (True, "on")])
+def test_soak_setup_asks_for_the_perception_process_on_any_machine(
+        perception_process: bool, mode: str) -> None:
+    """``--perception-process`` is "on", not "auto" (which needs 3 CPUs): the soak runs it where
+    it was asked for; the servo loop always has its own process, on the wall clock."""
+    setup = soak_setup(load_setup(default_setup_path()), 500.0, 1.0, perception_process=perception_process)
+    assert setup.perception.process == mode
+    assert setup.servo.process == "on"
+    assert setup.simulation.real_time is True
+    assert setup.robot.control_rate_hz == 500.0

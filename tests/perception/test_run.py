@@ -12,6 +12,7 @@ import re
 from pathlib import Path
 
 import pytest
+from structlog.testing import capture_logs
 
 from hil.clock import ManualClock, MonotonicClock
 from hil.config import build_devices, load_setup
@@ -19,6 +20,7 @@ from hil.config.setup import SetupConfig
 from hil.controller.assembly import with_perception_process, with_servo_process
 from hil.controller.plan_file import load_plan
 from hil.errors import ConfigError
+from hil.perception import camera as camera_module
 from hil.perception.camera import PerceptionCamera
 from hil.servo.shm import ShmRegion
 
@@ -109,6 +111,36 @@ def test_auto_stays_in_the_supervisor_on_the_manual_clock_or_without_the_servo_p
         with_perception_process(on, build_devices(on, manual), manual)
     with pytest.raises(ConfigError, match=r"a simulated world needs the servo loop in its own process"):
         with_perception_process(on, build_devices(on, clock), clock)
+
+
+@pytest.mark.parametrize(("mode", "cpus", "in_process"), [("auto", 2, True), ("auto", 1, True),
+                                                         ("auto", 3, False), ("on", 2, False)])
+def test_auto_needs_three_usable_cpus_and_on_runs_anyway(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, mode: str, cpus: int, in_process: bool) -> None:
+    """``auto`` starts the perception process only where it has a CPU of its own (servo loop,
+    supervisor, perception); with fewer it stays in the supervisor and logs why; ``on`` starts it
+    on any machine."""
+    monkeypatch.setattr(camera_module, "usable_cpus", lambda: cpus)
+    _, setup = _setup(tmp_path, mode)
+    clock = MonotonicClock()
+    devices = with_servo_process(setup, build_devices(setup, clock), clock)
+    with capture_logs() as logs:
+        wired = with_perception_process(setup, devices, clock)
+    try:
+        reasons = [e["reason"] for e in logs if e["event"] == camera_module.EV_PERCEPTION_IN_PROCESS]
+        if in_process:
+            assert wired is devices
+            assert reasons == [f"{cpus} usable CPUs, fewer than 3: perception would share the supervisor's "
+                               'CPU and gain nothing ("on" starts it anyway)']
+        else:
+            assert isinstance(wired.camera, PerceptionCamera)
+            assert reasons == []
+    finally:
+        wired.close_all()   # never opened: ends the world's follower thread
+
+
+def test_usable_cpus_is_this_process_affinity() -> None:
+    assert camera_module.usable_cpus() == len(os.sched_getaffinity(0))
 
 
 def test_on_replaces_the_camera_and_opens_the_robot_first(tmp_path: Path) -> None:
