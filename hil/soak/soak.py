@@ -339,8 +339,8 @@ def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: boo
     with the servo loop in its own process (real-time scheduling asked for when ``realtime``),
     grabbing, rendering and locating in the supervisor (``perception_process``: in the perception
     process, ``[perception] process = "on"``, on any number of CPUs; a setup that cannot run it,
-    e.g. with a needle check, is a ConfigError naming why) and only the given faults (none by default: the
-    setup's own are left out)."""
+    e.g. with a needle check, is a ConfigError naming why) and only the given faults (none by
+    default: the setup's own are left out)."""
     robot = setup.robot.model_copy(update={"control_rate_hz": rate_hz})
     proc = setup.procedure
     comp = proc.compensation.model_copy(update={"settle_s": 1e6, "timeout_s": 1e6})

@@ -203,9 +203,10 @@ def local_mean(img: U8Image, k: int) -> U8Image:
     For ``k`` >= 13 it is computed at half resolution: a 2x2 area average, a (k // 2 | 1)-wide box
     and a Gaussian 2x upsampling (``cv2.pyrUp``), i.e. a box of about ``k`` px smoothed a little
     further. OpenCV's box filter costs ~0.8 ms on a 960x540 image with a 25-px box and one thread,
-    this ~0.25 ms; the mean is a threshold's reference, not a measurement (sub-pixel centres come
-    from the rays of :mod:`hil.vision.ring_edges` on the full-resolution image), so the extra
-    smoothing changes which pixels pass only at the margin of the contrast threshold."""
+    this 0.35-0.45 ms (docs/benchmarks.md); the mean is a threshold's reference, not a measurement
+    (sub-pixel centres come from the rays of :mod:`hil.vision.ring_edges` on the full-resolution
+    image), so the extra smoothing changes which pixels pass only at the margin of the contrast
+    threshold."""
     h, w = img.shape
     if k < _HALF_RES_MIN_BOX or h < 2 * k or w < 2 * k:
         return np.asarray(cv2.blur(img, (k, k)), dtype=np.uint8)
