@@ -139,8 +139,14 @@ def test_auto_needs_three_usable_cpus_and_on_runs_anyway(
         wired.close_all()   # never opened: ends the world's follower thread
 
 
-def test_usable_cpus_is_this_process_affinity() -> None:
-    assert camera_module.usable_cpus() == len(os.sched_getaffinity(0))
+def test_usable_cpus_counts_this_process_affinity_not_the_machines_cpus() -> None:
+    mask = os.sched_getaffinity(0)
+    try:
+        os.sched_setaffinity(0, {min(mask)})
+        assert camera_module.usable_cpus() == 1
+    finally:
+        os.sched_setaffinity(0, mask)
+    assert camera_module.usable_cpus() == len(mask)
 
 
 def test_on_replaces_the_camera_and_opens_the_robot_first(tmp_path: Path) -> None:
