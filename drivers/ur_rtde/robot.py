@@ -47,6 +47,7 @@ from drivers.interfaces.robot import (
 )
 from drivers.ur_rtde.config import UrRtdeRobotConfig
 from drivers.ur_rtde.dashboard import UrDashboard, wait_until
+from drivers.ur_rtde.packet import READ_TRIES, one_packet
 from drivers.ur_rtde.stream_age import StreamAge
 from drivers.ur_rtde.wire import (
     DASHBOARD_PORT,
@@ -317,8 +318,14 @@ class UrRtdeRobot(Robot):
     def _refused(self, command: str) -> Exception:
         """Why the control interface returned False: safety stop, stopped program or lost link."""
         self._require_connected()
-        bits = int(self._rcv.getSafetyStatusBits())
-        running = int(self._rcv.getRuntimeState()) == RuntimeState.PLAYING
+        rcv = self._rcv
+        got = one_packet(rcv.getTimestamp,
+                         lambda: (int(rcv.getSafetyStatusBits()), int(rcv.getRuntimeState())))
+        if got is None:
+            return DeviceTimeoutError(self.name, f"{command} refused by the controller; its state could not "
+                                                 f"be read from one packet in {READ_TRIES} tries")
+        bits, runtime = got[1]
+        running = runtime == RuntimeState.PLAYING
         safety = safety_from_bits(bits)
         if safety is not SafetyStatus.NORMAL:
             return SafetyStopError(self.name, f"{command} aborted: arm is in {safety}")
@@ -342,16 +349,17 @@ class UrRtdeRobot(Robot):
             raise DisconnectedError(self.name, "RTDE state stream lost (call recover())")
         if not ctrl.isConnected():
             raise DisconnectedError(self.name, "RTDE control connection lost (call recover())")
-        try:
-            ts = float(rcv.getTimestamp())
-            pose = rcv.getActualTCPPose()
-            q = np.asarray(rcv.getActualQ(), dtype=np.float64)
-            speed = rcv.getActualTCPSpeed()
-            bits = int(rcv.getSafetyStatusBits())
-            runtime = int(rcv.getRuntimeState())
-            robot_mode = int(rcv.getRobotMode())
+        try:   # one packet: a protective stop is never read as "safety normal, script stopped"
+            got = one_packet(rcv.getTimestamp, lambda: (
+                rcv.getActualTCPPose(), rcv.getActualQ(), rcv.getActualTCPSpeed(),
+                int(rcv.getSafetyStatusBits()), int(rcv.getRuntimeState()), int(rcv.getRobotMode())))
         except RuntimeError as exc:
             raise DisconnectedError(self.name, f"reading state: {exc}") from exc
+        if got is None:
+            raise DeviceTimeoutError(self.name, f"state stream: a new packet arrived during each of "
+                                                f"{READ_TRIES} reads (the reads are starved)")
+        ts, (pose, q_raw, speed, bits, runtime, robot_mode) = got
+        q = np.asarray(q_raw, dtype=np.float64)
         async_running = False
         with contextlib.suppress(RuntimeError):
             async_running = bool(ctrl.getAsyncOperationProgressEx().isAsyncOperationRunning())
