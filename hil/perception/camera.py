@@ -99,6 +99,33 @@ class _World(Protocol):
     breath_hold_listeners: list[object]
 
 
+def _servo_process(robot: object) -> ServoProcess | None:
+    """The servo process that owns ``robot`` (None: the servo loop runs in the supervisor)."""
+    return robot.link if isinstance(robot, ServoRobot) and isinstance(robot.link, ServoProcess) else None
+
+
+def in_supervisor_because(setup: SetupConfig, devices: Devices, clock: Clock) -> str | None:
+    """Why perception stays in the supervisor's process for this setup, these devices and this
+    clock (one line), or None when ``[perception] process`` starts the perception process (the
+    rules: :func:`with_perception_process`). Never raises."""
+    mode = setup.perception.process
+    if mode == "off":
+        return '[perception] process = "off"'
+    world = devices.world
+    if not isinstance(clock, MonotonicClock):
+        return "it needs the wall clock ([simulation] real_time = true)"
+    if setup.procedure.lock.needle_check is not None:
+        return "the needle check ([procedure.lock.needle_check]) needs the images in the supervisor"
+    if world is not None and _servo_process(devices.robot) is None:
+        return "a simulated world needs the servo loop in its own process ([servo] process)"
+    if world is not None and not isinstance(world, _World):
+        return f"the simulated world ({type(world).__name__}) cannot follow a perception process"
+    if mode == "auto" and (cpus := usable_cpus()) < AUTO_MIN_CPUS:   # a preference: "on" runs anyway
+        return (f"{cpus} usable CPUs, fewer than {AUTO_MIN_CPUS}: perception would share the supervisor's "
+                'CPU and gain nothing ("on" starts it anyway)')
+    return None
+
+
 def with_perception_process(setup: SetupConfig, devices: Devices, clock: Clock) -> Devices:
     """``devices`` (not opened) with the camera replaced by a :class:`PerceptionCamera` when
     ``[perception] process`` asks for it and the setup allows it, else unchanged. Call it after
@@ -107,37 +134,26 @@ def with_perception_process(setup: SetupConfig, devices: Devices, clock: Clock) 
     ``auto`` runs it on the wall clock unless the setup needs the images in the supervisor (a
     ``[procedure.lock.needle_check]``), has a simulated world while the servo loop runs in the
     supervisor (the perception process's world could not see the arm), or the process may use
-    fewer than :data:`AUTO_MIN_CPUS` CPUs (:func:`usable_cpus`); ``perception_in_process`` is
-    logged with the reason. A simulated world relays its breath-holds to the process.
+    fewer than :data:`AUTO_MIN_CPUS` CPUs (:func:`usable_cpus`); on the wall clock
+    ``perception_in_process`` is logged with the reason (:func:`in_supervisor_because`). A
+    simulated world relays its breath-holds to the process.
 
     Raises:
         ConfigError: ``on`` where ``auto`` would stay in-process (names the reason and the key).
     """
     mode = setup.perception.process
-    wall = isinstance(clock, MonotonicClock)
-    if mode == "off" or (mode == "auto" and not wall):
-        return devices
-    robot = devices.robot
-    servo = robot.link if isinstance(robot, ServoRobot) and isinstance(robot.link, ServoProcess) else None
-    world = devices.world
-    why = None
-    if not wall:
-        why = "it needs the wall clock ([simulation] real_time = true)"
-    elif setup.procedure.lock.needle_check is not None:
-        why = "the needle check ([procedure.lock.needle_check]) needs the images in the supervisor"
-    elif world is not None and servo is None:
-        why = "a simulated world needs the servo loop in its own process ([servo] process)"
-    elif world is not None and not isinstance(world, _World):
-        why = f"the simulated world ({type(world).__name__}) cannot follow a perception process"
-    elif mode == "auto" and (cpus := usable_cpus()) < AUTO_MIN_CPUS:   # a preference: "on" runs anyway
-        why = (f"{cpus} usable CPUs, fewer than {AUTO_MIN_CPUS}: perception would share the supervisor's "
-               'CPU and gain nothing ("on" starts it anyway)')
+    why = in_supervisor_because(setup, devices, clock)
     if why is not None:
         if mode == "on":
             raise ConfigError("setup", [f'perception.process: "on" cannot be used: {why}; use "auto" '
                                         '(it then runs where it can) or "off"'])
-        _log.info(EV_PERCEPTION_IN_PROCESS, reason=why)
+        if mode == "auto" and isinstance(clock, MonotonicClock):
+            _log.info(EV_PERCEPTION_IN_PROCESS, reason=why)
         return devices
+    robot = devices.robot
+    servo = _servo_process(robot)
+    world = devices.world
+
     def spec() -> PerceptionSpec:
         T_tcp = robot.T_flange_from_tcp.as_matrix()   # the servo process's, once it runs
         ring = servo.regions.ring_region.name if servo is not None and servo.ready is not None else None

@@ -12,7 +12,6 @@ import re
 from pathlib import Path
 
 import pytest
-from structlog.testing import capture_logs
 
 from hil.clock import ManualClock, MonotonicClock
 from hil.config import build_devices, load_setup
@@ -118,23 +117,22 @@ def test_auto_stays_in_the_supervisor_on_the_manual_clock_or_without_the_servo_p
 def test_auto_needs_three_usable_cpus_and_on_runs_anyway(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, mode: str, cpus: int, in_process: bool) -> None:
     """``auto`` starts the perception process only where it has a CPU of its own (servo loop,
-    supervisor, perception); with fewer it stays in the supervisor and logs why; ``on`` starts it
+    supervisor, perception); with fewer it stays in the supervisor, and says why; ``on`` starts it
     on any machine."""
     monkeypatch.setattr(camera_module, "usable_cpus", lambda: cpus)
     _, setup = _setup(tmp_path, mode)
     clock = MonotonicClock()
     devices = with_servo_process(setup, build_devices(setup, clock), clock)
-    with capture_logs() as logs:
-        wired = with_perception_process(setup, devices, clock)
+    why = camera_module.in_supervisor_because(setup, devices, clock)
+    wired = with_perception_process(setup, devices, clock)
     try:
-        reasons = [e["reason"] for e in logs if e["event"] == camera_module.EV_PERCEPTION_IN_PROCESS]
         if in_process:
             assert wired is devices
-            assert reasons == [f"{cpus} usable CPUs, fewer than 3: perception would share the supervisor's "
-                               'CPU and gain nothing ("on" starts it anyway)']
+            assert why == (f"{cpus} usable CPUs, fewer than 3: perception would share the supervisor's "
+                           'CPU and gain nothing ("on" starts it anyway)')
         else:
             assert isinstance(wired.camera, PerceptionCamera)
-            assert reasons == []
+            assert why is None
     finally:
         wired.close_all()   # never opened: ends the world's follower thread
 
