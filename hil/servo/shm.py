@@ -21,7 +21,9 @@ explicit fences here.
 Buffers: :meth:`ShmRegion.create` makes a named ``multiprocessing.shared_memory`` segment (the
 servo process attaches it by name); :meth:`ShmRegion.local` makes a plain in-process buffer of the
 same layout (the in-process loop of a simulated run). Nothing here allocates on the read and write
-paths except the caller-provided output arrays' first creation.
+paths except the caller-provided output arrays' first creation. Closing a region never unmaps
+memory a view still reads (:meth:`ShmRegion.close`): a reader in another thread may hold one while
+:meth:`hil.servo.process.ServoProcess.restart` frees the old regions.
 """
 
 from __future__ import annotations
@@ -69,8 +71,11 @@ class ShmRegion:
         self._shm = shm
         self._owner = owner
         self._mmap: mmap.mmap | None = None
-        self.i: IntArray = np.ndarray((words,), dtype=np.int64, buffer=buf)
-        self.f: FloatArray = np.ndarray((words,), dtype=np.float64, buffer=buf)
+        # np.frombuffer keeps the buffer exported for as long as any view of it lives, so closing
+        # the segment cannot unmap memory a view (a LoopStats, a ring reader in another thread)
+        # still reads: the mapping goes with the last view (see close)
+        self.i: IntArray = np.frombuffer(buf, dtype=np.int64, count=words)
+        self.f: FloatArray = np.frombuffer(buf, dtype=np.float64, count=words)
 
     @classmethod
     def create(cls, words: int) -> ShmRegion:
@@ -103,21 +108,41 @@ class ShmRegion:
         return None if self._shm is None else self._shm.name
 
     def close(self) -> None:
-        """Release the views and the segment (the owner also unlinks it). Idempotent."""
+        """Release the views and the segment (the owner also unlinks its name). Idempotent.
+
+        Views other objects still hold (another thread may be reading them) keep the mapping
+        alive: it is unmapped with the last of them, never under them. A created segment whose
+        mapping is still in use is kept in :data:`_LINGERING` (its ``SharedMemory`` object must
+        not be collected first) and closed by a later :meth:`close` once free."""
         shm, self._shm = self._shm, None
         mm, self._mmap = self._mmap, None
         self.i = np.zeros(0, dtype=np.int64)
         self.f = np.zeros(0, dtype=np.float64)
-        # views other objects still hold keep a mapping alive (BufferError): it is released with
-        # them; the owner's unlink removes the segment's name either way
-        if mm is not None:
+        if mm is not None:   # attached: the views' memoryviews hold the mmap; it goes with them
             with contextlib.suppress(BufferError):
                 mm.close()
+        _close_lingering()
         if shm is not None:
-            with contextlib.suppress(BufferError):
+            try:
                 shm.close()
+            except BufferError:
+                _LINGERING.append(shm)
             if self._owner:
                 shm.unlink()
+
+
+#: created segments closed while views of them were still alive (:meth:`ShmRegion.close`)
+_LINGERING: list[shared_memory.SharedMemory] = []
+
+
+def _close_lingering() -> None:
+    """Close the lingering segments whose views are all gone."""
+    for shm in list(_LINGERING):
+        try:
+            shm.close()
+        except BufferError:
+            continue
+        _LINGERING.remove(shm)
 
 
 # ---------------------------------------------------------------------------- setpoint block

@@ -137,3 +137,39 @@ def test_no_torn_read_while_another_process_writes() -> None:
             proc.kill()
         proc.wait()
         region.close()
+
+
+_READ_AFTER_CLOSE = textwrap.dedent("""
+    import os
+    from hil.servo.link import Regions
+    from hil.servo.shm import ShmRegion, _LINGERING
+    regions = Regions.create(shared=True)
+    names = regions.names()
+    stats = regions.stats                      # a reader's view, as StatsEverySecond holds
+    stats.c[3] = 7
+    regions.close()                            # another thread closes them (ServoProcess.restart)
+    assert tuple(int(x) for x in stats.c)[3] == 7, "the view no longer reads the segment"
+    assert not any(os.path.exists("/dev/shm/" + str(n).lstrip("/")) for n in names), names
+    assert len(_LINGERING) >= 1                # kept mapped for the view ...
+    del stats, regions
+    ShmRegion.create(1).close()                # ... and closed by a later close once free
+    assert _LINGERING == [], _LINGERING
+    attached = ShmRegion.create(4)
+    other = ShmRegion.attach(str(attached.name), 4)
+    view = other.i[1:3]
+    other.close()
+    assert int(view.sum()) == 0                # an attached mapping also outlives its close
+    attached.close()
+    print("ok")
+""")
+
+
+def test_a_view_held_past_close_still_reads_and_the_segment_is_unlinked() -> None:
+    """Closing a region never unmaps memory a view still reads: a supervisor thread reading the
+    loop statistics while ServoProcess.restart freed the old regions died of SIGSEGV (CI). Run in
+    a child so that a regression is a failed test, not a dead test run."""
+    proc = subprocess.run([sys.executable, "-c", _READ_AFTER_CLOSE], capture_output=True, text=True,
+                          timeout=60, check=False)
+    assert proc.returncode == 0, (proc.returncode, proc.stderr[-2000:])
+    assert proc.stdout.strip() == "ok"
+    assert "Exception ignored" not in proc.stderr
