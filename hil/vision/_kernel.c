@@ -16,7 +16,9 @@
  *   fit_ellipses: hil.vision.ellipse.fit_ellipse_arrays (numpy path): the direct ellipse-specific
  *   fit (Fitzgibbon, Pilu & Fisher 1999, eq 7) in the reduced form of Halir & Flusser 1998, the
  *   generalised eigenvector by the Viete root of the cubic (hil.vision.sym3.ellipse_eigvec), one
- *   robust re-fit without the points beyond 3 MAD of the Sampson distances.
+ *   robust re-fit without the points beyond 3 MAD of the Sampson distances;
+ *   ideal_affines / conics_to_ideal: hil.vision.stereo._ideal_with_affines (OpenCV's undistortion
+ *   fixed point, cvUndistortPointsInternal, for an identity camera) and _to_ideal_stack.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -1123,6 +1125,156 @@ done:
     return ret;
 }
 
+/* ---- stereo: ideal pixels and the local affine maps of distortion --------------------------- */
+
+/* OpenCV's undistortPoints for an identity camera (cvUndistortPointsInternal): the fixed point
+ * x = (x_d - tangential(x)) / radial(x) with the criteria (COUNT | EPS, iterations, 1e-15) of
+ * hil.vision.camera_model.undistort_normalized; dist = (k1, k2, p1, p2, k3). Returns 0 when the
+ * iteration did not converge (a point beyond the lens model's reach, where OpenCV versions differ). */
+static int undistort_one(double xd, double yd, const double *k, double *xo, double *yo)
+{
+    double x0 = xd, y0 = yd, x = xd, y = yd, error = 1.7976931348623157e308;
+    for (int j = 0; j < 20 && !(error < 1e-15); j++) {
+        double r2 = x * x + y * y;
+        double icdist = 1.0 / (1 + ((k[4] * r2 + k[1]) * r2 + k[0]) * r2);
+        if (icdist < 0) {
+            *xo = xd;
+            *yo = yd;
+            return 0;
+        }
+        double deltaX = 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x);
+        double deltaY = k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y;
+        x = (x0 - deltaX) * icdist;
+        y = (y0 - deltaY) * icdist;
+        r2 = x * x + y * y;
+        double r4 = r2 * r2, r6 = r4 * r2;
+        double a1 = 2 * x * y, a2 = r2 + 2 * x * x, a3 = r2 + 2 * y * y;
+        double cdist = 1 + k[0] * r2 + k[1] * r4 + k[4] * r6;
+        double xp = x * cdist + k[2] * a1 + k[3] * a2;
+        double yp = y * cdist + k[2] * a3 + k[3] * a1;
+        error = sqrt((xp - xd) * (xp - xd) + (yp - yd) * (yp - yd));
+    }
+    *xo = x;
+    *yo = y;
+    return error < 1e-9;
+}
+
+/* distorted pixel -> ideal pixel of the same K (hil.vision.camera_model.undistort_pixels) */
+static int ideal_pixel(const double *K, const double *dist, double u, double v, double *uo, double *vo)
+{
+    double yn = (v - K[5]) / K[4];
+    double xn = (u - K[2] - K[1] * yn) / K[0];
+    double x, y;
+    int converged = undistort_one(xn, yn, dist, &x, &y);
+    *uo = K[0] * x + K[1] * y + K[2];
+    *vo = K[4] * y + K[5];
+    return converged;
+}
+
+PyDoc_STRVAR(ideal_affines_doc,
+"ideal_affines(centers, K, dist, ideal, H, ok) -> None\n\n"
+"hil.vision.stereo._ideal_with_affines for a distorted camera: centers (n, 2) distorted px, K (3, 3),\n"
+"dist (5,) (k1, k2, p1, p2, k3); writes ideal (n, 2) the undistorted centres (px, same K) and\n"
+"H (n, 3, 3) the affine map distorted -> ideal px linearised at each centre by forward differences\n"
+"of 1 px, and ok (n,) bool: False where the undistortion did not converge (the caller falls back to\n"
+"OpenCV). The undistortion is OpenCV's fixed point with the criteria of\n"
+"hil.vision.camera_model.undistort_normalized.");
+
+static PyObject *k_ideal_affines(PyObject *self, PyObject *args)
+{
+    PyObject *o[6];
+    if (!PyArg_ParseTuple(args, "OOOOOO:ideal_affines", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5])) {
+        return NULL;
+    }
+    BufSet bs = {.count = 0};
+    PyObject *ret = NULL;
+    Py_ssize_t sh[2] = {-1, 2}, got[2], sh33[2] = {3, 3}, sh5[1] = {5};
+    const double *c = get_buf(&bs, o[0], "centers", 'd', 2, sh, 0, got);
+    if (!c) goto done;
+    Py_ssize_t n = got[0];
+    Py_ssize_t shn2[2] = {n, 2}, shn33[3] = {n, 3, 3}, shn[1] = {n};
+    const double *K = get_buf(&bs, o[1], "K", 'd', 2, sh33, 0, NULL);
+    const double *dist = K ? get_buf(&bs, o[2], "dist", 'd', 1, sh5, 0, NULL) : NULL;
+    double *ideal = dist ? get_buf(&bs, o[3], "ideal", 'd', 2, shn2, 1, NULL) : NULL;
+    double *H = ideal ? get_buf(&bs, o[4], "H", 'd', 3, shn33, 1, NULL) : NULL;
+    unsigned char *ok = H ? get_buf(&bs, o[5], "ok", '?', 1, shn, 1, NULL) : NULL;
+    if (!ok) goto done;
+    for (Py_ssize_t k = 0; k < n; k++) {
+        double u = c[2 * k], v = c[2 * k + 1], u0, v0, ux, vx, uy, vy;
+        int c0 = ideal_pixel(K, dist, u, v, &u0, &v0);
+        int cx = ideal_pixel(K, dist, u + 1.0, v + 0.0, &ux, &vx);
+        int cy = ideal_pixel(K, dist, u + 0.0, v + 1.0, &uy, &vy);
+        ok[k] = (unsigned char)(c0 && cx && cy);
+        double *h = H + 9 * k;
+        h[0] = (ux - u0) / 1.0;
+        h[3] = (vx - v0) / 1.0;
+        h[1] = (uy - u0) / 1.0;
+        h[4] = (vy - v0) / 1.0;
+        h[2] = u0 - (h[0] * u + h[1] * v);
+        h[5] = v0 - (h[3] * u + h[4] * v);
+        h[6] = 0.0;
+        h[7] = 0.0;
+        h[8] = 1.0;
+        ideal[2 * k] = u0;
+        ideal[2 * k + 1] = v0;
+    }
+    ret = Py_NewRef(Py_None);
+done:
+    bufs_release(&bs);
+    return ret;
+}
+
+PyDoc_STRVAR(conics_to_ideal_doc,
+"conics_to_ideal(C, H, out) -> None\n\n"
+"hil.vision.stereo._to_ideal_stack: conics C (m, 3, 3) in distorted pixels through their affine\n"
+"maps H (m, 3, 3) (last row 0 0 1): out = H^-T C H^-1 scaled to unit Frobenius norm (m, 3, 3).\n"
+"A singular map gives a non-finite conic (as numpy's division by a zero determinant).");
+
+static PyObject *k_conics_to_ideal(PyObject *self, PyObject *args)
+{
+    PyObject *o[3];
+    if (!PyArg_ParseTuple(args, "OOO:conics_to_ideal", &o[0], &o[1], &o[2])) {
+        return NULL;
+    }
+    BufSet bs = {.count = 0};
+    PyObject *ret = NULL;
+    Py_ssize_t sh[3] = {-1, 3, 3}, got[3];
+    const double *C = get_buf(&bs, o[0], "C", 'd', 3, sh, 0, got);
+    if (!C) goto done;
+    Py_ssize_t m = got[0];
+    Py_ssize_t shm[3] = {m, 3, 3};
+    const double *H = get_buf(&bs, o[1], "H", 'd', 3, shm, 0, NULL);
+    double *out = H ? get_buf(&bs, o[2], "out", 'd', 3, shm, 1, NULL) : NULL;
+    if (!out) goto done;
+    for (Py_ssize_t k = 0; k < m; k++) {
+        const double *h = H + 9 * k, *c = C + 9 * k;
+        double a = h[0], b = h[1], cc = h[3], d = h[4];
+        double det = a * d - b * cc;
+        double Hi[9] = {d / det, -b / det, 0.0, -cc / det, a / det, 0.0, 0.0, 0.0, 1.0};
+        double tx = h[2], ty = h[5];
+        Hi[2] = -(Hi[0] * tx + Hi[1] * ty);
+        Hi[5] = -(Hi[3] * tx + Hi[4] * ty);
+        double T[9], R[9], s = 0.0;
+        for (int i = 0; i < 3; i++) {     /* T = Hi^T C */
+            for (int j = 0; j < 3; j++) {
+                T[3 * i + j] = Hi[i] * c[j] + Hi[3 + i] * c[3 + j] + Hi[6 + i] * c[6 + j];
+            }
+        }
+        for (int i = 0; i < 3; i++) {     /* R = T Hi */
+            for (int j = 0; j < 3; j++) {
+                R[3 * i + j] = T[3 * i] * Hi[j] + T[3 * i + 1] * Hi[3 + j] + T[3 * i + 2] * Hi[6 + j];
+                s += R[3 * i + j] * R[3 * i + j];
+            }
+        }
+        double nrm = sqrt(s);
+        for (int i = 0; i < 9; i++) out[9 * k + i] = R[i] / nrm;
+    }
+    ret = Py_NewRef(Py_None);
+done:
+    bufs_release(&bs);
+    return ret;
+}
+
 /* ---- module ------------------------------------------------------------------------------- */
 
 static PyMethodDef kernel_methods[] = {
@@ -1134,6 +1286,8 @@ static PyMethodDef kernel_methods[] = {
     {"ring_check", k_ring_check, METH_VARARGS, ring_check_doc},
     {"triangulate_dlt", k_triangulate_dlt, METH_VARARGS, triangulate_dlt_doc},
     {"ray_gaps", k_ray_gaps, METH_VARARGS, ray_gaps_doc},
+    {"ideal_affines", k_ideal_affines, METH_VARARGS, ideal_affines_doc},
+    {"conics_to_ideal", k_conics_to_ideal, METH_VARARGS, conics_to_ideal_doc},
     {NULL, NULL, 0, NULL},
 };
 

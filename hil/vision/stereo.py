@@ -129,6 +129,14 @@ def _ideal_with_affines(
     n = centers_px.shape[0]
     if not distorted or n == 0:
         return centers_px.astype(np.float64, copy=True), None
+    k = kernel.active()
+    if k is not None and dist.shape == (5,):
+        # the same arithmetic compiled (hil/vision/_kernel.c); OpenCV's where it did not converge
+        ideal_c, H_c, ok = np.empty((n, 2)), np.empty((n, 3, 3)), np.empty(n, dtype=bool)
+        k.ideal_affines(np.ascontiguousarray(centers_px, np.float64), np.ascontiguousarray(K, np.float64),
+                        np.ascontiguousarray(dist, np.float64), ideal_c, H_c, ok)
+        if ok.all():
+            return ideal_c, H_c
     h = 1.0
     pts = np.concatenate([centers_px, centers_px + np.array([h, 0.0]), centers_px + np.array([0.0, h])])
     ideal = undistort_pixels(pts, K, dist)
@@ -146,6 +154,11 @@ def _to_ideal_stack(C: FloatArray, H: FloatArray | None) -> FloatArray:
     (P, 3, 3) (None: identity): ``H^-T C H^-1``, normalised."""
     if H is None:
         return C
+    k = kernel.active()
+    if k is not None:  # the same arithmetic compiled (hil/vision/_kernel.c)
+        out = np.empty_like(C)
+        k.conics_to_ideal(np.ascontiguousarray(C, np.float64), np.ascontiguousarray(H, np.float64), out)
+        return out
     a, b, c, d = H[:, 0, 0], H[:, 0, 1], H[:, 1, 0], H[:, 1, 1]
     det = a * d - b * c
     Hi = np.zeros_like(H)

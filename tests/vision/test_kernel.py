@@ -14,6 +14,9 @@ numpy's pairwise sums and BLAS products -- and libm's cos/sin/acos, so the two d
   reordering alone);
 - DLT points (the null vector by one-sided Jacobi rotations, numpy by LAPACK's SVD) within
   1e-11 x depth x max(depth / baseline, 1) mm;
+- the stereo stage's ideal centres and affine maps of distortion within 1e-9 px (bit-equal in
+  practice; a point whose undistortion does not converge is flagged and left to OpenCV), conics
+  through those maps within 1e-12;
 - ray gaps within 1e-9 relative; the plane-normal correction (random circles seen by the rig,
   each view's normal and centre perturbed): the same corrected pairs, centres within
   1e-9 px and normals within 1e-9;
@@ -30,6 +33,7 @@ import sys
 import tracemalloc
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -39,6 +43,7 @@ from hypothesis import strategies as st
 
 from hil.geometry.triangulation import triangulate_dlt
 from hil.vision import kernel, stereo
+from hil.vision.camera_model import StereoCalibration
 from hil.vision.conics import circle_image_conic
 from hil.vision.detect import (
     DetectParams,
@@ -403,6 +408,91 @@ def test_ray_gaps_equal_the_numpy_midpoint_gaps(seed: int, depth: float, n: int)
     kernel._module.ray_gaps(UL, UR, *mats, gaps, ok)
     assert ok.all()
     np.testing.assert_allclose(gaps, want, rtol=1e-9, atol=1e-12)
+
+
+def _selected(on: bool, fn: Any, *args: Any) -> Any:
+    """``fn(*args)`` with the compiled kernel (``on``) or the numpy code selected (the previous
+    selection restored after)."""
+    assert kernel._module is not None, kernel.kernel_status()
+    previous = kernel.use_kernel(on)
+    try:
+        return fn(*args)
+    finally:
+        kernel.use_kernel(previous)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 40),
+       k1=st.floats(0.001, 0.4) | st.floats(-0.4, -0.001), k2=st.floats(-0.2, 0.2),
+       p=st.floats(-0.01, 0.01), k3=st.floats(-0.05, 0.05), side=st.sampled_from(["left", "right"]))
+def test_ideal_pixels_and_affine_maps_equal_the_numpy_code(
+    seed: int, n: int, k1: float, k2: float, p: float, k3: float, side: str
+) -> None:
+    """The compiled undistortion is OpenCV's fixed point (same criteria): the ideal centres and the
+    affine maps within 1e-9 px over the image and beyond, for lens-like distortion."""
+    cal = StereoCalibration.synthetic(f_px=1394.0, image_size=(1920, 1080), dist=[k1, k2, p, -p, k3])
+    rng = np.random.default_rng(seed)
+    centers = rng.uniform([-50.0, -50.0], [1970.0, 1130.0], (n, 2))
+    ideal, H = _selected(True, stereo._ideal_with_affines, cal, side, centers)
+    want, H_want = _selected(False, stereo._ideal_with_affines, cal, side, centers)
+    assert H is not None
+    assert H_want is not None
+    np.testing.assert_allclose(ideal, want, rtol=0, atol=PX_TOL)
+    np.testing.assert_allclose(H, H_want, rtol=0, atol=PX_TOL)
+    assert np.array_equal(H[:, 2], np.tile([0.0, 0.0, 1.0], (n, 1)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), m=st.integers(1, 40))
+def test_conics_through_affine_maps_equal_the_numpy_code(seed: int, m: int) -> None:
+    rng = np.random.default_rng(seed)
+    C = rng.normal(size=(m, 3, 3))
+    C = C + np.transpose(C, (0, 2, 1))
+    H = np.zeros((m, 3, 3))
+    H[:, :2, :2] = np.eye(2) + rng.normal(0.0, 0.05, (m, 2, 2))
+    H[:, :2, 2] = rng.normal(0.0, 5.0, (m, 2))
+    H[:, 2, 2] = 1.0
+    got = _selected(True, stereo._to_ideal_stack, C, H)
+    want = _selected(False, stereo._to_ideal_stack, C, H)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.sum(got * got, axis=(1, 2)), 1.0, rtol=1e-12)
+
+
+def test_an_undistortion_that_does_not_converge_is_flagged_and_left_to_opencv() -> None:
+    """Strong barrel distortion at the image corner: the fixed point runs away (OpenCV versions
+    stop it differently), so the kernel flags the point and the stereo stage takes OpenCV's."""
+    k = kernel._module
+    assert k is not None
+    cal = StereoCalibration.synthetic(f_px=1394.0, image_size=(1920, 1080), dist=[-0.25, 0.0, 0.0, 0.0, 0.0])
+    centers = np.array([[960.0, 540.0], [32.77, -30.5]])
+    ideal, H, ok = np.empty((2, 2)), np.empty((2, 3, 3)), np.empty(2, dtype=bool)
+    K, dist = np.ascontiguousarray(cal.K_left), np.ascontiguousarray(cal.dist_left)
+    k.ideal_affines(centers, K, dist, ideal, H, ok)
+    assert ok.tolist() == [True, False]
+    got, H_got = _selected(True, stereo._ideal_with_affines, cal, "left", centers)
+    want, H_want = _selected(False, stereo._ideal_with_affines, cal, "left", centers)
+    assert np.array_equal(got, want)
+    assert np.array_equal(H_got, H_want)
+
+
+def test_ideal_affines_and_conics_reject_bad_buffers_naming_them() -> None:
+    k = kernel._module
+    assert k is not None
+    with pytest.raises(ValueError, match="dist: dimension 0 is 4, expected 5"):
+        k.ideal_affines(np.zeros((2, 2)), np.eye(3), np.zeros(4), np.empty((2, 2)), np.empty((2, 3, 3)),
+                        np.empty(2, dtype=bool))
+    with pytest.raises(ValueError, match="H: dimension 0 is 3, expected 2"):
+        k.ideal_affines(np.zeros((2, 2)), np.eye(3), np.zeros(5), np.empty((2, 2)), np.empty((3, 3, 3)),
+                        np.empty(2, dtype=bool))
+    with pytest.raises(TypeError, match="centers: expected float64"):
+        k.ideal_affines(np.zeros((2, 2), np.float32), np.eye(3), np.zeros(5), np.empty((2, 2)),
+                        np.empty((2, 3, 3)), np.empty(2, dtype=bool))
+    ro = np.empty((2, 3, 3))
+    ro.flags.writeable = False
+    with pytest.raises(ValueError, match="out: must be writable"):
+        k.conics_to_ideal(np.zeros((2, 3, 3)), np.tile(np.eye(3), (2, 1, 1)), ro)
+    with pytest.raises(ValueError, match="H: dimension 0 is 1, expected 2"):
+        k.conics_to_ideal(np.zeros((2, 3, 3)), np.zeros((1, 3, 3)), np.empty((2, 3, 3)))
 
 
 def _detection(C_outer: np.ndarray, C_inner: np.ndarray) -> RingDetection:
