@@ -231,8 +231,8 @@ class VisionConfig(BaseModel):
         description="full-frame search every this many pairs (a new marker may have appeared); 0: only when "
         "a marker is lost")
     lost_retry_every_frames: int = Field(
-        5, ge=1, le=100000, description="while a marker is missing (hidden), a full-frame search every this "
-        "many pairs")
+        5, ge=1, le=100000, description="while a marker is missing (hidden), its last place is searched "
+        "every this many pairs (a full-frame search when reacquire_every_frames is 0)")
     window_margin_px: float = Field(8.0, ge=0.0, le=200.0, description="how far a marker's window reaches "
                                     "beyond its outer ellipse, px")
 

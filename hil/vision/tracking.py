@@ -18,9 +18,14 @@ ellipses) and its image velocity. For a new frame:
 4. Re-acquisition: a full-frame search of the image (:func:`hil.vision.detect.detect_rings`)
    whenever a marker was lost in this frame (the same frame is searched again, so a marker that
    only outran its window is found), every ``reacquire_every`` frames (a new marker may have
-   appeared; a stereo tracker staggers its two cameras by half that period), every
-   ``lost_retry_every`` frames while fewer markers are tracked than were seen
-   (one is hidden), and on request.
+   appeared; a stereo tracker staggers its two cameras by half that period), and on request.
+5. Recovery: a marker that a full-frame search no longer finds (hidden) is remembered where it
+   was last predicted; while it is missing, every ``lost_retry_every`` frames the coarse step
+   searches a window of twice its tracking window around that place (never reaching half-way to
+   a tracked marker, and a ring overlapping a tracked one is refused), so a marker uncovered where
+   it was is back within ``lost_retry_every`` frames for the cost of one window, not of a frame.
+   A marker reappearing elsewhere is found by the periodic full-frame search; with
+   ``reacquire_every`` 0 the retry is a full-frame search.
 
 The stereo stage is unchanged (:func:`hil.vision.stereo.match_and_triangulate`): global pairing
 on the rectified rows and ring sizes, the plane-normal perspective correction and the ray-gap
@@ -64,9 +69,11 @@ U8Image = NDArray[np.uint8]
 class TrackingParams:
     """window_margin_px: how far beyond the marker's outer ellipse (px) its window reaches.
     reacquire_every: a full-frame search every this many frames (0: only when needed).
-    lost_retry_every: while fewer markers are tracked than were seen, a full-frame search every
-    this many frames. forget_after: after this many frames a missing marker is no longer searched
-    for (the scene has fewer markers now). max_speed_px_per_frame: velocity clamp of the prediction.
+    lost_retry_every: while fewer markers are tracked than were seen, the missing markers' last
+    places are searched every this many frames (a full-frame search when ``reacquire_every`` is
+    0 or no place is known; module doc, step 5). forget_after: after this many frames a missing
+    marker is no longer searched for (the scene has fewer markers now). max_speed_px_per_frame:
+    velocity clamp of the prediction.
     """
 
     window_margin_px: float = 8.0
@@ -84,11 +91,13 @@ class TrackingParams:
 
 @dataclass(frozen=True)
 class _Step:
-    """One frame in progress: full-frame search or windows, predicted centres (px), elapsed time."""
+    """One frame in progress: full-frame search or windows, predicted centres (px), elapsed time,
+    and whether the missing markers' last places are searched after the windows."""
 
     full: bool
     preds: FloatArray
     dt: float
+    search_lost: bool = False
 
 
 @dataclass
@@ -97,14 +106,23 @@ class _Track:
     velocity_px_s: FloatArray  # per second (or per frame without timestamps)
 
 
+@dataclass(frozen=True)
+class _Lost:
+    """A marker no longer found: its last detection and where it was last predicted (px)."""
+
+    det: RingDetection
+    center_px: FloatArray
+
+
 @dataclass
 class ImageStats:
     """Counters of one camera: frames, full-frame searches (``reacquisitions``), markers lost from
-    their window (``losses``)."""
+    their window (``losses``), missing markers found again at their last place (``recoveries``)."""
 
     frames: int = 0
     reacquisitions: int = 0
     losses: int = 0
+    recoveries: int = 0
 
 
 @dataclass
@@ -119,6 +137,7 @@ class ImageTracker:
     phase: int = 0
     stats: ImageStats = field(default_factory=ImageStats)
     _tracks: list[_Track] = field(default_factory=list)
+    _lost: list[_Lost] = field(default_factory=list)
     _t_s: float | None = None
     _expected: int = 0
     _missing_since: int | None = None
@@ -154,13 +173,15 @@ class ImageTracker:
         self._t_s = t_s
         missing_for = self._missing_for()
         every = self.params.reacquire_every
+        retry = missing_for is not None and missing_for % self.params.lost_retry_every == 0
+        local = retry and every > 0 and bool(self._lost)
         full = (
             self._force
             or not self._tracks
             or (every > 0 and (self.stats.frames + self.phase) % every == 0)
-            or (missing_for is not None and missing_for % self.params.lost_retry_every == 0)
+            or (retry and not local)
         )
-        return _Step(full, self._predict(dt), dt)
+        return _Step(full, self._predict(dt), dt, local and not full)
 
     def seeds(self, step: _Step) -> RingSeeds:
         """The windowed search's ray seeds: each marker's last ellipses at its prediction."""
@@ -191,6 +212,8 @@ class ImageTracker:
             self.stats.losses += lost
             return False
         self._advance([d for d in found if d is not None], step.dt)
+        if step.search_lost:
+            self._recover(img)
         return True
 
     def reacquire(self, dets: list[RingDetection], step: _Step) -> None:
@@ -211,6 +234,7 @@ class ImageTracker:
         since = self.stats.frames - self._missing_since
         if since > self.params.forget_after:
             self._expected, self._missing_since = len(self._tracks), None
+            self._lost = []
             return None
         return since
 
@@ -309,8 +333,43 @@ class ImageTracker:
         self._tracks = new
         if len(new) >= self._expected:
             self._expected, self._missing_since = len(new), None
-        elif self._missing_since is None:
+            self._lost = []
+            return
+        if self._missing_since is None:
             self._missing_since = self.stats.frames
+        # the markers not found again are remembered where they were (module doc, step 5)
+        margin = self.params.window_margin_px
+        lost = self._lost + [_Lost(t.det, preds[j].copy()) for j, t in enumerate(old) if j not in used]
+        self._lost = [
+            m for m in lost
+            if not any(float(np.linalg.norm(t.det.center_px - m.center_px)) <= _window_half_px(m.det, margin)
+                       for t in new)
+        ]
+
+    def _recover(self, img: U8Image) -> None:
+        """Search each missing marker's last place (module doc, step 5); a ring found there that
+        overlaps no tracked marker becomes a track again (``recoveries``)."""
+        h, w = img.shape
+        for m in list(self._lost):
+            half = 2.0 * _window_half_px(m.det, self.params.window_margin_px)
+            x, y = float(m.center_px[0]), float(m.center_px[1])
+            for t in self._tracks:
+                tx, ty = float(t.det.center_px[0]), float(t.det.center_px[1])
+                half = min(half, 0.5 * math.sqrt((tx - x) * (tx - x) + (ty - y) * (ty - y)))
+            box = (max(int(x - half), 0), max(int(y - half), 0), min(math.ceil(x + half), w),
+                   min(math.ceil(y + half), h))
+            det = refine_in_box(img, box, self.detect_params) if box[2] > box[0] and box[3] > box[1] else None
+            if det is None or any(
+                float(np.linalg.norm(t.det.center_px - det.center_px)) < t.det.outer.a_px + det.outer.a_px
+                for t in self._tracks
+            ):
+                continue
+            self._tracks.append(_Track(det, np.zeros(2)))
+            self._lost.remove(m)
+            self.stats.recoveries += 1
+        if len(self._tracks) >= self._expected:
+            self._expected, self._missing_since = len(self._tracks), None
+            self._lost = []
 
 
 def _nan_min(a: float, b: float) -> float:
@@ -331,6 +390,7 @@ class TrackingStats:
     frames: int
     reacquisitions: int
     losses: int
+    recoveries: int = 0
 
 
 class MarkerTracker:
@@ -367,7 +427,8 @@ class MarkerTracker:
     @property
     def stats(self) -> TrackingStats:
         a, b = self.left.stats, self.right.stats
-        return TrackingStats(a.frames, a.reacquisitions + b.reacquisitions, a.losses + b.losses)
+        return TrackingStats(a.frames, a.reacquisitions + b.reacquisitions, a.losses + b.losses,
+                             a.recoveries + b.recoveries)
 
     def locate(self, left_img: object, right_img: object, t_s: float | None = None) -> LocateResult:
         """Markers of one stereo pair (optical frame, mm). ``t_s``: the pair's time, s.

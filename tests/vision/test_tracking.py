@@ -112,6 +112,62 @@ def test_hidden_marker_is_lost_not_snapped_and_reacquired(cal: StereoCalibration
     assert s.reacquisitions >= 4
 
 
+def test_hidden_marker_is_recovered_at_its_last_place_without_a_full_frame_search(
+    cal: StereoCalibration,
+) -> None:
+    """Default periodic searches: while marker 3 is covered, its last place is searched every
+    lost_retry_every pairs (a window, not a frame): no point is reported while it is hidden, it is
+    back within lost_retry_every pairs of reappearing, and the full-frame searches are only the
+    first pair's, the loss pair's and the periodic ones."""
+    hidden = {3: range(5, 15)}
+    seq = _sequence(cal, 30, hidden)
+    params = TrackingParams(lost_retry_every=4, reacquire_every=30)
+    tracker = MarkerTracker(cal, params)
+    counts = []
+    for k, (t, pair, ms) in enumerate(seq):
+        res = tracker.locate(pair.left, pair.right, t)
+        counts.append(len(res.points_mm))
+        truth = np.array([m.center_mm for m in ms])
+        assert np.all(_nearest_mm(res.points_mm, truth) < 0.3), k
+        owners = {int(np.argmin(np.linalg.norm(truth - p, axis=1))) for p in res.points_mm}
+        assert len(owners) == len(res.points_mm)
+    assert counts[:5] == [8] * 5
+    assert counts[5:15] == [7] * 10
+    assert max(counts[15 : 15 + params.lost_retry_every]) == 8
+    assert counts[15 + params.lost_retry_every :] == [8] * (30 - 15 - params.lost_retry_every)
+    s = tracker.stats
+    assert s.losses == 2
+    assert s.recoveries == 2  # found at its last place in each image
+    # both images at pair 1 and at the loss (pair 6), the right image's periodic search at pair 15,
+    # the left one's at pair 30: none while the marker was missing
+    assert s.reacquisitions == 6
+
+
+def test_a_recovery_never_takes_a_tracked_neighbour(cal: StereoCalibration) -> None:
+    """Marker 1 is hidden and marker 0 moves to where marker 1 was: the search of marker 1's
+    last place stops half-way to marker 0 and refuses a ring overlapping it, so marker 0 stays one
+    track and marker 1 stays missing (no duplicate, nothing snapped)."""
+    rng = np.random.default_rng(4)
+    ms = random_marker_layout(rng, 6, distance_mm=1000.0, max_tilt_deg=20.0)
+    params = TrackingParams(lost_retry_every=1, reacquire_every=1000)
+    tracker = MarkerTracker(cal, params)
+    pair = render_stereo(cal, ms, RenderOptions(), rng)
+    tracker.locate(pair.left, pair.right, 0.0)
+    without_1 = [m for m in ms if m.marker_id != 1]
+    pair = render_stereo(cal, without_1, RenderOptions(), rng)
+    assert len(tracker.locate(pair.left, pair.right, 1 / FPS).points_mm) == 5
+    step = (ms[1].center_mm - ms[0].center_mm) / 8.0
+    for k in range(2, 12):
+        moved = [RingMarker3D(m.center_mm + (step * min(k - 1, 6) if m.marker_id == 0 else 0.0), m.normal,
+                              marker_id=m.marker_id) for m in without_1]
+        pair = render_stereo(cal, moved, RenderOptions(), rng)
+        res = tracker.locate(pair.left, pair.right, k / FPS)
+        truth = np.array([m.center_mm for m in moved])
+        assert len(res.points_mm) == 5, k
+        assert np.all(_nearest_mm(res.points_mm, truth) < 0.3), k
+    assert tracker.stats.recoveries == 0
+
+
 def test_marker_that_outruns_its_window_is_found_by_the_full_frame_search(cal: StereoCalibration) -> None:
     """A jump of ~40 px (far beyond the window) in one pair: lost from the window, found again by
     the same pair's full-frame search; no point reported where the marker no longer is."""

@@ -345,6 +345,7 @@ def main(argv: list[str] | None = None) -> int:
         "tracking_err3d_bound_mm": seq["bound_mm"],
         "reacquisitions": seq["reacquisitions"],
         "losses": seq["losses"],
+        "recoveries": seq["recoveries"],
         "sequence": {
             "frames": seq["frames"],
             "hidden_frames": seq["hidden_frames"],
@@ -359,6 +360,7 @@ def main(argv: list[str] | None = None) -> int:
             "err3d_bound_mm": seq["bound_mm"],
             "reacquisitions": seq["reacquisitions"],
             "losses": seq["losses"],
+            "recoveries": seq["recoveries"],
         },
         "near_450mm": {
             "err3d_mm_rms_normal": near["ours"]["normal"].err3d_rms(),
@@ -450,7 +452,8 @@ def _print_sequence(r: dict[str, Any]) -> None:
           + f"   (bound {b:.4f} mm)")
     print(f"{'missed / false':<28}" + "".join(f"{m['missed']:>8} / {m['false']:<3}" for _, m in rows))
     print(f"full-frame re-acquisitions (both images): {sq['reacquisitions']}, "
-          f"markers lost from their window: {sq['losses']}")
+          f"markers lost from their window: {sq['losses']}, "
+          f"hidden markers recovered at their last place: {sq['recoveries']}")
 
 
 def _print_scaling(rows: list[dict[str, Any]]) -> None:

@@ -141,6 +141,7 @@ def run_sequence(
         "baseline": base,
         "reacquisitions": stats.reacquisitions,
         "losses": stats.losses,
+        "recoveries": stats.recoveries,
         "frames": n_frames,
         "hidden_frames": [hidden.start, hidden.stop],
         "bound_mm": float(np.sqrt(np.mean(mm_var))) if mm_var else float("nan"),
@@ -170,6 +171,7 @@ def scaling_sweep(noise: float, seed: int, n_frames: int) -> list[dict[str, Any]
             "missed": fu.missed,
             "reacquisitions": r["reacquisitions"],
             "losses": r["losses"],
+            "recoveries": r["recoveries"],
         })
     rows.sort(key=lambda row: (row["image"] != "1920x1080", int(str(row["image"]).split("x")[0]),
                                row["markers"]))
