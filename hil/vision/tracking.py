@@ -247,15 +247,12 @@ class ImageTracker:
 
     def _gates(self, preds: FloatArray) -> list[float]:
         """Per track, the largest accepted distance of a detection from its prediction (px): its
-        window's half side, at most half the distance to the nearest other prediction. Plain
-        floats (a few markers: cheaper than array calls; the same IEEE arithmetic)."""
+        window's half side, at most half the distance to the nearest other prediction."""
         half = [_window_half_px(t.det, self.params.window_margin_px) for t in self._tracks]
-        p = preds.tolist()
-        if len(p) > 1:
-            for i, (xi, yi) in enumerate(p):
-                near = min(math.sqrt((xi - xj) * (xi - xj) + (yi - yj) * (yi - yj))
-                           for j, (xj, yj) in enumerate(p) if j != i)
-                half[i] = min(half[i], 0.5 * near)
+        if len(half) > 1:
+            near = _pairwise_px(preds)
+            np.fill_diagonal(near, np.inf)
+            half = np.minimum(half, 0.5 * near.min(axis=1)).tolist()
         return half
 
     def _windowed(
@@ -285,12 +282,14 @@ class ImageTracker:
             centres[i] = tuple(det.center_px.tolist()) if det is not None and ok else (nan, nan)
             dist[i] = float(np.linalg.norm(np.array(centres[i]) - preds[i]))
         # two markers never take the same detection: the one nearer its prediction keeps it
-        b = [nan if d is None else d.outer.b_px for d in found]
+        b = np.array([nan if d is None else d.outer.b_px for d in found])
+        close = _pairwise_px(np.array(centres)) < 0.5 * np.minimum(b[:, None], b[None, :])  # NaN: False
+        np.fill_diagonal(close, False)
+        if not close.any():
+            return found
         for i in range(len(found)):
             for j in range(i + 1, len(found)):
-                dx, dy = centres[i][0] - centres[j][0], centres[i][1] - centres[j][1]
-                close = math.sqrt(dx * dx + dy * dy) < 0.5 * _nan_min(b[i], b[j])
-                if close and found[i] is not None and found[j] is not None:
+                if close[i, j] and found[i] is not None and found[j] is not None:
                     found[j if dist[i] <= dist[j] else i] = None
         return found
 
@@ -372,9 +371,11 @@ class ImageTracker:
             self._lost = []
 
 
-def _nan_min(a: float, b: float) -> float:
-    """``np.minimum`` of two floats: NaN when either is NaN."""
-    return a if a <= b or math.isnan(a) else b
+def _pairwise_px(points: FloatArray) -> FloatArray:
+    """Distances (px) between every two of the (n, 2) points, (n, n); NaN where one is NaN."""
+    dx = points[:, None, 0] - points[None, :, 0]
+    dy = points[:, None, 1] - points[None, :, 1]
+    return np.asarray(np.sqrt(dx * dx + dy * dy), dtype=np.float64)
 
 
 def _window_half_px(det: RingDetection, margin_px: float) -> float:
