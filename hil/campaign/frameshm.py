@@ -72,11 +72,15 @@ def block_bytes(capacity_px: int) -> int:
 
 
 class _View:
-    """Header and image views onto a buffer of the block layout."""
+    """Header and image views onto a buffer of the block layout.
+
+    The views are ``np.frombuffer`` arrays: each keeps the buffer exported while it lives, so the
+    mapping under it cannot be closed (a view read after an unmap would crash the process); an
+    ``np.ndarray(buffer=...)`` view holds no export and would be left dangling."""
 
     def __init__(self, buf: memoryview) -> None:
         self.buf = buf
-        self.header = np.ndarray((7,), dtype=np.uint64, buffer=buf, offset=0)
+        self.header = np.frombuffer(buf, dtype=np.uint64, count=7, offset=0)
 
     @property
     def capacity_px(self) -> int:
@@ -84,11 +88,18 @@ class _View:
 
     def image(self, side: int, width_px: int, height_px: int) -> U8Image:
         offset = HEADER_BYTES + side * self.capacity_px
-        return np.ndarray((height_px, width_px), dtype=np.uint8, buffer=self.buf, offset=offset)
+        flat = np.frombuffer(self.buf, dtype=np.uint8, count=width_px * height_px, offset=offset)
+        return flat.reshape(height_px, width_px)
 
-    def release(self) -> None:
+    def release(self) -> bool:
+        """Drop the header view and release the buffer; False when another view still holds it
+        (the mapping then goes with the last view)."""
         del self.header
-        self.buf.release()
+        try:
+            self.buf.release()
+        except BufferError:
+            return False
+        return True
 
 
 class FrameBlockWriter:
@@ -159,12 +170,17 @@ class FrameBlockWriter:
         return self.pairs_written
 
     def close(self) -> None:
-        """Release and unlink the block (idempotent)."""
+        """Release and unlink the block (idempotent). A view of it still alive elsewhere keeps
+        the mapping (unlinked) until a later close finds it free: never unmapped under a reader."""
         shm, self._shm = self._shm, None
+        _close_lingering()
         if shm is None:
             return
         self._view.release()
-        shm.close()
+        try:
+            shm.close()
+        except BufferError:
+            _LINGERING.append(shm)
         with contextlib.suppress(FileNotFoundError):
             shm.unlink()
 
@@ -225,8 +241,24 @@ class FrameBlockReader:
         return None
 
     def close(self) -> None:
-        """Detach (idempotent)."""
+        """Detach (idempotent). A view of the block still alive elsewhere keeps the mapping
+        until it is collected (never unmapped under a reader)."""
         if self._map.closed:
             return
-        self._view.release()
-        self._map.close()
+        if self._view.release():
+            with contextlib.suppress(BufferError):
+                self._map.close()
+
+
+#: writers' segments closed while a view still used them: closed by a later close once free (the
+#: ``SharedMemory`` object must outlive the views, or its finaliser would fail on the export)
+_LINGERING: list[shared_memory.SharedMemory] = []
+
+
+def _close_lingering() -> None:
+    for shm in list(_LINGERING):
+        try:
+            shm.close()
+        except BufferError:
+            continue
+        _LINGERING.remove(shm)

@@ -15,6 +15,7 @@ import os
 import re
 import subprocess
 import sys
+import textwrap
 from multiprocessing import shared_memory
 from pathlib import Path
 from typing import Any
@@ -121,6 +122,40 @@ def test_frame_block_errors() -> None:
     finally:
         other.close()
         other.unlink()
+
+
+_VIEW_PAST_CLOSE = textwrap.dedent("""
+    import os
+    import numpy as np
+    from hil.campaign import frameshm
+    writer = frameshm.FrameBlockWriter(16)
+    writer.write(np.full((2, 3), 5, np.uint8), np.full((2, 3), 9, np.uint8), t_ns=1)
+    reader = frameshm.FrameBlockReader(writer.name)
+    seen = reader._view.image(1, 3, 2)           # a view a reading thread may still hold
+    reader.close()
+    assert int(seen.sum()) == 54, "the reader's view no longer reads the block"
+    written = writer._view.image(0, 3, 2)
+    name = writer.name
+    writer.close()
+    assert int(written.sum()) == 30, "the writer's view no longer reads the block"
+    assert not os.path.exists("/dev/shm/" + name), "closed but not unlinked"
+    assert len(frameshm._LINGERING) == 1          # kept mapped for the view ...
+    del written
+    frameshm.FrameBlockWriter(1).close()         # ... and closed by a later close once free
+    assert frameshm._LINGERING == []
+    print("ok")
+""")
+
+
+def test_a_frame_block_view_held_past_close_still_reads_and_the_block_is_unlinked() -> None:
+    """Closing never unmaps memory a view still reads (np.ndarray(buffer=) views held no export:
+    reading one after close killed the process with SIGSEGV). In a child, so that a regression is
+    a failed test, not a dead test run."""
+    proc = subprocess.run([sys.executable, "-c", _VIEW_PAST_CLOSE], capture_output=True, text=True,
+                          timeout=60, check=False)
+    assert proc.returncode == 0, (proc.returncode, proc.stderr[-2000:])
+    assert proc.stdout.strip() == "ok"
+    assert "Exception ignored" not in proc.stderr
 
 
 # ---------------------------------------------------------------------- fakegv's pair source (unit)
