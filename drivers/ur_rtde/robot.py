@@ -408,23 +408,24 @@ class UrRtdeRobot(Robot):
                          trapezoid_time_s(angle * 1000.0, speed_mm_s, accel_mm_s2))
         deadline_ns = self.clock.now_ns() + int((1.5 * expected_s + self.cfg.move_timeout_margin_s) * 1e9)
         poll_s = 1.0 / self.control_rate_hz
+        rcv = self._rcv
         while True:
             self._require_connected()  # state reads only: no command lock
             st = ctrl.getAsyncOperationProgressEx()
             done = int(st.operationId()) != op0 and not st.isAsyncOperationRunning()
-            bits = int(self._rcv.getSafetyStatusBits())
-            running = int(self._rcv.getRuntimeState()) == RuntimeState.PLAYING
+            # one packet: a protective stop (which stops the script too) is never read as
+            # "safety normal, script stopped"
+            got = one_packet(rcv.getTimestamp,
+                             lambda: (int(rcv.getSafetyStatusBits()), int(rcv.getRuntimeState())))
+            if got is None:
+                raise DeviceTimeoutError(self.name, f"moveL: the state could not be read from one packet "
+                                                    f"in {READ_TRIES} tries (the reads are starved)")
+            bits, runtime = got[1]
             safety = safety_from_bits(bits)
             if safety is not SafetyStatus.NORMAL:
                 _log.warning("robot_safety_stop_during_move", device=self.name, safety=str(safety))
                 raise SafetyStopError(self.name, f"moveL interrupted: arm is in {safety}")
-            if not running:
-                # The two reads above come from RTDE packets that may differ: a protective stop
-                # stops the script too, so read the safety bits again before naming the cause.
-                safety = safety_from_bits(int(self._rcv.getSafetyStatusBits()))
-                if safety is not SafetyStatus.NORMAL:
-                    _log.warning("robot_safety_stop_during_move", device=self.name, safety=str(safety))
-                    raise SafetyStopError(self.name, f"moveL interrupted: arm is in {safety}")
+            if runtime != RuntimeState.PLAYING:
                 raise DeviceFaultError(self.name, "moveL interrupted: the control script stopped")
             if done:
                 self._wait_next_state()

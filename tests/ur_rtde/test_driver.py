@@ -132,6 +132,27 @@ def test_protective_stop_mid_move_raises_and_recovers(robot: UrRtdeRobot, ursim:
     assert robot.state_now().T_robot_from_tcp.is_close(start, atol_mm=1e-6, atol_rad=1e-9)
 
 
+def test_program_stopped_mid_move_is_a_device_fault_not_a_safety_stop(
+    robot: UrRtdeRobot, ursim: Ursim
+) -> None:
+    """The blocking moveL reads the safety bits and the runtime state from one RTDE packet: a
+    program stopped on the controller mid-move is named as such (a protective stop, which stops
+    the script too, is the test above)."""
+    start = robot.state_now().T_robot_from_tcp
+    timer = threading.Timer(0.3, ursim.control.stop_program)
+    timer.start()
+    try:
+        with pytest.raises(DeviceFaultError, match="moveL interrupted: the control script stopped"):
+            robot.move_linear(shifted(start, [0.0, 100.0, 0.0]), 50.0, 500.0)
+    finally:
+        timer.cancel()
+    s = robot.state_now()
+    assert (s.safety, s.mode) == (SafetyStatus.NORMAL, RobotMode.STOPPED)
+    robot.recover()
+    robot.move_linear(start, 100.0, 500.0)
+    assert robot.state_now().T_robot_from_tcp.is_close(start, atol_mm=1e-6, atol_rad=1e-9)
+
+
 def test_emergency_stop_needs_release_before_recovery(robot: UrRtdeRobot, ursim: Ursim) -> None:
     ursim.control.estop()
     wait_for(lambda: robot.state_now().safety is SafetyStatus.EMERGENCY_STOP, what="e-stop seen")
