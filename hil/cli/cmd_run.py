@@ -36,7 +36,7 @@ from hil.controller.operator_input import AutoOperator, Operator, OperatorView
 from hil.controller.perception import StereoMarkerLocator
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import HilError, InputFileError
-from hil.perception.camera import PerceptionCamera
+from hil.perception.camera import PerceptionCamera, in_supervisor_because
 from hil.rigcal.apply import rig_calibration_sha256
 from hil.session.log import SessionLog, file_sha256
 
@@ -160,6 +160,7 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
         devices = with_servo_process(setup, devices, clock)  # [servo] process: on the wall clock
         devices = with_perception_process(setup, devices, clock)  # [perception] process: likewise
     world = devices.world
+    in_perception = isinstance(devices.camera, PerceptionCamera)
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
     header: dict[str, Any] = {
         "setup": str(config_path), "setup_name": setup.name,
@@ -174,6 +175,10 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
         "rig_calibration_sha256": rig_calibration_sha256(setup),
         "seed": setup.simulation.seed if world is not None else None,
         "procedure": setup.procedure.model_dump(mode="json"), "auto": auto,
+        # where marker location runs, and why not in its own process (docs/architecture.md)
+        "perception_process": in_perception,
+        "perception_in_supervisor_because": None if in_perception else (
+            in_supervisor_because(setup, devices, clock) or "the robot is wrapped (a campaign's faults)"),
     }
     igtl = start_igtl(setup, clock)  # first: a busy port is a usage error, nothing else started
     try:

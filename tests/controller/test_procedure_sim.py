@@ -66,6 +66,9 @@ def test_still_patient_locks_within_half_a_millimetre(tmp_path: Path) -> None:
     header = next(read_session_log(s.session_log))
     assert len(header["config_sha256"]) == 64
     assert len(header["calibration_sha256"]) == 64
+    assert header["perception_process"] is False   # the manual clock: located in the supervisor
+    why = header["perception_in_supervisor_because"]
+    assert why == "it needs the wall clock ([simulation] real_time = true)"
     rep = verify_session_log(s.session_log)
     assert (rep.ok, rep.closed) == (True, True)
     ev = _events(s)

@@ -69,6 +69,8 @@ def test_hil_run_reaches_done_with_perception_and_servo_in_their_own_processes(
     assert s.final_state == "done", s.faults
     assert s.locate_ms["p50"] is not None   # the perception process's figures
     events = [json.loads(line) for line in Path(s.session_log).read_text().splitlines()]
+    assert (events[0]["event"], events[0]["perception_process"]) == ("session_started", True)
+    assert events[0]["perception_in_supervisor_because"] is None
     stopped = [e for e in events if e["event"] == "frame_prefetch_stopped"]
     assert len(stopped) == 1
     assert stopped[0]["process"] is True
