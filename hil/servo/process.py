@@ -417,8 +417,10 @@ def _run(loop: ServoLoop, parent_pid: int, closing: threading.Event) -> None:
         now = wait_until(next_ns)
         cpu0 = time.thread_time_ns()
         loop.step(now)
-        done = time.monotonic_ns()
+        # the CPU-clock interval inside the wall-clock one: an interrupt charged to this thread
+        # just after the step can then never make its CPU time exceed its wall time
         cpu_ns = time.thread_time_ns() - cpu0
+        done = time.monotonic_ns()
         k += 1
         if k % PARENT_CHECK_PERIODS == 0 and os.getppid() != parent_pid:
             return   # the supervisor is gone: stop the arm (the caller) and exit
