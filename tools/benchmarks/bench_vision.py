@@ -459,11 +459,11 @@ def _print_sequence(r: dict[str, Any]) -> None:
 def _print_scaling(rows: list[dict[str, Any]]) -> None:
     print("\nscaling (pairs/s one core; 3D error mm RMS)")
     print(f"{'image':<12}{'markers':>8}{'track pairs/s':>15}{'full pairs/s':>14}{'track err':>11}"
-          f"{'full err':>10}{'reacq':>7}{'lost':>6}")
+          f"{'full err':>10}{'reacq':>7}{'lost':>6}{'recovered':>10}")
     for row in rows:
         print(f"{row['image']:<12}{row['markers']:>8}{row['tracking_pairs_per_s']:>15.1f}"
               f"{row['pairs_per_s']:>14.1f}{row['tracking_err3d_mm_rms']:>11.4f}{row['err3d_mm_rms']:>10.4f}"
-              f"{row['reacquisitions']:>7}{row['losses']:>6}")
+              f"{row['reacquisitions']:>7}{row['losses']:>6}{row['recoveries']:>10}")
 
 
 if __name__ == "__main__":
