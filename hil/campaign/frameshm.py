@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hil.errors import HilError
+from hil.servo.shm import close_segment
 
 U8Image = NDArray[np.uint8]
 
@@ -173,14 +174,10 @@ class FrameBlockWriter:
         """Release and unlink the block (idempotent). A view of it still alive elsewhere keeps
         the mapping (unlinked) until a later close finds it free: never unmapped under a reader."""
         shm, self._shm = self._shm, None
-        _close_lingering()
         if shm is None:
             return
         self._view.release()
-        try:
-            shm.close()
-        except BufferError:
-            _LINGERING.append(shm)
+        close_segment(shm)
         with contextlib.suppress(FileNotFoundError):
             shm.unlink()
 
@@ -249,16 +246,3 @@ class FrameBlockReader:
             with contextlib.suppress(BufferError):
                 self._map.close()
 
-
-#: writers' segments closed while a view still used them: closed by a later close once free (the
-#: ``SharedMemory`` object must outlive the views, or its finaliser would fail on the export)
-_LINGERING: list[shared_memory.SharedMemory] = []
-
-
-def _close_lingering() -> None:
-    for shm in list(_LINGERING):
-        try:
-            shm.close()
-        except BufferError:
-            continue
-        _LINGERING.remove(shm)

@@ -123,16 +123,25 @@ class ShmRegion:
                 mm.close()
         _close_lingering()
         if shm is not None:
-            try:
-                shm.close()
-            except BufferError:
-                _LINGERING.append(shm)
+            close_segment(shm)
             if self._owner:
                 shm.unlink()
 
 
-#: created segments closed while views of them were still alive (:meth:`ShmRegion.close`)
+#: created segments closed while views of them were still alive (:func:`close_segment`)
 _LINGERING: list[shared_memory.SharedMemory] = []
+
+
+def close_segment(shm: shared_memory.SharedMemory) -> None:
+    """Close ``shm``'s mapping (not its name) unless ``np.frombuffer`` views of it are still
+    alive: then it lingers in :data:`_LINGERING` (its ``SharedMemory`` object must outlive the
+    views, or its finaliser would fail on the export) and a later call closes it once free, so
+    memory is never unmapped under a reader. Lingering segments already free are closed first."""
+    _close_lingering()
+    try:
+        shm.close()
+    except BufferError:
+        _LINGERING.append(shm)
 
 
 def _close_lingering() -> None:

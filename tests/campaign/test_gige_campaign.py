@@ -128,6 +128,7 @@ _VIEW_PAST_CLOSE = textwrap.dedent("""
     import os
     import numpy as np
     from hil.campaign import frameshm
+    from hil.servo.shm import _LINGERING
     writer = frameshm.FrameBlockWriter(16)
     writer.write(np.full((2, 3), 5, np.uint8), np.full((2, 3), 9, np.uint8), t_ns=1)
     reader = frameshm.FrameBlockReader(writer.name)
@@ -139,10 +140,10 @@ _VIEW_PAST_CLOSE = textwrap.dedent("""
     writer.close()
     assert int(written.sum()) == 30, "the writer's view no longer reads the block"
     assert not os.path.exists("/dev/shm/" + name), "closed but not unlinked"
-    assert len(frameshm._LINGERING) == 1          # kept mapped for the view ...
+    assert len(_LINGERING) == 1                   # kept mapped for the view ...
     del written
     frameshm.FrameBlockWriter(1).close()         # ... and closed by a later close once free
-    assert frameshm._LINGERING == []
+    assert _LINGERING == []
     print("ok")
 """)
 

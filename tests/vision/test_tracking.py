@@ -88,27 +88,32 @@ def test_tracked_centres_equal_full_frame_centres_on_the_same_images(cal: Stereo
     assert tracker.stats.reacquisitions == 4  # both images at pair 1, right at 15, left at 30
 
 
-def test_hidden_marker_is_lost_not_snapped_and_reacquired(cal: StereoCalibration) -> None:
-    hidden = {3: range(5, 15)}
-    seq = _sequence(cal, 30, hidden)
-    params = TrackingParams(lost_retry_every=4, reacquire_every=0)
+def _track_marker_3_hidden(cal: StereoCalibration, params: TrackingParams) -> MarkerTracker:
+    """30 pairs with marker 3 covered in pairs 5-14: every reported point is a real, visible
+    marker (none duplicated, none in the hole), 7 while it is covered, and it is back within
+    lost_retry_every pairs of reappearing. Returns the tracker (its counters)."""
+    seq = _sequence(cal, 30, {3: range(5, 15)})
     tracker = MarkerTracker(cal, params)
     counts = []
     for k, (t, pair, ms) in enumerate(seq):
         res = tracker.locate(pair.left, pair.right, t)
         counts.append(len(res.points_mm))
         truth = np.array([m.center_mm for m in ms])
-        # every reported point is a real, visible marker (none duplicated, none in the hole)
         assert np.all(_nearest_mm(res.points_mm, truth) < 0.3), k
         owners = {int(np.argmin(np.linalg.norm(truth - p, axis=1))) for p in res.points_mm}
         assert len(owners) == len(res.points_mm)
     assert counts[:5] == [8] * 5
     assert counts[5:15] == [7] * 10
-    # back within lost_retry_every pairs of reappearing
     assert max(counts[15 : 15 + params.lost_retry_every]) == 8
     assert counts[15 + params.lost_retry_every :] == [8] * (30 - 15 - params.lost_retry_every)
-    s = tracker.stats
+    return tracker
+
+
+def test_hidden_marker_is_lost_not_snapped_and_reacquired(cal: StereoCalibration) -> None:
+    """No periodic search: the covered marker is looked for by full-frame searches."""
+    s = _track_marker_3_hidden(cal, TrackingParams(lost_retry_every=4, reacquire_every=0)).stats
     assert s.losses == 2  # the marker left its window once in each image
+    assert s.recoveries == 0
     assert s.reacquisitions >= 4
 
 
@@ -116,26 +121,9 @@ def test_hidden_marker_is_recovered_at_its_last_place_without_a_full_frame_searc
     cal: StereoCalibration,
 ) -> None:
     """Default periodic searches: while marker 3 is covered, its last place is searched every
-    lost_retry_every pairs (a window, not a frame): no point is reported while it is hidden, it is
-    back within lost_retry_every pairs of reappearing, and the full-frame searches are only the
+    lost_retry_every pairs (a window, not a frame), and the full-frame searches are only the
     first pair's, the loss pair's and the periodic ones."""
-    hidden = {3: range(5, 15)}
-    seq = _sequence(cal, 30, hidden)
-    params = TrackingParams(lost_retry_every=4, reacquire_every=30)
-    tracker = MarkerTracker(cal, params)
-    counts = []
-    for k, (t, pair, ms) in enumerate(seq):
-        res = tracker.locate(pair.left, pair.right, t)
-        counts.append(len(res.points_mm))
-        truth = np.array([m.center_mm for m in ms])
-        assert np.all(_nearest_mm(res.points_mm, truth) < 0.3), k
-        owners = {int(np.argmin(np.linalg.norm(truth - p, axis=1))) for p in res.points_mm}
-        assert len(owners) == len(res.points_mm)
-    assert counts[:5] == [8] * 5
-    assert counts[5:15] == [7] * 10
-    assert max(counts[15 : 15 + params.lost_retry_every]) == 8
-    assert counts[15 + params.lost_retry_every :] == [8] * (30 - 15 - params.lost_retry_every)
-    s = tracker.stats
+    s = _track_marker_3_hidden(cal, TrackingParams(lost_retry_every=4, reacquire_every=30)).stats
     assert s.losses == 2
     assert s.recoveries == 2  # found at its last place in each image
     # both images at pair 1 and at the loss (pair 6), the right image's periodic search at pair 15,
