@@ -124,7 +124,13 @@ class ServoProcess:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> ServoReady:
         """Create the shared regions and the channel, start the child, wait until it is ready.
-        A failed start ends the child and frees the regions; :meth:`restart` may try again."""
+        A failed start ends the child and frees the regions; :meth:`restart` may try again.
+        Holds the channel lock throughout: an observer's :meth:`gone` waits for the new child
+        instead of reading a half-swapped one (the channel of one, the exit code of the other)."""
+        with self._channel_lock:
+            return self._start()
+
+    def _start(self) -> ServoReady:
         self._child_ended = False
         self.regions = Regions.create(shared=True)
         ours, theirs = socket.socketpair()
@@ -169,14 +175,15 @@ class ServoProcess:
         Raises:
             LifecycleError: after :meth:`close`, or while the child runs (nothing to restart).
         """
-        if self._closed:
-            raise LifecycleError(self._name, "restart() after close()")
-        if self._started and self._crash is None and self._proc.poll() is None:
-            raise LifecycleError(self._name, "restart() while the servo process runs")
-        self._end_child()
-        self._crash, self.ready = None, None
-        self._events.clear()
-        return self.start()
+        with self._channel_lock:   # observers' gone() never see the old child half replaced
+            if self._closed:
+                raise LifecycleError(self._name, "restart() after close()")
+            if self._started and self._crash is None and self._proc.poll() is None:
+                raise LifecycleError(self._name, "restart() while the servo process runs")
+            self._end_child()
+            self._crash, self.ready = None, None
+            self._events.clear()
+            return self._start()
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop the arm and end the child (module doc). Idempotent; never raises."""
@@ -262,17 +269,21 @@ class ServoProcess:
             return out
 
     def gone(self) -> str | None:
-        if self._crash is not None:
-            return self._crash
+        crash = self._crash
+        if crash is not None:
+            return crash
         if self._closed:
             return "servo process closed"
         if not self._started:
             return "servo process not started"
-        if self._proc.poll() is not None:
-            with self._channel_lock:
-                self._pump(0.0, None)
+        if self._proc.poll() is None:
+            return None
+        with self._channel_lock:
+            # checked again under the lock: a restart (which holds it) may have replaced the child
+            if self._crash is None and self._proc.poll() is None:
+                return None
+            self._pump(0.0, None)
             return self._exit_reason()
-        return None
 
     def _exit_reason(self) -> str:
         return self._crash or f"servo process exited (code {self._proc.poll()})"

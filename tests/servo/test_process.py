@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -138,6 +139,41 @@ def test_recover_starts_a_new_servo_process_in_place_of_one_that_died(robot: Ser
     with pytest.raises(LifecycleError, match="after close"):
         link.restart()
 
+
+
+def test_an_observer_reading_the_link_never_fails_a_restart(robot: ServoRobot) -> None:
+    """A thread that only observes the arm (the simulated world follows it through a state view:
+    ``gone()`` on every read) runs while recover() restarts a dead servo process. Before the
+    restart held the channel lock, the observer could read the old child's closed channel between
+    the swap's steps and mark the new start as crashed with the old exit code (CI: the first
+    resume after a servo crash failed with 'servo process exited (code -6)', a second worked)."""
+    link = robot.link
+    assert isinstance(link, ServoProcess)
+    for _ in range(3):
+        assert link.ready is not None
+        old_pid = link.ready.pid
+        os.kill(old_pid, signal.SIGKILL)
+        _wait(lambda: link.gone() is not None, "the parent to see the child gone")
+        stop = threading.Event()
+        reads: list[str | None] = []
+
+        def observe(stop: threading.Event = stop, reads: list[str | None] = reads) -> None:
+            while not stop.is_set():
+                reads.append(link.gone())
+
+        observer = threading.Thread(target=observe, name="observer")
+        observer.start()
+        try:
+            robot.recover()
+        finally:
+            stop.set()
+            observer.join(timeout=30.0)
+        assert not observer.is_alive()
+        assert link.gone() is None
+        assert link.ready.pid != old_pid
+        assert reads, "the observer never ran"
+        # what the observer saw: the dead child's reason, then nothing wrong once the new one runs
+        assert set(reads) <= {"servo process exited (code -9)", None}, set(reads)
 
 _PARENT = textwrap.dedent("""
     import sys
