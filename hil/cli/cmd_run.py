@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
-import hashlib
 import json
 import select
 import sys
@@ -18,12 +17,12 @@ from typing import Any, TextIO
 
 from hil.clock import Clock, ManualClock, MonotonicClock
 from hil.config import build_devices, default_setup_path, load_setup
-from hil.config.build import Devices
 from hil.config.setup import SetupConfig
 from hil.controller.assembly import (
     RobotWrapper,
     build_controller,
     runtime_plugins,
+    session_header,
     start_igtl,
     stereo_calibration,
     with_perception_process,
@@ -37,9 +36,8 @@ from hil.controller.operator_input import AutoOperator, Operator, OperatorView
 from hil.controller.perception import StereoMarkerLocator
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import HilError, InputFileError
-from hil.perception.camera import PerceptionCamera, in_supervisor_because
-from hil.rigcal.apply import rig_calibration_sha256
-from hil.session.log import SessionLog, file_sha256
+from hil.perception.camera import PerceptionCamera
+from hil.session.log import SessionLog
 
 
 def add_parser(sub: Any) -> None:
@@ -161,7 +159,7 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
         devices = with_servo_process(setup, devices, clock)  # [servo] process: on the wall clock
         devices = with_perception_process(setup, devices, clock)  # [perception] process: likewise
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
-    header = _session_header(config_path, setup, plan, devices, clock, auto)
+    header = {**session_header(config_path, setup, plan, devices, clock), "auto": auto}
     igtl = start_igtl(setup, clock)  # first: a busy port is a usage error, nothing else started
     try:
         session = SessionLog(session_dir / f"session_{stamp}.jsonl", clock, header)
@@ -198,29 +196,6 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
     return summary
 
 
-
-def _session_header(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, devices: Devices,
-                    clock: Clock, auto: bool) -> dict[str, Any]:
-    """The session log's first record's fields (docs/run.md "Session log"): what ran, with the
-    hashes of its files, and where markers are located (and why not in the perception process)."""
-    in_perception = isinstance(devices.camera, PerceptionCamera)
-    return {
-        "setup": str(config_path), "setup_name": setup.name,
-        "config_sha256": file_sha256(config_path),
-        "resolved_setup_sha256": hashlib.sha256(
-            json.dumps(setup.resolved(), sort_keys=True, default=str).encode()).hexdigest(),
-        "plan": plan.source,
-        "plan_sha256": file_sha256(plan.source) if Path(plan.source).is_file() else None,
-        "calibration": str(setup.calibration.stereo) if setup.calibration.stereo else None,
-        "calibration_sha256": file_sha256(setup.calibration.stereo) if setup.calibration.stereo else None,
-        "rig_calibration": str(setup.calibration.rig) if setup.calibration.rig else None,
-        "rig_calibration_sha256": rig_calibration_sha256(setup),
-        "seed": setup.simulation.seed if devices.world is not None else None,
-        "procedure": setup.procedure.model_dump(mode="json"), "auto": auto,
-        "perception_process": in_perception,
-        "perception_in_supervisor_because": None if in_perception else (
-            in_supervisor_because(setup, devices, clock) or "the robot is wrapped (a campaign's faults)"),
-    }
 
 def build_session_report(session_log: str, err: TextIO) -> str | None:
     """Build the HTML report of a finished session (``hil report``, default output directory)

@@ -6,8 +6,6 @@ server — the same controller ``hil run`` drives, built the same way.
 from __future__ import annotations
 
 import datetime as _dt
-import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,6 +19,7 @@ from hil.console.runner import ControllerRunner
 from hil.controller.assembly import (
     build_controller,
     runtime_plugins,
+    session_header,
     stereo_calibration,
     with_perception_process,
     with_servo_process,
@@ -29,8 +28,7 @@ from hil.controller.controller import Controller
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import InputFileError
 from hil.igtl.config import IgtlConfig
-from hil.rigcal.apply import rig_calibration_sha256
-from hil.session.log import SessionLog, file_sha256
+from hil.session.log import SessionLog
 
 
 @dataclass
@@ -129,23 +127,9 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
         if igtl is not None:
             igtl.close()
         raise
-    world = devices.world
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
-    header: dict[str, Any] = {
-        "setup": str(config_path), "setup_name": setup.name, "origin": "console",
-        "config_sha256": file_sha256(config_path),
-        "resolved_setup_sha256": hashlib.sha256(
-            json.dumps(setup.resolved(), sort_keys=True, default=str).encode()).hexdigest(),
-        "plan": the_plan.source,
-        "plan_sha256": file_sha256(the_plan.source) if Path(the_plan.source).is_file() else None,
-        "calibration": str(setup.calibration.stereo) if setup.calibration.stereo else None,
-        "calibration_sha256": file_sha256(setup.calibration.stereo) if setup.calibration.stereo else None,
-        "rig_calibration": str(setup.calibration.rig) if setup.calibration.rig else None,
-        "rig_calibration_sha256": rig_calibration_sha256(setup),
-        "seed": setup.simulation.seed if world is not None else None,
-        "procedure": setup.procedure.model_dump(mode="json"),
-        "igtl": igtl_cfg.model_dump(mode="json"),
-    }
+    header: dict[str, Any] = {**session_header(config_path, setup, the_plan, devices, clk),
+                              "origin": "console", "igtl": igtl_cfg.model_dump(mode="json")}
     session = SessionLog(Path(session_dir) / f"session_{stamp}.jsonl", clk, header)
     try:
         devices.open_all()

@@ -10,9 +10,11 @@ except loading files; errors are the loaders' typed ones (InputFileError, Calibr
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from drivers.interfaces.camera import StereoCamera
 from drivers.interfaces.robot import Robot
@@ -31,8 +33,8 @@ from hil.controller.planning import RigGeometry
 from hil.controller.tracker_use import TrackerUse
 from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.errors import ConfigError, InputFileError
-from hil.rigcal.apply import flange_markers_mm, with_rig_time_offsets
-from hil.session.log import SessionLog
+from hil.rigcal.apply import flange_markers_mm, rig_calibration_sha256, with_rig_time_offsets
+from hil.session.log import SessionLog, file_sha256
 from hil.tracking.session import load_tracker_calibration
 from hil.vision.camera_model import StereoCalibration, load_calibration
 from hil.vision.tracking import TrackingParams
@@ -151,6 +153,36 @@ def with_perception_process(setup: SetupConfig, devices: Devices, clock: Clock) 
     from hil.perception.camera import with_perception_process as wire
 
     return wire(setup, devices, clock)
+
+
+def session_header(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, devices: Devices,
+                   clock: Clock) -> dict[str, Any]:
+    """The fields of a session log's first record that ``hil run`` and ``hil console`` share
+    (docs/run.md "Session log"): the setup and plan with the hashes of their files, the seed, the
+    procedure, and where markers are located -- ``perception_process`` and, when not there,
+    ``perception_in_supervisor_because`` (one line). Call it with the devices as wrapped
+    (:func:`with_servo_process`, :func:`with_perception_process`), before they are opened."""
+    from hil.perception.camera import PerceptionCamera, in_supervisor_because
+
+    in_perception = isinstance(devices.camera, PerceptionCamera)
+    cal = setup.calibration
+    return {
+        "setup": str(config_path), "setup_name": setup.name,
+        "config_sha256": file_sha256(config_path),
+        "resolved_setup_sha256": hashlib.sha256(
+            json.dumps(setup.resolved(), sort_keys=True, default=str).encode()).hexdigest(),
+        "plan": plan.source,
+        "plan_sha256": file_sha256(plan.source) if Path(plan.source).is_file() else None,
+        "calibration": str(cal.stereo) if cal.stereo else None,
+        "calibration_sha256": file_sha256(cal.stereo) if cal.stereo else None,
+        "rig_calibration": str(cal.rig) if cal.rig else None,
+        "rig_calibration_sha256": rig_calibration_sha256(setup),
+        "seed": setup.simulation.seed if devices.world is not None else None,
+        "procedure": setup.procedure.model_dump(mode="json"),
+        "perception_process": in_perception,
+        "perception_in_supervisor_because": None if in_perception else (
+            in_supervisor_because(setup, devices, clock) or "the robot is wrapped (a campaign's faults)"),
+    }
 
 
 def build_controller(setup: SetupConfig, plan: ProcedurePlan, devices: Devices, *, clock: Clock,

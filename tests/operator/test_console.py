@@ -131,6 +131,11 @@ async def _full_procedure_by_key_presses(tmp_path: Path, open_session: SessionOp
     chain = verify_session_log(log)
     assert chain.ok
     assert chain.closed
+    header = _events(log)[0]
+    assert (header["event"], header["origin"]) == ("session_started", "console")
+    assert len(header["config_sha256"]) == 64
+    assert isinstance(header["perception_process"], bool)   # where markers were located, and why
+    assert (header["perception_in_supervisor_because"] is None) == header["perception_process"]
     assert _transitions(log) == ["start", "register_to_plan", "plan_to_approach", "approach_to_gate",
                                  "gate_to_compensate", "compensate_to_lock", "lock_to_done"]
     cmds = [r["input"] for r in _events(log) if r["event"] == "operator_command"]
