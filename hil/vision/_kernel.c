@@ -22,6 +22,7 @@
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#include <float.h>
 #include <math.h>
 #include <string.h>
 
@@ -970,7 +971,10 @@ done:
 /* ---- stereo: DLT triangulation ------------------------------------------------------------ */
 
 /* The right singular vector of the smallest singular value of a 4x4 matrix (row-major), by
- * one-sided Jacobi rotations (Hestenes; Demmel & Veselic 1992: high relative accuracy). */
+ * one-sided Jacobi rotations (Hestenes; Demmel & Veselic 1992: high relative accuracy). Two
+ * columns are orthogonal once |<u_p, u_q>| <= eps |u_p| |u_q| with eps the machine epsilon, their
+ * convergence test: a tighter threshold is never met by rounded arithmetic and ran every solve to
+ * the 40-sweep cap (~3.5 us a point instead of ~0.6 us, the same vector). */
 static void null_vector4(const double *A, double *x)
 {
     double U[4][4], V[4][4];
@@ -989,7 +993,7 @@ static void null_vector4(const double *A, double *x)
                     be += U[i][q] * U[i][q];
                     ga += U[i][p] * U[i][q];
                 }
-                if (ga == 0.0 || fabs(ga) <= 1e-17 * sqrt(al * be)) continue;
+                if (ga == 0.0 || fabs(ga) <= DBL_EPSILON * sqrt(al * be)) continue;
                 rotated = 1;
                 double zeta = (be - al) / (2.0 * ga);
                 double t = 1.0 / (fabs(zeta) + sqrt(1.0 + zeta * zeta));
