@@ -9,9 +9,17 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from hil.errors import VisionError
+from hil.vision import detect
 from hil.vision.camera_model import StereoCalibration
 from hil.vision.conics import circle_image_conic, concentric_center, conic_center
-from hil.vision.detect import detect_rings, detect_rings_paper, local_mean, validate_image
+from hil.vision.detect import (
+    DetectParams,
+    detect_rings,
+    detect_rings_paper,
+    local_mean,
+    refine_in_box,
+    validate_image,
+)
 from hil.vision.ellipse import (
     circle_normals_from_conic,
     ellipse_from_conic,
@@ -188,6 +196,48 @@ def test_paper_pipeline_finds_the_markers_less_accurately(
 
 def test_empty_frame_has_no_detections() -> None:
     assert detect_rings(np.full((1080, 1920), 200, np.uint8)) == []
+
+
+def test_a_window_of_flat_noisy_skin_is_rejected_before_the_coarse_step(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a hidden marker's place: skin and sensor noise only; thresholding it would give hundreds of
+    # speck contours (~1 ms) for nothing
+    rng = np.random.default_rng(3)
+    img = np.clip(np.rint(200.0 + rng.normal(0.0, 2.0, (120, 160))), 0, 255).astype(np.uint8)
+
+    def no_coarse_step(*_: object) -> None:
+        raise AssertionError("the coarse step ran on a window without contrast")
+
+    monkeypatch.setattr(detect, "_coarse_rings", no_coarse_step)
+    assert refine_in_box(img, (40, 30, 81, 71), DetectParams()) is None
+
+
+@pytest.mark.parametrize("contrast", [14.0, 26.0, 28.0, 40.0, 160.0])
+def test_a_window_finds_every_ring_the_full_frame_search_finds(
+    cal: StereoCalibration, contrast: float
+) -> None:
+    # the window's contrast check is a necessary condition of full-frame detection: from none
+    # found (below the candidate search's 0.6 x min_contrast = 15), through the faintest found
+    # (the edges need min_contrast = 25: one ring at 26, all at 28), to the usual ink
+    rng = np.random.default_rng(5)
+    markers = random_marker_layout(rng, 6)
+    opt = RenderOptions(foreground=200.0 - contrast, vignetting=0.0, lighting_gradient=0.0)
+    img = render_stereo(cal, markers, opt, rng).left
+    full = detect_rings(img)
+    if contrast >= 28.0:
+        assert len(full) == 6
+    if contrast <= 14.0:
+        assert full == []
+    for det in full:
+        x, y = det.center_px
+        half = det.outer.a_px * 1.35 + 12.0
+        box = (int(x - half), int(y - half), math.ceil(x + half), math.ceil(y + half))
+        found = refine_in_box(img, box, DetectParams())
+        assert found is not None
+        # the same ring by the same estimator; its rays start from another coarse seed, so they
+        # sample the noise elsewhere (a fraction of the centre's sigma)
+        assert float(np.linalg.norm(found.center_px - det.center_px)) < 0.05
 
 
 @pytest.mark.parametrize(
