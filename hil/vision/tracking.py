@@ -100,10 +100,41 @@ class _Step:
     search_lost: bool = False
 
 
-@dataclass
-class _Track:
-    det: RingDetection
-    velocity_px_s: FloatArray  # per second (or per frame without timestamps)
+@dataclass(frozen=True)
+class _Tracks:
+    """The tracked markers of one camera, one row each, as the arrays every frame reads (built
+    once when the tracks change, not per use): latest detections, centres (n, 2) px, velocities
+    (n, 2) px per second (or per frame without timestamps), outer and inner ellipses (n, 3):
+    ``a``, ``b`` px and angle rad, and polarity (n,)."""
+
+    dets: list[RingDetection]
+    center_px: FloatArray
+    velocity: FloatArray
+    outer: FloatArray
+    inner: FloatArray
+    dark_on_light: NDArray[np.bool_]
+
+    @staticmethod
+    def of(dets: list[RingDetection], velocity: FloatArray | None = None) -> _Tracks:
+        """Tracks of ``dets`` with ``velocity`` (n, 2) (None: at rest)."""
+        n = len(dets)
+        v = np.zeros((n, 2)) if velocity is None else velocity
+        if n == 0:
+            empty = np.zeros((0, 3))
+            return _Tracks([], np.zeros((0, 2)), v, empty, empty, np.zeros(0, dtype=bool))
+        rows = np.array([
+            (*d.center_px.tolist(), d.outer.a_px, d.outer.b_px, d.outer.angle_rad,
+             d.inner.a_px, d.inner.b_px, d.inner.angle_rad)
+            for d in dets
+        ])
+        return _Tracks(
+            list(dets), np.ascontiguousarray(rows[:, :2]), v, np.ascontiguousarray(rows[:, 2:5]),
+            np.ascontiguousarray(rows[:, 5:]), np.array([d.dark_on_light for d in dets], dtype=bool),
+        )
+
+    def half_px(self, margin_px: float) -> FloatArray:
+        """Each marker's window half side (px): :func:`_window_half_px` of every row."""
+        return np.asarray(self.outer[:, 0] * 1.35 + 4.0 + margin_px, dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -136,7 +167,7 @@ class ImageTracker:
     #: staggers its two cameras so that one pair never pays for both)
     phase: int = 0
     stats: ImageStats = field(default_factory=ImageStats)
-    _tracks: list[_Track] = field(default_factory=list)
+    _tracks: _Tracks = field(default_factory=lambda: _Tracks.of([]))
     _lost: list[_Lost] = field(default_factory=list)
     _t_s: float | None = None
     _expected: int = 0
@@ -149,12 +180,12 @@ class ImageTracker:
 
     @property
     def tracked(self) -> int:
-        return len(self._tracks)
+        return len(self._tracks.dets)
 
     @property
     def markers(self) -> list[RingDetection]:
         """The tracked markers' latest detections."""
-        return [t.det for t in self._tracks]
+        return list(self._tracks.dets)
 
     def update(self, img: U8Image, t_s: float | None = None) -> list[RingDetection]:
         """The markers in ``img`` (a validated grey frame); see the module doc. ``t_s``: the
@@ -177,7 +208,7 @@ class ImageTracker:
         local = retry and every > 0 and bool(self._lost)
         full = (
             self._force
-            or not self._tracks
+            or not self._tracks.dets
             or (every > 0 and (self.stats.frames + self.phase) % every == 0)
             or (retry and not local)
         )
@@ -185,13 +216,8 @@ class ImageTracker:
 
     def seeds(self, step: _Step) -> RingSeeds:
         """The windowed search's ray seeds: each marker's last ellipses at its prediction."""
-        tracks = self._tracks
-        return RingSeeds(
-            step.preds,
-            np.array([[t.det.outer.a_px, t.det.outer.b_px, t.det.outer.angle_rad] for t in tracks]),
-            np.array([[t.det.inner.a_px, t.det.inner.b_px, t.det.inner.angle_rad] for t in tracks]),
-            np.array([t.det.dark_on_light for t in tracks]),
-        )
+        t = self._tracks
+        return RingSeeds(step.preds, t.outer, t.inner, t.dark_on_light)
 
     def finish(
         self, img: U8Image, step: _Step, found: list[RingDetection | None] | None
@@ -200,7 +226,7 @@ class ImageTracker:
         Returns the markers of this frame."""
         if step.full or found is None or not self.resolve_windows(img, step, found):
             self.reacquire(detect_rings(img, self.detect_params, self.name), step)
-        return [t.det for t in self._tracks]
+        return self.markers
 
     def resolve_windows(self, img: U8Image, step: _Step, found: list[RingDetection | None]) -> bool:
         """Gate the windowed results ``found`` (one per track, from :meth:`seeds`), search a
@@ -226,50 +252,46 @@ class ImageTracker:
     def _missing_for(self) -> int | None:
         """Frames since fewer markers are tracked than were seen (None: none missing, or missing
         longer than ``forget_after``: then the smaller count becomes the expected one)."""
-        if self._expected <= len(self._tracks):
+        if self._expected <= self.tracked:
             self._missing_since = None
             return None
         if self._missing_since is None:
             self._missing_since = self.stats.frames
         since = self.stats.frames - self._missing_since
         if since > self.params.forget_after:
-            self._expected, self._missing_since = len(self._tracks), None
+            self._expected, self._missing_since = self.tracked, None
             self._lost = []
             return None
         return since
 
     def _predict(self, dt: float) -> FloatArray:
-        if not self._tracks:
-            return np.zeros((0, 2))
-        c = np.array([t.det.center_px for t in self._tracks])
-        v = np.array([t.velocity_px_s for t in self._tracks])
-        return np.asarray(c + v * dt, dtype=np.float64)
+        t = self._tracks
+        return np.asarray(t.center_px + t.velocity * dt, dtype=np.float64)
 
-    def _gates(self, preds: FloatArray) -> list[float]:
+    def _gates(self, preds: FloatArray) -> FloatArray:
         """Per track, the largest accepted distance of a detection from its prediction (px): its
         window's half side, at most half the distance to the nearest other prediction."""
-        half = [_window_half_px(t.det, self.params.window_margin_px) for t in self._tracks]
-        if len(half) > 1:
+        half = self._tracks.half_px(self.params.window_margin_px)
+        if half.shape[0] > 1:
             near = _pairwise_px(preds)
             np.fill_diagonal(near, np.inf)
-            half = np.minimum(half, 0.5 * near.min(axis=1)).tolist()
+            half = np.minimum(half, 0.5 * near.min(axis=1))
         return half
 
     def _windowed(
         self, img: U8Image, preds: FloatArray, found: list[RingDetection | None]
     ) -> list[RingDetection | None]:
-        tracks = self._tracks
         found = list(found)
         gates = self._gates(preds)
+        halves = self._tracks.half_px(self.params.window_margin_px).tolist()
         h, w = img.shape
         nan = math.nan
-        p = preds.tolist()
-        centres = [(nan, nan) if d is None else tuple(d.center_px.tolist()) for d in found]
-        dist = [math.sqrt((c[0] - q[0]) * (c[0] - q[0]) + (c[1] - q[1]) * (c[1] - q[1]))
-                for c, q in zip(centres, p, strict=True)]
-        for i in [i for i in range(len(found)) if not dist[i] <= gates[i]]:
-            half = _window_half_px(tracks[i].det, self.params.window_margin_px)
-            x, y = p[i]
+        centres = np.array([(nan, nan) if d is None else d.center_px.tolist() for d in found]).reshape(-1, 2)
+        off = centres - preds
+        dist = np.sqrt(off[:, 0] * off[:, 0] + off[:, 1] * off[:, 1])
+        for i in np.flatnonzero(~(dist <= gates)).tolist():  # NaN (not found): searched again
+            half = halves[i]
+            x, y = preds[i].tolist()
             box = (
                 max(int(x - half), 0),
                 max(int(y - half), 0),
@@ -279,11 +301,11 @@ class ImageTracker:
             det = refine_in_box(img, box, self.detect_params) if box[2] > box[0] and box[3] > box[1] else None
             ok = det is not None and float(np.linalg.norm(det.center_px - preds[i])) <= gates[i]
             found[i] = det if ok else None
-            centres[i] = tuple(det.center_px.tolist()) if det is not None and ok else (nan, nan)
-            dist[i] = float(np.linalg.norm(np.array(centres[i]) - preds[i]))
+            centres[i] = det.center_px if det is not None and ok else (nan, nan)
+            dist[i] = float(np.linalg.norm(centres[i] - preds[i]))
         # two markers never take the same detection: the one nearer its prediction keeps it
         b = np.array([nan if d is None else d.outer.b_px for d in found])
-        close = _pairwise_px(np.array(centres)) < 0.5 * np.minimum(b[:, None], b[None, :])  # NaN: False
+        close = _pairwise_px(centres) < 0.5 * np.minimum(b[:, None], b[None, :])  # NaN: False
         np.fill_diagonal(close, False)
         if not close.any():
             return found
@@ -296,14 +318,13 @@ class ImageTracker:
     def _advance(self, dets: list[RingDetection], dt: float) -> None:
         if not dets:
             return
-        step = np.array([d.center_px for d in dets]) - np.array([t.det.center_px for t in self._tracks])
+        new = _Tracks.of(dets)
+        step = new.center_px - self._tracks.center_px
         move = np.sqrt(step[:, 0] * step[:, 0] + step[:, 1] * step[:, 1])
         vmax = self.params.max_speed_px_per_frame
         scale = np.where(move <= vmax, 1.0, vmax / np.where(move > 0, move, 1.0))
-        velocities = step * (scale / dt)[:, None]  # :meth:`_velocity` of every track at once
-        for t, det, v in zip(self._tracks, dets, velocities, strict=True):
-            t.velocity_px_s = v
-            t.det = det
+        new.velocity[:] = step * (scale / dt)[:, None]  # :meth:`_velocity` of every track at once
+        self._tracks = new
 
     def _velocity(self, step_px: FloatArray, dt: float) -> FloatArray:
         """Velocity (px per second, or per frame without timestamps) of a move of ``step_px`` in
@@ -317,32 +338,30 @@ class ImageTracker:
         """New tracks from a full-frame search; a detection near an old track's prediction keeps
         that track's velocity (the nearest pairs first)."""
         old = self._tracks
-        new: list[_Track] = []
+        velocities = np.zeros((len(dets), 2))
         used: set[int] = set()
-        gates = self._gates(preds) if old else []
-        for det in dets:
-            v = np.zeros(2)
-            if old:
+        gates = self._gates(preds) if old.dets else np.zeros(0)
+        for i, det in enumerate(dets):
+            if old.dets:
                 d = np.linalg.norm(preds - det.center_px, axis=1)
                 j = int(np.argmin(d))
                 if d[j] <= gates[j] and j not in used:
                     used.add(j)
-                    v = self._velocity(det.center_px - old[j].det.center_px, dt)
-            new.append(_Track(det, v))
-        self._tracks = new
-        if len(new) >= self._expected:
-            self._expected, self._missing_since = len(new), None
+                    velocities[i] = self._velocity(det.center_px - old.center_px[j], dt)
+        self._tracks = _Tracks.of(dets, velocities)
+        if len(dets) >= self._expected:
+            self._expected, self._missing_since = len(dets), None
             self._lost = []
             return
         if self._missing_since is None:
             self._missing_since = self.stats.frames
         # the markers not found again are remembered where they were (module doc, step 5)
         margin = self.params.window_margin_px
-        lost = self._lost + [_Lost(t.det, preds[j].copy()) for j, t in enumerate(old) if j not in used]
+        lost = self._lost + [_Lost(t, preds[j].copy()) for j, t in enumerate(old.dets) if j not in used]
         self._lost = [
             m for m in lost
-            if not any(float(np.linalg.norm(t.det.center_px - m.center_px)) <= _window_half_px(m.det, margin)
-                       for t in new)
+            if not any(float(np.linalg.norm(det.center_px - m.center_px)) <= _window_half_px(m.det, margin)
+                       for det in dets)
         ]
 
     def _recover(self, img: U8Image) -> None:
@@ -352,22 +371,22 @@ class ImageTracker:
         for m in list(self._lost):
             half = 2.0 * _window_half_px(m.det, self.params.window_margin_px)
             x, y = float(m.center_px[0]), float(m.center_px[1])
-            for t in self._tracks:
-                tx, ty = float(t.det.center_px[0]), float(t.det.center_px[1])
+            for tx, ty in self._tracks.center_px.tolist():
                 half = min(half, 0.5 * math.sqrt((tx - x) * (tx - x) + (ty - y) * (ty - y)))
             box = (max(int(x - half), 0), max(int(y - half), 0), min(math.ceil(x + half), w),
                    min(math.ceil(y + half), h))
             det = refine_in_box(img, box, self.detect_params) if box[2] > box[0] and box[3] > box[1] else None
             if det is None or any(
-                float(np.linalg.norm(t.det.center_px - det.center_px)) < t.det.outer.a_px + det.outer.a_px
-                for t in self._tracks
+                float(np.linalg.norm(d.center_px - det.center_px)) < d.outer.a_px + det.outer.a_px
+                for d in self._tracks.dets
             ):
                 continue
-            self._tracks.append(_Track(det, np.zeros(2)))
+            tracks = self._tracks
+            self._tracks = _Tracks.of([*tracks.dets, det], np.vstack([tracks.velocity, np.zeros((1, 2))]))
             self._lost.remove(m)
             self.stats.recoveries += 1
-        if len(self._tracks) >= self._expected:
-            self._expected, self._missing_since = len(self._tracks), None
+        if self.tracked >= self._expected:
+            self._expected, self._missing_since = self.tracked, None
             self._lost = []
 
 
