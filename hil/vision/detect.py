@@ -38,6 +38,7 @@ from hil.errors import VisionError
 from hil.vision import kernel
 from hil.vision.conics import concentric_center, conic_center
 from hil.vision.ellipse import Ellipse, EllipseArrays, fit_conic_paper, fit_ellipse_arrays
+from hil.vision.frozen import frozen_instance
 from hil.vision.ring_edges import RingEdges, RingSeeds, ring_edges, ring_edges_multi
 
 FloatArray = NDArray[np.float64]
@@ -384,7 +385,10 @@ def fit_rings(edges: RingEdges, params: DetectParams) -> list[RingDetection | No
     sig, res = sigma[keep].tolist(), resid[keep].tolist()
     dol, frac = edges.dark_on_light[rows].tolist(), edges.frac[rows].tolist()
     for k, j in enumerate(rows.tolist()):
-        out[j] = RingDetection(centers[k], sig[k], outers[k], inners[k], res[k], dol[k], frac[k])
+        out[j] = frozen_instance(RingDetection, {
+            "center_px": centers[k], "center_sigma_px": sig[k], "outer": outers[k], "inner": inners[k],
+            "residual_px": res[k], "dark_on_light": dol[k], "valid_fraction": frac[k],
+        })
     return out
 
 

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hil.vision import kernel
+from hil.vision.frozen import frozen_instance
 from hil.vision.sym3 import adj_sym3, det_sym3, ellipse_eigvec
 
 FloatArray = NDArray[np.float64]
@@ -282,12 +283,19 @@ class EllipseArrays:
                        int(self.n_points[i]))
 
     def ellipses(self, rows: NDArray[np.intp]) -> list[Ellipse]:
-        """:meth:`ellipse` of each of ``rows`` (all of them good), built with a few array calls."""
+        """:meth:`ellipse` of each of ``rows`` (all of them good), built with a few array calls
+        (and :func:`hil.vision.frozen.frozen_instance`)."""
         centers, conics = self.center_px[rows], self.conic[rows]
         a, b = self.a_px[rows].tolist(), self.b_px[rows].tolist()
         ang, res = self.angle_rad[rows].tolist(), self.residual_rms_px[rows].tolist()
         n = self.n_points[rows].tolist()
-        return [Ellipse(centers[k], a[k], b[k], ang[k], conics[k], res[k], n[k]) for k in range(len(a))]
+        return [
+            frozen_instance(Ellipse, {
+                "center_px": centers[k], "a_px": a[k], "b_px": b[k], "angle_rad": ang[k],
+                "conic": conics[k], "residual_rms_px": res[k], "n_points": n[k],
+            })
+            for k in range(len(a))
+        ]
 
 
 def fit_ellipse_arrays(X: FloatArray, Y: FloatArray, M: NDArray[np.bool_]) -> EllipseArrays:

@@ -29,6 +29,7 @@ from hil.vision.camera_model import StereoCalibration, undistort_pixels
 from hil.vision.conics import concentric_center, conic_center, conic_centers
 from hil.vision.detect import RingDetection
 from hil.vision.ellipse import circle_normals_from_cones, poles_of_lines, vanishing_lines
+from hil.vision.frozen import frozen_instance
 
 FloatArray = NDArray[np.float64]
 Correction = Literal["normal", "concentric", "none"]
@@ -352,7 +353,10 @@ def match_and_triangulate(
                 )
             )
             continue
-        good.append(StereoPoint(a, b, pts[k], epi[k], gap_list[k], UL[k], UR[k], normals[k]))
+        good.append(frozen_instance(StereoPoint, {
+            "left_index": a, "right_index": b, "point_mm": pts[k], "epipolar_error_px": epi[k],
+            "gap_mm": gap_list[k], "uv_left_px": UL[k], "uv_right_px": UR[k], "normal": normals[k],
+        }))
     return StereoResult(
         tuple(good),
         tuple(rejected),
