@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.distance import cdist
 
 from hil.vision.camera_model import StereoCalibration
 from hil.vision.detect import (
@@ -392,9 +393,7 @@ class ImageTracker:
 
 def _pairwise_px(points: FloatArray) -> FloatArray:
     """Distances (px) between every two of the (n, 2) points, (n, n); NaN where one is NaN."""
-    dx = points[:, None, 0] - points[None, :, 0]
-    dy = points[:, None, 1] - points[None, :, 1]
-    return np.asarray(np.sqrt(dx * dx + dy * dy), dtype=np.float64)
+    return np.asarray(cdist(points, points), dtype=np.float64)
 
 
 def _window_half_px(det: RingDetection, margin_px: float) -> float:
