@@ -228,8 +228,8 @@ class VisionConfig(BaseModel):
                                                  "position; false: a full-frame search on every pair")
     reacquire_every_frames: int = Field(
         30, ge=0, le=100000,
-        description="full-frame search every this many pairs (a new marker may have appeared); 0: only when "
-        "a marker is lost")
+        description="scan the whole image for a new marker every this many pairs (the full-frame search "
+        "follows when a candidate is no tracked marker); 0: only when a marker is lost")
     lost_retry_every_frames: int = Field(
         5, ge=1, le=100000, description="while a marker is missing (hidden), its last place is searched "
         "every this many pairs (a full-frame search when reacquire_every_frames is 0)")

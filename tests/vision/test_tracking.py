@@ -59,9 +59,11 @@ def test_tracking_matches_full_frame(cal: StereoCalibration) -> None:
     s = tracker.stats
     assert s.frames == 20
     assert s.losses == 0
-    # the first pair (both images), then the right camera's periodic search at pair 15 (staggered
-    # by half the 30-pair period; the left one's would come at pair 30)
-    assert s.reacquisitions == 3
+    # full-frame searches: the first pair's (both images); the right camera's periodic scan at
+    # pair 15 (staggered by half the 30-pair period; the left one's would come at pair 30) saw
+    # only the tracked markers, so no search followed it
+    assert s.reacquisitions == 2
+    assert s.scans == 1
 
 
 def test_tracked_centres_equal_full_frame_centres_on_the_same_images(cal: StereoCalibration) -> None:
@@ -85,7 +87,8 @@ def test_tracked_centres_equal_full_frame_centres_on_the_same_images(cal: Stereo
             compared += 8
     assert compared == 480
     assert tracker.stats.losses == 0
-    assert tracker.stats.reacquisitions == 4  # both images at pair 1, right at 15, left at 30
+    assert tracker.stats.reacquisitions == 2  # both images at pair 1
+    assert tracker.stats.scans == 2  # right at 15, left at 30: only the tracked markers seen
 
 
 def _track_marker_3_hidden(cal: StereoCalibration, params: TrackingParams) -> MarkerTracker:
@@ -120,15 +123,32 @@ def test_hidden_marker_is_lost_not_snapped_and_reacquired(cal: StereoCalibration
 def test_hidden_marker_is_recovered_at_its_last_place_without_a_full_frame_search(
     cal: StereoCalibration,
 ) -> None:
-    """Default periodic searches: while marker 3 is covered, its last place is searched every
+    """Default periodic scans: while marker 3 is covered, its last place is searched every
     lost_retry_every pairs (a window, not a frame), and the full-frame searches are only the
-    first pair's, the loss pair's and the periodic ones."""
+    first pair's and the loss pair's."""
     s = _track_marker_3_hidden(cal, TrackingParams(lost_retry_every=4, reacquire_every=30)).stats
     assert s.losses == 2
     assert s.recoveries == 2  # found at its last place in each image
-    # both images at pair 1 and at the loss (pair 6), the right image's periodic search at pair 15,
-    # the left one's at pair 30: none while the marker was missing
-    assert s.reacquisitions == 6
+    # both images at pair 1 and at the loss (pair 6): none while the marker was missing; the
+    # right image's periodic scan at pair 15 (marker 3 still covered) and the left one's at pair
+    # 30 saw only tracked markers
+    assert s.reacquisitions == 4
+    assert s.scans == 2
+
+
+def test_a_new_marker_is_acquired_by_each_images_next_periodic_scan(cal: StereoCalibration) -> None:
+    """Marker 7 appears at pair 11: the scans (every 10 pairs, the right image's 5 later) go on
+    costing no full-frame search until one sees it; then that image searches the frame."""
+    seq = _sequence(cal, 30, {7: range(10)})
+    tracker = MarkerTracker(cal, TrackingParams(reacquire_every=10))
+    counts = [len(tracker.locate(pair.left, pair.right, t).points_mm) for t, pair, _ in seq]
+    # the right image scans at pairs 5, 15, 25 and the left one at 10, 20, 30: marker 7 is in the
+    # right image's tracks from pair 15 and in both (so triangulated) from pair 20
+    assert counts == [7] * 19 + [8] * 11
+    s = tracker.stats
+    assert s.scans == 6
+    assert s.reacquisitions == 4  # both images at pair 1; right at 15, left at 20: it saw marker 7
+    assert s.losses == 0
 
 
 def test_a_recovery_never_takes_a_tracked_neighbour(cal: StereoCalibration) -> None:

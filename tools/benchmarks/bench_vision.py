@@ -352,6 +352,7 @@ def main(argv: list[str] | None = None) -> int:
         "reacquisitions": seq["reacquisitions"],
         "losses": seq["losses"],
         "recoveries": seq["recoveries"],
+        "scans": seq["scans"],
         "sequence": {
             "frames": seq["frames"],
             "hidden_frames": seq["hidden_frames"],
@@ -370,6 +371,7 @@ def main(argv: list[str] | None = None) -> int:
             "reacquisitions": seq["reacquisitions"],
             "losses": seq["losses"],
             "recoveries": seq["recoveries"],
+            "scans": seq["scans"],
         },
         "near_450mm": {
             "err3d_mm_rms_normal": near["ours"]["normal"].err3d_rms(),
@@ -464,6 +466,7 @@ def _print_sequence(r: dict[str, Any]) -> None:
           + f"   (bound {b:.4f} mm)")
     print(f"{'missed / false':<28}" + "".join(f"{m['missed']:>8} / {m['false']:<3}" for _, m in rows))
     print(f"full-frame re-acquisitions (both images): {sq['reacquisitions']}, "
+          f"periodic scans for new markers: {sq['scans']}, "
           f"markers lost from their window: {sq['losses']}, "
           f"hidden markers recovered at their last place: {sq['recoveries']}")
 
@@ -471,11 +474,11 @@ def _print_sequence(r: dict[str, Any]) -> None:
 def _print_scaling(rows: list[dict[str, Any]]) -> None:
     print("\nscaling (pairs/s one core; 3D error mm RMS)")
     print(f"{'image':<12}{'markers':>8}{'track pairs/s':>15}{'full pairs/s':>14}{'track err':>11}"
-          f"{'full err':>10}{'reacq':>7}{'lost':>6}{'recovered':>10}")
+          f"{'full err':>10}{'reacq':>7}{'scans':>7}{'lost':>6}{'recovered':>10}")
     for row in rows:
         print(f"{row['image']:<12}{row['markers']:>8}{row['tracking_pairs_per_s']:>15.1f}"
               f"{row['pairs_per_s']:>14.1f}{row['tracking_err3d_mm_rms']:>11.4f}{row['err3d_mm_rms']:>10.4f}"
-              f"{row['reacquisitions']:>7}{row['losses']:>6}{row['recoveries']:>10}")
+              f"{row['reacquisitions']:>7}{row['scans']:>7}{row['losses']:>6}{row['recoveries']:>10}")
 
 
 if __name__ == "__main__":

@@ -206,6 +206,7 @@ def run_sequence(
         "reacquisitions": stats.reacquisitions,
         "losses": stats.losses,
         "recoveries": stats.recoveries,
+        "scans": stats.scans,
         "frames": n_frames,
         "hidden_frames": [hidden.start, hidden.stop],
         "bound_mm": float(np.sqrt(np.mean(mm_var))) if mm_var else float("nan"),
@@ -236,6 +237,7 @@ def scaling_sweep(noise: float, seed: int, n_frames: int, passes: int = 1) -> li
             "reacquisitions": r["reacquisitions"],
             "losses": r["losses"],
             "recoveries": r["recoveries"],
+            "scans": r["scans"],
         })
     rows.sort(key=lambda row: (row["image"] != "1920x1080", int(str(row["image"]).split("x")[0]),
                                row["markers"]))
