@@ -30,7 +30,7 @@ SEEDS_ACCURACY_MM = 2.0  # the seeds' positioning accuracy (seed 000 ~2 mm; seed
 
 #: Extra arguments for --quick (smaller samples; same figures, wider confidence).
 QUICK_ARGS: dict[str, list[str]] = {
-    "vision": ["--pairs", "12"],
+    "vision": ["--pairs", "12", "--passes", "2"],
     "registration": ["--trials", "5"],
     "accuracy": ["--runs", "2"],
     "loop": ["--seconds", "20"],
@@ -78,6 +78,15 @@ FIGURES: list[Figure] = [
         _get("pairs_per_s"),
         _get("baseline_pairs_per_s"),
         "plain OpenCV pipeline",
+        higher_is_better=True,
+    ),
+    Figure(
+        "vision",
+        "ROI tracking pairs/s (1 core CPU)",
+        "pairs/s",
+        _get("tracking_pairs_per_s"),
+        _get("sequence", "baseline", "pairs_per_s"),
+        "plain OpenCV pipeline (same sequence)",
         higher_is_better=True,
     ),
     Figure(
