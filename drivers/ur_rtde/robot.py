@@ -306,7 +306,8 @@ class UrRtdeRobot(Robot):
             except RuntimeError as exc:
                 raise DisconnectedError(self.name, f"{what}: {exc}") from exc
 
-    def _require_connected(self) -> None:
+    def _require_connected(self) -> tuple[Any, Any]:
+        """The receive and control interfaces, both connected; else DisconnectedError."""
         rcv, ctrl = self._rcv, self._ctrl
         if rcv is None or ctrl is None:
             raise DisconnectedError(self.name, "not connected (call recover())")
@@ -314,19 +315,33 @@ class UrRtdeRobot(Robot):
             raise DisconnectedError(self.name, "RTDE state stream lost (call recover())")
         if not ctrl.isConnected():
             raise DisconnectedError(self.name, "RTDE control connection lost (call recover())")
+        return rcv, ctrl
 
-    def _refused(self, command: str) -> Exception:
-        """Why the control interface returned False: safety stop, stopped program or lost link."""
-        self._require_connected()
-        rcv = self._rcv
+    def _safety_and_running(self, what: str) -> tuple[SafetyStatus, bool]:
+        """The arm's safety status and whether the control script runs, read from one packet: a
+        protective stop (which stops the script too) is never read as "safety normal, script
+        stopped". State reads only (no command lock).
+
+        Raises:
+            DisconnectedError: from :meth:`_require_connected`.
+            DeviceTimeoutError: no packet could be read whole in ``READ_TRIES`` tries (``what``
+                names the operation).
+        """
+        rcv, _ = self._require_connected()
         got = one_packet(rcv.getTimestamp,
                          lambda: (int(rcv.getSafetyStatusBits()), int(rcv.getRuntimeState())))
         if got is None:
-            return DeviceTimeoutError(self.name, f"{command} refused by the controller; its state could not "
-                                                 f"be read from one packet in {READ_TRIES} tries")
+            raise DeviceTimeoutError(self.name, f"{what}: the state could not be read from one packet in "
+                                                f"{READ_TRIES} tries (the reads are starved)")
         bits, runtime = got[1]
-        running = runtime == RuntimeState.PLAYING
-        safety = safety_from_bits(bits)
+        return safety_from_bits(bits), runtime == RuntimeState.PLAYING
+
+    def _refused(self, command: str) -> Exception:
+        """Why the control interface returned False: safety stop, stopped program or lost link."""
+        try:
+            safety, running = self._safety_and_running(f"{command} refused by the controller")
+        except DeviceTimeoutError as exc:
+            return exc
         if safety is not SafetyStatus.NORMAL:
             return SafetyStopError(self.name, f"{command} aborted: arm is in {safety}")
         if not running:
@@ -342,13 +357,7 @@ class UrRtdeRobot(Robot):
     def _state_now(self) -> RobotState:
         # No command lock here: state reads never wait behind a command (a kick or a servo call
         # can block for seconds inside the library when the controller goes silent).
-        rcv, ctrl = self._rcv, self._ctrl
-        if rcv is None or ctrl is None:
-            raise DisconnectedError(self.name, "not connected (call recover())")
-        if not rcv.isConnected():
-            raise DisconnectedError(self.name, "RTDE state stream lost (call recover())")
-        if not ctrl.isConnected():
-            raise DisconnectedError(self.name, "RTDE control connection lost (call recover())")
+        rcv, ctrl = self._require_connected()
         try:   # one packet: a protective stop is never read as "safety normal, script stopped"
             got = one_packet(rcv.getTimestamp, lambda: (
                 rcv.getActualTCPPose(), rcv.getActualQ(), rcv.getActualTCPSpeed(),
@@ -408,24 +417,15 @@ class UrRtdeRobot(Robot):
                          trapezoid_time_s(angle * 1000.0, speed_mm_s, accel_mm_s2))
         deadline_ns = self.clock.now_ns() + int((1.5 * expected_s + self.cfg.move_timeout_margin_s) * 1e9)
         poll_s = 1.0 / self.control_rate_hz
-        rcv = self._rcv
         while True:
             self._require_connected()  # state reads only: no command lock
             st = ctrl.getAsyncOperationProgressEx()
             done = int(st.operationId()) != op0 and not st.isAsyncOperationRunning()
-            # one packet: a protective stop (which stops the script too) is never read as
-            # "safety normal, script stopped"
-            got = one_packet(rcv.getTimestamp,
-                             lambda: (int(rcv.getSafetyStatusBits()), int(rcv.getRuntimeState())))
-            if got is None:
-                raise DeviceTimeoutError(self.name, f"moveL: the state could not be read from one packet "
-                                                    f"in {READ_TRIES} tries (the reads are starved)")
-            bits, runtime = got[1]
-            safety = safety_from_bits(bits)
+            safety, running = self._safety_and_running("moveL")
             if safety is not SafetyStatus.NORMAL:
                 _log.warning("robot_safety_stop_during_move", device=self.name, safety=str(safety))
                 raise SafetyStopError(self.name, f"moveL interrupted: arm is in {safety}")
-            if runtime != RuntimeState.PLAYING:
+            if not running:
                 raise DeviceFaultError(self.name, "moveL interrupted: the control script stopped")
             if done:
                 self._wait_next_state()
