@@ -196,7 +196,6 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
     return summary
 
 
-
 def build_session_report(session_log: str, err: TextIO) -> str | None:
     """Build the HTML report of a finished session (``hil report``, default output directory)
     and return its path; None (with one line on ``err``) when it cannot be built -- the
