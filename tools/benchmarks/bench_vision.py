@@ -329,31 +329,9 @@ def run(
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--pairs", type=int, default=60)
-    ap.add_argument("--markers", type=int, default=8)
-    ap.add_argument("--noise", type=float, default=2.0, help="sensor noise sigma, grey levels (default 2)")
-    ap.add_argument("--seed", type=int, default=7)
-    ap.add_argument("--frames", type=int, default=90, help="pairs of the tracking sequence (default 90, 3 s)")
-    ap.add_argument("--scaling", action="store_true",
-                    help="also sweep marker count (4-32) and image size (1280x720-3840x2160)")
-    ap.add_argument("--scaling-frames", type=int, default=30, help="pairs per scaling case (default 30)")
-    ap.add_argument("--passes", type=int, default=5,
-                    help="passes of tracking and full frame over each sequence; pairs/s is the fastest "
-                         "pass's, the median pass is printed beside it (default 5)")
-    ap.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
-    args = ap.parse_args(argv)
-    cv2.setNumThreads(1)
-    main_res = run(args.pairs, args.markers, args.noise, args.seed, 1000.0, 45.0, passes=args.passes)
-    near = run(
-        max(args.pairs // 3, 5), args.markers, args.noise, args.seed + 1, 450.0, 60.0, with_baseline=False,
-    )
-    seq = run_sequence(
-        scaled_rig(1920), args.markers, args.frames, args.noise, args.seed,
-        baseline=(_blob_detector(), baseline_centres, baseline_points), bound_every=3, bound=bound_for_scene,
-        passes=args.passes,
-    )
+def _result(args: argparse.Namespace, main_res: dict[str, Any], near: dict[str, Any],
+            seq: dict[str, Any]) -> dict[str, Any]:
+    """The JSON object of a run (docs/benchmarks.md lists its fields)."""
     sq_t, sq_f, sq_b = seq["track"], seq["full"], seq["baseline"]
     ours, base, paper = main_res["ours"], main_res["baseline"], main_res["paper"]
     best = ours["normal"]
@@ -425,14 +403,14 @@ def main(argv: list[str] | None = None) -> int:
             "center_err_bound_px": near["bound_px"],
         },
     }
-    if args.scaling:
-        result["scaling"] = scaling_sweep(args.noise, args.seed, args.scaling_frames, args.passes)
-    if args.json:
-        json.dump(result, sys.stdout)
-        sys.stdout.write("\n")
-        return 0
+    return result
+
+
+def _print_main(args: argparse.Namespace, result: dict[str, Any]) -> None:
+    """The main and near scenes' table."""
     r = result
     nr = r["near_450mm"]
+    t_med, b_med = r["time_per_pair_ms_median"], r["baseline_time_per_pair_ms_median"]
     rows = [
         ("", "ours", "baseline", "bound", "ours/bound", "base/ours"),
         (
@@ -452,8 +430,9 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['baseline_err3d_mm_rms'] / r['err3d_mm_rms']:.1f}",
         ),
         ("time per pair, ms median", f"{t_med:.2f}", f"{b_med:.2f}", "", "", f"{b_med / t_med:.1f}"),
-        ("time per pair, ms p95", f"{t_p95:.2f}", f"{b_p95:.2f}", "", "", ""),
-        ("pairs/s (one core)", f"{pps:.1f}", f"{b_pps:.1f}", "", "", ""),
+        ("time per pair, ms p95", f"{r['time_per_pair_ms_p95']:.2f}",
+         f"{r['baseline_time_per_pair_ms_p95']:.2f}", "", "", ""),
+        ("pairs/s (one core)", f"{r['pairs_per_s']:.1f}", f"{r['baseline_pairs_per_s']:.1f}", "", "", ""),
         ("pairs/s, median pass", f"{r['pairs_per_s_median_pass']:.1f}", "", "", "", ""),
         (
             "missed / false detections",
@@ -484,6 +463,41 @@ def main(argv: list[str] | None = None) -> int:
         f"concentric {nr['err3d_mm_rms_concentric']:.4f} | none {nr['err3d_mm_rms_uncorrected']:.4f} | "
         f"bound {nr['err3d_bound_mm']:.4f}"
     )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--pairs", type=int, default=60)
+    ap.add_argument("--markers", type=int, default=8)
+    ap.add_argument("--noise", type=float, default=2.0, help="sensor noise sigma, grey levels (default 2)")
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--frames", type=int, default=90, help="pairs of the tracking sequence (default 90, 3 s)")
+    ap.add_argument("--scaling", action="store_true",
+                    help="also sweep marker count (4-32) and image size (1280x720-3840x2160)")
+    ap.add_argument("--scaling-frames", type=int, default=30, help="pairs per scaling case (default 30)")
+    ap.add_argument("--passes", type=int, default=5,
+                    help="passes of tracking and full frame over each sequence; pairs/s is the fastest "
+                         "pass's, the median pass is printed beside it (default 5)")
+    ap.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    args = ap.parse_args(argv)
+    cv2.setNumThreads(1)
+    main_res = run(args.pairs, args.markers, args.noise, args.seed, 1000.0, 45.0, passes=args.passes)
+    near = run(
+        max(args.pairs // 3, 5), args.markers, args.noise, args.seed + 1, 450.0, 60.0, with_baseline=False,
+    )
+    seq = run_sequence(
+        scaled_rig(1920), args.markers, args.frames, args.noise, args.seed,
+        baseline=(_blob_detector(), baseline_centres, baseline_points), bound_every=3, bound=bound_for_scene,
+        passes=args.passes,
+    )
+    result = _result(args, main_res, near, seq)
+    if args.scaling:
+        result["scaling"] = scaling_sweep(args.noise, args.seed, args.scaling_frames, args.passes)
+    if args.json:
+        json.dump(result, sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+    _print_main(args, result)
     _print_sequence(result)
     if args.scaling:
         _print_scaling(result["scaling"])
