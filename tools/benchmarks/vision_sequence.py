@@ -31,7 +31,7 @@ from hil.vision.camera_model import StereoCalibration
 from hil.vision.detect import detect_rings_multi
 from hil.vision.render import RenderOptions, RingMarker3D, random_marker_layout, render_stereo
 from hil.vision.stereo import match_and_triangulate
-from hil.vision.tracking import MarkerTracker, TrackingParams
+from hil.vision.tracking import MarkerTracker, TrackingParams, TrackingStats
 
 FloatArray = NDArray[np.float64]
 FPS = 30.0
@@ -117,6 +117,72 @@ def breathing_sequence(
     return layout, offsets, range(n_frames // 4, n_frames // 2)
 
 
+_Frame = tuple[NDArray[np.uint8], NDArray[np.uint8], FloatArray, NDArray[np.bool_]]
+
+
+def _render_sequence(
+    cal: StereoCalibration, n_markers: int, n_frames: int, noise: float, seed: int, bound_every: int,
+    bound: Any,
+) -> tuple[list[_Frame], range, list[float]]:
+    """The sequence's pairs (left, right, true centres mm, visible in both), the frames in which
+    marker 0 is hidden, and the bound's 3D variances (every ``bound_every`` pairs)."""
+    layout, offsets, hidden = breathing_sequence(n_markers, n_frames, seed)
+    rng = np.random.default_rng(seed + 1000)
+    opt, clean_opt = RenderOptions(noise_sigma=noise), RenderOptions(noise_sigma=0.0)
+    px_var: list[float] = []
+    mm_var: list[float] = []
+    frames: list[_Frame] = []
+    for k in range(n_frames):
+        markers = [
+            RingMarker3D(m.center_mm + offsets[k], m.normal, marker_id=m.marker_id)
+            for m in layout
+            if not (m.marker_id == 0 and k in hidden)
+        ]
+        pair = render_stereo(cal, markers, opt, rng)
+        truth_mm = np.array([m.center_mm for m in markers])
+        visible = np.array([t.visible_left and t.visible_right for t in pair.truth])
+        frames.append((pair.left, pair.right, truth_mm, visible))
+        if bound is not None and bound_every > 0 and k % bound_every == 0:
+            clean = render_stereo(cal, markers, clean_opt, rng)
+            bound(cal, markers, clean, noise, px_var, mm_var)
+    return frames, hidden, mm_var
+
+
+def _timed_passes(
+    cal: StereoCalibration, frames: list[_Frame], passes: int, track: ModeTally, full: ModeTally
+) -> tuple[TrackingStats, dict[str, list[FloatArray]]]:
+    """``passes`` passes of the tracker (a fresh one each) and of the full-frame pipeline over the
+    frames, timed into ``track`` and ``full``; returns the tracker's counters and the first
+    pass's points per mode.
+
+    Raises:
+        RuntimeError: a pass located other points than the first.
+    """
+    first_points: dict[str, list[FloatArray]] = {}
+    stats = TrackingStats(0, 0, 0)
+    for p in range(max(passes, 1)):
+        tracker = MarkerTracker(cal, TrackingParams())
+        times, points_of = [], []
+        for k, (left, right, _, _) in enumerate(frames):
+            t0 = time.thread_time()
+            res = tracker.locate(left, right, k / FPS)
+            times.append(time.thread_time() - t0)
+            points_of.append(res.points_mm)
+        track.add_pass(times)
+        stats = tracker.stats  # every pass tracks alike (the same points, checked)
+        _same_every_pass("tracking", p, points_of, first_points)
+        times, points_of = [], []
+        for left, right, _, _ in frames:
+            t0 = time.thread_time()
+            dl, dr = detect_rings_multi([(left, "left"), (right, "right")])
+            st = match_and_triangulate(cal, dl, dr)
+            times.append(time.thread_time() - t0)
+            points_of.append(st.points_mm)
+        full.add_pass(times)
+        _same_every_pass("full frame", p, points_of, first_points)
+    return stats, first_points
+
+
 def run_sequence(
     cal: StereoCalibration,
     n_markers: int,
@@ -142,48 +208,9 @@ def run_sequence(
     Raises:
         RuntimeError: a pass located other points than the first.
     """
-    layout, offsets, hidden = breathing_sequence(n_markers, n_frames, seed)
-    rng = np.random.default_rng(seed + 1000)
-    opt, clean_opt = RenderOptions(noise_sigma=noise), RenderOptions(noise_sigma=0.0)
+    frames, hidden, mm_var = _render_sequence(cal, n_markers, n_frames, noise, seed, bound_every, bound)
     track, full, base = ModeTally(), ModeTally(), ModeTally()
-    px_var: list[float] = []
-    mm_var: list[float] = []
-    frames = []
-    for k in range(n_frames):
-        markers = [
-            RingMarker3D(m.center_mm + offsets[k], m.normal, marker_id=m.marker_id)
-            for m in layout
-            if not (m.marker_id == 0 and k in hidden)
-        ]
-        pair = render_stereo(cal, markers, opt, rng)
-        truth_mm = np.array([m.center_mm for m in markers])
-        visible = np.array([t.visible_left and t.visible_right for t in pair.truth])
-        frames.append((pair.left, pair.right, truth_mm, visible))
-        if bound is not None and bound_every > 0 and k % bound_every == 0:
-            clean = render_stereo(cal, markers, clean_opt, rng)
-            bound(cal, markers, clean, noise, px_var, mm_var)
-    first_points: dict[str, list[FloatArray]] = {}
-    stats = None
-    for p in range(max(passes, 1)):
-        tracker = MarkerTracker(cal, TrackingParams())
-        times, points_of = [], []
-        for k, (left, right, _, _) in enumerate(frames):
-            t0 = time.thread_time()
-            res = tracker.locate(left, right, k / FPS)
-            times.append(time.thread_time() - t0)
-            points_of.append(res.points_mm)
-        track.add_pass(times)
-        stats = tracker.stats  # every pass tracks alike (the same points, checked)
-        _same_every_pass("tracking", p, points_of, first_points)
-        times, points_of = [], []
-        for left, right, _, _ in frames:
-            t0 = time.thread_time()
-            dl, dr = detect_rings_multi([(left, "left"), (right, "right")])
-            st = match_and_triangulate(cal, dl, dr)
-            times.append(time.thread_time() - t0)
-            points_of.append(st.points_mm)
-        full.add_pass(times)
-        _same_every_pass("full frame", p, points_of, first_points)
+    stats, first_points = _timed_passes(cal, frames, passes, track, full)
     for (_, _, truth_mm, visible), pts_t, pts_f in zip(
         frames, first_points["tracking"], first_points["full frame"], strict=True
     ):
@@ -198,7 +225,6 @@ def run_sequence(
             times.append(time.thread_time() - t0)
             base.score(pts, truth_mm, visible)
         base.add_pass(times)
-    assert stats is not None
     return {
         "track": track,
         "full": full,
