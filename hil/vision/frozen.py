@@ -20,8 +20,8 @@ _new = object.__new__
 
 def frozen_instance(cls: type[T], fields: dict[str, object]) -> T:
     """An instance of the frozen dataclass ``cls`` whose fields are ``fields`` (every field, by
-    name; the dict becomes the instance's attributes, so pass a fresh one). No check: the caller
-    passes exactly the class's fields (the tests compare with the constructor)."""
+    name; copied into the instance's dict). No check: the caller passes exactly the class's
+    fields (the tests compare with the constructor)."""
     obj = _new(cls)
     obj.__dict__.update(fields)
     return obj
