@@ -11,7 +11,7 @@ quarter of the sequence. Timing is CPU time of the benchmark thread with ``cv2.s
 Each locator runs over the sequence ``passes`` times (a fresh tracker each pass, the pairs in
 order, as a stream: the 90 pairs do not fit in the caches, so every pass reads them cold). Its
 pairs/s is that of its fastest pass, as ``timeit`` reports the fastest repeat: another machine's
-work on a shared host only ever adds time (it slowed whole 20-s runs by up to 1.5x on the
+work on a shared host only ever adds time (it slowed whole 20-s runs by up to 1.8x on the
 benchmark machine, docs/benchmarks.md); the median pass is reported beside it. Every pass must
 give the same points (the locators are deterministic), else the benchmark stops.
 """
