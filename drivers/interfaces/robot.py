@@ -44,8 +44,13 @@ class RobotState:
         q_rad: six joint angles, rad.
         mode: what the arm is doing.
         safety: safety status.
-        t_ns: host monotonic time of the sample.
+        t_ns: host monotonic time of the sample as the driver stamps it (the UR driver: when it
+            read the state).
         tcp_speed_mm_s: norm of the actual TCP linear velocity.
+        sample_t_ns: host monotonic time at which the arm itself sampled the pose, where the
+            driver can tell (the UR driver maps the controller's own timestamp to the host clock,
+            :mod:`drivers.ur_rtde.stream_age`); None: not known, take ``t_ns``. The following-error
+            supervision compares the pose with the expectation at this time.
     """
 
     T_robot_from_tcp: RigidTransform
@@ -54,6 +59,7 @@ class RobotState:
     safety: SafetyStatus
     t_ns: int
     tcp_speed_mm_s: float = 0.0
+    sample_t_ns: int | None = None
 
 
 #: Following-error bounds of a UR3 / UR3e-class arm servoing at breathing-compensation speeds

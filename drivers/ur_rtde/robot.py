@@ -390,7 +390,7 @@ class UrRtdeRobot(Robot):
         else:
             mode = RobotMode.IDLE
         return RobotState(T_robot_from_tcp=T, q_rad=q, mode=mode, safety=safety, t_ns=now,
-                          tcp_speed_mm_s=tcp_speed_mm_s)
+                          tcp_speed_mm_s=tcp_speed_mm_s, sample_t_ns=now - round(age_s * 1e9))
 
     # ------------------------------------------------------------------ motion
     def _move_linear(self, T_robot_from_tcp: RigidTransform, speed_mm_s: float, accel_mm_s2: float,

@@ -25,12 +25,11 @@ process, or stepped in-process by a simulated run on the manual clock — the sa
    - MOVE (APPROACH, RETRACT): a straight-line move from the actual pose at rest to the setpoint
      pose (:class:`~hil.servo.trajectory.LinearMove`, a trapezoidal profile in the move's speed
      and acceleration, each capped by the robot's limits), one profile sample per period, then
-     the target held; each sample goes through the same step check and command as TRACK. The
-     following supervision starts when the profile has ended (the arm settling on and holding the
-     target): during the profile, at approach speeds, the age of the reported pose alone (RTDE
-     transport, an emulator or a host that pauses for tens of ms) makes millimetres of apparent
-     error, and a move is bounded by its arrival tolerance and timeout like a ``moveL``. A new
-     move (a new ``track_id``) restarts from the actual pose;
+     the target held; each sample goes through the same step check, command and following
+     supervision as TRACK, from the move's first period (the reported pose is compared with the
+     expectation at the time the arm sampled it, so its age does not read as a lag at approach
+     speeds: :mod:`hil.safety.following`). A new move (a new ``track_id``) restarts from the
+     actual pose;
    - IDLE: no command (the arm holds);
 4. write the period's record to the state ring and the counters (:class:`~hil.servo.shm.LoopStats`).
 
@@ -248,10 +247,10 @@ class ServoLoop:
 
     def _move(self, sp: Setpoint, st: RobotState, now_ns: int) -> int:
         """One period of a MOVE (:mod:`hil.servo.trajectory`): the profile's pose at this period,
-        checked and sent like a tracking command, and supervised once the profile has ended (module
-        doc); the rate limiter follows the profile, so a HOLD in the same session comes to rest
-        from where the move is. A command the driver could not send ends the move: the next
-        period starts it again from the actual pose, at rest."""
+        checked, sent and supervised like a tracking command (module doc); the rate limiter
+        follows the profile, so a HOLD in the same session comes to rest from where the move is.
+        A command the driver could not send ends the move: the next period starts it again from
+        the actual pose, at rest."""
         if sp.track_id != self._track_id and not self._start_move(sp, st):   # a new move
             return 0
         move = self._trajectory
@@ -262,9 +261,7 @@ class ServoLoop:
         t_s = self._move_periods * self.period_s
         cmd, v_mm_s, w_rad_s = move.pose_at(t_s)
         done = move.done(t_s)
-        if done and not self.following.active:   # the profile has ended: supervise the hold
-            self.following.start(st.T_robot_from_tcp.R, st.T_robot_from_tcp.t)
-        if not self._send(sp, st, prev, cmd, now_ns, supervise=done):
+        if not self._send(sp, st, prev, cmd, now_ns):
             return 0
         self.limiter.command = cmd
         self.limiter.velocity_mm_s = v_mm_s
@@ -297,7 +294,7 @@ class ServoLoop:
         self._move_periods = 0
         self.limiter.reset(start)
         self._v_prev[:] = 0.0
-        self.following.stop()   # supervised once the profile has ended (module doc)
+        self.following.start(start.R, start.t)   # from the actual pose, at rest
         self.report(EV_MOVE_STARTED, {"move_id": sp.track_id, "from_mm": start.t.round(3).tolist(),
                                       "to_mm": target.t.round(3).tolist(),
                                       "distance_mm": round(self._trajectory.distance_mm, 3),
@@ -306,9 +303,9 @@ class ServoLoop:
         return True
 
     def _send(self, sp: Setpoint, st: RobotState, prev: RigidTransform, cmd: RigidTransform,
-              now_ns: int, supervise: bool = True) -> bool:
-        """The merged step check, the servo command and (``supervise``) the following supervision
-        of one period's command ``cmd`` after ``prev``. False when it was refused, failed or the
+              now_ns: int) -> bool:
+        """The merged step check, the servo command and the following supervision of one
+        period's command ``cmd`` after ``prev``. False when it was refused, failed or the
         arm does not follow (reported; a refusal or following fault ended the session and stopped
         the arm)."""
         why = servo_step_violation(self.limits, prev.R, prev.t, self._v_prev, cmd.R, cmd.t, self.period_s)
@@ -327,10 +324,8 @@ class ServoLoop:
             self.following.stop()
             return False
         self._cmd_failing = False
-        if not supervise:
-            return True
         T_act = st.T_robot_from_tcp
-        fault = self.following.update(now_ns, cmd.R, cmd.t, T_act.R, T_act.t)
+        fault = self.following.update(now_ns, cmd.R, cmd.t, T_act.R, T_act.t, st.sample_t_ns)
         if fault is not None:
             self.stats.c[Stat.FOLLOWING_FAULTS] += 1
             self.report(EV_FOLLOWING, {"message": fault.message(), "frame_seq": sp.frame_seq,

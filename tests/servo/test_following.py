@@ -48,6 +48,49 @@ def test_an_arm_that_follows_with_the_modelled_lag_never_faults(
         assert mon.last_error_mm < 1e-9
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(*[st.floats(-60.0, 60.0)] * 3), min_size=2, max_size=12),
+       st.integers(0, 40))
+def test_a_stamped_old_report_is_compared_with_the_expectation_when_it_was_sampled(
+        velocities: list[tuple[float, float, float]], age_periods: int) -> None:
+    # the same healthy arm, its every report `age_periods` old (up to 80 ms) and stamped so
+    cmds, x = [], np.array([0.0, 0.0, 300.0])
+    for v in velocities:
+        for _ in range(20):
+            x = x + np.asarray(v) * DT_S
+            cmds.append(x.copy())
+    arm = _lagged_arm(cmds, MODEL.time_constant_s)
+    mon = FollowingMonitor(MODEL)
+    mon.start(np.eye(3), arm[0])
+    for k, c in enumerate(cmds):
+        j = max(k - age_periods, 0)
+        assert mon.update(k * 2_000_000, np.eye(3), c, np.eye(3), arm[j], sample_t_ns=j * 2_000_000) is None
+        assert mon.last_error_mm < 1e-9
+
+
+def _x(mm: float) -> np.ndarray:
+    """A point ``mm`` along x from (0, 0, 300) mm."""
+    return np.array([mm, 0.0, 300.0])
+
+
+def test_a_sample_time_between_updates_is_interpolated_and_one_before_the_session_is_its_start() -> None:
+    mon = FollowingMonitor(FollowingModel(0.0, 2.0, 1.5, 0.1, "no lag"))   # expectation = last command
+    p0 = _x(0.0)
+    mon.start(np.eye(3), p0)
+    for k in range(5):   # commands 1 mm apart in x; the expectation at update k is command k - 1
+        mon.update(10**9 + k * 2_000_000, np.eye(3), _x(k + 1.0), np.eye(3), p0)
+    # the expectation at update 4 (t = 8 ms) is x = 4 mm, at update 3 (6 ms) x = 3 mm
+    mon.update(10**9 + 10_000_000, np.eye(3), _x(6.0), np.eye(3), _x(3.25),
+               sample_t_ns=10**9 + 6_500_000)
+    assert mon.last_error_mm == pytest.approx(0.0, abs=1e-12)
+    mon.update(10**9 + 12_000_000, np.eye(3), _x(7.0), np.eye(3), p0,
+               sample_t_ns=10**9 - 50_000_000)   # sampled before the session: it rested at p0
+    assert mon.last_error_mm == pytest.approx(0.0, abs=1e-12)
+    mon.update(10**9 + 14_000_000, np.eye(3), _x(8.0), np.eye(3), _x(7.0),
+               sample_t_ns=10**9 + 20_000_000)   # stamped after the update: the newest expectation
+    assert mon.last_error_mm == pytest.approx(0.0, abs=1e-12)
+
+
 def test_a_stalled_arm_faults_after_exactly_the_duration_with_the_figures() -> None:
     mon = FollowingMonitor(MODEL)
     stalled = np.array([0.0, 0.0, 300.0])

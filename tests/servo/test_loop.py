@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.interfaces.robot import MotionLimits
+from drivers.interfaces.robot import MotionLimits, RobotMode, RobotState, SafetyStatus
 from hil.clock import ManualClock
 from hil.geometry.transform import RigidTransform
 from hil.servo.limiter import RateLimiter
@@ -369,15 +369,69 @@ def test_a_hold_in_the_moves_session_comes_to_rest_from_the_moving_command(rig: 
     assert regions.stats.get(Stat.REFUSALS) == 0
 
 
-def test_a_moves_following_is_supervised_once_its_profile_has_ended(rig: Any) -> None:
+def test_a_moves_following_is_supervised_from_its_first_period(rig: Any) -> None:
     clock, robot, regions, loop, events = rig
     robot.stall = True   # the arm does not move at all
     regions.block.write_move(track_id=1, R=robot.pose.R, t_mm=robot.pose.t + np.array([50.0, 0.0, 0.0]),
                              speed_mm_s=50.0, accel_mm_s2=200.0)   # a 1.25 s profile
-    _run(clock, loop, 156)   # to 1.248 s: the profile is still running
-    assert [k for k, _ in events if k == EV_FOLLOWING] == []
-    _run(clock, loop, 30)    # the profile ended: the stalled arm is 50 mm off its target
+    _run(clock, loop, 40)   # 0.32 s: still accelerating
     fe = [f for k, f in events if k == EV_FOLLOWING]
     assert len(fe) == 1
-    assert fe[0]["duration_ms"] == pytest.approx(104.0)   # judged from the profile's end
+    # the fake arm has no lag: the expectation is the previous command, 0.5 * 200 mm/s^2 * t^2 at
+    # t = 8 ms * (k - 1) for the command of period k (1, 2, ...); beyond 2 mm from period 19 (the
+    # command of period 18 at 0.144 s, 2.07 mm), so the fault comes 13 periods (104 ms) later
+    assert fe[0]["duration_ms"] == pytest.approx(104.0)
+    assert fe[0]["error_mm"] == pytest.approx(0.5 * 200.0 * (31 * PERIOD_S) ** 2, abs=5e-4)   # (rounded)
+    assert [kind for kind, _ in robot.calls].count("servo") == 32
     assert robot.calls[-1] == ("stop", None)
+
+
+class _LateReportingRobot(DroppingRobot):
+    """Follows every servo target at once but reports the pose of ``delay_ns`` ago, stamped with
+    when it was sampled (``stamps``) or not (as a driver that cannot tell)."""
+
+    def __init__(self, clock: ManualClock, limits: MotionLimits, delay_ns: int, stamps: bool) -> None:
+        super().__init__(clock, limits)
+        self.delay_ns, self.stamps = delay_ns, stamps
+        self.history: list[tuple[int, RigidTransform]] = [(0, self.pose)]
+
+    def _servo(self, T: RigidTransform, period_s: float) -> None:
+        super()._servo(T, period_s)
+        self.history.append((self.clock.now_ns(), T))
+
+    def _state_now(self) -> RobotState:
+        now = self.clock.now_ns()
+        sampled = now - self.delay_ns
+        pose = next((T for t, T in reversed(self.history) if t < sampled), None)   # read before servo
+        assert pose is not None
+        return RobotState(pose, np.zeros(6), RobotMode.IDLE,
+                          SafetyStatus.NORMAL, now, sample_t_ns=sampled if self.stamps else None)
+
+
+@pytest.mark.parametrize("stamps", [True, False])
+def test_a_late_report_is_judged_at_its_sample_time(stamps: bool) -> None:
+    """A healthy arm whose reports are 64 ms old (8 periods) while it moves at 50 mm/s: 3.2 mm
+    behind the expectation *now*, exactly on it at the time the pose was sampled. Judged at the
+    sample time it never faults; a driver that cannot stamp its reports leaves it to the bound."""
+    clock = ManualClock(10**9)
+    robot = _LateReportingRobot(clock, LIMITS, delay_ns=64_000_000, stamps=stamps)
+    robot.open()
+    regions = Regions.create(shared=False)
+    events: list[tuple[str, dict[str, Any]]] = []
+    try:
+        loop = ServoLoop(robot, LIMITS, clock, regions.block, regions.ring, regions.stats, period_s=PERIOD_S,
+                         limiter=RateLimiter(60.0, 400.0, 0.5), report=lambda k, f: events.append((k, f)))
+        regions.block.write_move(track_id=1, R=robot.pose.R, t_mm=robot.pose.t + np.array([100.0, 0.0, 0.0]),
+                                 speed_mm_s=50.0, accel_mm_s2=500.0)   # 2.1 s, at 50 mm/s from 0.1 s
+        _run(clock, loop, 300)
+        following = [f for k, f in events if k == EV_FOLLOWING]
+        if stamps:
+            assert following == []
+            assert regions.stats.get(Stat.FOLLOWING_PEAK_UM) == 0
+            assert [k for k, _ in events] == [EV_MOVE_STARTED, EV_MOVE_DONE]
+        else:
+            assert len(following) == 1
+            assert following[0]["error_mm"] == pytest.approx(50.0 * 0.064, abs=1e-6)   # cruising
+    finally:
+        regions.close()
+        robot.close()

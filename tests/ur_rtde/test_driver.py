@@ -213,6 +213,35 @@ def test_frozen_state_stream_is_a_timeout_then_resumes(robot: UrRtdeRobot, ursim
     wait_for(lambda: _state_ok(robot), timeout_s=3.0, what="stream resumed")
 
 
+def test_a_state_is_stamped_with_when_the_controller_sampled_it(ursim: Ursim) -> None:
+    """``sample_t_ns`` is the controller's timestamp on the host clock: a state read again from a
+    stream that went quiet keeps its sample time while ``t_ns`` (the read) moves on, so the
+    following supervision compares it with the expectation of that time (hil/safety/following.py)."""
+    r = make_robot(ursim, state_max_age_s=5.0)
+    r.open()
+    try:
+        st = r.state_now()
+        assert st.sample_t_ns is not None
+        assert st.sample_t_ns <= st.t_ns
+        ursim.control.pause_stream(1.5)   # under the client's 2.5 s silence limit
+
+        def quiet() -> bool:   # two reads 20 ms apart from the same packet: nothing in flight
+            a = r.state_now().sample_t_ns
+            time.sleep(0.02)
+            return r.state_now().sample_t_ns == a
+        wait_for(quiet, timeout_s=2.0, what="the paused stream's last packet")
+        before = r.state_now()
+        time.sleep(0.1)
+        after = r.state_now()
+        assert after.sample_t_ns == before.sample_t_ns
+        assert after.t_ns - before.t_ns >= 100_000_000
+        assert after.sample_t_ns is not None
+        assert after.t_ns - after.sample_t_ns >= 100_000_000
+        wait_for(lambda: r.state_now().sample_t_ns != after.sample_t_ns, timeout_s=5.0, what="stream resumed")
+    finally:
+        r.close()
+
+
 def _state_ok(robot: UrRtdeRobot) -> bool:
     try:
         robot.state_now()
