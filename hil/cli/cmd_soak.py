@@ -68,6 +68,23 @@ def add_parser(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
+def _latency_bound(res: SoakResult) -> str:
+    """Frame -> command beside the bound the camera's own latency and the locate time imply."""
+    from hil.soak.soak import LATENCY_HANDOVER_MS, LATENCY_P99_MARGIN_MS  # imported lazily, as the soak
+    cam, bound = res.camera_latency_ms, res.latency_bound_ms
+    if not bound:
+        return "n/a (the camera's latency is measured in the perception process: --perception-process)"
+    f2c = res.frame_to_command_ms
+    verdicts = []
+    for k in ("p50", "p99"):
+        got, lim = f2c.get(k), bound.get(k)
+        verdicts.append("n/a" if got is None or lim is None else ("within" if got <= lim else "OVER"))
+    return (f"p50 {bound['p50']:.2f} ms (camera p50 {cam['p50']:.2f} + locate p50 "
+            f"{res.locate_ms['p50']:.2f} + {LATENCY_HANDOVER_MS:g}): {verdicts[0]}; "
+            f"p99 {bound['p99']:.2f} ms (+ {LATENCY_P99_MARGIN_MS:g}): {verdicts[1]}; "
+            f"camera p99 {cam['p99']:.2f} ms")
+
+
 def _fmt(d: dict[str, float | None]) -> str:
     return " / ".join("n/a" if d.get(k) is None else f"{d[k]:.3f}" for k in ("p50", "p99", "max"))
 
@@ -190,6 +207,7 @@ def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
               f"{res.frames_overwritten} overwritten; {res.stale_periods} period(s) on a stale "
               f"setpoint, {res.setpoint_busy_periods} on the last one (a write in progress)\n")
     out.write(f"frame->command       {_fmt(res.frame_to_command_ms)} ms (p50/p99/max)\n")
+    out.write(f"latency bound        {_latency_bound(res)}\n")
     out.write(f"stop->command        {_fmt(res.stop_to_command_ms)} ms (p50/p99/max)\n")
     where = "perception process" if res.perception_rss_mb else "supervisor"
     loc = " / ".join("n/a" if res.locate_ms.get(k) is None else f"{res.locate_ms[k]:.2f}"

@@ -132,6 +132,7 @@ class PerceptionProcess:
         produced: records taken or skipped so far (the ring's head when last read).
         overwritten: records replaced by a newer one before they were taken (latest wins).
         locate_ms: the locate time of the last :data:`LOCATE_SAMPLES` marker sets taken, ms.
+        delivery_ms: the camera's latency of the same pairs (exposure -> handed over), ms.
     """
 
     def __init__(self, spec_for: Callable[[], PerceptionSpec], camera_name: str) -> None:
@@ -141,6 +142,7 @@ class PerceptionProcess:
         self.produced = 0
         self.overwritten = 0
         self.locate_ms: deque[float] = deque(maxlen=LOCATE_SAMPLES)
+        self.delivery_ms: deque[float] = deque(maxlen=LOCATE_SAMPLES)
         self._taken_head = 0
         self._crash: str | None = None
         self._started = False
@@ -259,6 +261,15 @@ class PerceptionProcess:
         a = np.fromiter(self.locate_ms, dtype=np.float64)
         return {"p50": float(np.percentile(a, 50)), "p95": float(np.percentile(a, 95))}
 
+    def delivery_figures(self) -> dict[str, float | None]:
+        """p50 and p99 of the camera's own latency, ms: the left frame's exposure -> the camera
+        handed the pair to the perception process (pairs stamped at exposure only; None before
+        one)."""
+        if not self.delivery_ms:
+            return {"p50": None, "p99": None}
+        a = np.fromiter(self.delivery_ms, dtype=np.float64)
+        return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99))}
+
     # ------------------------------------------------------------------ consumer contract
     def ready(self) -> bool:
         """Whether :meth:`take` would return at once (a record not taken yet). Never blocks."""
@@ -321,6 +332,8 @@ class PerceptionProcess:
             return Prefetched(frame_of(rec), None, PerceptionLocateError(f"{kind}: {message}"), rec.pair_seq)
         frame = frame_of(rec)
         self.locate_ms.append(rec.locate_ms)
+        if rec.time_source == 0:   # stamped at exposure: exposure -> the camera handed the pair over
+            self.delivery_ms.append((rec.grab_done_t_ns - rec.left_t_ns) * 1e-6)
         found = LocatedMarkers.of(frame, rec.points_mm, rec.left_px, rec.right_px)
         return Prefetched(frame, found, None, rec.pair_seq)
 

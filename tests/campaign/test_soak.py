@@ -23,6 +23,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from hil.cli.cmd_soak import _latency_bound
 from hil.config import default_setup_path, load_setup
 from hil.errors import InputFileError
 from hil.servo.figures import LoopFigures
@@ -42,6 +43,7 @@ from hil.soak.soak import (
     SoakOperator,
     SoakResult,
     analyse,
+    latency_bound,
     rss_by_minute,
     run_soak,
     soak_setup,
@@ -84,6 +86,18 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     assert res.rss_mb["growth"] == 0.5
     assert res.servo_rss_mb["growth"] == 0.2
     assert res.rss_mb_by_minute == [100.0]      # the samples span 40 s: only minute 0
+
+
+def test_the_latency_bound_is_the_cameras_and_the_locators_p50_plus_the_hand_over() -> None:
+    assert latency_bound({"p50": 30.5, "p99": 41.0}, {"p50": 1.5, "p95": 3.0}) == {"p50": 34.0, "p99": 44.0}
+    assert latency_bound({}, {"p50": 1.5}) == {}
+    assert latency_bound({"p50": None, "p99": None}, {"p50": 1.5}) == {}
+    res = SoakResult(500.0, 1.0, frame_to_command_ms={"p50": 33.9, "p99": 45.0, "max": 60.0},
+                     camera_latency_ms={"p50": 30.5, "p99": 41.0}, locate_ms={"p50": 1.5, "p95": 3.0},
+                     latency_bound_ms={"p50": 34.0, "p99": 44.0})
+    assert _latency_bound(res) == ("p50 34.00 ms (camera p50 30.50 + locate p50 1.50 + 2): within; "
+                                   "p99 44.00 ms (+ 10): OVER; camera p99 41.00 ms")
+    assert _latency_bound(SoakResult(500.0, 1.0)).startswith("n/a (the camera's latency is measured in")
 
 
 def test_rss_by_minute_takes_the_first_sample_of_each_whole_minute() -> None:

@@ -91,6 +91,13 @@ def test_marker_sets_are_the_worlds_markers_with_the_pairs_times(
     assert len(proc.locate_ms) == 4
     assert min(proc.locate_ms) > 0
     assert proc.produced >= 4
+    # the simulated camera never hands a pair over before its latency (30 ms, configs/sim.toml)
+    assert len(proc.delivery_ms) == 4
+    assert min(proc.delivery_ms) >= 30.0
+    figs = proc.delivery_figures()
+    assert figs["p50"] is not None
+    assert figs["p99"] is not None
+    assert 30.0 <= figs["p50"] <= figs["p99"]
 
 
 def test_close_ends_the_child_and_removes_the_shared_memory() -> None:
