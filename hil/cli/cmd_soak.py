@@ -43,8 +43,9 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--no-rt", action="store_true",
                    help="do not ask for real-time scheduling for the servo process (the comparison run)")
     p.add_argument("--perception-process", action="store_true",
-                   help="grab, render and locate in the perception process instead of the supervisor's "
-                        "(the issue's set-up; on 2 CPUs it did worse: docs/benchmarks.md)")
+                   help="grab, render and locate in the perception process, as [perception] process = "
+                        "\"auto\" does on the wall clock (the issue's set-up); without it, in the "
+                        "supervisor (the comparison)")
     p.add_argument("--minutes", type=float, default=1.0, help="minutes of compensation (default 1)")
     p.add_argument(
         "--rate",

@@ -142,9 +142,9 @@ class PerceptionConfig(BaseModel):
         "auto", description="grab, locate and triangulate in a process of its own that publishes marker "
                            "sets through shared memory: auto = whenever the setup runs on the wall clock "
                            "and it can (no needle check; a simulated world needs the servo process) on a "
-                           "machine with 3 or more usable CPUs (servo loop, supervisor, perception); on = "
-                           "also with fewer CPUs; off = in the supervisor's process (simulated runs on the "
-                           "manual clock always are)")
+                           "machine with 2 or more usable CPUs (the servo loop's; supervisor and "
+                           "perception); on = also with fewer CPUs; off = in the supervisor's process "
+                           "(simulated runs on the manual clock always are)")
     cpu: int | None = Field(None, ge=0, description="CPU to keep the perception process on (default: every "
                                                     "CPU but the real-time servo loop's when two or more "
                                                     "remain, else every CPU)")

@@ -26,9 +26,11 @@ _log = get_logger(__name__)
 EV_PERCEPTION_IN_PROCESS = "perception_in_process"
 
 #: ``auto`` starts the perception process only with at least this many usable CPUs: one for the
-#: servo loop, one for the supervisor, one for perception. On two, perception would share the
-#: supervisor's CPU and gains nothing measurable (docs/benchmarks.md, "The perception process").
-AUTO_MIN_CPUS = 3
+#: servo loop, and one the supervisor and perception share. With one, every process would share
+#: the loop's CPU. Three were asked until 2026-12-04: on two, perception then cost more than it
+#: gained under the host's steal; with locating 4x cheaper since, it costs nothing measurable and
+#: lowers the latency (docs/benchmarks.md, "Issue 16's figures on a quiet host").
+AUTO_MIN_CPUS = 2
 
 
 def usable_cpus() -> int:
@@ -121,8 +123,8 @@ def in_supervisor_because(setup: SetupConfig, devices: Devices, clock: Clock) ->
     if world is not None and not isinstance(world, _World):
         return f"the simulated world ({type(world).__name__}) cannot follow a perception process"
     if mode == "auto" and (cpus := usable_cpus()) < AUTO_MIN_CPUS:   # a preference: "on" runs anyway
-        return (f"{cpus} usable CPUs, fewer than {AUTO_MIN_CPUS}: perception would share the supervisor's "
-                'CPU and gain nothing ("on" starts it anyway)')
+        return (f"{cpus} usable CPU, fewer than {AUTO_MIN_CPUS}: perception would share the servo loop's "
+                'CPU ("on" starts it anyway)')
     return None
 
 

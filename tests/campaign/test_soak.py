@@ -392,7 +392,7 @@ def test_late_intervals_count_only_where_the_host_left_the_loops_cpu_alone(tmp_p
 @pytest.mark.parametrize(("perception_process", "mode"), [(False, "off"), (True, "on")])
 def test_soak_setup_asks_for_the_perception_process_on_any_machine(
         perception_process: bool, mode: str) -> None:
-    """``--perception-process`` is "on", not "auto" (which needs 3 CPUs): the soak runs it where
+    """``--perception-process`` is "on", not "auto" (which needs 2 CPUs): the soak runs it where
     it was asked for; the servo loop always has its own process, on the wall clock."""
     setup = soak_setup(load_setup(default_setup_path()), 500.0, 1.0, perception_process=perception_process)
     assert setup.perception.process == mode
