@@ -138,16 +138,8 @@ class SimStereoCamera(StereoCamera):
     @property
     def render_lead_ns(self) -> int:
         """How long before a pair is due its render starts (ns of clock time): the median of the
-        last :data:`_RENDER_LEAD_WINDOW` render times, at most the camera's latency plus one frame
-        period (so the pair a grab renders is never exposed more than a period after the clock:
-        the next pair comes within a period, as from a real camera) and at most
-        :data:`_MAX_RENDER_LEAD_NS`; 0 before the first render and on a manual clock (rendering
-        takes no simulated time).
-
-        The cap matters after the first render, whose time (the renderer's one-off set-up, 0.1-0.3
-        s) is then the whole window: uncapped, the second grab rendered a pair that far ahead and
-        delivered nothing until it was due, and a real-time run's camera watchdog (0.25 s) faulted
-        at the start of REGISTER (1 run in 6 with perception in the supervisor).
+        last :data:`_RENDER_LEAD_WINDOW` render times, at most :data:`_MAX_RENDER_LEAD_NS`; 0 before
+        the first render and on a manual clock (rendering takes no simulated time).
 
         A median, not a peak: a render stretched by a stall of the whole process (the host, or a
         library holding the interpreter lock -- ur_rtde's client constructors do, for ~0.65 s, when
@@ -157,8 +149,7 @@ class SimStereoCamera(StereoCamera):
         1.5 s old after the robot's recovery). A real camera delivers the next frame on time."""
         if not self._render_ns:
             return 0
-        return min(round(statistics.median_low(self._render_ns)), self._latency_ns + self._period_ns,
-                   _MAX_RENDER_LEAD_NS)
+        return min(round(statistics.median_low(self._render_ns)), _MAX_RENDER_LEAD_NS)
 
     def exposure_time_ns(self, k: int) -> int:
         return self._t0_ns + k * self._period_ns
