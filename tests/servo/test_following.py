@@ -30,16 +30,22 @@ def _lagged_arm(commands: list[np.ndarray], tau_s: float) -> list[np.ndarray]:
     return out
 
 
-@settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(*[st.floats(-60.0, 60.0)] * 3), min_size=2, max_size=30))
-def test_an_arm_that_follows_with_the_modelled_lag_never_faults(
-        velocities: list[tuple[float, float, float]]) -> None:
-    # piecewise-constant velocities up to 60 mm/s (the compensation limit), 20 periods each
+def _piecewise_commands(velocities: list[tuple[float, float, float]]) -> list[np.ndarray]:
+    """Commands one period apart from (0, 0, 300) mm: piecewise-constant velocities (mm/s; up to
+    60, the compensation limit), 20 periods each."""
     cmds, x = [], np.array([0.0, 0.0, 300.0])
     for v in velocities:
         for _ in range(20):
             x = x + np.asarray(v) * DT_S
             cmds.append(x.copy())
+    return cmds
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(*[st.floats(-60.0, 60.0)] * 3), min_size=2, max_size=30))
+def test_an_arm_that_follows_with_the_modelled_lag_never_faults(
+        velocities: list[tuple[float, float, float]]) -> None:
+    cmds = _piecewise_commands(velocities)
     arm = _lagged_arm(cmds, MODEL.time_constant_s)
     mon = FollowingMonitor(MODEL)
     mon.start(np.eye(3), arm[0])
@@ -54,11 +60,7 @@ def test_an_arm_that_follows_with_the_modelled_lag_never_faults(
 def test_a_stamped_old_report_is_compared_with_the_expectation_when_it_was_sampled(
         velocities: list[tuple[float, float, float]], age_periods: int) -> None:
     # the same healthy arm, its every report `age_periods` old (up to 80 ms) and stamped so
-    cmds, x = [], np.array([0.0, 0.0, 300.0])
-    for v in velocities:
-        for _ in range(20):
-            x = x + np.asarray(v) * DT_S
-            cmds.append(x.copy())
+    cmds = _piecewise_commands(velocities)
     arm = _lagged_arm(cmds, MODEL.time_constant_s)
     mon = FollowingMonitor(MODEL)
     mon.start(np.eye(3), arm[0])
