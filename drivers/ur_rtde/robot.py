@@ -49,6 +49,7 @@ from drivers.ur_rtde.config import UrRtdeRobotConfig
 from drivers.ur_rtde.dashboard import UrDashboard, wait_until
 from drivers.ur_rtde.packet import READ_TRIES, one_packet
 from drivers.ur_rtde.stream_age import StreamAge
+from drivers.ur_rtde.watchdog import WatchdogKicker, armed_watchdog_hz
 from drivers.ur_rtde.wire import (
     DASHBOARD_PORT,
     RTDE_PORT,
@@ -145,8 +146,7 @@ class UrRtdeRobot(Robot):
         self._servoing = False
         self._last_servo_ns = 0
         self._stream_age = StreamAge()
-        self._kicker: threading.Thread | None = None
-        self._kicker_stop = threading.Event()
+        self._kicker = WatchdogKicker(f"{name}-rtde-watchdog", self._kick_watchdog)
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -171,7 +171,7 @@ class UrRtdeRobot(Robot):
     def _close(self) -> None:
         """Stop the arm and the control script (only over a live link: with a dead one the library
         would wait on stale state), then disconnect all clients."""
-        self._stop_kicker()
+        self._kicker.stop()
         link_ok = self._link_ok()
         with self._io:
             if self._ctrl is not None and link_ok:
@@ -209,7 +209,7 @@ class UrRtdeRobot(Robot):
                 raise DeviceFaultError(self.name, "the control script refused setWatchdog")
         hz = self._watchdog_hz()
         if hz > 0:
-            self._start_kicker(hz)
+            self._kicker.start(hz)
         _log.info("robot_connected", device=self.name, host=cfg.host, controller=cfg.controller,
                   polyscope=version, rate_hz=cfg.rate_hz)
 
@@ -238,57 +238,20 @@ class UrRtdeRobot(Robot):
 
     # ------------------------------------------------------------------ the RTDE watchdog
     def _watchdog_hz(self) -> float:
-        """The watchdog rate armed: ``rtde_watchdog_min_hz``, lowered when its window would not
-        outlast a blocking stop. A stop (servoStop / stopL) blocks the library until the arm is at
-        rest, and the kicker cannot call the library meanwhile; the stop's own command write feeds
-        the watchdog, and the kicker's next kick comes at most one kicker period (a third of the
-        window) after the stop returns. So the window must be >= 1.5 x the longest stop.
+        """The watchdog rate armed (:func:`~drivers.ur_rtde.watchdog.armed_watchdog_hz`)."""
+        return armed_watchdog_hz(self.cfg.rtde_watchdog_min_hz, self.limits, self.name)
 
-        The longest stop: the tool's linear speed at ``max_accel`` (``max_speed / max_accel``) or
-        its rotation, whichever takes longer, plus the controller's reply (50 ms here). The
-        driver passes stopl one acceleration ``a`` and the controller then decelerates the
-        rotation at ``a`` rad/s^2 too (URScript ``stopl(a, aRot)``: aRot defaults to a), so a
-        rotation at ``max_angular_speed`` takes ``max_angular_speed / a`` to stop. (Seen: a
-        servoStop from a 0.17 rad/s rotation at 0.5 rad/s^2 outlasting a 375 ms window sized for
-        the linear stop alone on the UR emulator, which then stopped the program.)"""
-        want = self.cfg.rtde_watchdog_min_hz
-        if want <= 0:
-            return 0.0
-        lim = self.limits
-        a_m_s2 = lim.max_accel_mm_s2 / 1000.0
-        longest_stop_s = max(lim.max_speed_mm_s / lim.max_accel_mm_s2,
-                             lim.max_angular_speed_rad_s / a_m_s2) + 0.05
-        hz = min(want, 1.0 / (1.5 * longest_stop_s))
-        if hz < want:
-            _log.info("rtde_watchdog_lowered", device=self.name, configured_hz=want, armed_hz=round(hz, 3),
-                      longest_stop_s=round(longest_stop_s, 3))
-        return hz
-
-    def _start_kicker(self, min_hz: float) -> None:
-        self._kicker_stop.clear()
-        period_s = 1.0 / (3.0 * min_hz)
-
-        def run() -> None:
-            while not self._kicker_stop.wait(period_s):
-                with self._io:
-                    ctrl, rcv = self._ctrl, self._rcv
-                    # never on a dead link: the library would start its own (broken) reconnect
-                    if ctrl is None or rcv is None or not (rcv.isConnected() and ctrl.isConnected()):
-                        continue
-                    # a servo command in the last period already fed the watchdog
-                    if self._servoing and self.clock.now_ns() - self._last_servo_ns < period_s * 1e9:
-                        continue
-                    with contextlib.suppress(RuntimeError):
-                        ctrl.kickWatchdog()
-
-        self._kicker = threading.Thread(target=run, name=f"{self.name}-rtde-watchdog", daemon=True)
-        self._kicker.start()
-
-    def _stop_kicker(self) -> None:
-        self._kicker_stop.set()
-        if self._kicker is not None:
-            self._kicker.join(timeout=2.0)
-            self._kicker = None
+    def _kick_watchdog(self, period_s: float) -> None:
+        """The kicker's call, every ``period_s``: kick unless the link is down (the library would
+        start its own, broken, reconnect) or a servo command in the last period already fed it."""
+        with self._io:
+            ctrl, rcv = self._ctrl, self._rcv
+            if ctrl is None or rcv is None or not (rcv.isConnected() and ctrl.isConnected()):
+                return
+            if self._servoing and self.clock.now_ns() - self._last_servo_ns < period_s * 1e9:
+                return
+            with contextlib.suppress(RuntimeError):
+                ctrl.kickWatchdog()
 
     # ------------------------------------------------------------------ helpers
     def _call(self, what: str, fn: Callable[[], T]) -> T:
@@ -518,7 +481,7 @@ class UrRtdeRobot(Robot):
         return True
 
     def _reconnect(self) -> None:
-        self._stop_kicker()
+        self._kicker.stop()
         last: Exception | None = None
         for attempt in range(1, self.cfg.reconnect_attempts + 1):
             with self._io:
