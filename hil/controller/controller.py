@@ -7,7 +7,9 @@ A tick (docs/architecture.md draws it): the owed stop is retried and the operato
 decided -> the devices are read (:mod:`~hil.controller.pipeline`: the next pair, waited for at most
 a supervisor period) -> the supervisor checks the watchdogs and the robot
 (:mod:`~hil.controller.supervisor`) -> when a new pair arrived, perception identifies and tracks
-the markers into the estimate (:mod:`~hil.controller.markers`) -> the current phase steps
+the markers into the estimate (:mod:`~hil.controller.markers`) -> the current phase publishes the
+pair's setpoint (``Phase.command``: COMPENSATE's, so the frame -> command latency carries nothing
+else) -> the camera cross-check and the frame's record -> the current phase steps
 (:mod:`~hil.controller.phases`) -> its commands are executed through the safety layer and its
 events are processed by the state machine, in order. Entering a state runs its phase's entry
 action the same way. Events are queued and processed one after the other, never fired from
@@ -206,16 +208,20 @@ class Controller(ControllerParts):
         points = self.pipeline.located(frame)
         self.markers.update(self.est, points, frame.left.t_ns,
                             lambda: self.roles.reference_sensor(self.est, self.state))
+        detected_ns = self.clock.now_ns()
+        inputs = TickInputs(detected_ns, command, frame, points, st, self.est.tracker_samples)
+        phase = self.phases[self.state] if self.state in self.STEPPED else None
+        if phase is not None:
+            phase.command(inputs)   # the pair's setpoint first (latency); the judgement follows
         reason = self.crosscheck.check(self.est, frame, self.state)
         if reason is not None:
             self.fault(reason)
             return
         self.metrics.on_frame(self.est, self.state, self.cfg.gate.tolerance_mm)
-        self.metrics.detect_ms.append((self.clock.now_ns() - frame.left.t_ns) * 1e-6)
+        self.metrics.detect_ms.append((detected_ns - frame.left.t_ns) * 1e-6)
         self._log_frame(frame, st)
         self.fire(Event.FRAME_RECEIVED)
-        inputs = TickInputs(self.clock.now_ns(), command, frame, points, st, self.est.tracker_samples)
-        out = self.phases[self.state].step(inputs) if self.state in self.STEPPED else None
+        out = phase.step(inputs) if phase is not None else None
         if out is not None:
             for cmd in out.commands:
                 self.execute(cmd)

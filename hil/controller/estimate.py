@@ -76,6 +76,8 @@ class Estimate:
         self.tracker_samples: dict[str, TrackerSample] = {}
         #: when the last resume / recovery re-entered the forward path (the servo speed ramp)
         self.resumed_ns: int | None = None
+        #: the flange set :meth:`T_optical_from_tcp_measured` last registered, and its result
+        self._tcp_measured: tuple[FloatArray | None, RigidTransform | None] = (None, None)
 
     # ------------------------------------------------------------------ updates
     def restart_registration(self) -> None:
@@ -114,14 +116,22 @@ class Estimate:
 
     def T_optical_from_tcp_measured(self) -> RigidTransform | None:
         """The TCP pose measured by the camera from the flange markers (optical frame), from at
-        least three seen markers (Horn's method, seed 000); None otherwise."""
+        least three seen markers (Horn's method, seed 000); None otherwise.
+
+        Registered once per flange set: the marker update replaces :attr:`flange_mm` with a new
+        array for every pair (never writes into it), so the result is kept for that array and the
+        pair's cross-check, bias and guide error share one registration."""
         fl = self.flange_mm
         if fl is None:
             return None
+        seen, T = self._tcp_measured
+        if seen is fl:
+            return T
         ok = np.all(np.isfinite(fl), axis=1)
-        if int(ok.sum()) < 3:
-            return None
-        return register_horn(fl[ok], self.rig.flange_markers_tcp_mm[ok]).T_fixed_from_moving
+        T = (None if int(ok.sum()) < 3
+             else register_horn(fl[ok], self.rig.flange_markers_tcp_mm[ok]).T_fixed_from_moving)
+        self._tcp_measured = (fl, T)
+        return T
 
     def local(self, T_change: RigidTransform) -> RigidTransform:
         """The change expressed about the planned entry point (translation = its displacement)."""

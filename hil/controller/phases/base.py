@@ -121,6 +121,12 @@ class Phase:
     def on_enter(self, transition: str) -> PhaseResult:
         return PhaseResult()
 
+    def command(self, inputs: TickInputs) -> None:
+        """The latency-critical part of a pair, before the tick's slower supervision and records:
+        a phase that streams a setpoint per pair publishes it here (COMPENSATE). It fires
+        nothing: whatever it cannot decide is left to :meth:`step`, which the tick calls after it
+        for the same pair unless the pair faulted meanwhile. Default: nothing."""
+
     def step(self, inputs: TickInputs) -> PhaseResult:
         """One stereo pair while the phase is current."""
         return PhaseResult()

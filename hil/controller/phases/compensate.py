@@ -6,6 +6,10 @@ hil/servo); a slow optical bias correction (seed 001 §2.3); ALIGNED once the gu
 lock tolerance for the settle time with the gate open (and the needle check passed).
 
 The setpoint goes through the safety layer (the context's command sink) like every other command.
+It is published by :meth:`CompensatePhase.command`, which the tick calls as soon as the pair's
+markers are in the estimate, before the camera cross-check, the frame's records and
+:meth:`CompensatePhase.step`'s judgement (settling, ALIGNED): the pair's frame -> command latency
+carries only what the setpoint needs.
 With the servo loop in this process (a simulated run: ``PhaseContext.step_servo``), the phase
 steps the loop at the robot's rate until the next pair is due; with the servo process it only
 publishes.
@@ -42,11 +46,25 @@ class CompensateSub(Enum):
     SETTLING = "settling"      # within tolerance, waiting out the settle time
 
 
+@dataclass(frozen=True)
+class _Sent:
+    """The setpoint :meth:`CompensatePhase.command` published for a pair (controller clock, ns)."""
+
+    frame: StereoFrame
+    change: RigidTransform     # the filtered patient change it follows (about the entry point)
+    now_ns: int                # when the pair's handling began
+    t_send_ns: int             # the in-process stream's deadlines count from this slot
+    t_cmd_ns: int              # when the setpoint had been handed over
+    horizon_s: float           # the prediction horizon at publication
+    cmd: RigidTransform        # the pose at publication (robot frame)
+
+
 @dataclass
 class _Scratch:
     last_cmd_ns: int | None = None
     settle_since_ns: int | None = None
     sub: CompensateSub = CompensateSub.WAITING
+    sent: _Sent | None = None
 
 
 class CompensatePhase(Phase):
@@ -65,42 +83,45 @@ class CompensatePhase(Phase):
         self.ctx.safety.start_tracking()   # the loop restarts from the actual pose, at rest
         return PhaseResult()
 
+    def command(self, inputs: TickInputs) -> None:
+        """Publish the pair's setpoint first, when nothing stands in the way (in time, the change
+        measured, within the correction bounds); the tick's cross-check, records and
+        :meth:`step`'s judgement follow. When something does, nothing is published here and
+        :meth:`step` says why."""
+        self.s.sent = None
+        c, est = self.ctx.cfg.compensation, self.ctx.est
+        if self.elapsed_s() > c.timeout_s or est.T_change_meas is None or not est.filter.initialised:
+            return
+        change = est.filter.estimate()  # about the entry point
+        if correction_out_of_bounds(change, c) is None:
+            self.s.sent = self._send(inputs, change)
+
     def step(self, inputs: TickInputs) -> PhaseResult:
         ctx, s, c, est = self.ctx, self.s, self.ctx.cfg.compensation, self.ctx.est
         frame = inputs.frame
         out = PhaseResult()
-        now = ctx.clock.now_ns()
-        if self.elapsed_s() > c.timeout_s:
-            return out.fire(Event.TIMED_OUT, f"not aligned within {c.timeout_s} s")
-        if est.T_change_meas is None or not est.filter.initialised:
-            s.sub = CompensateSub.WAITING
-            return out  # markers not seen this frame: hold the last command (watchdogs cover staleness)
-        t_reg = ctx.clock.now_ns()
-        change = est.filter.estimate()  # about the entry point
-        why = correction_out_of_bounds(change, c)
-        if why is not None:
-            ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=why, T_change=change)
-            return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, why + "; operator decision needed")
-        # slow closed-loop correction from the optical measurement of the flange (seed 001 2.3)
-        st = est.last_state
-        if (c.bias_gain > 0 and est.filter.speed_mm_s < c.bias_max_speed_mm_s and st is not None
-                and st.tcp_speed_mm_s < c.bias_max_speed_mm_s):
-            D = est.bias_measurement(frame)
-            if D is not None:
-                est.T_bias = interpolate_pose(est.T_bias, D, c.bias_gain)
-        t_send = ctx.clock.now_ns()  # the in-process stream's deadlines count from this slot
-        horizon_s, cmd = self._publish(frame, inputs.t_ns)
-        t_cmd = ctx.clock.now_ns()
-        ctx.latency_ms.append((t_cmd - frame.left.t_ns) * 1e-6)
+        sent, s.sent = (s.sent if s.sent is not None and s.sent.frame is frame else None), None
+        if sent is None:   # command() published nothing for this pair: say why (or publish now)
+            if self.elapsed_s() > c.timeout_s:
+                return out.fire(Event.TIMED_OUT, f"not aligned within {c.timeout_s} s")
+            if est.T_change_meas is None or not est.filter.initialised:
+                s.sub = CompensateSub.WAITING
+                return out  # markers not seen this frame: hold the last command (watchdogs cover staleness)
+            change = est.filter.estimate()
+            why = correction_out_of_bounds(change, c)
+            if why is not None:
+                ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=why, T_change=change)
+                return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, why + "; operator decision needed")
+            sent = self._send(inputs, change)
         if ctx.step_servo is not None:
-            stream_until_next_pair(ctx, frame, now, t_send, ctx.step_servo)
+            stream_until_next_pair(ctx, frame, sent.now_ns, sent.t_send_ns, ctx.step_servo)
         err = est.guide_error_optical_mm()
         dev = est.gate_deviation_mm()
         ctx.session.write(ev.COMPENSATION_STEP, exposure_t_ns=frame.left.t_ns,
-                          latency_detect_ms=(t_reg - frame.left.t_ns) * 1e-6,
-                          latency_command_ms=(t_cmd - frame.left.t_ns) * 1e-6,
-                          change_mm=change.translation_norm(), predicted_s=horizon_s,
-                          command_mm=cmd.t, guide_error_mm=err, gate_deviation_mm=dev)
+                          latency_detect_ms=(sent.now_ns - frame.left.t_ns) * 1e-6,
+                          latency_command_ms=(sent.t_cmd_ns - frame.left.t_ns) * 1e-6,
+                          change_mm=sent.change.translation_norm(), predicted_s=sent.horizon_s,
+                          command_mm=sent.cmd.t, guide_error_mm=err, gate_deviation_mm=dev)
         if err is not None and err <= ctx.cfg.lock.tolerance_mm and dev <= ctx.cfg.gate.tolerance_mm:
             if not ctx.needle.ok_for_lock(est, frame, self.state):
                 s.settle_since_ns = None
@@ -115,6 +136,22 @@ class CompensatePhase(Phase):
             s.settle_since_ns = None
             s.sub = CompensateSub.TRACKING
         return out
+
+    def _send(self, inputs: TickInputs, change: RigidTransform) -> _Sent:
+        """The slow optical bias correction (seed 001 §2.3), then the setpoint (:meth:`_publish`)."""
+        ctx, c, est, frame = self.ctx, self.ctx.cfg.compensation, self.ctx.est, inputs.frame
+        now = ctx.clock.now_ns()
+        st = est.last_state
+        if (c.bias_gain > 0 and est.filter.speed_mm_s < c.bias_max_speed_mm_s and st is not None
+                and st.tcp_speed_mm_s < c.bias_max_speed_mm_s):
+            D = est.bias_measurement(frame)
+            if D is not None:
+                est.T_bias = interpolate_pose(est.T_bias, D, c.bias_gain)
+        t_send = ctx.clock.now_ns()
+        horizon_s, cmd = self._publish(frame, inputs.t_ns)
+        t_cmd = ctx.clock.now_ns()
+        ctx.latency_ms.append((t_cmd - frame.left.t_ns) * 1e-6)
+        return _Sent(frame, change, now, t_send, t_cmd, horizon_s, cmd)
 
     def _publish(self, frame: StereoFrame, now_ns: int) -> tuple[float, RigidTransform]:
         """Publish the frame's tracking setpoint: the TCP pose that keeps the guide on the plan for
