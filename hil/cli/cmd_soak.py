@@ -183,6 +183,8 @@ def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
 
     out.write(f"servo rate           {res.rate_hz:g} Hz (period {1e3 / res.rate_hz:.3f} ms)\n")
     out.write(f"servo process        {RtGranted.from_dict(res.rt_granted).summary()}\n")
+    cpus = "every CPU" if res.supervisor_cpus is None else "CPU " + ", ".join(map(str, res.supervisor_cpus))
+    out.write(f"supervisor on        {cpus} (with the perception process it started)\n")
     out.write(f"servo process CPU    {res.servo_cpu_percent} % of one CPU in compensation\n")
     out.write(
         f"compensation         {res.compensate_s:.1f} s, {res.servo_commands} servo commands, "

@@ -130,6 +130,10 @@ class ServoConfig(BaseModel):
                                              "servo process (granted as root; reported either way)")
     priority: int = Field(80, ge=1, le=99, description="SCHED_FIFO priority of the servo process")
     cpu: int | None = Field(None, ge=0, description="CPU to pin the servo process to (default: the last)")
+    reserve_cpu: bool = Field(True, description="while the loop runs pinned at SCHED_FIFO, keep the "
+                                                "supervisor and the perception process off its CPU when "
+                                                "another CPU remains (hil/servo/reserve.py); false: they "
+                                                "may use every CPU")
 
 
 class PerceptionConfig(BaseModel):
@@ -145,9 +149,10 @@ class PerceptionConfig(BaseModel):
                            "machine with 2 or more usable CPUs (the servo loop's; supervisor and "
                            "perception); on = also with fewer CPUs; off = in the supervisor's process "
                            "(simulated runs on the manual clock always are)")
-    cpu: int | None = Field(None, ge=0, description="CPU to keep the perception process on (default: every "
-                                                    "CPU but the real-time servo loop's when two or more "
-                                                    "remain, else every CPU)")
+    cpu: int | None = Field(None, ge=0, description="CPU to keep the perception process on, among the "
+                                                    "supervisor's (default: the supervisor's CPUs - with "
+                                                    "[servo] reserve_cpu, all but the real-time servo loop's "
+                                                    "- less the loop's when two or more remain)")
 
 
 class SetupConfig(BaseModel):

@@ -132,7 +132,7 @@ def with_servo_process(setup: SetupConfig, devices: Devices, clock: Clock) -> De
     c, sv = setup.procedure.compensation, setup.servo
     spec = ServoSpec(setup, (c.max_speed_mm_s, c.max_accel_mm_s2, c.max_angular_speed_rad_s,
                              c.max_angular_accel_rad_s2),
-                     realtime=sv.realtime, priority=sv.priority, cpu=sv.cpu)
+                     realtime=sv.realtime, priority=sv.priority, cpu=sv.cpu, reserve_cpu=sv.reserve_cpu)
     inner = devices.robot
     robot = ServoRobot(ServoProcess(spec, inner.name, inner.T_flange_from_tcp), inner.limits)
     if isinstance(devices.world, RobotFollower):

@@ -87,10 +87,10 @@ MIN_CPUS_OFF_SERVO = 2
 
 def _place(spec: PerceptionSpec) -> set[int]:
     """Keep the process on ``spec.cpu`` when given; else off the servo loop's CPU (when that loop
-    asks for real time) provided :data:`MIN_CPUS_OFF_SERVO` CPUs remain. On a two-CPU machine it
-    may use both: the loop preempts it there anyway (SCHED_FIFO), and one CPU shared with the
-    supervisor starved rendering and locating under load (pairs later than the grab timeout in the
-    end-to-end runs). Returns the CPUs."""
+    asks for real time) provided :data:`MIN_CPUS_OFF_SERVO` CPUs remain. The process starts on the
+    supervisor's CPUs: with ``[servo] reserve_cpu`` (the default) the supervisor already keeps off
+    a pinned loop's CPU (:mod:`hil.servo.reserve`), so on a two-CPU machine both share the other
+    one; without it this process may use both there. Returns the CPUs."""
     from hil.servo.rt import default_cpu
 
     cpus = os.sched_getaffinity(0)

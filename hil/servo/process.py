@@ -9,7 +9,8 @@ robot's rate and TCP), and answers the channel commands.
 Child side: :func:`servo_main`. It builds the setup's robot through the driver registry on the
 wall clock and opens it, starts a command thread (channel commands such as a recovery
 may block for tens of ms; the loop never waits for them), asks for real time for the loop's thread
-(:func:`~hil.servo.rt.apply_realtime`), and then every period: waits for the deadline (sleep, then
+(:func:`~hil.servo.rt.apply_realtime`; once it is pinned, the parent keeps off its CPU,
+``[servo] reserve_cpu``, :mod:`hil.servo.reserve`), and then every period: waits for the deadline (sleep, then
 spin) and steps the :class:`~hil.servo.loop.ServoLoop`. A period missed by more than one is
 skipped (never bunched), and counted by the loop.
 
@@ -54,6 +55,7 @@ from hil.geometry.transform import RigidTransform
 from hil.servo.limiter import RateLimiter
 from hil.servo.link import Regions
 from hil.servo.loop import ServoLoop
+from hil.servo.reserve import release_cpu, reserve_cpu
 from hil.servo.rt import RtGranted, apply_realtime, default_cpu, wait_until
 from hil.servo.shm import Stat
 from hil.servo.wire import error_from_wire, error_to_wire
@@ -78,6 +80,8 @@ class ServoSpec:
         realtime: ask for SCHED_FIFO / pinning / mlockall.
         priority: the SCHED_FIFO priority (1-99).
         cpu: the CPU to pin to (None: the last one).
+        reserve_cpu: once the loop is pinned at SCHED_FIFO, keep this (the parent) process off
+            its CPU while the child runs (:mod:`hil.servo.reserve`).
     """
 
     setup: SetupConfig
@@ -85,6 +89,7 @@ class ServoSpec:
     realtime: bool = True
     priority: int = 80
     cpu: int | None = None
+    reserve_cpu: bool = True
 
 
 @dataclass(frozen=True)
@@ -97,6 +102,8 @@ class ServoReady:
     rt: RtGranted
     pid: int
     following: FollowingModel = field(default_factory=FollowingModel)
+    #: the CPUs this (the supervisor's) process was moved to, off the loop's (None: not moved)
+    supervisor_cpus: frozenset[int] | None = None
 
 
 class ServoProcess:
@@ -118,6 +125,7 @@ class ServoProcess:
         self._closed = False
         self._started = False
         self._child_ended = False   # this child's channel and regions are freed (close, failed start)
+        self._reserved_cpu: int | None = None   # the loop's CPU this process keeps off (reserve_cpu)
         #: one reader of the channel at a time (the controller's thread, observers' threads)
         self._channel_lock = threading.RLock()
 
@@ -158,10 +166,14 @@ class ServoProcess:
                 self._end_child()
                 raise DeviceTimeoutError(self._name, "servo loop did not read the robot after starting")
             time.sleep(0.001)
+        rt = RtGranted.from_dict(info["rt"])
+        moved = None
+        if self.spec.reserve_cpu and rt.realtime and rt.cpu is not None:
+            moved = reserve_cpu(rt.cpu)
+            self._reserved_cpu = rt.cpu if moved is not None else None
         self.ready = ServoReady(info["robot_name"], float(info["control_rate_hz"]),
                                 RigidTransform.from_matrix(np.asarray(info["T_flange_from_tcp"])),
-                                RtGranted.from_dict(info["rt"]), int(info["pid"]),
-                                FollowingModel(**info["following"]))
+                                rt, int(info["pid"]), FollowingModel(**info["following"]), moved)
         return self.ready
 
     def restart(self) -> ServoReady:
@@ -212,6 +224,9 @@ class ServoProcess:
             self._proc.wait()
         self._conn.close()
         self.regions.close()
+        if self._reserved_cpu is not None:
+            release_cpu(self._reserved_cpu)
+            self._reserved_cpu = None
 
     @property
     def closed(self) -> bool:

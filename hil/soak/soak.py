@@ -155,6 +155,9 @@ class SoakResult:
     session_log: str = ""
     #: what the OS granted the servo process (hil.servo.rt.RtGranted as a dict)
     rt_granted: dict[str, Any] = field(default_factory=dict)
+    #: the CPUs the supervisor (and the perception process it started) kept to, off the loop's
+    #: (``[servo] reserve_cpu``); None: every CPU
+    supervisor_cpus: list[int] | None = None
     servo_rss_mb: dict[str, float | None] = field(default_factory=dict)
     #: periods the loop ran on a stale setpoint (bringing the arm to rest), and other loop counts
     stale_periods: int = 0
@@ -467,6 +470,9 @@ def _add_process_figures(res: SoakResult, robot: ServoRobot, feed: PerceptionPro
     """What the servo and perception processes were granted and measured, and the operator's
     re-registrations, into ``res``."""
     res.rt_granted = robot.rt.to_dict() if robot.rt is not None else {}
+    ready = getattr(robot.link, "ready", None)
+    moved = None if ready is None else ready.supervisor_cpus
+    res.supervisor_cpus = None if moved is None else sorted(moved)
     res.reregistrations = operator.reregistrations
     res.stop_to_command_ms = _stats([x * 1e-6 for x in robot.stop_latency_ns])
     res.perception_rss_mb = _rss_figures(sampler.perception_rss, operator.t_comp, minutes)

@@ -6,6 +6,7 @@ parent killed, a robot that cannot be opened)."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import signal
 import subprocess
@@ -251,17 +252,41 @@ def test_a_blocking_move_returns_with_the_arm_at_rest_on_the_target(robot: Servo
 
 
 def test_real_time_pins_the_loop_to_the_last_cpu_and_reports_what_was_granted() -> None:
+    before = os.sched_getaffinity(0)
     proc = ServoProcess(_spec(realtime=True), "robot", RigidTransform.identity())
     try:
         ready = proc.start()
         rt = ready.rt
         assert rt.requested
         if rt.cpu is not None:       # granted (root here and in CI): the last CPU this process may use
-            assert rt.cpu == max(os.sched_getaffinity(0))
+            assert rt.cpu == max(before)
         else:
             assert "affinity" in rt.errors
         if rt.fifo_priority is None:
             assert "fifo" in rt.errors
+        # [servo] reserve_cpu (default): the supervisor keeps off a pinned loop's CPU while it runs
+        if rt.realtime and len(before) > 1:
+            assert rt.cpu is not None
+            assert ready.supervisor_cpus == frozenset(before - {rt.cpu})
+            assert os.sched_getaffinity(0) == before - {rt.cpu}
+        else:
+            assert ready.supervisor_cpus is None
+            assert os.sched_getaffinity(0) == before
+    finally:
+        proc.close()
+    assert proc.exitcode == 0
+    assert os.sched_getaffinity(0) == before   # given back when the loop ended
+
+
+def test_without_reserve_cpu_the_supervisor_keeps_every_cpu() -> None:
+    before = os.sched_getaffinity(0)
+    spec = dataclasses.replace(_spec(realtime=True), reserve_cpu=False)
+    proc = ServoProcess(spec, "robot", RigidTransform.identity())
+    try:
+        ready = proc.start()
+        assert ready.rt.requested
+        assert ready.supervisor_cpus is None
+        assert os.sched_getaffinity(0) == before
     finally:
         proc.close()
     assert proc.exitcode == 0
