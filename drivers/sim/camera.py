@@ -37,7 +37,7 @@ from drivers.interfaces.camera import Frame, FrameTime, StereoCamera, StereoFram
 from drivers.interfaces.errors import DeviceTimeoutError
 from drivers.sim.rig_errors import reception_offset_ns, true_calibration
 from drivers.sim.world import FLANGE_MARKER_ID_BASE, SimWorld
-from hil.clock import Clock
+from hil.clock import Clock, MonotonicClock
 from hil.config.types import STRICT, TransformConfig
 from hil.geometry.transform import RigidTransform
 from hil.vision.camera_model import StereoCalibration, load_calibration
@@ -113,6 +113,19 @@ class SimStereoCamera(StereoCamera):
     def _open(self) -> None:
         self._t0_ns = self.clock.now_ns()
         self._last_k = -1
+        if isinstance(self.clock, MonotonicClock):
+            self._warm_up()
+
+    def _warm_up(self) -> None:
+        """On the wall clock: render one pair and discard it, so the renderer's one-off set-up
+        (first calls, caches: 0.1-0.3 s) is paid at open and never taken for a render time. The
+        lead (:attr:`render_lead_ns`) is learned from real grabs only: learned from a first render
+        that paid the set-up, it made the second grab render a pair that far ahead and deliver
+        nothing until it was due (a camera fault at the start of a real-time run). On a manual
+        clock rendering takes no clock time: nothing to warm up. Its own random stream: the
+        pairs' noise is unchanged."""
+        render_stereo(self.true_calibration, self.markers_at(self._t0_ns), self.options,
+                      self.world.rng("camera_warm_up"))
 
     def _close(self) -> None:
         pass

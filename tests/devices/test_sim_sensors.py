@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import numpy as np
@@ -11,7 +12,7 @@ from drivers.interfaces import DeviceTimeoutError, LifecycleError
 from drivers.sim.camera import SimCameraConfig, SimStereoCamera
 from drivers.sim.tracker import SimSensorConfig, SimTracker, SimTrackerConfig
 from drivers.sim.world import FLANGE_MARKER_ID_BASE, SimWorld
-from hil.clock import ManualClock
+from hil.clock import ManualClock, MonotonicClock
 from hil.config import Devices, FramesConfig, ScenarioWorld, SimulationConfig
 from hil.geometry.transform import RigidTransform
 from hil.vision.camera_model import StereoCalibration
@@ -83,6 +84,45 @@ def test_a_render_starts_its_render_time_before_the_pair_is_due(
     assert cam.render_lead_ns == 40_000_000
     second = cam.grab(1.0)     # due at 130 ms: rendered from 90 ms, delivered on time
     assert (second.left.seq, clock.now_ns() - t0) == (1, 130_000_000)
+
+
+def test_on_the_wall_clock_the_renderers_set_up_is_paid_at_open_not_taken_for_the_lead(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The first render pays a one-off set-up (0.3 s here): on the wall clock it is rendered and
+    discarded at open, so the lead the grabs start their renders by is a real render's time (a
+    first render taken for the lead made the second grab deliver nothing for that long)."""
+    from hil.vision.render import render_stereo
+
+    calls: list[float] = []
+
+    def first_slow(*args: Any, **kwargs: Any) -> Any:
+        calls.append(time.monotonic())
+        if len(calls) == 1:
+            time.sleep(0.3)
+        return render_stereo(*args, **kwargs)
+
+    monkeypatch.setattr("drivers.sim.camera.render_stereo", first_slow)
+    clock = MonotonicClock()
+    world = SimWorld(SimulationConfig(), FramesConfig(), clock)
+    cam = SimStereoCamera("camera", SimCameraConfig(driver="sim", frame_rate_hz=15.0), clock, world, SMALL)  # type: ignore[arg-type]
+    cam.open()
+    try:
+        assert len(calls) == 1                  # warmed up at open
+        assert cam.render_lead_ns == 0          # and nothing learned from it
+        cam.grab(1.0)
+        assert len(calls) == 2
+        assert 0 < cam.render_lead_ns < 300_000_000   # the grab's own render time, not the set-up
+    finally:
+        cam.close()
+
+
+def test_on_a_manual_clock_open_renders_nothing(clock: ManualClock, monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[int] = []
+    monkeypatch.setattr("drivers.sim.camera.render_stereo", lambda *a, **k: calls.append(1))
+    cam = _camera(clock)
+    cam.open()
+    cam.close()
+    assert calls == []
 
 
 def test_one_stalled_render_is_not_followed_by_a_silence(
