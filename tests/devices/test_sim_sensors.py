@@ -22,7 +22,7 @@ SMALL = StereoCalibration.synthetic(image_size=(320, 240), f_px=300.0)
 
 def _camera(clock: ManualClock, **kw: object) -> SimStereoCamera:
     world = SimWorld(SimulationConfig(), FramesConfig(), clock)
-    return SimStereoCamera("camera", SimCameraConfig(driver="sim", **kw), clock, world, SMALL)  # type: ignore[arg-type]
+    return SimStereoCamera("camera", SimCameraConfig(driver="sim", **kw), clock, world, SMALL)
 
 
 def test_camera_lifecycle_and_sensor_has_no_motion_command(clock: ManualClock) -> None:
@@ -104,7 +104,7 @@ def test_on_the_wall_clock_the_renderers_set_up_is_paid_at_open_not_taken_for_th
     monkeypatch.setattr("drivers.sim.camera.render_stereo", first_slow)
     clock = MonotonicClock()
     world = SimWorld(SimulationConfig(), FramesConfig(), clock)
-    cam = SimStereoCamera("camera", SimCameraConfig(driver="sim", frame_rate_hz=15.0), clock, world, SMALL)  # type: ignore[arg-type]
+    cam = SimStereoCamera("camera", SimCameraConfig(driver="sim", frame_rate_hz=15.0), clock, world, SMALL)
     cam.open()
     try:
         assert len(calls) == 1                  # warmed up at open
@@ -209,7 +209,7 @@ def test_tracker_samples(devices: Devices, clock: ManualClock) -> None:
 
 def _tracker(clock: ManualClock, **kw: object) -> tuple[SimTracker, SimWorld]:
     world = SimWorld(SimulationConfig(), FramesConfig(), clock)
-    cfg = SimTrackerConfig(driver="sim", position_noise_mm=0.0, rotation_noise_rad=0.0, **kw)  # type: ignore[arg-type]
+    cfg = SimTrackerConfig(driver="sim", position_noise_mm=0.0, rotation_noise_rad=0.0, **kw)
     t = SimTracker("tracker", cfg, clock, world)
     t.open()
     return t, world
