@@ -9,7 +9,9 @@ a supervisor period) -> the supervisor checks the watchdogs and the robot
 (:mod:`~hil.controller.supervisor`) -> when a new pair arrived, perception identifies and tracks
 the markers into the estimate (:mod:`~hil.controller.markers`) -> the current phase publishes the
 pair's setpoint (``Phase.command``: COMPENSATE's, so the frame -> command latency carries nothing
-else) -> the camera cross-check and the frame's record -> the current phase steps
+else) -> the tracker is read and its watchdog judged, when its samples take no part in the
+markers (else it was read with the other devices) -> the camera cross-check and the frame's
+record -> the current phase steps
 (:mod:`~hil.controller.phases`) -> its commands are executed through the safety layer and its
 events are processed by the state machine, in order. Entering a state runs its phase's entry
 action the same way. Events are queued and processed one after the other, never fired from
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from drivers.interfaces.errors import DriverError
 from hil.controller import events as ev
@@ -32,12 +35,16 @@ from hil.controller.commands import Command, Hold, MoveLinear, Stop, Track
 from hil.controller.fsm import HALT_STATES, RECOVERY, Event, FireResult, State
 from hil.controller.inputs import TickInputs
 from hil.controller.metrics import RunSummary
-from hil.controller.operator_input import WakingOperator, as_command
+from hil.controller.operator_input import OperatorCommand, WakingOperator, as_command
 from hil.controller.parts import ControllerParts
 from hil.controller.phases.halt import HaltPhase
 from hil.errors import HilError
 from hil.log import get_logger
 from hil.safety.layer import SafetyViolationError
+
+if TYPE_CHECKING:
+    from drivers.interfaces.camera import StereoFrame
+    from drivers.interfaces.robot import RobotState
 
 _log = get_logger(__name__)
 
@@ -188,7 +195,8 @@ class Controller(ControllerParts):
         if command is not None:
             self._handle_operator(command)
         try:
-            st = self.pipeline.read(self.est, self._wake)
+            # the tracker after the pair's setpoint, unless its samples take part in the markers
+            st = self.pipeline.read(self.est, self._wake, defer_tracker=not self.roles.feeds_markers)
         except DriverError as exc:
             self.clock.sleep(self.frame_period_s)  # time moves on even when a device is gone
             self.fault(f"{exc.device}: {exc.message}")
@@ -196,23 +204,32 @@ class Controller(ControllerParts):
         if st is None:
             return  # an operator input waits: the next tick takes it before waiting for a pair
         self.fire(Event.ROBOT_STATE_RECEIVED)
-        if self.est.tracker_samples:
+        deferred = self.pipeline.tracker_deferred
+        if self.est.tracker_samples and not deferred:
             self.fire(Event.TRACKER_SAMPLE_RECEIVED)
-        reason = self.supervisor.check(self.clock.now_ns(), st, self.state)
+        reason = self.supervisor.check(self.clock.now_ns(), st, self.state,
+                                       frozenset({"tracker"}) if deferred else frozenset())
         if reason is not None:
             self.fault(reason)
             return
         frame = self.est.last_frame
         if frame is None or not self.pipeline.pair_arrived:
             return  # a supervisor tick without a new pair (pipeline module doc): no perception, no step
+        self._on_pair(frame, st, command)
+
+    def _on_pair(self, frame: StereoFrame, st: RobotState, command: OperatorCommand | None) -> None:
+        """A tick's new pair (module doc): markers, the setpoint, the deferred tracker, the
+        cross-check and the record, then the phase's step and what it asks for."""
         points = self.pipeline.located(frame)
         self.markers.update(self.est, points, frame.left.t_ns,
                             lambda: self.roles.reference_sensor(self.est, self.state))
         detected_ns = self.clock.now_ns()
-        inputs = TickInputs(detected_ns, command, frame, points, st, self.est.tracker_samples)
         phase = self.phases[self.state] if self.state in self.STEPPED else None
-        if phase is not None:
-            phase.command(inputs)   # the pair's setpoint first (latency); the judgement follows
+        if phase is not None:   # the pair's setpoint first (latency); the judgement follows
+            phase.command(TickInputs(detected_ns, command, frame, points, st, self.est.tracker_samples))
+        if self.pipeline.tracker_deferred and not self._read_deferred_tracker():
+            return
+        inputs = TickInputs(detected_ns, command, frame, points, st, self.est.tracker_samples)
         reason = self.crosscheck.check(self.est, frame, self.state)
         if reason is not None:
             self.fault(reason)
@@ -227,6 +244,22 @@ class Controller(ControllerParts):
                 self.execute(cmd)
             self._queue.extend(out.events)
             self._drain()
+
+    def _read_deferred_tracker(self) -> bool:
+        """The tracker read :meth:`_on_pair` deferred, and its watchdog judged; False when either
+        faulted (the tick ends)."""
+        try:
+            self.pipeline.read_tracker(self.est)
+        except DriverError as exc:
+            self.fault(f"{exc.device}: {exc.message}")
+            return False
+        if self.est.tracker_samples:
+            self.fire(Event.TRACKER_SAMPLE_RECEIVED)
+        reason = self.supervisor.check_watchdog("tracker", self.clock.now_ns())
+        if reason is not None:
+            self.fault(reason)
+            return False
+        return True
 
     @property
     def _wake(self) -> Callable[[], bool] | None:

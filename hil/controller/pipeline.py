@@ -15,6 +15,8 @@ and the tracker and feeds their watchdogs, and the tick goes on without a pair (
 raise the camera's DeviceTimeoutError. This holds where the wait is on a prefetcher, a perception feed or the
 simulated clock; a direct grab on the wall clock (``camera_prefetch = false``) blocks for the
 whole grab timeout, as a real camera driver may count a short timeout as a lost frame.
+On a pair the controller may have the tracker read after the pair's setpoint is out
+(:meth:`DevicePipeline.read` with ``defer_tracker``, then :meth:`DevicePipeline.read_tracker`).
 Errors: the devices' DriverError (a DeviceTimeoutError naming the camera when no pair arrives).
 """
 
@@ -97,6 +99,8 @@ class DevicePipeline:
                                     if supervisor_period_s is None else supervisor_period_s)
         #: whether the latest :meth:`read` brought a new pair (False: a tick without one)
         self.pair_arrived = False
+        #: whether the latest :meth:`read` left the tracker for :meth:`read_tracker`
+        self.tracker_deferred = False
         #: the clock when the first read waiting for the next pair began (None: not waiting); the
         #: grab timeout counts from there, as it counted from one blocking grab before
         self._waiting_since_ns: int | None = None
@@ -188,11 +192,16 @@ class DevicePipeline:
             return got.frame
         return self.camera.grab(timeout_s=timeout_s)
 
-    def read(self, est: Estimate, wake: Callable[[], bool] | None = None) -> RobotState | None:
+    def read(self, est: Estimate, wake: Callable[[], bool] | None = None,
+             defer_tracker: bool = False) -> RobotState | None:
         """The next pair (if one arrives within the supervisor period), the robot state and the
         tracker samples into ``est`` (module doc); feeds the watchdogs and sets
         :attr:`pair_arrived`. Returns the robot state, or None when ``wake`` (an operator input
         waits) ended the wait for the pair first (real time; nothing read).
+
+        ``defer_tracker``: when a pair arrived, leave the tracker for :meth:`read_tracker` (the
+        controller reads it once the pair's setpoint is out, when no tracker sample feeds that
+        setpoint); :attr:`tracker_deferred` says whether it was left.
 
         Raises:
             DeviceTimeoutError: no pair for the whole grab timeout since the last one (the camera's).
@@ -200,6 +209,7 @@ class DevicePipeline:
         """
         self.prefetched = None
         self.pair_arrived = False
+        self.tracker_deferred = False
         frame, woken = self._next_pair(wake)
         if woken:
             return None
@@ -212,13 +222,22 @@ class DevicePipeline:
         st = self.robot.state_now()
         est.record_robot_state(st)
         self.watchdogs["robot"].feed(st.t_ns, now)
-        if self.tracker is not None:
-            samples = self.tracker.latest()
-            est.tracker_samples = samples
-            fresh = [s.t_ns for s in samples.values() if not s.missing]
-            if fresh:
-                self.watchdogs["tracker"].feed(max(fresh), now)
+        self.tracker_deferred = defer_tracker and frame is not None and self.tracker is not None
+        if not self.tracker_deferred:
+            self.read_tracker(est)
         return st
+
+    def read_tracker(self, est: Estimate) -> None:
+        """The tracker's latest samples into ``est`` (nothing without a tracker); feeds its
+        watchdog with the newest fresh one. Raises the tracker's DriverError."""
+        self.tracker_deferred = False
+        if self.tracker is None:
+            return
+        samples = self.tracker.latest()
+        est.tracker_samples = samples
+        fresh = [s.t_ns for s in samples.values() if not s.missing]
+        if fresh:
+            self.watchdogs["tracker"].feed(max(fresh), self.clock.now_ns())
 
     def _next_pair(self, wake: Callable[[], bool] | None) -> tuple[StereoFrame | None, bool]:
         """Wait up to the supervisor period (or what is left of the grab timeout) for a pair:

@@ -62,11 +62,13 @@ class Supervisor:
         _log.warning(ev.FAULT_DETECTED, reason=reason, state=state.value)
         return True
 
-    def check(self, now_ns: int, st: RobotState | None, state: State) -> str | None:
-        """After the devices were read: the first watchdog that expired, a robot safety status
-        other than normal (outside FAULT), or a stopped robot program in a state that commands
-        the arm; None when all is well."""
-        for reason in self.watchdogs.check(now_ns):
+    def check(self, now_ns: int, st: RobotState | None, state: State,
+              skip: frozenset[str] = frozenset()) -> str | None:
+        """After the devices were read: the first watchdog that expired (but those named in
+        ``skip``: not read yet, checked by :meth:`check_watchdog` once read), a robot safety
+        status other than normal (outside FAULT), or a stopped robot program in a state that
+        commands the arm; None when all is well."""
+        for reason in self.watchdogs.check(now_ns, skip):
             return reason
         if st is not None and st.safety is not SafetyStatus.NORMAL and state is not State.FAULT:
             return f"robot: {st.safety.value}"
@@ -76,6 +78,11 @@ class Supervisor:
             # procedure must not wait on it. recover() (operator `recover`) restarts the program.
             return f"robot: program not running in {state.value} (mode stopped)"
         return None
+
+    def check_watchdog(self, name: str, now_ns: int) -> str | None:
+        """One watchdog's verdict (the reason, or None); None for a stream without one."""
+        dog = self.watchdogs.dogs.get(name)
+        return None if dog is None else dog.check(now_ns)
 
     # ------------------------------------------------------------------ stops
     def stop_robot(self, reason: str) -> None:

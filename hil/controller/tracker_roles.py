@@ -27,6 +27,12 @@ class TrackerRoles:
         self._reference_in_use = False
         self._reference_disagrees = False
 
+    @property
+    def feeds_markers(self) -> bool:
+        """Whether a tracker sample takes part in the marker update (a reference sensor backs up
+        and checks the skin markers' change): then the tracker is read before it."""
+        return self.use is not None and self.use.cfg.reference_sensor is not None
+
     def reference_sensor(self, est: Estimate, state: State) -> None:
         """When the skin markers give no rigid change this pair, the reference sensor's stands in
         (``reference_in_use``); when both give one, a difference at the entry beyond the configured
