@@ -210,6 +210,8 @@ def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
               f"{res.frames_overwritten} overwritten; {res.stale_periods} period(s) on a stale "
               f"setpoint, {res.setpoint_busy_periods} on the last one (a write in progress)\n")
     out.write(f"frame->command       {_fmt(res.frame_to_command_ms)} ms (p50/p99/max)\n")
+    out.write(f"frame->setpoint      {_fmt(res.frame_to_setpoint_ms)} ms (p50/p99/max; the supervisor's "
+              f"part, before the loop's next period)\n")
     out.write(f"latency bound        {_latency_bound(res)}\n")
     out.write(f"stop->command        {_fmt(res.stop_to_command_ms)} ms (p50/p99/max)\n")
     where = "perception process" if res.perception_rss_mb else "supervisor"

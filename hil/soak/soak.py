@@ -11,7 +11,9 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
 - *missed deadline*: an interval longer than ``2 T`` (a period passed without the loop running);
   ``longest_gap_ms`` is the worst.
 - *frame-to-command latency*: exposure time of a stereo pair -> the first servo command the loop
-  computed from that pair's setpoint.
+  computed from that pair's setpoint. ``frame_to_setpoint_ms``: its supervisor part, the exposure
+  -> the pair's setpoint handed to the loop (the rest is the wait for the loop's next period and
+  that period's work).
 - *memory growth*: resident set size of the supervisor (``rss_mb``), of the servo process
   (``servo_rss_mb``) and of the perception process (``perception_rss_mb``, when it runs) at the
   end minus after the warm-up (the first quarter of the compensation time, at most 30 s), and the
@@ -141,6 +143,8 @@ class SoakResult:
     #: the controller's own count: stream commands late by more than a period (slots skipped)
     stream_deadlines_missed: int = 0
     frame_to_command_ms: dict[str, float | None] = field(default_factory=dict)
+    #: p50/p99/max of the exposure -> the setpoint handed to the loop, ms (module doc)
+    frame_to_setpoint_ms: dict[str, float | None] = field(default_factory=dict)
     frame_boundaries: int = 0
     frame_boundary_missed: int = 0
     #: p50/p99/max of the frame-boundary intervals, ms
@@ -563,6 +567,7 @@ def analyse(
     res.setpoint_busy_periods = figs.setpoint_busy
     res.stream_deadlines_missed = ctl.servo_deadlines_missed
     res.compensation_frames = len(ctl.latency_ms)
+    res.frame_to_setpoint_ms = _stats(list(ctl.latency_ms))
     res.frames_overwritten = ctl.frames_overwritten
     res.rss_mb = _rss_figures([(t, m) for t, m, _ in rss], operator.t_comp, minutes)
     res.servo_rss_mb = _rss_figures([(t, m) for t, _, m in rss], operator.t_comp, minutes)
