@@ -47,8 +47,12 @@ from plugins.registry import DriverContext
 
 #: never render further ahead of the clock than this (real time only; see SimStereoCamera.grab)
 _MAX_RENDER_LEAD_NS = 500_000_000
-#: the lead is the median of this many of the last render times (SimStereoCamera.render_lead_ns)
+#: the lead follows the median of this many of the last render times (SimStereoCamera.render_lead_ns)
 _RENDER_LEAD_WINDOW = 5
+#: ... and covers the longest of this many (3 s at 30 Hz), up to the latency less a guard
+_RENDER_PEAK_WINDOW = 90
+#: how long after the exposure a render covering a peak starts, at the earliest (ns)
+_RENDER_PEAK_GUARD_NS = 2_000_000
 
 
 class SimCameraConfig(BaseModel):
@@ -107,8 +111,8 @@ class SimStereoCamera(StereoCamera):
         self.last_truth: tuple[MarkerTruth, ...] = ()        # markers at the left exposure
         self.last_truth_right: tuple[MarkerTruth, ...] = ()  # markers at the right exposure
         self.frames_rendered = 0
-        # clock time the last renders took (none on a manual clock); their median is the lead
-        self._render_ns: deque[int] = deque(maxlen=_RENDER_LEAD_WINDOW)
+        # clock time the last renders took (none on a manual clock): the lead (render_lead_ns)
+        self._render_ns: deque[int] = deque(maxlen=_RENDER_PEAK_WINDOW)
 
     def _open(self) -> None:
         self._t0_ns = self.clock.now_ns()
@@ -150,19 +154,35 @@ class SimStereoCamera(StereoCamera):
 
     @property
     def render_lead_ns(self) -> int:
-        """How long before a pair is due its render starts (ns of clock time): the median of the
-        last :data:`_RENDER_LEAD_WINDOW` render times, at most :data:`_MAX_RENDER_LEAD_NS`; 0 before
-        the first render and on a manual clock (rendering takes no simulated time).
+        """How long before a pair is due its render starts (ns of clock time): the longest of the
+        last :data:`_RENDER_PEAK_WINDOW` render times, but at most the latency less
+        :data:`_RENDER_PEAK_GUARD_NS`, and at least the median of the last
+        :data:`_RENDER_LEAD_WINDOW`; never more than :data:`_MAX_RENDER_LEAD_NS`. 0 before the first
+        render and on a manual clock (rendering takes no simulated time).
 
-        A median, not a peak: a render stretched by a stall of the whole process (the host, or a
-        library holding the interpreter lock -- ur_rtde's client constructors do, for ~0.65 s, when
-        recover() rebuilds them) says nothing of the next one. A peak-hold took that stall as the
-        lead, so the camera then rendered a pair that far ahead and delivered nothing until it was
-        due: every stall was followed by a silence as long again (a transport run's camera data
-        1.5 s old after the robot's recovery). A real camera delivers the next frame on time."""
+        The peak: render times on a shared machine come in runs (18 ms for a while, then 25-30 ms
+        for a while, on this project's 2-CPU VM), and a pair whose render overruns the lead is
+        delivered that much late. The lead used to be the median of the last five, so every
+        render above it was late: a 30 ms camera delivered at p99 40 ms, and that spike ate the
+        issue's whole frame -> command margin. Covering the recent peak up to the latency means a
+        render starts at most once the exposure is :data:`_RENDER_PEAK_GUARD_NS` old, so the world
+        is rendered from poses the arm reported around the exposure, never ahead of it.
+
+        The cap: a render stretched by a stall of the whole process (the host, or a library
+        holding the interpreter lock -- ur_rtde's client constructors do, for ~0.65 s, when
+        recover() rebuilds them) says nothing of the next one. A lead that took such a stall whole
+        made the camera render the next pair that far ahead and deliver nothing until it was due:
+        every stall was followed by a silence as long again (a transport run's camera data 1.5 s
+        old after the robot's recovery). Capped below the latency, a stall costs nothing after it.
+
+        The median floor: a renderer slower than the latency every time (a loaded machine) still
+        starts that long ahead, so its pairs are delivered latency-old; the exposure then lies up
+        to the render time ahead of the clock (see :meth:`grab`)."""
         if not self._render_ns:
             return 0
-        return min(round(statistics.median_low(self._render_ns)), _MAX_RENDER_LEAD_NS)
+        recent = list(self._render_ns)[-_RENDER_LEAD_WINDOW:]
+        covered = min(max(self._render_ns), max(self._latency_ns - _RENDER_PEAK_GUARD_NS, 0))
+        return min(max(round(statistics.median_low(recent)), covered), _MAX_RENDER_LEAD_NS)
 
     def exposure_time_ns(self, k: int) -> int:
         return self._t0_ns + k * self._period_ns

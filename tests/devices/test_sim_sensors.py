@@ -59,18 +59,22 @@ def test_late_grab_returns_the_newest_pair(clock: ManualClock) -> None:
     assert cam.frames_rendered == 1     # skipped frames were never rendered
 
 
-def _rendering_takes(clock: ManualClock, monkeypatch: pytest.MonkeyPatch, durations_s: list[float]) -> None:
+def _rendering_takes(clock: ManualClock, monkeypatch: pytest.MonkeyPatch,
+                     durations_s: list[float]) -> list[int]:
     """Each render advances ``clock`` by the next of ``durations_s``: rendering taking clock time,
-    as it does on the wall clock."""
+    as it does on the wall clock. Returns the list the renders' start times (ns) go to."""
     from hil.vision.render import render_stereo
 
     left = iter(durations_s)
+    starts: list[int] = []
 
     def timed(*args: Any, **kwargs: Any) -> Any:
+        starts.append(clock.now_ns())
         clock.advance(next(left))
         return render_stereo(*args, **kwargs)
 
     monkeypatch.setattr("drivers.sim.camera.render_stereo", timed)
+    return starts
 
 
 def test_a_render_starts_its_render_time_before_the_pair_is_due(
@@ -144,6 +148,34 @@ def test_one_stalled_render_is_not_followed_by_a_silence(
     after = cam.grab(1.0)          # the newest pair due once rendered: seq 12, due at 1,230 ms
     assert (after.left.seq, clock.now_ns() - t0) == (12, 1_230_000_000)
     assert after.left.t_ns - t0 == 1_200_000_000
+
+
+def test_the_lead_covers_the_recent_peak_render_up_to_the_latency(
+        clock: ManualClock, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Renders that come in runs of different lengths: once a longer render has been seen, the
+    next ones start early enough to cover it (a median lead left every render above it late);
+    a stall raises the lead only to the latency less the guard, so the pair after it still comes
+    on time, rendered after its exposure."""
+    starts = _rendering_takes(clock, monkeypatch, [0.010] * 5 + [0.020, 0.018, 0.500, 0.010, 0.010])
+    cam = _camera(clock, frame_rate_hz=10.0, latency_ms=30.0)
+    cam.open()
+    t0 = clock.now_ns()
+
+    def grab() -> tuple[int, int]:
+        pair = cam.grab(1.0)
+        return pair.left.seq, (clock.now_ns() - t0) // 1_000_000
+
+    assert [grab() for _ in range(5)] == [(0, 40), (1, 130), (2, 230), (3, 330), (4, 430)]
+    assert cam.render_lead_ns == 10_000_000
+    assert grab() == (5, 540)              # 20 ms from 520: 10 ms late
+    assert cam.render_lead_ns == 20_000_000   # the peak (the median of the last five is 10 ms)
+    assert grab() == (6, 630)              # 18 ms from 610: on time (a median lead: 638)
+    assert grab() == (7, 1210)             # a 500 ms stall from 710
+    assert cam.render_lead_ns == 28_000_000   # the latency less the 2 ms guard, not the stall
+    assert grab() == (12, 1230)            # the newest pair due once rendered, on time
+    assert grab() == (13, 1330)
+    # pair 12 rendered at once after the stall; pair 13 from 2 ms after its exposure (1,300 ms)
+    assert [(t - t0) // 1_000_000 for t in starts[-2:]] == [1210, 1302]
 
 
 def test_grab_timeout(clock: ManualClock) -> None:
