@@ -7,8 +7,9 @@ Definitions (the loop's own clock readings, each period's wake-up time):
 - *jitter*: ``|interval - T|``; its percentiles come from the 10 µs interval histogram (a value is
   the centre of its bin, so figures are good to ±5 µs).
 - *late*: intervals over ``2 T`` (a period passed without the loop running).
-- *latency*: a stereo pair's exposure -> the first servo command the loop computed from the
-  setpoint of that pair (0.1 ms bins).
+- *latency*: a stereo pair's exposure -> the driver took the first servo command the loop
+  computed from the setpoint of that pair (0.1 ms bins; the following supervision after it is not
+  counted).
 """
 
 from __future__ import annotations

@@ -233,17 +233,17 @@ class ServoLoop:
                 self._refuse(sp, ("setpoint", str(exc)))
                 return 0
         cmd = self.limiter.step(desired, self.period_s, sp.speed_scale)
-        if not self._send(sp, st, prev, cmd, now_ns):
+        sent_ns = self._send(sp, st, prev, cmd, now_ns)
+        if sent_ns is None:
             return 0
         v = self.limiter.velocity_mm_s
         if v is not None:
             self._v_prev[:] = v
-        t = self.clock.now_ns()
         self.stats.c[Stat.COMMANDS] += 1
         if sp.seq != self._latency_seq and not self._stale and not hold:
             self._latency_seq = sp.seq
-            self.stats.add_latency(t - sp.exposure_t_ns)
-        return t
+            self.stats.add_latency(sent_ns - sp.exposure_t_ns)
+        return sent_ns
 
     def _move(self, sp: Setpoint, st: RobotState, now_ns: int) -> int:
         """One period of a MOVE (:mod:`hil.servo.trajectory`): the profile's pose at this period,
@@ -261,7 +261,8 @@ class ServoLoop:
         t_s = self._move_periods * self.period_s
         cmd, v_mm_s, w_rad_s = move.pose_at(t_s)
         done = move.done(t_s)
-        if not self._send(sp, st, prev, cmd, now_ns):
+        sent_ns = self._send(sp, st, prev, cmd, now_ns)
+        if sent_ns is None:
             return 0
         self.limiter.command = cmd
         self.limiter.velocity_mm_s = v_mm_s
@@ -271,9 +272,8 @@ class ServoLoop:
         if done and c[Stat.MOVE_DONE_ID] != sp.track_id:
             c[Stat.MOVE_DONE_ID] = sp.track_id
             self.report(EV_MOVE_DONE, {"move_id": sp.track_id, "duration_s": round(move.duration_s, 4)})
-        t = self.clock.now_ns()
         c[Stat.COMMANDS] += 1
-        return t
+        return sent_ns
 
     def _start_move(self, sp: Setpoint, st: RobotState) -> bool:
         """A new move ``sp`` from the actual pose at rest (False: its target was refused)."""
@@ -303,15 +303,16 @@ class ServoLoop:
         return True
 
     def _send(self, sp: Setpoint, st: RobotState, prev: RigidTransform, cmd: RigidTransform,
-              now_ns: int) -> bool:
+              now_ns: int) -> int | None:
         """The merged step check, the servo command and the following supervision of one
-        period's command ``cmd`` after ``prev``. False when it was refused, failed or the
-        arm does not follow (reported; a refusal or following fault ended the session and stopped
-        the arm)."""
+        period's command ``cmd`` after ``prev``. Returns the clock time the driver took the
+        command (the command time of the loop's latency and of the ring), or None when it was
+        refused, failed or the arm does not follow (reported; a refusal or following fault ended
+        the session and stopped the arm)."""
         why = servo_step_violation(self.limits, prev.R, prev.t, self._v_prev, cmd.R, cmd.t, self.period_s)
         if why is not None:
             self._refuse(sp, why)
-            return False
+            return None
         try:
             self.robot.servo(cmd, self.period_s)
         except DriverError as exc:
@@ -322,7 +323,8 @@ class ServoLoop:
                                                 "wire": error_to_wire(exc)})
             self._track_id = None   # restart from the actual pose once it works again
             self.following.stop()
-            return False
+            return None
+        sent_ns = self.clock.now_ns()
         self._cmd_failing = False
         T_act = st.T_robot_from_tcp
         fault = self.following.update(now_ns, cmd.R, cmd.t, T_act.R, T_act.t, st.sample_t_ns)
@@ -331,9 +333,9 @@ class ServoLoop:
             self.report(EV_FOLLOWING, {"message": fault.message(), "frame_seq": sp.frame_seq,
                                        **fault.fields()})
             self._halt(sp)   # after the report: the stop can block (see _refuse)
-            return False
+            return None
         self._note_peak()
-        return True
+        return sent_ns
 
     def _extrapolate(self, sp: Setpoint, now_ns: int) -> RigidTransform:
         h = (now_ns - sp.t_ref_ns) * 1e-9 + sp.lead_s

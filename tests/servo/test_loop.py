@@ -27,7 +27,7 @@ from hil.servo.loop import (
     EV_STOP_FAILED,
     ServoLoop,
 )
-from hil.servo.shm import ServoMode, SetpointBlock, ShmRegion, Stat
+from hil.servo.shm import LATENCY_BIN_NS, RingRecord, ServoMode, SetpointBlock, ShmRegion, Stat
 from tests.controller.fakes import DroppingRobot
 
 PERIOD_S = 0.008
@@ -140,6 +140,33 @@ def test_tracking_follows_the_extrapolated_setpoint_within_the_limits(rig: Any) 
     assert float(np.linalg.norm(steps, axis=1).max()) <= 60.0 + 1e-6   # the tracking speed limit
     assert regions.stats.get(Stat.REFUSALS) == 0
     assert regions.stats.get(Stat.LATENCY_SAMPLES) == 1   # one setpoint: its first command measured
+
+
+def test_the_command_time_is_when_the_driver_took_the_command(
+        rig: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The latency (exposure -> command) and the ring's command time stop when the driver has taken
+    the command: the following supervision that comes after it is not part of them."""
+    clock, robot, regions, loop, _ = rig
+    sent = robot.servo
+
+    def servo_taking_1_ms(T: RigidTransform, period_s: float) -> None:
+        sent(T, period_s)
+        clock.advance(0.001)
+
+    def update_taking_3_ms(*args: Any) -> Any:
+        clock.advance(0.003)
+        return None
+
+    monkeypatch.setattr(robot, "servo", servo_taking_1_ms)
+    monkeypatch.setattr(loop.following, "update", update_taking_3_ms)
+    _track(regions.block, clock, robot.pose.t.copy(), valid_s=10.0)   # exposed 30 ms before now
+    t_step = clock.now_ns()
+    loop.step(t_step)
+    rec = regions.ring.read_latest(RingRecord())
+    assert rec is not None
+    assert rec.cmd_t_ns == t_step + 1_000_000
+    assert int(np.flatnonzero(regions.stats.latency_hist)[0]) == 31_000_000 // LATENCY_BIN_NS   # 31 ms
+    assert regions.stats.get(Stat.LATENCY_SAMPLES) == 1
 
 
 def test_a_write_in_progress_never_holds_the_period(rig: Any) -> None:
