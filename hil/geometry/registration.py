@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hil.errors import DegenerateConfigurationError, GeometryError
-from hil.geometry.transform import RigidTransform, as_points
+from hil.geometry.transform import RigidTransform, as_points, quaternion_to_matrix
 
 FloatArray = NDArray[np.float64]
 
@@ -28,6 +28,9 @@ FloatArray = NDArray[np.float64]
 COLLINEAR_REL_TOL = 1e-6
 #: Absolute spread (mm) below which a point set counts as coincident (all points at one place).
 COINCIDENT_TOL_MM = 1e-9
+
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
 
 
 @dataclass(frozen=True)
@@ -55,7 +58,11 @@ def check_point_configuration(points: ArrayLike, name: str = "points", min_point
         GeometryError: wrong shape, NaN/inf, or fewer than ``min_points`` points.
         DegenerateConfigurationError: all points coincident, or all on one line.
     """
-    pts = as_points(points, name)
+    return _check_configuration(as_points(points, name), name, min_points)
+
+
+def _check_configuration(pts: FloatArray, name: str, min_points: int = 3) -> FloatArray:
+    """:func:`check_point_configuration` of points :func:`as_points` already validated."""
     n = pts.shape[0]
     if n < min_points:
         raise GeometryError(f"{name}: {n} point(s) given, at least {min_points} are needed")
@@ -91,9 +98,13 @@ def _validate(
             raise GeometryError("weights must be finite and non-negative")
         if int(np.count_nonzero(w > 0)) < 3:
             raise GeometryError("at least 3 point pairs need a positive weight")
-    active = w > 0
-    check_point_configuration(f[active], "fixed")
-    check_point_configuration(m[active], "moving")
+    if weights is None:   # every pair takes part
+        _check_configuration(f, "fixed")
+        _check_configuration(m, "moving")
+    else:
+        active = w > 0
+        _check_configuration(f[active], "fixed")
+        _check_configuration(m[active], "moving")
     return f, m, w
 
 
@@ -141,7 +152,7 @@ def horn_matrix(A: ArrayLike) -> FloatArray:
     C[0, 0] = tr
     C[0, 1:] = delta
     C[1:, 0] = delta
-    C[1:, 1:] = A_ + A_.T - tr * np.eye(3)
+    C[1:, 1:] = A_ + A_.T - tr * _EYE3
     return C
 
 
@@ -169,9 +180,8 @@ def register_horn(fixed: ArrayLike, moving: ArrayLike, weights: ArrayLike | None
     f_bar, m_bar, A = _weighted_cross_covariance(f, m, w)
     C = horn_matrix(A)
     _, vecs = np.linalg.eigh(C)  # ascending eigenvalues
-    q = vecs[:, -1]
-    R = RigidTransform.from_quaternion(q).R
-    return _finish(f, m, w, np.array(R), f_bar, m_bar, "horn")
+    R = quaternion_to_matrix(vecs[:, -1])   # eq 16 (a fresh array)
+    return _finish(f, m, w, R, f_bar, m_bar, "horn")
 
 
 def register_svd(fixed: ArrayLike, moving: ArrayLike, weights: ArrayLike | None = None) -> Registration:
