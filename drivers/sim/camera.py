@@ -164,9 +164,11 @@ class SimStereoCamera(StereoCamera):
         for a while, on this project's 2-CPU VM), and a pair whose render overruns the lead is
         delivered that much late. The lead used to be the median of the last five, so every
         render above it was late: a 30 ms camera delivered at p99 40 ms, and that spike ate the
-        issue's whole frame -> command margin. Covering the recent peak up to the latency means a
-        render starts at most once the exposure is :data:`_RENDER_PEAK_GUARD_NS` old, so the world
-        is rendered from poses the arm reported around the exposure, never ahead of it.
+        issue's whole frame -> command margin. Covered up to the latency less
+        :data:`_RENDER_PEAK_GUARD_NS`, a render starts once its exposure is in the past; the arm's
+        pose at the exposure then comes from the servo loop's records around it (with the
+        perception process: :class:`hil.perception.follow.RingFlangeSource`, which carries the
+        last records' motion on for up to one servo period when the newest is older).
 
         The cap: a render stretched by a stall of the whole process (the host, or a library
         holding the interpreter lock -- ur_rtde's client constructors do, for ~0.65 s, when

@@ -13,6 +13,10 @@ from hil.servo.shm import RingRecord, ShmRegion, StateRing, ring_words
 
 #: How many records back (from the newest) a pose is looked for: 1000 periods is 2 s at 500 Hz.
 MAX_BACK = RING_SLOTS - 24
+#: How far past the newest record a pose is extrapolated, in the spacing of the last two records
+#: (one servo period): a camera renders a pair from 2 ms after its exposure, before the loop of a
+#: CB3 (8 ms a period) may have recorded the arm there. Further on the pose stays at that bound.
+MAX_AHEAD_SPANS = 1.0
 
 
 @runtime_checkable
@@ -34,8 +38,10 @@ class RingFlangeSource:
     """``T_robot_from_flange_at`` from the servo's state ring (a world's flange source).
 
     The pose at ``t_ns`` is interpolated between the two records around it (translation linear,
-    rotation along the geodesic); after the newest record, the newest; before the oldest still
-    kept, the oldest. Before the loop's first record: None (the world then sees no flange).
+    rotation along the geodesic); after the newest record, extrapolated along the last two records
+    for up to :data:`MAX_AHEAD_SPANS` of their spacing and held there (the newest alone: held);
+    before the oldest still kept, the oldest. Before the loop's first record: None (the world then
+    sees no flange).
 
     Args:
         ring_name: the servo process's state-ring segment.
@@ -60,18 +66,26 @@ class RingFlangeSource:
         if newer is None:
             return None
         if newer.t_ns <= t_ns:
-            return self._pose(newer)
+            older = self.ring.read_back(1, self._older)
+            if older is None or older.t_ns >= newer.t_ns:
+                return self._pose(newer)
+            span = newer.t_ns - older.t_ns
+            return self._between(older, newer, min((t_ns - older.t_ns) / span, 1.0 + MAX_AHEAD_SPANS))
         for back in range(1, MAX_BACK):
             older = self.ring.read_back(back, self._older)
             if older is None:
                 break
             if older.t_ns <= t_ns:
                 span = newer.t_ns - older.t_ns
-                s = 0.0 if span <= 0 else (t_ns - older.t_ns) / span
-                a, b = self._pose(older), self._pose(newer)
-                rel = RigidTransform(a.R.T @ b.R, np.zeros(3))
-                R = a.R @ RigidTransform.from_rotvec(s * rel.as_rotvec()).R
-                return RigidTransform(R, a.t + s * (b.t - a.t))
+                return self._between(older, newer, 0.0 if span <= 0 else (t_ns - older.t_ns) / span)
             self._newer, self._older = self._older, self._newer
             newer = self._newer
         return self._pose(newer)
+
+    def _between(self, older: RingRecord, newer: RingRecord, s: float) -> RigidTransform:
+        """The flange pose a fraction ``s`` of the way from ``older`` to ``newer`` (beyond 1:
+        extrapolated along the same line and geodesic)."""
+        a, b = self._pose(older), self._pose(newer)
+        rel = RigidTransform(a.R.T @ b.R, np.zeros(3))
+        R = a.R @ RigidTransform.from_rotvec(s * rel.as_rotvec()).R
+        return RigidTransform(R, a.t + s * (b.t - a.t))

@@ -55,10 +55,35 @@ def test_poses_between_records_are_interpolated(ring_and_source: tuple[StateRing
 Fixture = tuple[StateRing, RingFlangeSource]
 
 
-def test_outside_the_records_the_nearest_one_stands(ring_and_source: Fixture) -> None:
+def test_past_the_newest_record_the_motion_goes_on_for_one_period_then_holds(
+        ring_and_source: Fixture) -> None:
+    """A pair rendered before the loop recorded the arm at its exposure (a CB3's 8 ms period): the
+    last two records' motion carries on for one of their spacings, no further."""
     _, source = ring_and_source
-    assert _tcp_x(source, 10**12) == pytest.approx(49.0)      # after the newest
-    assert _tcp_x(source, 0) == pytest.approx(0.0)            # before the oldest kept
+    newest_ns = 10**9 + 49 * 2_000_000
+    assert _tcp_x(source, newest_ns) == pytest.approx(49.0)
+    assert _tcp_x(source, newest_ns + 1_000_000) == pytest.approx(49.5)
+    assert _tcp_x(source, newest_ns + 2_000_000) == pytest.approx(50.0)
+    assert _tcp_x(source, 10**12) == pytest.approx(50.0)      # held at one spacing ahead
+
+
+def test_before_the_oldest_record_the_oldest_stands(ring_and_source: Fixture) -> None:
+    _, source = ring_and_source
+    assert _tcp_x(source, 0) == pytest.approx(0.0)
+
+
+def test_a_single_record_is_held() -> None:
+    region = ShmRegion.create(ring_words(RING_SLOTS))
+    source = RingFlangeSource(str(region.name), T_FLANGE_FROM_TCP)
+    try:
+        StateRing(region, RING_SLOTS).write(
+            t_ns=10**9, cmd_t_ns=0, safety_code=0, mode_code=0, period=0, servo_mode=0,
+            pose=np.concatenate([np.eye(3).reshape(9), [7.0, 0.0, 0.0]]), q_rad=np.zeros(6),
+            tcp_speed_mm_s=0.0)
+        assert _tcp_x(source, 10**9 + 5_000_000) == pytest.approx(7.0)
+    finally:
+        source.close()
+        region.close()
 
 
 def test_the_flange_is_the_tcp_moved_back_along_the_tool(ring_and_source: Fixture) -> None:
