@@ -10,15 +10,14 @@ import pytest
 from emulators.ursim import protocol as proto
 from emulators.ursim.controller import (
     HOME_Q,
-    RT_CMDS,
     ControllerVersion,
     RuntimeState,
     SafetyMode,
     UrController,
-    _matrix_to_pose,
-    parse_program,
 )
 from emulators.ursim.motion import trapezoid
+from emulators.ursim.pose import matrix_to_pose
+from emulators.ursim.script import RT_CMDS, parse_program
 from emulators.ursim.server import Emulator, Ports
 from emulators.ursim.urscript import ScriptSyntaxError, parse_program_body, parse_statement
 from hypothesis import given
@@ -69,7 +68,7 @@ def test_handshake_ready_done_clear() -> None:
     c = make()
     assert c.runtime_state is RuntimeState.PLAYING
     assert c.out_int[0] == 1  # ready
-    pose = np.array(_matrix_to_pose(c.tcp))
+    pose = np.array(matrix_to_pose(c.tcp))
     target = pose.copy()
     target[2] += 0.05
     command(c, 3, [*target, 0.1, 0.5])
@@ -77,7 +76,7 @@ def test_handshake_ready_done_clear() -> None:
     assert c.out_int[0] == 1  # busy: still "ready" until the blocking movel is done
     n = run_until(c, lambda: c.out_int[0] == 2)
     assert n * c.dt_s == pytest.approx(0.7, abs=2 * c.dt_s)  # 50 mm at 0.1 m/s, 0.5 m/s^2
-    np.testing.assert_allclose(_matrix_to_pose(c.tcp)[:3], target[:3], atol=1e-9)
+    np.testing.assert_allclose(matrix_to_pose(c.tcp)[:3], target[:3], atol=1e-9)
     command(c, 0, [])
     c.tick()
     assert c.out_int[0] == 1
@@ -148,16 +147,16 @@ def test_rtde_watchdog_stops_the_program_when_not_kicked() -> None:
 
 def test_servo_follows_with_lag_and_settles() -> None:
     c = make()
-    target = np.array(_matrix_to_pose(c.tcp))
+    target = np.array(matrix_to_pose(c.tcp))
     target[0] += 0.01
     command(c, 24, [*target, 0.5, 0.5, 0.008, 0.1, 300.0])
     c.tick()
     for _ in range(3):  # 24 ms after the step it is still well short (lag ~33 ms)
         c.tick()
-    assert _matrix_to_pose(c.tcp)[0] - (target[0] - 0.01) < 0.008
+    assert matrix_to_pose(c.tcp)[0] - (target[0] - 0.01) < 0.008
     for _ in range(200):
         c.tick()
-    assert _matrix_to_pose(c.tcp)[0] == pytest.approx(target[0], abs=1e-7)
+    assert matrix_to_pose(c.tcp)[0] == pytest.approx(target[0], abs=1e-7)
 
 
 def test_unreachable_movel_faults_the_program() -> None:

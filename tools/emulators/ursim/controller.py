@@ -1,38 +1,28 @@
-"""The emulated UR controller: arm state, the ``rtde_control`` script's command handshake, safety.
+"""The emulated UR controller: arm state, the program's lifecycle, safety, RTDE outputs.
 
 No sockets here: the servers feed input registers, uploaded programs and dashboard commands in,
 call :meth:`UrController.tick` at the controller rate and read :meth:`UrController.outputs`.
-Units are UR's (metres, radians, seconds). The handshake mirrors ``scripts/rtde_control.script`` of
-ur-rtde 1.6.5: output_int_register_0 = 1 ready / 2 done, real-time commands (servo*, speed*) are
-processed every tick and signal ready, other commands run once per command and signal done.
+Units are UR's (metres, radians, seconds). The program itself (ur-rtde's ``rtde_control`` script,
+modelled by its register handshake, or a URScript program) is run by the controller's
+:class:`~emulators.ursim.script.ControlScript`.
 """
 
 from __future__ import annotations
 
 import math
-import re
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from emulators.ursim.motion import (
-    JointMove,
-    LinearMove,
-    Motion,
-    MotionError,
-    PathMove,
-    Servo,
-    SpeedJ,
-    SpeedL,
-)
-from emulators.ursim.urscript import ScriptSyntaxError, Statement, parse_program_body
-from hil.errors import GeometryError
-from hil.geometry.transform import RigidTransform, matrix_to_rotvec, rotvec_to_matrix
+from emulators.ursim.motion import Motion, MotionError, SpeedJ
+from emulators.ursim.pose import fast_rotvec, matrix_to_pose
+from emulators.ursim.script import ControlScript, Program, parse_program
+from hil.geometry.transform import RigidTransform
 from hil.kinematics.ur import ur_inverse, ur_joint_frames
 
 FloatArray = NDArray[np.float64]
@@ -42,9 +32,6 @@ _FAR_M = 100.0
 
 HOME_Q = np.array([0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0])
 
-# Commands the control script treats as real time: processed every tick, then "ready".
-RT_CMDS = frozenset({24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
-STOP_SCRIPT = 255
 PROTECTIVE_STOP_DECEL_RAD_S2 = 20.0
 PROGRAM_STOP_DECEL_RAD_S2 = 5.0
 
@@ -108,81 +95,6 @@ class ControllerVersion:
         return f"{self.major}.{self.minor}.{self.bugfix}.{self.build}"
 
 
-@dataclass
-class Program:
-    """An uploaded program: ur-rtde's ``rtde_control`` script (modelled by its register handshake)
-    or any other program, run statement by statement in the URScript subset of ``urscript.py``."""
-
-    name: str
-    text: str
-    is_rtde_control: bool
-    reg_offset: int = 0
-    move_path: list[Motion] = field(default_factory=list)
-    statements: list[Statement] = field(default_factory=list)
-    parse_error: str = ""
-
-
-_MOVE_LINE = re.compile(
-    r"^\s*(movel|movej)\((p?)\[([^\]]*)\]\s*,\s*a=([-+0-9.eE]+)\s*,\s*v=([-+0-9.eE]+)", re.MULTILINE)
-
-
-def parse_program(text: str) -> Program:
-    m = re.match(r"\s*def\s+([A-Za-z_][A-Za-z0-9_]*)\s*\(", text)
-    name = m.group(1) if m else "script"
-    is_ctl = name == "rtde_control" and "rtde_cmd()" in text
-    offset = 0
-    mo = re.search(r"reg_offset_int = # int register offset\n(\d+)", text)
-    if mo:
-        offset = int(mo.group(1))
-    moves: list[Motion] = []
-    if "# inject move path\n" in text:
-        seg = text.split("# inject move path\n", 1)[1]
-        seg = seg.split("\n    end", 1)[0]
-        for kind, is_pose, vals, a, v in _MOVE_LINE.findall(seg):
-            target = np.array([float(x) for x in vals.split(",")])
-            if kind == "movel":
-                T = _pose_to_matrix(target) if is_pose else None
-                if T is not None:
-                    moves.append(LinearMove(T, float(v), float(a)))
-            else:
-                moves.append(JointMove(target, float(v), float(a)))
-    statements: list[Statement] = []
-    error = ""
-    if not is_ctl:
-        try:
-            statements = parse_program_body(text)
-        except ScriptSyntaxError as exc:
-            error = str(exc)
-    return Program(name, text, is_ctl, offset, moves, statements, error)
-
-
-def _pose_to_matrix(pose: Any) -> FloatArray:
-    p = np.asarray(pose, dtype=np.float64)
-    T = np.eye(4)
-    T[:3, :3] = rotvec_to_matrix(p[3:6])
-    T[:3, 3] = p[:3]
-    return T
-
-
-def _fast_rotvec(R: FloatArray) -> FloatArray:
-    """Rotation vector of a rotation matrix the controller made itself (no validation: hot path)."""
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    c = (float(R[0, 0] + R[1, 1] + R[2, 2]) - 1.0) / 2.0
-    if c < -0.99:  # near pi the axis needs the symmetric part: use the validated path
-        return matrix_to_rotvec(R)
-    s2 = float(np.linalg.norm(v))  # 2 sin(angle)
-    if s2 < 1e-300:
-        return np.zeros(3)
-    angle = math.atan2(s2 / 2.0, c)
-    out: FloatArray = v * (angle / s2)
-    return out
-
-
-def _matrix_to_pose(T: FloatArray) -> tuple[float, ...]:
-    rv = _fast_rotvec(T[:3, :3])
-    return (float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), float(rv[0]), float(rv[1]), float(rv[2]))
-
-
 class UrController:
     """The robot controller model. Not thread-safe: the server calls it from one event loop.
 
@@ -217,21 +129,17 @@ class UrController:
         self.motion: Motion | None = None
         self.blocking = False           # the script's main loop waits for the current motion
         self.async_running = False      # a move_thread / stop_thread is active
-        self.executing_cmd = False
+        self.executing_cmd = False      # the command in the register ran (cleared when it is 0 again)
         self.stalled = False
         self.slow_responses_s = 0.0
         self.speed_scaling = 1.0
         self.watchdog_hz: float | None = None
         self.last_kick_s = 0.0
-        self._cmd_seen: tuple[int, float] | None = None
-        self._async_wr_count = 0
-        self._async_op_id = 0
         self.events: deque[str] = deque(maxlen=50)
         self.last_error = ""
         self._outputs: dict[str, Any] = {}
         self._target_cache: tuple[FloatArray, tuple[float, ...]] | None = None
-        self._pc = 0
-        self._sleep_until_s = 0.0
+        self._script = ControlScript(self)  # runs the program: the ur-rtde handshake, URScript
         self._update_outputs()
 
     # ------------------------------------------------------------------ kinematics (m)
@@ -273,7 +181,7 @@ class UrController:
     def load_program(self, text: str) -> None:
         """A program arrived on the script port (30003): it replaces the running one."""
         prog = parse_program(text)
-        self._end_program("replaced")
+        self.end_program("replaced")
         if self.safety_mode is not SafetyMode.NORMAL or self.robot_mode is not RobotMode.RUNNING:
             self.log(f"program_refused name={prog.name} robot_mode={self.robot_mode.name} "
                      f"safety={self.safety_mode.name}")
@@ -290,16 +198,12 @@ class UrController:
         self.executing_cmd = False
         self.blocking = False
         self.watchdog_hz = None
-        self._cmd_seen = None
         self.motion = None
-        self._pc = 0
-        self._sleep_until_s = 0.0
-        if self.program is not None and self.program.is_rtde_control:
-            self._async_progress(-1)
-            self._out_i(0, 1)
+        self._script.start()
         self.log(f"program_started name={self.program.name if self.program else '?'}")
 
-    def _end_program(self, why: str, decel: float = PROGRAM_STOP_DECEL_RAD_S2) -> None:
+    def end_program(self, why: str, decel: float = PROGRAM_STOP_DECEL_RAD_S2) -> None:
+        """Stop the program (if one runs: a ``program_stopped`` event); the arm decelerates at ``decel``."""
         if self.runtime_state in (RuntimeState.PLAYING, RuntimeState.PAUSED):
             self.log(f"program_stopped reason={why}")
         self.runtime_state = RuntimeState.STOPPED
@@ -314,9 +218,15 @@ class UrController:
         else:
             self.motion = None
 
+    def fault(self, message: str) -> None:
+        """The program faults (a runtime error): ``last_error``, a ``program_fault`` event, it stops."""
+        self.last_error = message
+        self.log(f"program_fault {message}")
+        self.end_program("fault")
+
     # ------------------------------------------------------------------ dashboard / faults
     def dashboard_stop(self) -> None:
-        self._end_program("dashboard_stop")
+        self.end_program("dashboard_stop")
 
     def dashboard_play(self) -> bool:
         if self.program is None or self.program.parse_error:
@@ -352,7 +262,7 @@ class UrController:
     def emergency_stop(self) -> None:
         self.estop_engaged = True
         self.safety_mode = SafetyMode.ROBOT_EMERGENCY_STOP
-        self._end_program("emergency_stop", PROTECTIVE_STOP_DECEL_RAD_S2)
+        self.end_program("emergency_stop", PROTECTIVE_STOP_DECEL_RAD_S2)
         self.robot_mode = RobotMode.POWER_OFF  # brakes engage: the arm stops where it is
         self.motion = None
         self.log("emergency_stop")
@@ -374,7 +284,7 @@ class UrController:
         return True
 
     def power_off(self) -> None:
-        self._end_program("power_off")
+        self.end_program("power_off")
         self.robot_mode = RobotMode.POWER_OFF
         self.motion = None
 
@@ -385,7 +295,7 @@ class UrController:
         return True
 
     def stop_program(self) -> None:
-        self._end_program("fault_injection")
+        self.end_program("fault_injection")
 
     def home(self, q: FloatArray | None = None) -> None:
         """Put the arm at ``q`` (default HOME_Q) at rest, cancelling any motion (an emulator-only jump)."""
@@ -395,291 +305,44 @@ class UrController:
         self.motion = None
         self.tcp = self.fk(self.q)
         self.tcp_twist = np.zeros(6)
-        if self.blocking:
-            self.blocking = False
-            self._out_i(0, 2)
-        self._kill_async_move()
+        self._script.motion_finished()
         self._update_outputs()
         self.log("home")
 
-    # ------------------------------------------------------------------ registers
-    def _out_i(self, idx: int, value: int) -> None:
-        off = self.program.reg_offset if self.program else 0
-        self.out_int[idx + off] = int(value)
-
-    def _out_d(self, idx: int, values: Any) -> None:
-        off = self.program.reg_offset if self.program else 0
-        for i, v in enumerate(values):
-            self.out_dbl[idx + off + i] = float(v)
-
-    def _in_i(self, idx: int) -> int:
-        off = self.program.reg_offset if self.program else 0
-        return self.in_int[idx + off]
-
-    def _in_d(self, idx: int, n: int = 1) -> FloatArray:
-        """Input double registers ``idx..idx+n-1`` of the program.
-
-        Raises:
-            MotionError: one is NaN or infinite (the script would hand it to a motion command;
-                a real controller faults the program on such a value).
-        """
-        off = self.program.reg_offset if self.program else 0
-        values = np.array(self.in_dbl[idx + off: idx + off + n], dtype=np.float64)
-        bad = np.flatnonzero(~np.isfinite(values))
-        if bad.size:
-            raise MotionError(f"input_double_register_{idx + off + int(bad[0])} is not finite "
-                              f"({values[bad[0]]})")
-        return values
-
-    def _async_progress(self, value: int) -> None:
-        """write_async_progress_register of the control script (bit 15 running, bits 0-14 progress)."""
-        self._async_wr_count = (self._async_wr_count + 1) % 128
-        if value == 0:
-            self._async_op_id = (self._async_op_id + 1) % 128
-        reg = self._async_wr_count * 65536 + self._async_op_id * 16777216
-        if value >= 0:
-            reg += min(value, 32767) + 32768
-        self._out_i(2, reg)
-
-    # ------------------------------------------------------------------ the control script
-    def _script_step(self) -> None:
-        if self.runtime_state is not RuntimeState.PLAYING or self.program is None:
-            return
-        if not self.program.is_rtde_control:
-            self._custom_step(self.program)
-            return
-        if self.blocking:  # main loop inside a synchronous movel/movej/stopl
-            return
-        cmd = self._in_i(0)
-        if cmd != 0 and self.slow_responses_s > 0:
-            if self._cmd_seen is None or self._cmd_seen[0] != cmd:
-                self._cmd_seen = (cmd, self.timestamp_s)
-            if self.timestamp_s - self._cmd_seen[1] < self.slow_responses_s:
-                return
-        if cmd in RT_CMDS:
-            try:
-                self._process_rt(cmd)
-            except (MotionError, GeometryError) as exc:
-                self._fault(str(exc))
-                return
-            self._out_i(0, 1)
-        elif cmd == 0:
-            self.executing_cmd = False
-            self._cmd_seen = None
-            self._out_i(0, 1)
-        elif not self.executing_cmd:
-            self.executing_cmd = True
-            if cmd == STOP_SCRIPT:
-                self.log("cmd stop_script")
-                self._end_program("stop_script")
-                return
-            try:
-                blocking = self._process(cmd)
-            except (MotionError, GeometryError) as exc:
-                self._fault(str(exc))
-                return
-            if blocking:
-                self.blocking = True
-            else:
-                self._out_i(0, 2)
-
-    def _custom_step(self, prog: Program) -> None:
-        """Run statements until one waits (a motion, a sleep) or the program ends."""
-        while True:
-            if self.motion is not None or self.timestamp_s < self._sleep_until_s:
-                return
-            if self._pc >= len(prog.statements):
-                self.runtime_state = RuntimeState.STOPPED
-                self.log(f"program_finished name={prog.name}")
-                return
-            st = prog.statements[self._pc]
-            self._pc += 1
-            try:
-                self._execute(st)
-            except (MotionError, GeometryError) as exc:
-                self._fault(f"{prog.name}: {exc}")
-                return
-
-    def _execute(self, st: Statement) -> None:
-        if st.op == "movel":
-            T = _pose_to_matrix(st.values) if st.is_pose else self.fk(np.array(st.values))
-            if self.ik(T, self.q) is None:
-                raise MotionError(f"movel: target has no inverse kinematics solution ({st.text})")
-            d = st.kw
-            self.motion = LinearMove(T, d("v", 0.25), d("a", 1.2))
-        elif st.op == "movej":
-            q: FloatArray | None = np.array(st.values)
-            if st.is_pose:
-                q = self.ik(_pose_to_matrix(st.values), self.q)
-                if q is None:
-                    raise MotionError(f"movej: pose has no inverse kinematics solution ({st.text})")
-            assert q is not None
-            self.motion = JointMove(q, st.kw("v", 1.05), st.kw("a", 1.4))
-        elif st.op in ("stopl", "stopj"):
-            if self.motion is not None or float(np.max(np.abs(self.qd))) > 1e-12:
-                a = max(st.values[0], 1e-3)
-                self.motion = (SpeedL(np.zeros(6), a, name="stopl", stop_at_zero=True) if st.op == "stopl"
-                               else SpeedJ(np.zeros(6), a, self.qd.copy(), name="stopj", stop_at_zero=True))
-        elif st.op == "sleep":
-            self._sleep_until_s = self.timestamp_s + st.values[0]
-        elif st.op == "write_int":
-            self.out_int[int(st.values[0])] = int(st.values[1])
-        elif st.op == "write_float":
-            self.out_dbl[int(st.values[0])] = float(st.values[1])
-        elif st.text and not st.text.startswith(("def ", "end", "global ", "textmsg")):
-            self.log(f"statement_skipped {st.text[:60]!r}")
-
-    def _fault(self, message: str) -> None:
-        self.last_error = message
-        self.log(f"program_fault {message}")
-        self._end_program("fault")
-
-    def _kill_async_move(self) -> None:
-        if self.async_running:
-            self.async_running = False
-            self._async_progress(-1)
-
-    def _process_rt(self, cmd: int) -> None:
-        if cmd in (24, 11):
-            target = self._in_d(0, 6)
-            lookahead, gain = float(self._in_d(9)[0]), float(self._in_d(10)[0])
-            if cmd == 24:
-                q = self.ik(_pose_to_matrix(target), self.q)
-                if q is None:
-                    self._fault("servoL: no inverse kinematics solution")
-                    return
-            else:
-                q = target
-            self.q_target = q
-            if isinstance(self.motion, Servo):
-                self.motion.retarget(q, lookahead, gain)
-            else:
-                self.motion = Servo(q, lookahead, gain)
-        elif cmd == 10:
-            xd = self._in_d(0, 6)
-            acc = float(self._in_d(6)[0])
-            if isinstance(self.motion, SpeedL) and not self.motion.stop_at_zero:
-                self.motion.twist_target, self.motion.accel = xd, acc
-            else:
-                self.motion = SpeedL(xd, acc)
-        elif cmd == 9:
-            qd = self._in_d(0, 6)
-            acc = float(self._in_d(6)[0])
-            if isinstance(self.motion, SpeedJ) and not self.motion.stop_at_zero:
-                self.motion.qd_target, self.motion.accel = qd, acc
-            else:
-                self.motion = SpeedJ(qd, acc, self.qd.copy())
-        # other real-time commands (force mode, torques, ...) are accepted and ignored
-
-    def _start_move(self, motion: Motion, is_async: bool) -> bool:
-        self._kill_async_move()
-        self.motion = motion
-        if is_async:
-            self.async_running = True
-            self._async_progress(0)
-            return False
-        return True
-
-    def _process(self, cmd: int) -> bool:
-        """Run a non-real-time command. Returns True when it blocks until the motion ends."""
-        self.log(f"cmd {cmd}")
-        is_async = self._in_i(1) == 1
-        if cmd in (1, 2, 3, 4):
-            target = self._in_d(0, 6)
-            speed, acc = float(self._in_d(6)[0]), float(self._in_d(7)[0])
-            motion: Motion
-            if cmd == 1:
-                motion = JointMove(target, speed, acc)
-            elif cmd == 2:
-                q = self.ik(_pose_to_matrix(target), self.q)
-                if q is None:
-                    raise MotionError("moveJ_IK: no inverse kinematics solution")
-                motion = JointMove(q, speed, acc)
-            elif cmd == 3:
-                T = _pose_to_matrix(target)
-                if self.ik(T, self.q) is None:
-                    raise MotionError("movel: target has no inverse kinematics solution")
-                motion = LinearMove(T, speed, acc)
-            else:
-                motion = LinearMove(self.fk(target), speed, acc)
-            return self._start_move(motion, is_async)
-        if cmd == 45:
-            moves = list(self.program.move_path) if self.program else []
-            return self._start_move(PathMove(moves), is_async)
-        if cmd in (33, 34, 15, 16, 42):
-            decel = float(self._in_d(0)[0]) if cmd != 42 else 1.2
-            self._kill_async_move()
-            if self.stalled or float(np.max(np.abs(self.qd))) < 1e-12:
-                self.motion = None  # already at rest (a stalled arm too): the stop is complete
-                return False
-            if cmd in (33, 16, 15, 42) and not isinstance(self.motion, SpeedJ):
-                stop: Motion = SpeedL(np.zeros(6), max(decel, 1e-3), name="stopl", stop_at_zero=True)
-            else:
-                stop = SpeedJ(np.zeros(6), max(decel, 1e-3), self.qd.copy(), name="stopj", stop_at_zero=True)
-            self.motion = stop
-            if cmd in (33, 34) and is_async:
-                self.async_running = True
-                self._async_progress(0)
-                return False
-            return True
-        if cmd in (46, 30):
-            pose = self._in_d(0, 6)
-            near = self._in_d(6, 6) if cmd == 30 else self.q
-            q = self.ik(_pose_to_matrix(pose), near)
-            if q is None:
-                raise MotionError("get_inverse_kin: no solution")
-            self._out_d(0, q)
-        elif cmd in (43, 44):
-            q = self._in_d(0, 6) if cmd == 44 else self.q
-            self._out_d(0, _matrix_to_pose(self.fk(q)))
-        elif cmd in (60, 61):
-            ok = self.ik(_pose_to_matrix(self._in_d(0, 6)), self.q) is not None
-            self._out_i(1, 1 if ok else 0)
-        elif cmd == 35:
-            hz = float(self._in_d(0)[0])
-            self.watchdog_hz = hz if hz > 0 else None
-            self.last_kick_s = self.timestamp_s
-            self.log(f"watchdog_set min_hz={hz}")
-        elif cmd == 31:
-            self.protective_stop("script")
-        elif cmd in (36, 37):
-            self._out_i(1, 1)
-        elif cmd == 40:
-            self._out_d(0, [0.0] * 6)
-        elif cmd == 58:
-            self._out_d(0, _matrix_to_pose(self.tcp))
-        return False
-
     # ------------------------------------------------------------------ the tick
+    def _program_step(self) -> None:
+        """Run the playing program for one tick; a URScript program past its last statement finishes."""
+        prog = self.program
+        if self.runtime_state is not RuntimeState.PLAYING or prog is None:
+            return
+        if self._script.step(prog):
+            self.runtime_state = RuntimeState.STOPPED
+            self.log(f"program_finished name={prog.name}")
+
     def tick(self) -> None:
         """Advance the controller by one period (1 / frequency_hz)."""
         self.timestamp_s += self.dt_s
         if (self.watchdog_hz is not None and self.runtime_state is RuntimeState.PLAYING
                 and self.timestamp_s - self.last_kick_s > 1.0 / self.watchdog_hz):
             self.log("rtde_watchdog_expired")
-            self._end_program("rtde_input_watchdog")
-        self._script_step()
+            self.end_program("rtde_input_watchdog")
+        self._program_step()
         q_prev = self.q.copy()
         T_prev = self.tcp
         if self.motion is not None and not self.stalled and self.robot_mode is RobotMode.RUNNING:
             try:
                 done = self.motion.step(self, self.dt_s * self.speed_scaling)
             except MotionError as exc:
-                self._fault(str(exc))
+                self.fault(str(exc))
                 done = True
                 self.motion = None
             if done:
                 self.motion = None
-                if self.blocking:
-                    self.blocking = False
-                    self._out_i(0, 2)
-                if self.async_running:
-                    self.async_running = False
-                    self._async_progress(-1)
+                self._script.motion_finished()
         self.qd = (self.q - q_prev) / self.dt_s
         self.tcp = self.fk(self.q)
         v = (self.tcp[:3, 3] - T_prev[:3, 3]) / self.dt_s
-        w = _fast_rotvec(self.tcp[:3, :3] @ T_prev[:3, :3].T) / self.dt_s
+        w = fast_rotvec(self.tcp[:3, :3] @ T_prev[:3, :3].T) / self.dt_s
         self.tcp_twist = np.concatenate([v, w])
         if self.motion is None:
             self.q_target = self.q.copy()
@@ -694,13 +357,13 @@ class UrController:
         return 1
 
     def _update_outputs(self) -> None:
-        pose = _matrix_to_pose(self.tcp)
+        pose = matrix_to_pose(self.tcp)
         if self.motion is None:
             target_pose = pose
         elif self._target_cache is not None and np.array_equal(self._target_cache[0], self.q_target):
             target_pose = self._target_cache[1]
         else:
-            target_pose = _matrix_to_pose(self.fk(self.q_target))
+            target_pose = matrix_to_pose(self.fk(self.q_target))
             self._target_cache = (self.q_target.copy(), target_pose)
         powered = self.robot_mode in (RobotMode.IDLE, RobotMode.RUNNING, RobotMode.POWER_ON)
         running = self.runtime_state is RuntimeState.PLAYING
@@ -762,7 +425,7 @@ class UrController:
             "slow_responses_ms": round(self.slow_responses_s * 1000.0, 3),
             "watchdog_hz": self.watchdog_hz,
             "q_rad": [round(float(x), 9) for x in self.q],
-            "tcp_pose": [round(x, 9) for x in _matrix_to_pose(self.tcp)],
+            "tcp_pose": [round(x, 9) for x in matrix_to_pose(self.tcp)],
             "last_error": self.last_error,
             "events": list(self.events)[-10:],
             "wall_time": time.time(),
