@@ -167,5 +167,7 @@ def with_perception_process(setup: SetupConfig, devices: Devices, clock: Clock) 
     process = PerceptionProcess(spec, devices.camera.name)
     if isinstance(world, _World):
         world.breath_hold_listeners.append(process.relay_breath_hold)
+        if servo is not None:   # a restarted loop records the arm in a new ring
+            servo.restart_listeners.append(process.relay_servo_ring)
     camera = PerceptionCamera(devices.camera, process)
     return PerceptionDevices(camera=camera, robot=devices.robot, tracker=devices.tracker, world=world)

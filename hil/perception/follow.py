@@ -42,6 +42,7 @@ class RingFlangeSource:
     for up to :data:`MAX_AHEAD_SPANS` of their spacing and held there (the newest alone: held);
     before the oldest still kept, the oldest. Before the loop's first record: None (the world then
     sees no flange).
+    A restarted servo process records the arm in a new ring: :meth:`follow` moves to it.
 
     Args:
         ring_name: the servo process's state-ring segment.
@@ -53,15 +54,34 @@ class RingFlangeSource:
         self.ring = StateRing(self.region, RING_SLOTS)
         self.T_tcp_from_flange = T_flange_from_tcp.inverse()
         self._newer, self._older = RingRecord(), RingRecord()
+        self._follow_next: str | None = None
+
+    def follow(self, ring_name: str) -> None:
+        """From the next pose asked for, read the ring ``ring_name`` (a restarted servo process's)
+        instead. Safe from another thread: the switch happens in the reading thread."""
+        self._follow_next = ring_name
 
     def close(self) -> None:
         self.region.close()
+
+    def _switch_if_asked(self) -> None:
+        name, self._follow_next = self._follow_next, None
+        if name is None:
+            return
+        try:
+            region = ShmRegion.attach(name, ring_words(RING_SLOTS))
+        except OSError:   # already gone (restarted again since): the next follow() says where
+            return
+        self.region.close()
+        self.region, self.ring = region, StateRing(region, RING_SLOTS)
 
     def _pose(self, rec: RingRecord) -> RigidTransform:
         T = RigidTransform(rec.pose[:9].reshape(3, 3).copy(), rec.pose[9:].copy())
         return T @ self.T_tcp_from_flange
 
     def T_robot_from_flange_at(self, t_ns: int) -> RigidTransform | None:
+        if self._follow_next is not None:
+            self._switch_if_asked()
         newer = self.ring.read_latest(self._newer)
         if newer is None:
             return None

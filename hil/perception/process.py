@@ -253,6 +253,15 @@ class PerceptionProcess:
         with self._lock, contextlib.suppress(OSError, ValueError):
             self._conn.send(("hold", start_s, duration_s, level))
 
+    def relay_servo_ring(self, ring_name: str) -> None:
+        """Tell the child's simulated world to follow the arm through the state ring ``ring_name``
+        (a restarted servo process's: the old ring is gone with the old loop). Never blocks for
+        long, never raises (a gone child is reported by ``take``)."""
+        if not self._started or self._closed:
+            return
+        with self._lock, contextlib.suppress(OSError, ValueError):
+            self._conn.send(("follow", ring_name))
+
     def locate_figures(self) -> dict[str, float | None]:
         """p50 and p95 of the locate time in the perception process, ms (None before a pair), as
         :meth:`hil.controller.perception.StereoMarkerLocator.locate_ms` gives them in-process."""

@@ -63,8 +63,8 @@ def perception_main(conn: Connection, notify_fd: int, parent_pid: int) -> None:
         send(("failed", ("DeviceFaultError", "camera", f"{type(exc).__name__}: {exc}")))
         region.close()
         return
-    channel = threading.Thread(target=_serve, args=(conn, world, closing), name="perception-channel",
-                               daemon=True)
+    channel = threading.Thread(target=_serve, args=(conn, world, follower, closing),
+                               name="perception-channel", daemon=True)
     channel.start()
     send(("ready", {"camera_name": camera.name, "pid": os.getpid(), "cpus": sorted(cpus),
                     "opened_ns": opened_ns}))
@@ -176,8 +176,10 @@ def _notify(fd: int) -> None:
         os.write(fd, b"\x01")
 
 
-def _serve(conn: Connection, world: FollowingWorld | None, closing: threading.Event) -> None:
-    """The channel thread: ``close``, breath-hold relays; the channel's end ends the loop."""
+def _serve(conn: Connection, world: FollowingWorld | None, follower: RingFlangeSource | None,
+           closing: threading.Event) -> None:
+    """The channel thread: ``close``, breath-hold relays, the ring a restarted servo process
+    records the arm in; the channel's end ends the loop."""
     try:
         while not closing.is_set():
             msg = conn.recv()
@@ -186,6 +188,8 @@ def _serve(conn: Connection, world: FollowingWorld | None, closing: threading.Ev
             if msg[0] == "hold" and world is not None:
                 _, start_s, duration_s, level = msg
                 world.request_breath_hold(duration_s, level, delay_s=start_s - world.now_s())
+            elif msg[0] == "follow" and follower is not None:
+                follower.follow(msg[1])
     except (EOFError, OSError):
         pass   # the supervisor is gone
     finally:

@@ -93,3 +93,29 @@ def test_the_flange_is_the_tcp_moved_back_along_the_tool(ring_and_source: Fixtur
     R = RigidTransform.from_rotvec(np.array([0.0, 0.0, 0.3])).R
     assert np.allclose(T.R, R)
     assert np.allclose(T.t, np.array([0.0, 0.0, -150.0]))   # R keeps z: the flange 150 mm behind the TCP
+
+
+def test_follow_moves_to_a_restarted_loops_ring() -> None:
+    """A restarted servo process records the arm in a new ring: after ``follow`` (from another
+    thread, in the perception process) the poses come from it, and the old ring may be gone."""
+    def ring_at(x_mm: float) -> tuple[ShmRegion, StateRing]:
+        region = ShmRegion.create(ring_words(RING_SLOTS))
+        ring = StateRing(region, RING_SLOTS)
+        ring.write(t_ns=10**9, cmd_t_ns=0, safety_code=0, mode_code=0, period=0, servo_mode=0,
+                   pose=np.concatenate([np.eye(3).reshape(9), [x_mm, 0.0, 0.0]]), q_rad=np.zeros(6),
+                   tcp_speed_mm_s=0.0)
+        return region, ring
+
+    old_region, _ = ring_at(1.0)
+    new_region, _ = ring_at(2.0)
+    source = RingFlangeSource(str(old_region.name), T_FLANGE_FROM_TCP)
+    try:
+        assert _tcp_x(source, 10**9) == pytest.approx(1.0)
+        source.follow(str(new_region.name))
+        old_region.close()
+        assert _tcp_x(source, 10**9) == pytest.approx(2.0)
+        source.follow("/hil-no-such-ring")            # gone already: the current ring stays
+        assert _tcp_x(source, 10**9) == pytest.approx(2.0)
+    finally:
+        source.close()
+        new_region.close()
