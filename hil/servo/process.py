@@ -41,6 +41,7 @@ import threading
 import time
 import traceback
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
@@ -67,6 +68,10 @@ PARENT_CHECK_PERIODS = 50
 #: periods after the start before the loop's timing maxima and late causes are counted (the first
 #: periods pay for first calls: caches, lazy imports in the driver)
 TIMING_WARMUP_PERIODS = 100
+
+
+#: How long the end of the channel waits for the child's exit to be reported (s).
+CHANNEL_END_WAIT_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -128,6 +133,9 @@ class ServoProcess:
         self._reserved_cpu: int | None = None   # the loop's CPU this process keeps off (reserve_cpu)
         #: one reader of the channel at a time (the controller's thread, observers' threads)
         self._channel_lock = threading.RLock()
+        #: called with the new state ring's segment name after a successful :meth:`restart` (a
+        #: perception process's simulated world follows the arm through that ring)
+        self.restart_listeners: list[Callable[[str], None]] = []
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> ServoReady:
@@ -183,6 +191,7 @@ class ServoProcess:
         Nothing commanded the arm meanwhile: a UR rests on its last servo target, and its control
         program stops when the RTDE watchdog sees no kick or is replaced by the new driver's.
         Blocks like :meth:`start` and raises what it raises; a failed restart may be tried again.
+        Once the new child is ready, each of :attr:`restart_listeners` gets the new ring's name.
 
         Raises:
             LifecycleError: after :meth:`close`, or while the child runs (nothing to restart).
@@ -195,7 +204,11 @@ class ServoProcess:
             self._end_child()
             self._crash, self.ready = None, None
             self._events.clear()
-            return self._start()
+            ready = self._start()
+        ring = self.regions.ring_region.name
+        for listener in self.restart_listeners:
+            listener(str(ring))
+        return ready
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop the arm and end the child (module doc). Idempotent; never raises."""
@@ -303,6 +316,17 @@ class ServoProcess:
     def _exit_reason(self) -> str:
         return self._crash or f"servo process exited (code {self._proc.poll()})"
 
+    def _channel_end_reason(self) -> str:
+        """Why the channel ended: the child's exit, with its code. The channel closes as the
+        child dies, a moment before the OS reports the exit: waits up to
+        :data:`CHANNEL_END_WAIT_S` for it (a code read at once was often None, in the operator's
+        fault message and the session log)."""
+        try:
+            code = self._proc.wait(timeout=CHANNEL_END_WAIT_S)
+        except subprocess.TimeoutExpired:
+            return "servo process closed its channel and still runs"
+        return f"servo process exited (code {code})"
+
     def kick(self) -> None:
         """Nothing: the process loop reads the block every period."""
 
@@ -323,7 +347,7 @@ class ServoProcess:
                     return None
                 msg = self._conn.recv()
             except (EOFError, OSError):
-                self._crash = self._crash or f"servo process exited (code {self._proc.poll()})"
+                self._crash = self._crash or self._channel_end_reason()
                 return None
             if msg[0] == "event":
                 self._events.append((msg[1], msg[2]))

@@ -96,6 +96,27 @@ def test_close_stops_the_arm_and_ends_the_process() -> None:
     proc.close()   # idempotent
 
 
+def test_a_channel_that_ends_before_the_exit_reports_the_exit_code() -> None:
+    """The channel closes as the child dies, a moment before the OS reports its exit: the reason
+    waits for the exit code (it read "code None" when taken at once, in the operator's fault)."""
+    import socket
+    from multiprocessing.connection import Connection
+
+    proc = ServoProcess(_spec(), "robot", RigidTransform.identity())
+    ours, theirs = socket.socketpair()
+    script = f"import os, time; os.close({theirs.fileno()}); time.sleep(0.3); raise SystemExit(3)"
+    child = subprocess.Popen([sys.executable, "-c", script], pass_fds=(theirs.fileno(),))
+    theirs.close()
+    proc._conn, proc._proc, proc._started = Connection(ours.detach()), child, True   # a child, not started
+    try:
+        assert proc._pump(2.0, None) is None         # the channel's end
+        assert proc.gone() == "servo process exited (code 3)"
+    finally:
+        child.kill()
+        child.wait()
+        proc._conn.close()
+
+
 def test_a_killed_servo_process_makes_the_robot_disconnected(robot: ServoRobot) -> None:
     link = robot.link
     assert isinstance(link, ServoProcess)
@@ -116,6 +137,9 @@ def test_recover_starts_a_new_servo_process_in_place_of_one_that_died(robot: Ser
     events: list[tuple[str, dict[str, object]]] = []
     robot.on_event = lambda kind, fields: events.append((kind, fields))
     old_pid = link.ready.pid
+    old_ring = link.regions.ring_region.name
+    rings: list[str] = []
+    link.restart_listeners.append(rings.append)
     with pytest.raises(LifecycleError, match="while the servo process runs"):
         link.restart()
     os.kill(old_pid, signal.SIGKILL)
@@ -127,6 +151,8 @@ def test_recover_starts_a_new_servo_process_in_place_of_one_that_died(robot: Ser
     assert link.ready.pid != old_pid
     assert [(k, f) for k, f in events if k == EV_PROCESS_RESTARTED] == [
         (EV_PROCESS_RESTARTED, {"reason": "servo process exited (code -9)", "pid": link.ready.pid})]
+    assert rings == [link.regions.ring_region.name]   # told once, the new loop's ring
+    assert rings[0] != old_ring
     _wait(lambda: link.regions.stats.get(Stat.PERIODS) > 10, "the new loop to run")
     start = robot.state_now().T_robot_from_tcp
     target = RigidTransform(start.R, start.t + np.array([10.0, 0.0, 0.0]))
