@@ -3,6 +3,7 @@ attached read-only by name (the same records the supervisor's robot reads)."""
 
 from __future__ import annotations
 
+import threading
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -55,17 +56,21 @@ class RingFlangeSource:
         self.T_tcp_from_flange = T_flange_from_tcp.inverse()
         self._newer, self._older = RingRecord(), RingRecord()
         self._follow_next: str | None = None
+        self._follow_lock = threading.Lock()
 
     def follow(self, ring_name: str) -> None:
         """From the next pose asked for, read the ring ``ring_name`` (a restarted servo process's)
-        instead. Safe from another thread: the switch happens in the reading thread."""
-        self._follow_next = ring_name
+        instead. Safe from another thread: the switch happens in the reading thread, and of names
+        given before it, the last is followed."""
+        with self._follow_lock:
+            self._follow_next = ring_name
 
     def close(self) -> None:
         self.region.close()
 
     def _switch_if_asked(self) -> None:
-        name, self._follow_next = self._follow_next, None
+        with self._follow_lock:   # a follow() between the read and the clear would be lost
+            name, self._follow_next = self._follow_next, None
         if name is None:
             return
         try:

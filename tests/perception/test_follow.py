@@ -116,6 +116,14 @@ def test_follow_moves_to_a_restarted_loops_ring() -> None:
         assert _tcp_x(source, 10**9) == pytest.approx(2.0)
         source.follow("/hil-no-such-ring")            # gone already: the current ring stays
         assert _tcp_x(source, 10**9) == pytest.approx(2.0)
+        third_region, _ = ring_at(3.0)
+        try:
+            source.follow("/hil-no-such-ring")        # two restarts before the next pose: the last
+            source.follow(str(third_region.name))
+            assert _tcp_x(source, 10**9) == pytest.approx(3.0)
+        finally:
+            source.close()
+            third_region.close()
     finally:
         source.close()
         new_region.close()
