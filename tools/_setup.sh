@@ -40,22 +40,23 @@ ensure_venv() {
     fi
     local stamp="$VENV/.hil-installed"
     local extras="${HIL_EXTRAS:-$HIL_DEFAULT_EXTRAS}"
-    # Reinstall only when pyproject.toml, setup.py, the C sources of the compiled kernel
-    # (hil/vision/_kernel.c) or the extras changed since the last install, or the built kernel is
-    # gone (the editable install builds it next to its source).
+    # Reinstall only when pyproject.toml, setup.py, the C sources of the compiled kernels
+    # (hil/vision/_kernel.c, hil/geometry/_native.c) or the extras changed since the last install,
+    # or a built kernel is gone (the editable install builds them next to their sources).
     local want
-    want="$(cat "$HIL_ROOT/pyproject.toml" "$HIL_ROOT/setup.py" "$HIL_ROOT"/hil/vision/*.c |
+    want="$(cat "$HIL_ROOT/pyproject.toml" "$HIL_ROOT/setup.py" "$HIL_ROOT"/hil/vision/*.c "$HIL_ROOT"/hil/geometry/*.c |
             sha256sum | cut -d' ' -f1) $extras"
     if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] ||
-       ! compgen -G "$HIL_ROOT/hil/vision/_kernel*.so" >/dev/null; then
+       ! compgen -G "$HIL_ROOT/hil/vision/_kernel*.so" >/dev/null ||
+       ! compgen -G "$HIL_ROOT/hil/geometry/_native*.so" >/dev/null; then
         ensure_c_compiler || return 1
         log "installing the project into $VENV (extras: $extras)"
         local pip_log="$VENV/pip-install.log"
         if ! { "$VENV/bin/python" -m pip install --upgrade pip &&
                "$VENV/bin/python" -m pip install -e "$HIL_ROOT[$extras]"; } >"$pip_log" 2>&1; then
-            if grep -q "_kernel.c:[0-9]*:[0-9]*: error" "$pip_log"; then
-                log "building the compiled vision kernel (hil/vision/_kernel.c) failed; the compiler's errors (all in $pip_log):"
-                grep -m 10 "_kernel.c:[0-9]*:[0-9]*: error" "$pip_log" >&2
+            if grep -qE "(_kernel|_native).c:[0-9]*:[0-9]*: error" "$pip_log"; then
+                log "building a compiled kernel (hil/vision/_kernel.c, hil/geometry/_native.c) failed; the compiler's errors (all in $pip_log):"
+                grep -m 10 -E "(_kernel|_native).c:[0-9]*:[0-9]*: error" "$pip_log" >&2
                 return 1
             fi
             log "pip install failed; the last lines of $pip_log:"
@@ -67,12 +68,13 @@ ensure_venv() {
 }
 
 ensure_c_compiler() {
-    # The editable install compiles hil/vision/_kernel.c: it needs a C compiler (Debian gcc) and
-    # the Python headers (pyenv builds have them; Debian's own python3 needs python3-dev).
+    # The editable install compiles hil/vision/_kernel.c and hil/geometry/_native.c: it needs a C
+    # compiler (Debian gcc) and the Python headers (pyenv builds have them; Debian's own python3
+    # needs python3-dev).
     if ! command -v "${CC:-gcc}" >/dev/null 2>&1; then
         apt_install_missing gcc libc6-dev || true
         if ! command -v "${CC:-gcc}" >/dev/null 2>&1; then
-            log "no C compiler (gcc) to build the vision kernel hil/vision/_kernel.c: install gcc (apt-get install gcc)"
+            log "no C compiler (gcc) to build the compiled kernels (hil/vision/_kernel.c, hil/geometry/_native.c): install gcc (apt-get install gcc)"
             return 1
         fi
     fi

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from hil.controller.config import RegistrationConfig, StereotaxyRegistrationConfig
 from hil.controller.plan_file import ProcedurePlan
 from hil.errors import GeometryError, HilError
+from hil.geometry import native
 from hil.geometry.matching import match_markers
 from hil.geometry.registration import register_horn
 from hil.geometry.stereotaxy import load_frame, load_spots, register_single_slice, robot_from_image_via_frame
@@ -62,7 +63,21 @@ def identify(points_mm: FloatArray, model_mm: FloatArray, tolerance_mm: float,
 def track(points_mm: FloatArray, predicted_mm: FloatArray, tolerance_mm: float) -> FloatArray:
     """Fast frame-to-frame identification: each predicted marker (NaN rows skipped) takes the
     nearest measured point within ``tolerance_mm``, uniquely (greedy by distance). Rows with
-    no point stay NaN."""
+    no point stay NaN. Runs compiled (:mod:`hil.geometry.native`) for (N, 3) float64 input,
+    else :func:`track_numpy`; the two agree exactly (tests/geometry/test_native.py)."""
+    k = native.active()
+    if (k is not None and points_mm.dtype == np.float64 and predicted_mm.dtype == np.float64
+            and points_mm.ndim == 2 and predicted_mm.ndim == 2
+            and points_mm.shape[1] == 3 and predicted_mm.shape[1] == 3):
+        out = np.empty(predicted_mm.shape)
+        if k.track(np.ascontiguousarray(points_mm), np.ascontiguousarray(predicted_mm), float(tolerance_mm),
+                   out):
+            return out
+    return track_numpy(points_mm, predicted_mm, tolerance_mm)
+
+
+def track_numpy(points_mm: FloatArray, predicted_mm: FloatArray, tolerance_mm: float) -> FloatArray:
+    """:func:`track` in numpy (the reference of the compiled code)."""
     out = np.full(predicted_mm.shape, np.nan)
     if points_mm.shape[0] == 0:
         return out

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hil.errors import DegenerateConfigurationError, GeometryError
+from hil.geometry import native
 from hil.geometry.transform import RigidTransform, as_points, quaternion_to_matrix
 
 FloatArray = NDArray[np.float64]
@@ -175,7 +176,39 @@ def register_horn(fixed: ArrayLike, moving: ArrayLike, weights: ArrayLike | None
     Raises:
         GeometryError: < 3 pairs, different counts, NaN/inf, bad weights.
         DegenerateConfigurationError: collinear or coincident points.
+
+    Without weights, (N, 3) float64 arrays are registered by the compiled code
+    (:mod:`hil.geometry.native`, the same equations; it agrees with :func:`register_horn_numpy`
+    to rounding) unless it declines (any input the checks refuse): then the numpy code runs.
     """
+    if weights is None:
+        reg = _horn_compiled(fixed, moving)
+        if reg is not None:
+            return reg
+    return register_horn_numpy(fixed, moving, weights)
+
+
+def _horn_compiled(fixed: ArrayLike, moving: ArrayLike) -> Registration | None:
+    """:func:`register_horn` by the compiled code, or None where the numpy code must decide (not
+    built or not selected, not two (N, 3) float64 arrays of one N, or refused by its checks)."""
+    k = native.active()
+    if (k is None or not isinstance(fixed, np.ndarray) or not isinstance(moving, np.ndarray)
+            or fixed.dtype != np.float64 or moving.dtype != np.float64 or fixed.ndim != 2
+            or fixed.shape[1] != 3 or fixed.shape != moving.shape):
+        return None
+    R, t, residuals = np.empty((3, 3)), np.empty(3), np.empty(fixed.shape[0])
+    fre = k.horn(np.ascontiguousarray(fixed), np.ascontiguousarray(moving), R, t, residuals)
+    if fre < 0.0:
+        return None
+    residuals.setflags(write=False)
+    # R is the rotation of a unit quaternion (eq 16) and every value finite: proper by construction
+    return Registration(T_fixed_from_moving=RigidTransform._composed(R, t), residuals_mm=residuals,
+                        fre_rms_mm=fre, method="horn")
+
+
+def register_horn_numpy(fixed: ArrayLike, moving: ArrayLike,
+                        weights: ArrayLike | None = None) -> Registration:
+    """:func:`register_horn` in numpy (the reference of the compiled code; any weights)."""
     f, m, w = _validate(fixed, moving, weights)
     f_bar, m_bar, A = _weighted_cross_covariance(f, m, w)
     C = horn_matrix(A)

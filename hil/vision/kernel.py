@@ -11,37 +11,26 @@ extension is not built the numpy code runs and :func:`kernel_status` says why.
 
 from __future__ import annotations
 
-import os
 from types import ModuleType
 
-_module: ModuleType | None
-_import_error: str | None
-try:
-    from hil.vision import _kernel as _module
+from hil.compiled import CompiledKernel
 
-    _import_error = None
-except ImportError as exc:  # not built (e.g. a source tree without `pip install -e .`)
-    _module, _import_error = None, str(exc)
-
-_enabled = _module is not None and os.environ.get("HIL_VISION_KERNEL", "").lower() != "numpy"
+_KERNEL = CompiledKernel("hil.vision._kernel", "HIL_VISION_KERNEL")
+#: the extension module (None when not built), for tests that call it directly
+_module = _KERNEL.module
 
 
 def active() -> ModuleType | None:
     """The compiled kernel module when it is built and selected, else None (numpy code)."""
-    return _module if _enabled else None
+    return _KERNEL.active()
 
 
 def use_kernel(on: bool) -> bool:
     """Select the compiled kernel (``on``, when built) or the numpy code; returns the previous
     selection. Not thread-safe: for tests and benchmarks, between locate calls."""
-    global _enabled
-    previous = _enabled
-    _enabled = bool(on) and _module is not None
-    return previous
+    return _KERNEL.use(on)
 
 
 def kernel_status() -> str:
     """One line: whether the kernel is built and selected."""
-    if _module is None:
-        return f"numpy (the compiled kernel is not built: {_import_error})"
-    return "compiled kernel" if _enabled else "numpy (selected)"
+    return _KERNEL.status()

@@ -1,0 +1,439 @@
+/*
+ * hil.geometry._native: the per-pair marker geometry of the controller in compiled code.
+ *
+ *   horn:  Horn's closed-form registration with unit weights (hil.geometry.registration.
+ *          register_horn, seed 000 eqs 17-21), with that module's configuration checks;
+ *   track: the greedy frame-to-frame marker assignment (hil.controller.registration.track).
+ *
+ * Why: both run for every stereo pair on the path from the exposure to the servo setpoint. On a
+ * shared host, numpy code that runs once per camera period finds its instructions and data
+ * evicted and takes several times its hot-loop time (docs/benchmarks.md); this code is small.
+ *
+ * Contract: only the Python C API and the buffer protocol. Every array is float64, C-contiguous,
+ * with the documented shape; outputs are written into arrays the caller allocated; a bad buffer
+ * raises TypeError / ValueError naming the argument. No global mutable state; the GIL is held
+ * throughout (a call is a few microseconds).
+ *
+ * horn does not raise for bad points: it returns -1.0 for every input the numpy code refuses or
+ * might refuse (fewer than 3 pairs, NaN/inf, a coincident or collinear set, an eigen-solution
+ * that did not converge); the caller then runs the numpy code, which raises the typed error with
+ * its message. Results agree with the numpy code to rounding: the eigenvectors come from cyclic
+ * Jacobi rotations instead of LAPACK, and sums run in index order.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+/* hil.geometry.registration's thresholds (COINCIDENT_TOL_MM, COLLINEAR_REL_TOL) */
+#define COINCIDENT_TOL_MM 1e-9
+#define COLLINEAR_REL_TOL 1e-6
+#define JACOBI_MAX_SWEEPS 60
+
+/* ---- buffers ------------------------------------------------------------------------------ */
+
+/* A float64 C-contiguous buffer of ``ndim`` dimensions; shape[i] < 0: any length. The view is
+ * released by the caller (view->obj != NULL once acquired). */
+static double *get_f64(PyObject *obj, Py_buffer *view, const char *name, int ndim,
+                       const Py_ssize_t *shape, int writable)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    view->obj = NULL;
+    if (PyObject_GetBuffer(obj, view, flags) != 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError, "%s: expected a %s C-contiguous float64 array, got %.100s", name,
+                     writable ? "writable" : "readable", Py_TYPE(obj)->tp_name);
+        return NULL;
+    }
+    const char *fmt = view->format ? view->format : "B";
+    if (fmt[0] == '@' || fmt[0] == '=' || fmt[0] == '<') {
+        fmt++;
+    }
+    if (strcmp(fmt, "d") != 0 || view->itemsize != 8) {
+        PyErr_Format(PyExc_TypeError, "%s: expected float64 items, got format '%s'", name, fmt);
+        return NULL;
+    }
+    if (view->ndim != ndim) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %d dimension(s), got %d", name, ndim, view->ndim);
+        return NULL;
+    }
+    for (int i = 0; i < ndim; i++) {
+        if (shape[i] >= 0 && view->shape[i] != shape[i]) {
+            PyErr_Format(PyExc_ValueError, "%s: dimension %d has length %zd, expected %zd", name, i,
+                         view->shape[i], shape[i]);
+            return NULL;
+        }
+    }
+    return (double *)view->buf;
+}
+
+static void release(Py_buffer *views, int n)
+{
+    for (int i = 0; i < n; i++) {
+        if (views[i].obj != NULL) {
+            PyBuffer_Release(&views[i]);
+        }
+    }
+}
+
+/* ---- symmetric eigen-decomposition (n <= 4) ------------------------------------------------ */
+
+/* Cyclic Jacobi rotations on the symmetric n x n matrix ``a`` (row-major 4 x 4 storage, destroyed:
+ * its diagonal becomes the eigenvalues); ``v`` (may be NULL) receives the eigenvectors as columns.
+ * Each rotation zeroes a[p][q] (t = sgn(theta) / (|theta| + sqrt(theta^2 + 1)), theta =
+ * (a_qq - a_pp) / (2 a_pq)). Returns 0 once the off-diagonal part is below rounding of the
+ * matrix's norm, -1 when it did not get there in JACOBI_MAX_SWEEPS sweeps. */
+static int jacobi_sym(int n, double a[4][4], double v[4][4])
+{
+    if (v != NULL) {
+        for (int i = 0; i < n; i++) {
+            for (int j = 0; j < n; j++) {
+                v[i][j] = i == j ? 1.0 : 0.0;
+            }
+        }
+    }
+    double norm2 = 0.0;
+    for (int i = 0; i < n; i++) {
+        for (int j = 0; j < n; j++) {
+            norm2 += a[i][j] * a[i][j];
+        }
+    }
+    for (int sweep = 0; sweep < JACOBI_MAX_SWEEPS; sweep++) {
+        double off2 = 0.0;
+        for (int p = 0; p < n; p++) {
+            for (int q = p + 1; q < n; q++) {
+                off2 += a[p][q] * a[p][q];
+            }
+        }
+        if (off2 <= 1e-34 * norm2) {   /* (1e-17)^2: below the rounding of the largest entries */
+            return 0;
+        }
+        for (int p = 0; p < n; p++) {
+            for (int q = p + 1; q < n; q++) {
+                double apq = a[p][q];
+                if (apq == 0.0) {
+                    continue;
+                }
+                double theta = (a[q][q] - a[p][p]) / (2.0 * apq);
+                double t;
+                if (fabs(theta) > 1e150) {
+                    t = 0.5 / theta;   /* theta^2 would overflow; t ~ 1 / (2 theta) */
+                } else {
+                    t = (theta >= 0.0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
+                }
+                double c = 1.0 / sqrt(t * t + 1.0);
+                double s = t * c;
+                for (int k = 0; k < n; k++) {   /* columns p, q of A P */
+                    double akp = a[k][p], akq = a[k][q];
+                    a[k][p] = c * akp - s * akq;
+                    a[k][q] = s * akp + c * akq;
+                }
+                for (int k = 0; k < n; k++) {   /* rows p, q of P^T (A P) */
+                    double apk = a[p][k], aqk = a[q][k];
+                    a[p][k] = c * apk - s * aqk;
+                    a[q][k] = s * apk + c * aqk;
+                }
+                a[p][q] = 0.0;
+                a[q][p] = 0.0;
+                if (v != NULL) {
+                    for (int k = 0; k < n; k++) {
+                        double vkp = v[k][p], vkq = v[k][q];
+                        v[k][p] = c * vkp - s * vkq;
+                        v[k][q] = s * vkp + c * vkq;
+                    }
+                }
+            }
+        }
+    }
+    return -1;
+}
+
+/* ---- horn ----------------------------------------------------------------------------------- */
+
+/* 0 when ``pts`` (n x 3) fixes a rotation by registration.py's rule (its centred set's singular
+ * values: the largest above COINCIDENT_TOL_MM * max(1, max |p|), the second above
+ * COLLINEAR_REL_TOL times the largest), else -1. The singular values are the square roots of the
+ * eigenvalues of the centred scatter matrix. */
+static int configuration_ok(const double *pts, Py_ssize_t n)
+{
+    double mean[3] = {0.0, 0.0, 0.0};
+    double scale = 0.0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        for (int j = 0; j < 3; j++) {
+            double x = pts[3 * i + j];
+            mean[j] += x;
+            if (fabs(x) > scale) {
+                scale = fabs(x);
+            }
+        }
+    }
+    for (int j = 0; j < 3; j++) {
+        mean[j] /= (double)n;
+    }
+    double s[4][4] = {{0.0}};
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double d[3];
+        for (int j = 0; j < 3; j++) {
+            d[j] = pts[3 * i + j] - mean[j];
+        }
+        for (int j = 0; j < 3; j++) {
+            for (int k = 0; k < 3; k++) {
+                s[j][k] += d[j] * d[k];
+            }
+        }
+    }
+    if (jacobi_sym(3, s, NULL) != 0) {
+        return -1;
+    }
+    double ev[3] = {s[0][0], s[1][1], s[2][2]};
+    for (int i = 0; i < 3; i++) {   /* descending */
+        for (int j = i + 1; j < 3; j++) {
+            if (ev[j] > ev[i]) {
+                double tmp = ev[i];
+                ev[i] = ev[j];
+                ev[j] = tmp;
+            }
+        }
+    }
+    double sv0 = sqrt(ev[0] > 0.0 ? ev[0] : 0.0);
+    double sv1 = sqrt(ev[1] > 0.0 ? ev[1] : 0.0);
+    if (sv0 <= COINCIDENT_TOL_MM * (scale > 1.0 ? scale : 1.0)) {
+        return -1;
+    }
+    if (sv1 <= COLLINEAR_REL_TOL * sv0) {
+        return -1;
+    }
+    return 0;
+}
+
+static int all_finite(const double *x, Py_ssize_t count)
+{
+    for (Py_ssize_t i = 0; i < count; i++) {
+        if (!isfinite(x[i])) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+PyDoc_STRVAR(horn_doc,
+"horn(fixed, moving, R, t, residuals) -> float\n\n"
+"Horn's registration with unit weights (hil.geometry.registration.register_horn): fixed, moving\n"
+"(N, 3) float64 C-contiguous, mm; writes R (3, 3) and t (3,) of T_fixed_from_moving and the\n"
+"residuals (N,) |R m_i + t - f_i| in mm; returns the FRE (RMS of the residuals, mm). Returns\n"
+"-1.0 (outputs undefined) for N < 3, NaN/inf, a coincident or collinear set, or no convergence:\n"
+"the numpy code decides those (and raises). TypeError / ValueError for a bad buffer.");
+
+static PyObject *k_horn(PyObject *self, PyObject *args)
+{
+    PyObject *o_f, *o_m, *o_R, *o_t, *o_res;
+    if (!PyArg_ParseTuple(args, "OOOOO", &o_f, &o_m, &o_R, &o_t, &o_res)) {
+        return NULL;
+    }
+    Py_buffer views[5];
+    memset(views, 0, sizeof(views));
+    PyObject *result = NULL;
+    const Py_ssize_t any3[2] = {-1, 3};
+    const Py_ssize_t s33[2] = {3, 3};
+    const Py_ssize_t s3[1] = {3};
+    const double *f = get_f64(o_f, &views[0], "fixed", 2, any3, 0);
+    if (f == NULL) {
+        goto done;
+    }
+    Py_ssize_t n = views[0].shape[0];
+    const Py_ssize_t n3[2] = {n, 3};
+    const Py_ssize_t sn[1] = {n};
+    const double *m = get_f64(o_m, &views[1], "moving", 2, n3, 0);
+    double *R = m == NULL ? NULL : get_f64(o_R, &views[2], "R", 2, s33, 1);
+    double *t = R == NULL ? NULL : get_f64(o_t, &views[3], "t", 1, s3, 1);
+    double *res = t == NULL ? NULL : get_f64(o_res, &views[4], "residuals", 1, sn, 1);
+    if (res == NULL) {
+        goto done;
+    }
+    if (n < 3 || !all_finite(f, 3 * n) || !all_finite(m, 3 * n)
+        || configuration_ok(f, n) != 0 || configuration_ok(m, n) != 0) {
+        result = PyFloat_FromDouble(-1.0);
+        goto done;
+    }
+    /* eq 17 with w_i = 1/N: centroids and A = sum w_i (m_i - m_bar)(f_i - f_bar)^T */
+    double wn = 1.0 / (double)n;
+    double f_bar[3] = {0.0, 0.0, 0.0}, m_bar[3] = {0.0, 0.0, 0.0};
+    for (Py_ssize_t i = 0; i < n; i++) {
+        for (int j = 0; j < 3; j++) {
+            f_bar[j] += wn * f[3 * i + j];
+            m_bar[j] += wn * m[3 * i + j];
+        }
+    }
+    double A[3][3] = {{0.0}};
+    for (Py_ssize_t i = 0; i < n; i++) {
+        for (int j = 0; j < 3; j++) {
+            double mj = (m[3 * i + j] - m_bar[j]) * wn;
+            for (int k = 0; k < 3; k++) {
+                A[j][k] += mj * (f[3 * i + k] - f_bar[k]);
+            }
+        }
+    }
+    /* eqs 18-20: Delta = [B23, B31, B12] of B = A - A^T; C = [[tr A, Delta^T], [Delta, A + A^T - tr(A) I]] */
+    double tr = A[0][0] + A[1][1] + A[2][2];
+    double delta[3] = {A[1][2] - A[2][1], A[2][0] - A[0][2], A[0][1] - A[1][0]};
+    double C[4][4], V[4][4];
+    C[0][0] = tr;
+    for (int j = 0; j < 3; j++) {
+        C[0][j + 1] = delta[j];
+        C[j + 1][0] = delta[j];
+        for (int k = 0; k < 3; k++) {
+            C[j + 1][k + 1] = A[j][k] + A[k][j] - (j == k ? tr : 0.0);
+        }
+    }
+    if (jacobi_sym(4, C, V) != 0) {
+        result = PyFloat_FromDouble(-1.0);
+        goto done;
+    }
+    int best = 0;   /* eq 21: the eigenvector of the largest eigenvalue */
+    for (int i = 1; i < 4; i++) {
+        if (C[i][i] > C[best][best]) {
+            best = i;
+        }
+    }
+    double q[4] = {V[0][best], V[1][best], V[2][best], V[3][best]};
+    double qn = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    if (!(qn >= 1e-12)) {
+        result = PyFloat_FromDouble(-1.0);
+        goto done;
+    }
+    double q0 = q[0] / qn, q1 = q[1] / qn, q2 = q[2] / qn, q3 = q[3] / qn;
+    /* eq 16 (hil.geometry.transform.quaternion_to_matrix) */
+    R[0] = q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3;
+    R[1] = 2 * (q1 * q2 - q0 * q3);
+    R[2] = 2 * (q1 * q3 + q0 * q2);
+    R[3] = 2 * (q1 * q2 + q0 * q3);
+    R[4] = q0 * q0 - q1 * q1 + q2 * q2 - q3 * q3;
+    R[5] = 2 * (q2 * q3 - q0 * q1);
+    R[6] = 2 * (q1 * q3 - q0 * q2);
+    R[7] = 2 * (q2 * q3 + q0 * q1);
+    R[8] = q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3;
+    for (int j = 0; j < 3; j++) {   /* t = f_bar - R m_bar */
+        t[j] = f_bar[j] - (R[3 * j] * m_bar[0] + R[3 * j + 1] * m_bar[1] + R[3 * j + 2] * m_bar[2]);
+    }
+    double sum_r2 = 0.0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double r2 = 0.0;
+        for (int j = 0; j < 3; j++) {
+            double d = R[3 * j] * m[3 * i] + R[3 * j + 1] * m[3 * i + 1] + R[3 * j + 2] * m[3 * i + 2]
+                       + t[j] - f[3 * i + j];
+            r2 += d * d;
+        }
+        res[i] = sqrt(r2);
+        sum_r2 += r2;
+    }
+    result = PyFloat_FromDouble(sqrt(sum_r2 / (double)n));
+done:
+    release(views, 5);
+    return result;
+}
+
+/* ---- track ---------------------------------------------------------------------------------- */
+
+#define TRACK_MAX 4096   /* predicted rows x points: more goes the numpy way */
+
+PyDoc_STRVAR(track_doc,
+"track(points, predicted, tolerance_mm, out) -> bool\n\n"
+"The greedy unique nearest assignment of hil.controller.registration.track: points (M, 3),\n"
+"predicted (K, 3) (NaN rows skipped), out (K, 3) float64 C-contiguous, mm. Repeatedly the\n"
+"closest free (predicted row, point) pair within tolerance_mm is assigned (ties: the lower\n"
+"row-major index, as a stable sort would); out gets the assigned points, NaN elsewhere. A\n"
+"distance that is NaN never matches. Returns False (out untouched) when K * M > 4096 (the\n"
+"numpy code then runs). TypeError / ValueError for a bad buffer.");
+
+static PyObject *k_track(PyObject *self, PyObject *args)
+{
+    PyObject *o_p, *o_pred, *o_out;
+    double tol;
+    if (!PyArg_ParseTuple(args, "OOdO", &o_p, &o_pred, &tol, &o_out)) {
+        return NULL;
+    }
+    Py_buffer views[3];
+    memset(views, 0, sizeof(views));
+    PyObject *result = NULL;
+    const Py_ssize_t any3[2] = {-1, 3};
+    const double *pts = get_f64(o_p, &views[0], "points", 2, any3, 0);
+    const double *pred = pts == NULL ? NULL : get_f64(o_pred, &views[1], "predicted", 2, any3, 0);
+    if (pred == NULL) {
+        goto done;
+    }
+    Py_ssize_t m = views[0].shape[0], k = views[1].shape[0];
+    const Py_ssize_t k3[2] = {k, 3};
+    double *out = get_f64(o_out, &views[2], "out", 2, k3, 1);
+    if (out == NULL) {
+        goto done;
+    }
+    if (k * m > TRACK_MAX) {
+        result = Py_NewRef(Py_False);
+        goto done;
+    }
+    double d[TRACK_MAX];
+    unsigned char row_used[TRACK_MAX], col_used[TRACK_MAX];
+    for (Py_ssize_t r = 0; r < k; r++) {
+        int valid = isfinite(pred[3 * r]) && isfinite(pred[3 * r + 1]) && isfinite(pred[3 * r + 2]);
+        for (Py_ssize_t c = 0; c < m; c++) {
+            if (!valid) {
+                d[r * m + c] = INFINITY;
+                continue;
+            }
+            double dx = pred[3 * r] - pts[3 * c], dy = pred[3 * r + 1] - pts[3 * c + 1];
+            double dz = pred[3 * r + 2] - pts[3 * c + 2];
+            d[r * m + c] = sqrt(dx * dx + dy * dy + dz * dz);
+        }
+        row_used[r] = 0;
+        out[3 * r] = out[3 * r + 1] = out[3 * r + 2] = NAN;
+    }
+    for (Py_ssize_t c = 0; c < m; c++) {
+        col_used[c] = 0;
+    }
+    for (;;) {
+        Py_ssize_t best = -1;
+        for (Py_ssize_t r = 0; r < k; r++) {
+            if (row_used[r]) {
+                continue;
+            }
+            for (Py_ssize_t c = 0; c < m; c++) {
+                double x = d[r * m + c];
+                if (!col_used[c] && x <= tol && (best < 0 || x < d[best])) {
+                    best = r * m + c;
+                }
+            }
+        }
+        if (best < 0) {
+            break;
+        }
+        Py_ssize_t r = best / m, c = best % m;
+        row_used[r] = 1;
+        col_used[c] = 1;
+        out[3 * r] = pts[3 * c];
+        out[3 * r + 1] = pts[3 * c + 1];
+        out[3 * r + 2] = pts[3 * c + 2];
+    }
+    result = Py_NewRef(Py_True);
+done:
+    release(views, 3);
+    return result;
+}
+
+/* ---- module --------------------------------------------------------------------------------- */
+
+static PyMethodDef native_methods[] = {
+    {"horn", k_horn, METH_VARARGS, horn_doc},
+    {"track", k_track, METH_VARARGS, track_doc},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef native_module = {
+    PyModuleDef_HEAD_INIT, "_native",
+    "The controller's per-pair marker geometry in compiled code (hil/geometry/_native.c).", -1,
+    native_methods, NULL, NULL, NULL, NULL,
+};
+
+PyMODINIT_FUNC PyInit__native(void)
+{
+    return PyModule_Create(&native_module);
+}
