@@ -21,7 +21,11 @@ Rig errors (``[simulation.rig_errors]``, all off by default): with ``camera_cali
 the images are rendered through true cameras that differ from the calibration the controller
 uses (:attr:`SimStereoCamera.calibration` stays the told one); with ``camera_timestamp =
 "reception"`` frames are stamped ``camera_reception_offset_ms`` (+ jitter) after their exposure
-(``Frame.time_source`` says so), never later than they are delivered.
+(``Frame.time_source`` says so), never later than they are delivered; with
+``camera_clock_rate_error_ppm`` the camera's own clock runs that much fast: it exposes every
+``1 / frame_rate_hz`` on that clock (its ``device_t_ns``), so on the host clock the pairs come
+slightly more often and drift in phase against anything the host paces, as a free-running camera
+does against a robot controller's cycle.
 """
 
 from __future__ import annotations
@@ -100,7 +104,11 @@ class SimStereoCamera(StereoCamera):
         self._reception = errors.camera_timestamp == "reception"
         self.options = RenderOptions(noise_sigma=cfg.noise_sigma, blur_sigma_px=cfg.blur_sigma_px,
                                      glare_spots=cfg.glare_spots, seed=world.seed)
-        self._period_ns = round(1e9 / cfg.frame_rate_hz)
+        self._period_ns = round(1e9 / cfg.frame_rate_hz)   # on the camera's own clock
+        ppm = errors.camera_clock_rate_error_ppm
+        #: the frame period on the host clock (the camera's clock runs ``ppm`` fast)
+        self._true_period_ns: float = self._period_ns / (1.0 + ppm * 1e-6)
+        self._clock_exact = ppm == 0.0
         self._latency_ns = round(cfg.latency_ms * 1e6)
         self._skew_ns = round(cfg.skew_ms * 1e6)
         self._t0_ns = 0
@@ -187,7 +195,10 @@ class SimStereoCamera(StereoCamera):
         return min(max(round(statistics.median_low(recent)), covered), _MAX_RENDER_LEAD_NS)
 
     def exposure_time_ns(self, k: int) -> int:
-        return self._t0_ns + k * self._period_ns
+        """Pair ``k``'s exposure on the host clock: ``k`` periods of the camera's own clock."""
+        if self._clock_exact:
+            return self._t0_ns + k * self._period_ns
+        return self._t0_ns + round(k * self._true_period_ns)
 
     def markers_at(self, t_ns: int) -> list[RingMarker3D]:
         """The ring markers the rig sees at ``t_ns`` (optical frame): skin, then flange."""
@@ -217,7 +228,7 @@ class SimStereoCamera(StereoCamera):
         # that changes the motion before the exposure is not in the image -- at most the
         # command's change of velocity times that small lead.
         lead = min(self.render_lead_ns, round(timeout_s * 1e9))
-        newest = math.floor((now + lead - self._latency_ns - self._t0_ns) / self._period_ns)
+        newest = math.floor((now + lead - self._latency_ns - self._t0_ns) / self._true_period_ns)
         k = max(newest, self._last_k + 1)
         ready_ns = self.exposure_time_ns(k) + self._latency_ns
         if ready_ns > now:
@@ -253,10 +264,10 @@ class SimStereoCamera(StereoCamera):
             off = reception_offset_ns(e.camera_reception_offset_ms, e.camera_timestamp_jitter_ms,
                                       self.world.rng("camera_stamp", k))
             stamp_ns, source = t_exp + min(off, self._latency_ns), FrameTime.RECEPTION
-        left = Frame(image=pair.left, t_ns=stamp_ns, seq=k, device_t_ns=t_exp - self._t0_ns,
-                     time_source=source)
+        device_ns = k * self._period_ns   # the camera's clock (the host's when it has no rate error)
+        left = Frame(image=pair.left, t_ns=stamp_ns, seq=k, device_t_ns=device_ns, time_source=source)
         right = Frame(image=right_image, t_ns=stamp_ns + self._skew_ns, seq=k,
-                      device_t_ns=t_exp - self._t0_ns + self._skew_ns, time_source=source)
+                      device_t_ns=device_ns + self._skew_ns, time_source=source)
         return StereoFrame(left, right)
 
     def needle_at(self, t_ns: int) -> Instrument3D | None:

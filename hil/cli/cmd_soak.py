@@ -10,7 +10,9 @@ real-time scheduling (the comparison). ``--faults-every S`` injects a transient 
 (camera frame drop, robot disconnect, protective stop, occlusion, motion lag, in turn) every S
 seconds: the soak resumes after each (registering again when the gate stays shut) and reports
 what the controller said and how long it took to compensate again. Stdout: the figures
-(``--json``: one object, with ``passed``). Exit code 0 when the run compensated without refused
+(``--json``: one object, with ``passed``). ``--camera-clock-ppm`` sets the simulated camera's clock
+rate error (default: the setup's, else 50 ppm, so pairs sweep the servo periods' phase as a
+free-running camera's do; JSON ``camera_clock_ppm``). Exit code 0 when the run compensated without refused
 steps and without a fault that the injected ones do not explain, and came back from every
 injected fault it detected; 1 otherwise (late periods over their bound are printed, not a
 failure: the host's steal can cause them). ``--probe-host S`` (default 10) runs S seconds of fixed
@@ -62,6 +64,11 @@ def add_parser(sub: Any) -> None:
                         "servo's real-time set-up and none of our code (tools/bench host), so the soak's "
                         "late periods can be read against what the machine alone does (default 10; 0: no "
                         "probe)")
+    p.add_argument("--camera-clock-ppm", type=float, default=None, metavar="PPM",
+                   help="run the simulated camera's frame clock PPM fast against the host's, as a real "
+                        "camera's crystal is (default: the setup's [simulation.rig_errors] "
+                        "camera_clock_rate_error_ppm, else 50; 0: on the host's clock, so every pair keeps "
+                        "one phase of the servo periods for the whole soak)")
     p.add_argument("--config", help="simulated setup TOML (default: the embedded configs/sim.toml)")
     p.add_argument("--plan", help="plan JSON (default: plans/<config name>_plan.json next to the config)")
     p.add_argument("--session-dir", default="sessions", help="where the session log goes (default sessions/)")
@@ -164,6 +171,7 @@ def run(args: argparse.Namespace) -> int:
         session_dir=Path(args.session_dir),
         realtime=not args.no_rt,
         perception_process=args.perception_process,
+        camera_clock_ppm=args.camera_clock_ppm,
         faults_every_s=args.faults_every,
         progress=lambda m: print(f"hil soak: {m}", file=sys.stderr, flush=True),
     )
@@ -213,6 +221,7 @@ def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
     out.write(f"frame->setpoint      {_fmt(res.frame_to_setpoint_ms)} ms (p50/p99/max; the supervisor's "
               f"part, before the loop's next period)\n")
     out.write(f"latency bound        {_latency_bound(res)}\n")
+    out.write(f"camera clock         {res.camera_clock_ppm:g} ppm off the host's (--camera-clock-ppm)\n")
     out.write(f"stop->command        {_fmt(res.stop_to_command_ms)} ms (p50/p99/max)\n")
     where = "perception process" if res.perception_rss_mb else "supervisor"
     loc = " / ".join("n/a" if res.locate_ms.get(k) is None else f"{res.locate_ms[k]:.2f}"

@@ -148,6 +148,9 @@ class RigErrorsConfig(BaseModel):
         description="sigma of the true joint zero offsets (kinematic error of the reported pose)")
     tracker_clock_offset_ms: float = Field(
         0.0, ge=-200, le=200, description="the tracker's stamps minus the true sample times")
+    camera_clock_rate_error_ppm: float = Field(
+        0.0, ge=-500, le=500,
+        description="the camera's frame clock runs this much fast (negative: slow) against the host's")
 
     @model_validator(mode="after")
     def _check(self) -> RigErrorsConfig:

@@ -71,11 +71,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from hil.clock import MonotonicClock
 from hil.config import build_devices, load_setup
 from hil.config.faults import FaultKind, FaultSpec
 from hil.config.setup import SetupConfig
+from hil.config.simulation import RigErrorsConfig
 from hil.controller.controller import Controller
 from hil.controller.fsm import Event, State
 from hil.controller.operator_input import OperatorView
@@ -200,6 +202,9 @@ class SoakResult:
     #: the camera was grabbed, rendered and located in the perception process (else in the
     #: supervisor)
     perception_process: bool = False
+    #: the simulated camera's frame clock against the host's, ppm (``[simulation.rig_errors]
+    #: camera_clock_rate_error_ppm``; :data:`SOAK_CAMERA_CLOCK_PPM` unless given or the setup's)
+    camera_clock_ppm: float = 0.0
     #: the servo process's CPU use in compensation, % of one CPU: near the kernel's RT cap
     #: (``rt_granted.rt_cpu_cap``) the loop is throttled, paused for the rest of each second
     servo_cpu_percent: float | None = None
@@ -356,14 +361,34 @@ def transient_schedule(minutes: float, every_s: float, warmup_s: float = 60.0) -
     return tuple(out)
 
 
+#: The simulated camera's clock rate error a soak runs with unless told or the setup has one, ppm.
+#: A real camera's frame clock is its own crystal's (tens of ppm off the host's); a simulated one
+#: exactly on the host's clock keeps every pair at the same phase of the servo periods for the
+#: whole soak (33.3 ms against 2 ms: three phases), so the wait for the loop's next period, and
+#: with it the frame -> command figure, would depend on the phase the loop happened to start at.
+#: At 50 ppm the phase sweeps a servo period about every 40 s, as on a rig.
+SOAK_CAMERA_CLOCK_PPM = 50.0
+
+
+def soak_camera_clock_ppm(setup: SetupConfig, asked: float | None) -> float:
+    """The camera clock rate error a soak runs with (ppm): ``asked`` when given (0: the camera
+    on the host's clock), else the setup's when it has one, else :data:`SOAK_CAMERA_CLOCK_PPM`."""
+    if asked is not None:
+        return asked
+    own = setup.simulation.rig_errors.camera_clock_rate_error_ppm
+    return own if own != 0.0 else SOAK_CAMERA_CLOCK_PPM
+
+
 def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: bool = True,
-               faults: tuple[FaultSpec, ...] = (), perception_process: bool = False) -> SetupConfig:
+               faults: tuple[FaultSpec, ...] = (), perception_process: bool = False,
+               camera_clock_ppm: float | None = None) -> SetupConfig:
     """The setup in real time, at ``rate_hz``, staying in compensation (never settles into lock),
     with the servo loop in its own process (real-time scheduling asked for when ``realtime``),
     grabbing, rendering and locating in the supervisor (``perception_process``: in the perception
     process, ``[perception] process = "on"``, on any number of CPUs; a setup that cannot run it,
-    e.g. with a needle check, is a ConfigError naming why) and only the given faults (none by
-    default: the setup's own are left out)."""
+    e.g. with a needle check, is a ConfigError naming why), the camera's clock off the host's by
+    :func:`soak_camera_clock_ppm` and only the given faults (none by default: the setup's own are
+    left out)."""
     robot = setup.robot.model_copy(update={"control_rate_hz": rate_hz})
     proc = setup.procedure
     comp = proc.compensation.model_copy(update={"settle_s": 1e6, "timeout_s": 1e6})
@@ -371,7 +396,13 @@ def soak_setup(setup: SetupConfig, rate_hz: float, minutes: float, realtime: boo
     procedure = proc.model_copy(
         update={"compensation": comp, "gate": gate, "max_duration_s": minutes * 60.0 + 600.0}
     )
-    sim = setup.simulation.model_copy(update={"real_time": True})
+    try:   # validated (model_copy would not): the value may come from the command line
+        errors = RigErrorsConfig.model_validate(
+            {**setup.simulation.rig_errors.model_dump(),
+             "camera_clock_rate_error_ppm": soak_camera_clock_ppm(setup, camera_clock_ppm)})
+    except ValidationError as exc:
+        raise InputFileError("--camera-clock-ppm", exc.errors()[0]["msg"]) from None
+    sim = setup.simulation.model_copy(update={"real_time": True, "rig_errors": errors})
     servo = setup.servo.model_copy(update={"process": "on", "realtime": realtime})
     perception = setup.perception.model_copy(update={"process": "on" if perception_process else "off"})
     return setup.model_copy(update={"robot": robot, "procedure": procedure, "simulation": sim,
@@ -399,13 +430,15 @@ def run_soak(
     progress: Progress | None = None,
     faults_every_s: float = 0.0,
     perception_process: bool = False,
+    camera_clock_ppm: float | None = None,
 ) -> SoakResult:
     """Run the soak (blocking, ``minutes`` of compensation plus the time to reach it). The servo
     process is started and stopped here (the arm is stopped on every path). With
     ``faults_every_s`` > 0 a transient fault is injected that often (module doc). With
     ``perception_process`` the camera is grabbed, rendered and located in the perception process
     (unless the setup cannot: ``perception_in_process`` is logged with the reason); by default in
-    the supervisor, which did better on a 2-core machine (docs/benchmarks.md).
+    the supervisor, which did better on a 2-core machine (docs/benchmarks.md). The simulated
+    camera's clock runs ``camera_clock_ppm`` off the host's (:func:`soak_camera_clock_ppm`).
 
     Raises:
         InputFileError: a bad argument; ConfigError / InputFileError from the config and plan;
@@ -415,7 +448,7 @@ def run_soak(
     say = progress or (lambda _m: None)
     base = load_setup(config)
     schedule = transient_schedule(minutes, faults_every_s)
-    setup = soak_setup(base, rate_hz, minutes, realtime, schedule, perception_process)
+    setup = soak_setup(base, rate_hz, minutes, realtime, schedule, perception_process, camera_clock_ppm)
     plan_path = Path(plan) if plan else config.resolve().parent / "plans" / f"{config.stem}_plan.json"
     procedure_plan = load_plan(plan_path)
     clock = MonotonicClock()
@@ -466,6 +499,7 @@ def run_soak(
     res.transient_faults = fault_outcomes(schedule, str(session.path), t_open_ns, opened)
     res.unexplained_faults = unexplained_faults(schedule, str(session.path), t_open_ns, opened)
     _add_process_figures(res, robot, feed, ctl, sampler, operator, minutes)
+    res.camera_clock_ppm = setup.simulation.rig_errors.camera_clock_rate_error_ppm
     return res
 
 

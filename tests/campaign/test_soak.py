@@ -128,6 +128,7 @@ def test_short_soak_compensates_with_the_servo_loop(short_soak: Any) -> None:
     assert res.compensate_s >= 10.0
     assert res.final_state != "done"            # it stayed in the procedure
     assert res.compensation_frames >= 10 * 3    # pairs processed in compensation (15 Hz nominal)
+    assert res.camera_clock_ppm == 50.0           # the soak's default: a free-running camera
     assert res.intervals >= 10 * 500 // 2       # the loop ran at its rate, not at the camera's
     assert res.servo_commands >= res.compensation_frames
     assert res.limit_violations == 0
@@ -392,6 +393,31 @@ def test_late_intervals_count_only_where_the_host_left_the_loops_cpu_alone(tmp_p
                                               clean_windows=4)   # 0, 1, 5 and the empty one figures() closed
     assert StealFreeLate(None, lambda: (0, 0), stat_path=tmp_path / "missing").figures() == \
         StealFreeFigures(0, 0, 0.0, 0, 0)   # no /proc/stat: no windows, no figure
+
+
+def test_the_soaks_camera_clock_is_off_the_hosts_unless_told(tmp_path: Path) -> None:
+    """50 ppm by default (a free-running camera's pairs sweep the servo periods' phase), the
+    setup's own rate error when it has one, exactly what ``camera_clock_ppm`` says (0: the host's
+    clock); a value the config refuses is an InputFileError naming the option."""
+    from hil.soak.soak import SOAK_CAMERA_CLOCK_PPM
+
+    def ppm(setup: Any) -> float:
+        return float(setup.simulation.rig_errors.camera_clock_rate_error_ppm)
+
+    base = load_setup(default_setup_path())
+    assert ppm(base) == 0.0
+    assert SOAK_CAMERA_CLOCK_PPM == 50.0
+    assert ppm(soak_setup(base, 500.0, 1.0)) == 50.0
+    assert ppm(soak_setup(base, 500.0, 1.0, camera_clock_ppm=0.0)) == 0.0
+    assert ppm(soak_setup(base, 500.0, 1.0, camera_clock_ppm=-20.0)) == -20.0
+    errors = base.simulation.rig_errors.model_copy(update={"camera_clock_rate_error_ppm": 12.5})
+    own = base.model_copy(update={"simulation": base.simulation.model_copy(update={"rig_errors": errors})})
+    assert ppm(soak_setup(own, 500.0, 1.0)) == 12.5
+    with pytest.raises(InputFileError, match="--camera-clock-ppm"):
+        soak_setup(base, 500.0, 1.0, camera_clock_ppm=5000.0)
+    with pytest.raises(InputFileError, match="--camera-clock-ppm"):
+        run_soak(0.1, 500.0, config=default_setup_path(), plan=None, session_dir=tmp_path,
+                 camera_clock_ppm=float("nan"))
 
 
 @pytest.mark.parametrize(("perception_process", "mode"), [(False, "off"), (True, "on")])

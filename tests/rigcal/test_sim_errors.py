@@ -88,3 +88,38 @@ def test_coughs_and_wander_are_seeded_pure_functions_of_time() -> None:
     assert va == vb
     assert max(va) > 4.0          # at least one cough in 3 min at 3/min
     assert IrregularityScript(BreathingConfig(), seed=3).offset_mm(12.0) == 0.0
+
+
+@pytest.mark.parametrize("ppm", [0.0, 100.0, -250.0])
+def test_a_camera_clock_rate_error_spaces_the_exposures_on_the_host_clock(
+        perfect: SetupConfig, registry: DriverRegistry, ppm: float) -> None:
+    """The camera exposes every nominal period on its own clock (``device_t_ns``): ``ppm`` fast,
+    its pairs come that much more often on the host clock, and their phase against anything the
+    host paces drifts by period * ppm per pair. 0 ppm: exactly the nominal period."""
+    errors = perfect.simulation.rig_errors.model_copy(update={"camera_clock_rate_error_ppm": ppm})
+    setup = perfect.model_copy(update={"simulation": perfect.simulation.model_copy(
+        update={"rig_errors": errors})})
+    _, cam, _, _, clock = _world(setup, registry)
+    period_ns = round(1e9 / cam.frame_rate_hz)
+    cam.open()
+    try:
+        t0 = cam.exposure_time_ns(0)
+        assert t0 == clock.now_ns()
+        for k in (1, 30, 3000, 10**6):
+            want = t0 + (k * period_ns if ppm == 0.0 else round(k * (period_ns / (1.0 + ppm * 1e-6))))
+            assert cam.exposure_time_ns(k) == want
+        clock.advance(10.0)
+        pair = cam.grab(1.0)
+        k = pair.left.seq
+        assert pair.left.t_ns == cam.exposure_time_ns(k)                # exposure stamps, host clock
+        assert pair.left.device_t_ns == k * period_ns                    # the camera's own clock
+        latency_ns = round(cam.cfg.latency_ms * 1e6)
+        now = clock.now_ns()   # the newest pair delivered by now
+        assert cam.exposure_time_ns(k) + latency_ns <= now < cam.exposure_time_ns(k + 1) + latency_ns
+    finally:
+        cam.close()
+
+
+def test_the_camera_clock_rate_error_is_bounded() -> None:
+    with pytest.raises(ValueError, match="camera_clock_rate_error_ppm"):
+        RigErrorsConfig(camera_clock_rate_error_ppm=600.0)
