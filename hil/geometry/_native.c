@@ -16,8 +16,8 @@
  *
  * horn does not raise for bad points: it returns -1.0 for every input the numpy code refuses or
  * might refuse (fewer than 3 pairs, NaN/inf, a coincident or collinear set, an eigen-solution
- * that did not converge); the caller then runs the numpy code, which raises the typed error with
- * its message. Results agree with the numpy code to rounding: the eigenvectors come from cyclic
+ * that did not converge, a result that overflowed); the caller then runs the numpy code, which
+ * raises the typed error with its message. Results agree with the numpy code to rounding: the eigenvectors come from cyclic
  * Jacobi rotations instead of LAPACK, and sums run in index order.
  */
 #define PY_SSIZE_T_CLEAN
@@ -221,8 +221,9 @@ PyDoc_STRVAR(horn_doc,
 "Horn's registration with unit weights (hil.geometry.registration.register_horn): fixed, moving\n"
 "(N, 3) float64 C-contiguous, mm; writes R (3, 3) and t (3,) of T_fixed_from_moving and the\n"
 "residuals (N,) |R m_i + t - f_i| in mm; returns the FRE (RMS of the residuals, mm). Returns\n"
-"-1.0 (outputs undefined) for N < 3, NaN/inf, a coincident or collinear set, or no convergence:\n"
-"the numpy code decides those (and raises). TypeError / ValueError for a bad buffer.");
+"-1.0 (outputs undefined) for N < 3, NaN/inf, a coincident or collinear set, no convergence or\n"
+"a non-finite result (an overflow): the numpy code decides those (and raises). TypeError /\n"
+"ValueError for a bad buffer.");
 
 static PyObject *k_horn(PyObject *self, PyObject *args)
 {
@@ -326,7 +327,10 @@ static PyObject *k_horn(PyObject *self, PyObject *args)
         res[i] = sqrt(r2);
         sum_r2 += r2;
     }
-    result = PyFloat_FromDouble(sqrt(sum_r2 / (double)n));
+    double fre = sqrt(sum_r2 / (double)n);
+    /* coordinates so large that a square overflows: never a non-finite transform (numpy decides) */
+    result = PyFloat_FromDouble(all_finite(R, 9) && all_finite(t, 3) && all_finite(res, n) && isfinite(fre)
+                                ? fre : -1.0);
 done:
     release(views, 5);
     return result;
@@ -342,8 +346,8 @@ PyDoc_STRVAR(track_doc,
 "predicted (K, 3) (NaN rows skipped), out (K, 3) float64 C-contiguous, mm. Repeatedly the\n"
 "closest free (predicted row, point) pair within tolerance_mm is assigned (ties: the lower\n"
 "row-major index, as a stable sort would); out gets the assigned points, NaN elsewhere. A\n"
-"distance that is NaN never matches. Returns False (out untouched) when K * M > 4096 (the\n"
-"numpy code then runs). TypeError / ValueError for a bad buffer.");
+"distance that is NaN never matches. Returns False (out untouched) when K, M or K * M is over\n"
+"4096 (the numpy code then runs). TypeError / ValueError for a bad buffer.");
 
 static PyObject *k_track(PyObject *self, PyObject *args)
 {
@@ -367,7 +371,7 @@ static PyObject *k_track(PyObject *self, PyObject *args)
     if (out == NULL) {
         goto done;
     }
-    if (k * m > TRACK_MAX) {
+    if (k > TRACK_MAX || m > TRACK_MAX || k * m > TRACK_MAX) {   /* each bounds an array below */
         result = Py_NewRef(Py_False);
         goto done;
     }

@@ -162,3 +162,27 @@ def test_bad_buffers_name_the_argument(compiled: object) -> None:
         k.track(np.zeros((6, 3))[::2], f, 1.0, np.empty((4, 3)))  # type: ignore[attr-defined]
     with pytest.raises(ValueError, match="out: dimension 0 has length 3, expected 4"):
         k.track(f, f, 1.0, np.empty((3, 3)))  # type: ignore[attr-defined]
+
+
+def test_more_rows_than_the_compiled_arrays_hold_go_the_numpy_way(compiled: object) -> None:
+    """Thousands of predicted rows and no point (K * M = 0): not the compiled code's arrays."""
+    predicted = np.zeros((5000, 3))
+    assert np.array_equal(track(np.zeros((0, 3)), predicted, 1.0), np.full((5000, 3), np.nan), equal_nan=True)
+    points = np.arange(15000.0).reshape(5000, 3)
+    assert np.array_equal(track(points, points[:1] + 0.1, 1.0), points[:1])
+
+
+def test_an_overflowing_registration_is_decided_by_the_numpy_code(compiled: object) -> None:
+    """Coordinates whose squares overflow: the compiled code never returns a non-finite
+    transform; the outcome (here an error) is the numpy code's."""
+    moving = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]) * 1e200
+    fixed = moving[:, [1, 0, 2]]
+
+    def outcome(fn: object) -> object:
+        try:
+            reg = fn(fixed, moving)  # type: ignore[operator]
+        except Exception as exc:  # noqa: BLE001 - the class is what is compared
+            return type(exc)
+        return bool(np.all(np.isfinite(reg.T_fixed_from_moving.t)))
+
+    assert outcome(register_horn) == outcome(register_horn_numpy)

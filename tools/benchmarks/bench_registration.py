@@ -6,7 +6,12 @@ Prints time and accuracy of each method next to its baseline:
 - Horn vs SVD paired registration (time per call; agreement);
 - ICP with the principal-axes start vs plain ICP from the identity, over random rotations of
   uniformly distributed angle (success = rotation error < 0.1 degree);
-- correspondence-free matching of 6 markers with one missing and one spurious point.
+- correspondence-free matching of 6 markers with one missing and one spurious point;
+- the per-pair marker geometry (Horn on 6 markers, tracking 6 markers among 10 points), compiled
+  (hil/geometry/_native.c) beside its numpy reference, hot (back to back) and *cold*: one call
+  every 10 ms and every 33 ms (a camera period), as the controller calls it. On a shared host
+  code that ran 33 ms ago has been evicted from the caches (docs/benchmarks.md, "Issue 16: cold
+  code on the pair's path"); ``--cold-calls`` sets how many spaced calls are timed.
 Wall-clock figures depend on the machine; the accuracy figures do not (fixed seed).
 """
 
@@ -24,9 +29,11 @@ from typing import Any, Literal
 
 import numpy as np
 
+from hil.controller.registration import track, track_numpy
+from hil.geometry import native
 from hil.geometry.icp import icp
 from hil.geometry.matching import match_markers
-from hil.geometry.registration import register_horn, register_svd
+from hil.geometry.registration import register_horn, register_horn_numpy, register_svd
 from hil.geometry.transform import RigidTransform
 
 
@@ -122,17 +129,66 @@ def bench_matching(rng: np.random.Generator, trials: int) -> dict[str, Any]:
     return {"trials": trials, "correct_rate": correct / trials, "median_time_ms": median_ms}
 
 
+def _spaced_us(fn: Callable[[], object], spacing_s: float, calls: int) -> float:
+    """Median time of one call of ``fn`` made ``spacing_s`` after the previous one, µs."""
+    times = []
+    for _ in range(calls):
+        time.sleep(spacing_s)
+        t0 = time.perf_counter_ns()
+        fn()
+        times.append(time.perf_counter_ns() - t0)
+    return round(statistics.median(times) * 1e-3, 1)
+
+
+def bench_per_pair(rng: np.random.Generator, cold_calls: int) -> dict[str, Any]:
+    """The controller's per-pair geometry, compiled and numpy, hot and cold (module doc)."""
+    moving = rng.uniform(-60, 60, size=(6, 3))
+    fixed = _random_rotation(rng).apply(moving) + rng.normal(scale=0.1, size=(6, 3))
+    points = np.vstack([fixed, rng.uniform(-200, 200, size=(4, 3))])
+    predicted = fixed + rng.normal(scale=0.5, size=(6, 3))
+    built = native.is_built()
+    previous = native.use_native(True)
+    try:
+        variants: dict[str, dict[str, Callable[[], object]]] = {
+            "horn": {"compiled": partial(register_horn, fixed, moving),
+                     "numpy": partial(register_horn_numpy, fixed, moving)},
+            "track": {"compiled": partial(track, points, predicted, 6.0),
+                      "numpy": partial(track_numpy, points, predicted, 6.0)},
+        }
+        out: dict[str, Any] = {"native": native.native_status(), "cold_calls": cold_calls}
+        for what, fns in variants.items():
+            out[f"{what}_us"] = {}
+            for kind, fn in fns.items():
+                if kind == "compiled" and not built:
+                    continue
+                for _ in range(200):   # warm-up
+                    fn()
+                out[f"{what}_us"][kind] = {
+                    "hot": round(_time_us(fn, 300), 1),
+                    "every_10ms": _spaced_us(fn, 0.010, cold_calls),
+                    "every_33ms": _spaced_us(fn, 0.0333, cold_calls),
+                }
+    finally:
+        native.use_native(previous)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--trials", type=int, default=20, help="ICP/matching trials (default 20)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--cold-calls", type=int, default=100,
+                    help="spaced calls timed per per-pair variant (default 100: ~17 s in all)")
     args = ap.parse_args(argv)
+    if args.cold_calls < 1:
+        ap.error(f"--cold-calls must be >= 1, got {args.cold_calls}")
     rng = np.random.default_rng(args.seed)
     report = {
         "paired": bench_paired(rng),
         "icp": bench_icp(rng, args.trials),
         "matching": bench_matching(rng, args.trials),
+        "per_pair": bench_per_pair(rng, args.cold_calls),
     }
     if args.json:
         json.dump(report, sys.stdout, indent=2)
@@ -153,6 +209,13 @@ def main(argv: list[str] | None = None) -> int:
     mr = report["matching"]
     print(f"matching 6 markers, 1 missing + 1 spurious: {mr['correct_rate']:.0%} correct, "
           f"median {mr['median_time_ms']} ms")
+    pp = report["per_pair"]
+    print(f"per-pair geometry ({pp['native']}), median us: hot / one call every 10 ms / every 33 ms")
+    for what in ("horn", "track"):
+        for kind, v in pp[f"{what}_us"].items():
+            base = "" if kind == "numpy" else "   (numpy: the baseline below)"
+            print(f"  {what:5s} {kind:8s} {v['hot']:7.1f} / {v['every_10ms']:7.1f} / "
+                  f"{v['every_33ms']:7.1f}{base}")
     return 0
 
 
