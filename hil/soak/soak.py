@@ -433,12 +433,10 @@ def run_soak(
     camera_clock_ppm: float | None = None,
 ) -> SoakResult:
     """Run the soak (blocking, ``minutes`` of compensation plus the time to reach it). The servo
-    process is started and stopped here (the arm is stopped on every path). With
-    ``faults_every_s`` > 0 a transient fault is injected that often (module doc). With
-    ``perception_process`` the camera is grabbed, rendered and located in the perception process
-    (unless the setup cannot: ``perception_in_process`` is logged with the reason); by default in
-    the supervisor, which did better on a 2-core machine (docs/benchmarks.md). The simulated
-    camera's clock runs ``camera_clock_ppm`` off the host's (:func:`soak_camera_clock_ppm`).
+    process is started and stopped here (the arm is stopped on every path). ``faults_every_s`` >
+    0: a transient fault that often (module doc). ``perception_process``: grab, render and locate
+    in the perception process (unless the setup cannot: ``perception_in_process`` says why), else
+    in the supervisor. ``camera_clock_ppm``: :func:`soak_camera_clock_ppm`.
 
     Raises:
         InputFileError: a bad argument; ConfigError / InputFileError from the config and plan;

@@ -6,7 +6,8 @@ buffer is a TypeError / ValueError naming the argument."""
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -17,14 +18,14 @@ from hil.compiled import CompiledKernel
 from hil.controller.registration import track, track_numpy
 from hil.errors import DegenerateConfigurationError, GeometryError
 from hil.geometry import native
-from hil.geometry.registration import register_horn, register_horn_numpy
+from hil.geometry.registration import Registration, register_horn, register_horn_numpy
 from hil.geometry.transform import RigidTransform
 
 from .strategies import point_sets, rigid_transforms
 
 
 @pytest.fixture
-def compiled() -> Iterator[object]:
+def compiled() -> Iterator[Any]:
     """The compiled code selected for the test (the previous selection restored after)."""
     assert native.is_built(), native.native_status()
     previous = native.use_native(True)
@@ -72,7 +73,7 @@ def test_horn_agrees_with_numpy(moving: np.ndarray, T: RigidTransform, noise_mm:
 def test_refused_inputs_raise_the_numpy_codes_errors(compiled: object) -> None:
     """Everything the checks refuse is decided by the numpy code: same class, same message."""
     good = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]])
-    cases: list[tuple[object, object, type[Exception], str]] = [
+    cases: list[tuple[Any, Any, type[Exception], str]] = [
         (good[:2], good[:2], GeometryError, "fixed: 2 point(s) given, at least 3 are needed"),
         (good, good[:3], GeometryError, "fixed has 4 points but moving has 3"),
         (np.where(good == 10, np.nan, good), good, GeometryError, "fixed contains NaN or infinite values"),
@@ -84,7 +85,7 @@ def test_refused_inputs_raise_the_numpy_codes_errors(compiled: object) -> None:
     ]
     for fixed, moving, err, message in cases:
         with pytest.raises(err) as exc_info:
-            register_horn(fixed, moving)  # type: ignore[arg-type]
+            register_horn(fixed, moving)
         assert str(exc_info.value).startswith(message), str(exc_info.value)
     reg = register_horn(good.astype(np.float32), good)   # float32 and lists: the numpy code
     assert reg.fre_rms_mm == register_horn_numpy(good, good).fre_rms_mm
@@ -146,22 +147,22 @@ def test_track_beyond_the_compiled_size_runs_numpy(compiled: object) -> None:
     assert np.array_equal(track(points, predicted, 1.0), points[:8])
 
 
-def test_bad_buffers_name_the_argument(compiled: object) -> None:
+def test_bad_buffers_name_the_argument(compiled: Any) -> None:
     k = compiled
     f = np.zeros((4, 3))
     R, t, res = np.empty((3, 3)), np.empty(3), np.empty(4)
     with pytest.raises(TypeError, match="fixed: expected float64 items"):
-        k.horn(f.astype(np.float32), f, R, t, res)  # type: ignore[attr-defined]
+        k.horn(f.astype(np.float32), f, R, t, res)
     with pytest.raises(ValueError, match="moving: dimension 0 has length 3, expected 4"):
-        k.horn(f, f[:3].copy(), R, t, res)  # type: ignore[attr-defined]
+        k.horn(f, f[:3].copy(), R, t, res)
     with pytest.raises(TypeError, match="R: expected a writable"):
-        k.horn(f, f, b"x" * 72, t, res)  # type: ignore[attr-defined]
+        k.horn(f, f, b"x" * 72, t, res)
     with pytest.raises(ValueError, match="residuals: dimension 0 has length 3, expected 4"):
-        k.horn(f, f, R, t, np.empty(3))  # type: ignore[attr-defined]
+        k.horn(f, f, R, t, np.empty(3))
     with pytest.raises(TypeError, match="points: expected a readable C-contiguous float64 array"):
-        k.track(np.zeros((6, 3))[::2], f, 1.0, np.empty((4, 3)))  # type: ignore[attr-defined]
+        k.track(np.zeros((6, 3))[::2], f, 1.0, np.empty((4, 3)))
     with pytest.raises(ValueError, match="out: dimension 0 has length 3, expected 4"):
-        k.track(f, f, 1.0, np.empty((3, 3)))  # type: ignore[attr-defined]
+        k.track(f, f, 1.0, np.empty((3, 3)))
 
 
 def test_more_rows_than_the_compiled_arrays_hold_go_the_numpy_way(compiled: object) -> None:
@@ -178,9 +179,9 @@ def test_an_overflowing_registration_is_decided_by_the_numpy_code(compiled: obje
     moving = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]) * 1e200
     fixed = moving[:, [1, 0, 2]]
 
-    def outcome(fn: object) -> object:
+    def outcome(fn: Callable[[Any, Any], Registration]) -> object:
         try:
-            reg = fn(fixed, moving)  # type: ignore[operator]
+            reg = fn(fixed, moving)
         except Exception as exc:  # noqa: BLE001 - the class is what is compared
             return type(exc)
         return bool(np.all(np.isfinite(reg.T_fixed_from_moving.t)))
