@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from drivers.interfaces.robot import RobotState
 from hil.geometry.transform import RigidTransform
 
 
@@ -30,7 +31,8 @@ class MoveLinear:
 class Track:
     """A tracking setpoint (see :class:`hil.servo.shm.Setpoint`): the TCP pose ``T_robot_from_tcp``
     (mm) at ``t_ref_ns`` and its velocity (mm/s, rad/s; robot frame); valid until
-    ``valid_until_ns`` (controller clock)."""
+    ``valid_until_ns`` (controller clock). ``robot_state``: the state the setpoint was made with,
+    checked by the safety layer for age and safety instead of reading another (None: it reads)."""
 
     setpoint: RigidTransform
     v_mm_s: NDArray[np.float64]
@@ -42,6 +44,7 @@ class Track:
     speed_scale: float
     max_horizon_s: float
     lead_s: float
+    robot_state: RobotState | None = None
 
 
 @dataclass(frozen=True)

@@ -132,7 +132,7 @@ class Controller(ControllerParts):
             self.safety.track(cmd.setpoint, cmd.v_mm_s, cmd.w_rad_s, t_ref_ns=cmd.t_ref_ns,
                               valid_until_ns=cmd.valid_until_ns, exposure_t_ns=cmd.exposure_t_ns,
                               frame_seq=cmd.frame_seq, speed_scale=cmd.speed_scale,
-                              max_horizon_s=cmd.max_horizon_s, lead_s=cmd.lead_s)
+                              max_horizon_s=cmd.max_horizon_s, lead_s=cmd.lead_s, state=cmd.robot_state)
         elif isinstance(cmd, Stop):
             self.supervisor.stop_robot(cmd.reason)
         else:

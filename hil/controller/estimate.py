@@ -78,6 +78,8 @@ class Estimate:
         self.resumed_ns: int | None = None
         #: the flange set :meth:`T_optical_from_tcp_measured` last registered, and its result
         self._tcp_measured: tuple[FloatArray | None, RigidTransform | None] = (None, None)
+        #: what :meth:`desired_tcp_robot_local` composed its chain of, and the chain (L, R)
+        self._chain: tuple[tuple[object, ...], RigidTransform, RigidTransform] | None = None
 
     # ------------------------------------------------------------------ updates
     def restart_registration(self) -> None:
@@ -175,6 +177,23 @@ class Estimate:
         assert self.robot_reg is not None
         T_robot_from_optical = self.robot_reg.T_robot_from_optical
         return self.T_bias @ T_robot_from_optical @ T_change @ self.T_optical_from_tcp_planned()
+
+    def desired_tcp_robot_local(self, T_local: RigidTransform) -> RigidTransform:
+        """:meth:`desired_tcp_robot` of the entry-centred change ``T_local`` (the motion
+        filter's), i.e. ``desired_tcp_robot(global_(T_local))`` as ``L @ T_local @ R`` with
+        ``L = T_bias @ T_robot_from_optical @ T_center`` and ``R = T_center^-1 @
+        T_optical_from_tcp_planned``. Both are kept while what they are made of is the same
+        object (every part is immutable and replaced, never changed), so a pair's setpoint and its
+        velocity cost two compositions each instead of seven (the supervisor's latency)."""
+        assert self.robot_reg is not None
+        assert self.guide_plan is not None
+        parts = (self.T_bias, self.robot_reg, self.guide_plan, self.T_center)
+        if self._chain is None or any(a is not b for a, b in zip(self._chain[0], parts, strict=True)):
+            L = self.T_bias @ self.robot_reg.T_robot_from_optical @ self.T_center
+            R = self.T_center.inverse() @ self.T_optical_from_tcp_planned()
+            self._chain = (parts, L, R)
+        _, L, R = self._chain
+        return L @ T_local @ R
 
     def gate_deviation_mm(self) -> float:
         """RMS deviation of the live skin markers from the reference (mm); inf before

@@ -77,6 +77,10 @@ class SafetyLayer:
         self.clock = clock
         self.robot_state_max_age_s = robot_state_max_age_s
         self._log = log
+        # once, not per setpoint: the limits are frozen, and a Protocol isinstance costs microseconds
+        self._box_lo_mm = np.asarray(limits.workspace_min_mm, dtype=np.float64)
+        self._box_hi_mm = np.asarray(limits.workspace_max_mm, dtype=np.float64)
+        self._tracking_robot: TrackingRobot | None = robot if isinstance(robot, TrackingRobot) else None
         self._last_servo: RigidTransform | None = None
         self._last_servo_velocity_mm_s: np.ndarray[Any, np.dtype[np.float64]] | None = None
         self.commands_sent = 0
@@ -91,14 +95,22 @@ class SafetyLayer:
 
     def _check_box(self, kind: str, T: RigidTransform) -> None:
         p = T.t
-        lo = np.asarray(self.limits.workspace_min_mm)
-        hi = np.asarray(self.limits.workspace_max_mm)
-        if not np.all(np.isfinite(p)) or np.any(p < lo) or np.any(p > hi):
+        if not np.all(np.isfinite(p)) or np.any(p < self._box_lo_mm) or np.any(p > self._box_hi_mm):
             box = f"{list(self.limits.workspace_min_mm)}..{list(self.limits.workspace_max_mm)} mm"
             raise self._refuse(kind, "workspace", f"target {np.round(p, 3).tolist()} mm outside box {box}")
 
-    def _fresh_state(self, kind: str) -> RobotState:
-        state = self.robot.state_now()
+    def _tracker(self) -> TrackingRobot:
+        """The robot as the servo loop's client. Raises TypeError: it has no servo loop."""
+        if self._tracking_robot is None:
+            name = type(self.robot).__name__
+            raise TypeError(f"{name} has no servo loop (wrap it in hil.servo's ServoRobot)")
+        return self._tracking_robot
+
+    def _fresh_state(self, kind: str, state: RobotState | None = None) -> RobotState:
+        """``state`` (None: the robot's latest, read now), refused unless it is at most
+        :attr:`robot_state_max_age_s` old by the clock and the arm is in NORMAL safety."""
+        if state is None:
+            state = self.robot.state_now()
         age_s = (self.clock.now_ns() - state.t_ns) * 1e-9
         if age_s > self.robot_state_max_age_s:
             raise self._refuse(kind, "state_age",
@@ -173,19 +185,22 @@ class SafetyLayer:
     def start_tracking(self) -> None:
         """A new tracking session: the servo loop restarts from the actual pose, at rest."""
         self.forget_stream()
-        robot = self.robot
-        if not isinstance(robot, TrackingRobot):
-            raise TypeError(f"{type(robot).__name__} has no servo loop (wrap it in hil.servo's ServoRobot)")
+        robot = self._tracker()
         robot.start_tracking()
 
     def track(self, T_robot_from_tcp: RigidTransform, v_mm_s: FloatArray, w_rad_s: FloatArray, *,
               t_ref_ns: int, valid_until_ns: int, exposure_t_ns: int, frame_seq: int,
-              speed_scale: float, max_horizon_s: float, lead_s: float) -> None:
+              speed_scale: float, max_horizon_s: float, lead_s: float,
+              state: RobotState | None = None) -> None:
         """Publish a tracking setpoint to the servo loop after the checks: the target inside the
         box, a finite velocity, a fresh robot state in NORMAL safety. (The velocity is the patient's
         and may exceed the arm's limits: the loop's rate limiter bounds what is commanded.) The
         loop applies the merged step check (:mod:`hil.safety.servo_check`) to every command it
         derives. Logged once per setpoint (``command_sent``, command ``track``), not per period.
+
+        ``state``: the robot state the setpoint was made with (the tick read it moments ago), held
+        to the same age and safety checks as one read here; None reads one here. Passing it
+        saves the supervisor a second read of the servo loop's ring on the pair's path.
 
         Raises:
             SafetyViolationError: refused (nothing published).
@@ -194,10 +209,8 @@ class SafetyLayer:
         self._check_box("track", T_robot_from_tcp)
         if not (np.all(np.isfinite(v_mm_s)) and np.all(np.isfinite(w_rad_s))):
             raise self._refuse("track", "velocity", "setpoint velocity is not finite")
-        self._fresh_state("track")
-        robot = self.robot
-        if not isinstance(robot, TrackingRobot):
-            raise TypeError(f"{type(robot).__name__} has no servo loop (wrap it in hil.servo's ServoRobot)")
+        self._fresh_state("track", state)
+        robot = self._tracker()
         robot.track(T_robot_from_tcp, v_mm_s, w_rad_s, t_ref_ns=t_ref_ns, valid_until_ns=valid_until_ns,
                     exposure_t_ns=exposure_t_ns, frame_seq=frame_seq, speed_scale=speed_scale,
                     max_horizon_s=max_horizon_s, lead_s=lead_s)
@@ -215,9 +228,7 @@ class SafetyLayer:
         Raises:
             DriverError: the servo loop is gone.
         """
-        robot = self.robot
-        if not isinstance(robot, TrackingRobot):
-            raise TypeError(f"{type(robot).__name__} has no servo loop (wrap it in hil.servo's ServoRobot)")
+        robot = self._tracker()
         robot.hold()
         self.commands_sent += 1
         if self._log is not None:

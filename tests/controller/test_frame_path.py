@@ -33,9 +33,9 @@ def _spy_order(monkeypatch: pytest.MonkeyPatch) -> list[tuple[str, int]]:
     order: list[tuple[str, int]] = []
     publish, check, latest = CompensatePhase._publish, CameraCrossCheck.check, SimTracker.latest
 
-    def publish_spy(self: CompensatePhase, frame: Any, now_ns: int) -> Any:
+    def publish_spy(self: CompensatePhase, frame: Any, now_ns: int, st: Any) -> Any:
         order.append(("publish", frame.left.seq))
-        return publish(self, frame, now_ns)
+        return publish(self, frame, now_ns, st)
 
     def check_spy(self: CameraCrossCheck, est: Any, frame: Any, state: Any) -> Any:
         order.append(("crosscheck", frame.left.seq))

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import pytest
 
-from drivers.interfaces.robot import MotionLimits, SafetyStatus
+from drivers.interfaces.robot import MotionLimits, RobotState, SafetyStatus
 from hil.clock import ManualClock
 from hil.geometry.transform import RigidTransform
 from hil.safety import SafetyLayer, SafetyViolationError, Watchdog, WatchdogSet
@@ -159,3 +160,83 @@ class TestWatchdogs:
     def test_bad_age_is_refused(self) -> None:
         with pytest.raises(ValueError, match="max_age_s must be > 0"):
             Watchdog("camera", 0.0)
+
+
+class _TrackingFake(FakeRobot):
+    """A fake robot that takes tracking setpoints (the servo loop's client) and counts state reads."""
+
+    def __init__(self, clock: ManualClock) -> None:
+        super().__init__(clock)
+        self.reads = 0
+        self.setpoints: list[RigidTransform] = []
+
+    def _state_now(self) -> RobotState:
+        self.reads += 1
+        return super()._state_now()
+
+    def start_tracking(self) -> int:
+        return 1
+
+    def hold(self) -> None:
+        self.calls.append(("hold", None))
+
+    def track(self, T_robot_from_tcp: RigidTransform, v_mm_s: Any, w_rad_s: Any, *, t_ref_ns: int,
+              valid_until_ns: int, exposure_t_ns: int, frame_seq: int, speed_scale: float,
+              max_horizon_s: float, lead_s: float) -> None:
+        self.setpoints.append(T_robot_from_tcp)
+
+
+class TestTrack:
+    """``track`` checks the state it is given like one it reads, and reads none then."""
+
+    @staticmethod
+    def _track(layer: SafetyLayer, state: RobotState | None) -> None:
+        z = np.zeros(3)
+        layer.track(_at(5.0), z, z, t_ref_ns=0, valid_until_ns=10**12, exposure_t_ns=0, frame_seq=1,
+                    speed_scale=1.0, max_horizon_s=0.0, lead_s=0.0, state=state)
+
+    def _layer(self) -> tuple[SafetyLayer, _TrackingFake, ManualClock]:
+        clock = ManualClock(10**9)
+        robot = _TrackingFake(clock)
+        robot.open()
+        return SafetyLayer(robot, LIMITS, clock, robot_state_max_age_s=0.05), robot, clock
+
+    def test_given_state_is_used_without_a_read(self) -> None:
+        layer, robot, clock = self._layer()
+        st = robot.state_now()
+        clock.advance(0.049)
+        self._track(layer, st)
+        assert robot.reads == 1
+        assert [T.t.tolist() for T in robot.setpoints] == [[5.0, 0.0, 300.0]]
+        assert layer.commands_sent == 1
+
+    def test_without_a_state_it_reads_one(self) -> None:
+        layer, robot, _ = self._layer()
+        self._track(layer, None)
+        assert robot.reads == 1
+        assert len(robot.setpoints) == 1
+
+    def test_given_stale_state_refuses(self) -> None:
+        layer, robot, clock = self._layer()
+        st = robot.state_now()
+        clock.advance(0.051)
+        with pytest.raises(SafetyViolationError) as ei:
+            self._track(layer, st)
+        assert ei.value.check == "state_age"
+        assert robot.setpoints == []
+        assert robot.reads == 1
+
+    def test_given_state_in_protective_stop_refuses(self) -> None:
+        layer, robot, _ = self._layer()
+        robot.safety_status = SafetyStatus.PROTECTIVE_STOP
+        with pytest.raises(SafetyViolationError) as ei:
+            self._track(layer, robot.state_now())
+        assert ei.value.check == "robot_safety"
+        assert robot.setpoints == []
+
+    def test_robot_without_a_servo_loop_is_a_type_error(self) -> None:
+        layer, _, _, _ = _layer()
+        with pytest.raises(TypeError, match="FakeRobot has no servo loop"):
+            self._track(layer, None)
+        with pytest.raises(TypeError, match="FakeRobot has no servo loop"):
+            layer.hold("test")

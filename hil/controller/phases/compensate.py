@@ -33,6 +33,7 @@ from hil.geometry.transform import RigidTransform
 
 if TYPE_CHECKING:
     from drivers.interfaces.camera import StereoFrame
+    from drivers.interfaces.robot import RobotState
     from hil.controller.inputs import TickInputs
 
 
@@ -148,12 +149,12 @@ class CompensatePhase(Phase):
             if D is not None:
                 est.T_bias = interpolate_pose(est.T_bias, D, c.bias_gain)
         t_send = ctx.clock.now_ns()
-        horizon_s, cmd = self._publish(frame, inputs.t_ns)
+        horizon_s, cmd = self._publish(frame, inputs.t_ns, inputs.robot)
         t_cmd = ctx.clock.now_ns()
         ctx.latency_ms.append((t_cmd - frame.left.t_ns) * 1e-6)
         return _Sent(frame, change, now, t_send, t_cmd, horizon_s, cmd)
 
-    def _publish(self, frame: StereoFrame, now_ns: int) -> tuple[float, RigidTransform]:
+    def _publish(self, frame: StereoFrame, now_ns: int, st: RobotState) -> tuple[float, RigidTransform]:
         """Publish the frame's tracking setpoint: the TCP pose that keeps the guide on the plan for
         the filtered patient change at the pair's exposure, and its velocity (the change's, through
         the same frame chain, by a 10 ms difference of the filter's linear extrapolation). The
@@ -162,11 +163,11 @@ class CompensatePhase(Phase):
         Returns (the horizon at publication, s; the pose at publication)."""
         ctx, c, est = self.ctx, self.ctx.cfg.compensation, self.ctx.est
         t_exp = frame.left.t_ns
-        D0 = est.desired_tcp_robot(est.global_(est.filter.estimate(t_exp, c.max_prediction_s)))
+        D0 = est.desired_tcp_robot_local(est.filter.estimate(t_exp, c.max_prediction_s))
         if c.predict_latency and c.max_prediction_s > 0:
             dt_s = _VELOCITY_STEP_S
-            D1 = est.desired_tcp_robot(est.global_(
-                est.filter.estimate(t_exp + round(dt_s * 1e9), c.max_prediction_s)))
+            t_next_ns = t_exp + round(dt_s * 1e9)
+            D1 = est.desired_tcp_robot_local(est.filter.estimate(t_next_ns, c.max_prediction_s))
             v = (D1.t - D0.t) / dt_s
             w = (D1 @ D0.inverse()).as_rotvec() / dt_s
             servo_dt = 1.0 / ctx.robot.control_rate_hz
@@ -177,7 +178,7 @@ class CompensatePhase(Phase):
         valid_until = t_exp + round(timing.camera_max_age_s * 1e9)
         ctx.execute(Track(D0, v, w, t_ref_ns=t_exp, valid_until_ns=valid_until, exposure_t_ns=t_exp,
                           frame_seq=frame.left.seq, speed_scale=self._ramp_scale(),
-                          max_horizon_s=max_h, lead_s=lead_s))
+                          max_horizon_s=max_h, lead_s=lead_s, robot_state=st))
         self.s.last_cmd_ns = ctx.clock.now_ns()
         h = min(max((now_ns - t_exp) * 1e-9 + lead_s, 0.0), max_h)
         return h, RigidTransform(D0.R, D0.t + v * h)
