@@ -201,28 +201,29 @@ class MarkerRing:
 
 def _decode(w: FloatArray) -> MarkerRecord:
     raw = w.view(np.int64)
-    kind = RecordKind(int(raw[_KIND]))
-    rec = MarkerRecord(kind=kind, pair_seq=int(raw[_PAIR]), grab_done_t_ns=int(raw[_GRAB_DONE]))
+    h = raw[:_HEADER].tolist()   # the header as Python ints at once (a record per pair, on its path)
+    kind = RecordKind(h[_KIND])
+    rec = MarkerRecord(kind=kind, pair_seq=h[_PAIR], grab_done_t_ns=h[_GRAB_DONE])
     if kind is not RecordKind.MARKERS:
-        n = int(raw[_NL])
+        n = h[_NL]
         text = raw[_HEADER:].view(np.uint8)[:n].tobytes().decode("utf-8", "replace")
         parts = [*text.split("\x00", 2), "", ""][:3]
         rec.error = (parts[0], parts[1], parts[2])
         return rec
-    flags = int(raw[_FLAGS])
-    rec.left_seq, rec.right_seq = int(raw[_LSEQ]), int(raw[_RSEQ])
-    rec.left_t_ns, rec.right_t_ns = int(raw[_LT]), int(raw[_RT])
-    rec.left_device_t_ns = int(raw[_LDEV]) if flags & _F_LDEV else None
-    rec.right_device_t_ns = int(raw[_RDEV]) if flags & _F_RDEV else None
-    rec.time_source = int(raw[_SOURCE])
+    flags = h[_FLAGS]
+    rec.left_seq, rec.right_seq = h[_LSEQ], h[_RSEQ]
+    rec.left_t_ns, rec.right_t_ns = h[_LT], h[_RT]
+    rec.left_device_t_ns = h[_LDEV] if flags & _F_LDEV else None
+    rec.right_device_t_ns = h[_RDEV] if flags & _F_RDEV else None
+    rec.time_source = h[_SOURCE]
     rec.locate_ms = float(w[_LOCATE_MS])
-    rec.image_size = (int(raw[_WIDTH]), int(raw[_HEIGHT]))
-    n_pts = min(int(raw[_NP]), MAX_MARKERS)
+    rec.image_size = (h[_WIDTH], h[_HEIGHT])
+    n_pts = min(h[_NP], MAX_MARKERS)
     rec.points_mm = w[_POINTS:_POINTS + 3 * n_pts].reshape(-1, 3).copy()
     if flags & _F_LPX:
-        n = min(int(raw[_NL]), MAX_MARKERS)
+        n = min(h[_NL], MAX_MARKERS)
         rec.left_px = w[_LEFT:_LEFT + 2 * n].reshape(-1, 2).copy()
     if flags & _F_RPX:
-        n = min(int(raw[_NR]), MAX_MARKERS)
+        n = min(h[_NR], MAX_MARKERS)
         rec.right_px = w[_RIGHT:_RIGHT + 2 * n].reshape(-1, 2).copy()
     return rec
