@@ -1,5 +1,6 @@
 """Build of the compiled kernels: the vision kernel (hil/vision/_kernel.c) and the per-pair
-marker geometry (hil/geometry/_native.c); everything else is in pyproject.toml.
+marker geometry with the simulated arm's servo-step kinematics (hil/geometry/_native.c);
+everything else is in pyproject.toml.
 
 -O2 without -ffast-math and without floating-point contraction: a kernel must give the numpy
 reference's results to rounding (hil/vision/kernel.py, hil/geometry/native.py). Only the Python

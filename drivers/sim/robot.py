@@ -49,8 +49,8 @@ from drivers.sim.rig_errors import joint_offsets
 from drivers.sim.world import SimWorld
 from hil.clock import Clock
 from hil.config.types import STRICT, TransformConfig
-from hil.geometry.transform import RigidTransform, matrix_to_rotvec
-from hil.kinematics.ur import UR3_JOINT_LIMITS_RAD, ur_forward, ur_inverse, ur_joint_frames
+from hil.geometry.transform import RigidTransform
+from hil.kinematics.ur import UR3_JOINT_LIMITS_RAD, ur_forward, ur_inverse, ur_newton_ik
 from hil.log import get_logger
 from plugins.registry import DriverContext
 
@@ -289,37 +289,11 @@ class SimRobot(Robot):
                           safety=self._safety, t_ns=t_stamp, tcp_speed_mm_s=speed)
 
     # ------------------------------------------------------------------ limits of the arm
-    def _newton_ik(self, T_flange: RigidTransform, q_seed: FloatArray) -> FloatArray | None:
-        """Damped-free Newton steps with the geometric Jacobian from ``q_seed``: a cheap inverse
-        for the small steps of servoing (same branch as the seed). None when it does not converge
-        cleanly (the analytic solver then decides)."""
-        q = q_seed.copy()
-        for _ in range(_NEWTON_ITERATIONS):
-            frames = ur_joint_frames(q, self.cfg.model)
-            T_e = frames[-1]
-            dp = T_flange.t - T_e[:3, 3]
-            dw = matrix_to_rotvec(T_flange.R @ T_e[:3, :3].T)
-            if float(np.linalg.norm(dp)) < _NEWTON_TOL_MM and float(np.linalg.norm(dw)) < _NEWTON_TOL_RAD:
-                if float(np.max(np.abs(q - q_seed))) > _FLIP_RAD:
-                    return None
-                return q
-            axes = np.array([(0.0, 0.0, 1.0)] + [f[:3, 2] for f in frames[:5]])      # (6, 3)
-            origins = np.array([(0.0, 0.0, 0.0)] + [f[:3, 3] for f in frames[:5]])
-            lever = T_e[:3, 3] - origins
-            J = np.empty((6, 6))
-            # axes x lever, column-wise (np.cross costs ~60 us here, this ~5: the real-time loop)
-            J[0] = axes[:, 1] * lever[:, 2] - axes[:, 2] * lever[:, 1]
-            J[1] = axes[:, 2] * lever[:, 0] - axes[:, 0] * lever[:, 2]
-            J[2] = axes[:, 0] * lever[:, 1] - axes[:, 1] * lever[:, 0]
-            J[3:] = axes.T
-            if abs(float(np.linalg.det(J))) < _NEWTON_MIN_DET:
-                return None
-            q = q + np.linalg.solve(J, np.concatenate([dp, dw]))
-        return None
-
     def _ik(self, T_robot_from_tcp: RigidTransform, q_near: FloatArray) -> FloatArray | None:
         T_flange = T_robot_from_tcp @ self.T_tcp_from_flange
-        q_fast = self._newton_ik(T_flange, q_near)
+        q_fast = ur_newton_ik(T_flange, q_near, self.cfg.model, iterations=_NEWTON_ITERATIONS,
+                              tol_mm=_NEWTON_TOL_MM, tol_rad=_NEWTON_TOL_RAD, min_det_mm3=_NEWTON_MIN_DET,
+                              max_jump_rad=_FLIP_RAD)
         if q_fast is not None and bool(np.all(q_fast >= self.joint_limits_rad[:, 0])) \
                 and bool(np.all(q_fast <= self.joint_limits_rad[:, 1])):
             return q_fast

@@ -3,9 +3,12 @@
  *
  *   horn:  Horn's closed-form registration with unit weights (hil.geometry.registration.
  *          register_horn, seed 000 eqs 17-21), with that module's configuration checks;
- *   track: the greedy frame-to-frame marker assignment (hil.controller.registration.track).
+ *   track: the greedy frame-to-frame marker assignment (hil.controller.registration.track);
+ *   ur_newton: the Newton steps of a UR arm's inverse kinematics for a small step
+ *          (hil.kinematics.ur.ur_newton_ik: the simulated arm's servo command, every period).
  *
- * Why: both run for every stereo pair on the path from the exposure to the servo setpoint. On a
+ * Why: horn and track run for every stereo pair on the path from the exposure to the servo
+ * setpoint, ur_newton in every servo period between the setpoint and the command. On a
  * shared host, numpy code that runs once per camera period finds its instructions and data
  * evicted and takes several times its hot-loop time (docs/benchmarks.md); this code is small.
  *
@@ -423,11 +426,224 @@ done:
     return result;
 }
 
+/* ---- the simulated arm's servo-step inverse kinematics ---------------------------------------- */
+
+/* The six joint frames T_base_from_link_i (i = 0..5) of a UR arm at joint angles q (rad), each as a
+ * 3 x 4 row-major [R | t] (mm): the DH matrices of hil.kinematics.ur._joint_frames multiplied in
+ * order. dh: per joint d (mm), a (mm), cos(alpha), sin(alpha). */
+static void ur_frames(const double *dh, const double *q, double F[6][12])
+{
+    for (int i = 0; i < 6; i++) {
+        double ct = cos(q[i]), st = sin(q[i]);
+        double d = dh[4 * i], a = dh[4 * i + 1], ca = dh[4 * i + 2], sa = dh[4 * i + 3];
+        double A[12] = {ct, -st * ca, st * sa, a * ct, st, ct * ca, -ct * sa, a * st, 0.0, sa, ca, d};
+        if (i == 0) {
+            memcpy(F[0], A, sizeof(A));
+            continue;
+        }
+        const double *P = F[i - 1];
+        for (int r = 0; r < 3; r++) {
+            for (int c = 0; c < 4; c++) {
+                double x = P[4 * r] * A[c] + P[4 * r + 1] * A[4 + c] + P[4 * r + 2] * A[8 + c];
+                F[i][4 * r + c] = c == 3 ? x + P[4 * r + 3] : x;
+            }
+        }
+    }
+}
+
+/* The rotation vector of the rotation matrix m (row-major 3 x 3) as
+ * hil.geometry.transform.matrix_to_rotvec computes it: Shepperd's quaternion, normalised, scalar
+ * part >= 0, then axis * 2 atan2(|v|, w) (zero below 1e-12). */
+static void rotvec_of(const double *m, double *rv)
+{
+    double m00 = m[0], m01 = m[1], m02 = m[2], m10 = m[3], m11 = m[4], m12 = m[5];
+    double m20 = m[6], m21 = m[7], m22 = m[8];
+    double tr = m00 + m11 + m22, s, q[4];
+    if (tr > 0) {
+        s = sqrt(tr + 1.0) * 2.0;
+        q[0] = 0.25 * s; q[1] = (m21 - m12) / s; q[2] = (m02 - m20) / s; q[3] = (m10 - m01) / s;
+    } else if (m00 > m11 && m00 > m22) {
+        s = sqrt(1.0 + m00 - m11 - m22) * 2.0;
+        q[0] = (m21 - m12) / s; q[1] = 0.25 * s; q[2] = (m01 + m10) / s; q[3] = (m02 + m20) / s;
+    } else if (m11 > m22) {
+        s = sqrt(1.0 + m11 - m00 - m22) * 2.0;
+        q[0] = (m02 - m20) / s; q[1] = (m01 + m10) / s; q[2] = 0.25 * s; q[3] = (m12 + m21) / s;
+    } else {
+        s = sqrt(1.0 + m22 - m00 - m11) * 2.0;
+        q[0] = (m10 - m01) / s; q[1] = (m02 + m20) / s; q[2] = (m12 + m21) / s; q[3] = 0.25 * s;
+    }
+    double n = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    double sign = q[0] / n < 0 ? -1.0 : 1.0;   /* normalised first, then the sign (numpy's order) */
+    for (int i = 0; i < 4; i++) {
+        q[i] = sign * (q[i] / n);
+    }
+    double w = q[0] > 1.0 ? 1.0 : (q[0] < -1.0 ? -1.0 : q[0]);
+    double v = sqrt(q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    if (v < 1e-12) {
+        rv[0] = rv[1] = rv[2] = 0.0;
+        return;
+    }
+    double angle = 2.0 * atan2(v, w);
+    for (int i = 0; i < 3; i++) {
+        rv[i] = q[i + 1] / v * angle;
+    }
+}
+
+/* Solves J x = b (6 x 6, row-major; both destroyed) by Gaussian elimination with partial
+ * pivoting; returns the determinant of J (0 when a pivot is exactly 0: x undefined). */
+static double solve6(double J[36], double b[6], double x[6])
+{
+    double det = 1.0;
+    for (int c = 0; c < 6; c++) {
+        int p = c;
+        for (int r = c + 1; r < 6; r++) {
+            if (fabs(J[6 * r + c]) > fabs(J[6 * p + c])) {
+                p = r;
+            }
+        }
+        if (J[6 * p + c] == 0.0) {
+            return 0.0;
+        }
+        if (p != c) {
+            for (int k = 0; k < 6; k++) {
+                double t = J[6 * c + k]; J[6 * c + k] = J[6 * p + k]; J[6 * p + k] = t;
+            }
+            double t = b[c]; b[c] = b[p]; b[p] = t;
+            det = -det;
+        }
+        det *= J[6 * c + c];
+        for (int r = c + 1; r < 6; r++) {
+            double f = J[6 * r + c] / J[6 * c + c];
+            for (int k = c; k < 6; k++) {
+                J[6 * r + k] -= f * J[6 * c + k];
+            }
+            b[r] -= f * b[c];
+        }
+    }
+    for (int r = 5; r >= 0; r--) {
+        double acc = b[r];
+        for (int k = r + 1; k < 6; k++) {
+            acc -= J[6 * r + k] * x[k];
+        }
+        x[r] = acc / J[6 * r + r];
+    }
+    return det;
+}
+
+PyDoc_STRVAR(ur_newton_doc,
+"ur_newton(dh, R, t, q_seed, iterations, tol_mm, tol_rad, min_det, max_jump_rad, q_out) -> int\n\n"
+"Newton steps with the geometric Jacobian towards the flange pose (R (3, 3), t (3,) mm) from\n"
+"q_seed (6,) rad, as hil.kinematics.ur.ur_newton_ik_numpy: dh (6, 4) is per joint d, a (mm),\n"
+"cos(alpha), sin(alpha); all float64 C-contiguous. Returns 0 with the solution in q_out (6,)\n"
+"once the pose error is below tol_mm and tol_rad and no joint moved more than max_jump_rad\n"
+"from the seed; 1 when it does not get there cleanly (a joint jumped further, |det J| fell below\n"
+"min_det (mm^3), or iterations ran out): no solution; -1 when a value was not finite or an\n"
+"orientation error was over 2.5 rad (where the rotation vector's axis is ill-defined): the numpy\n"
+"code decides. TypeError / ValueError for a bad buffer.");
+
+static int ur_newton_core(const double *dh, const double *Rt, const double *tt, const double *q_seed,
+                          int iterations, double tol_mm, double tol_rad, double min_det,
+                          double max_jump, double *q_out)
+{
+    double q[6], F[6][12];
+    memcpy(q, q_seed, sizeof(q));
+    for (int it = 0; it < iterations; it++) {
+        ur_frames(dh, q, F);
+        const double *E = F[5];
+        double dp[3], m[9], dw[3];
+        for (int r = 0; r < 3; r++) {
+            dp[r] = tt[r] - E[4 * r + 3];
+            for (int c = 0; c < 3; c++) {   /* R_target @ R_e^T */
+                m[3 * r + c] = Rt[3 * r] * E[4 * c] + Rt[3 * r + 1] * E[4 * c + 1] + Rt[3 * r + 2] * E[4 * c + 2];
+            }
+        }
+        if (!all_finite(dp, 3) || !all_finite(m, 9)) {
+            return -1;
+        }
+        rotvec_of(m, dw);
+        double n_p = sqrt(dp[0] * dp[0] + dp[1] * dp[1] + dp[2] * dp[2]);
+        double n_w = sqrt(dw[0] * dw[0] + dw[1] * dw[1] + dw[2] * dw[2]);
+        if (n_w > 2.5) {
+            return -1;
+        }
+        if (n_p < tol_mm && n_w < tol_rad) {
+            for (int j = 0; j < 6; j++) {
+                if (fabs(q[j] - q_seed[j]) > max_jump) {
+                    return 1;
+                }
+            }
+            memcpy(q_out, q, sizeof(q));
+            return 0;
+        }
+        double J[36], b[6] = {dp[0], dp[1], dp[2], dw[0], dw[1], dw[2]}, x[6];
+        for (int j = 0; j < 6; j++) {   /* column j: axis z_j x (p_e - o_j), then z_j */
+            double z[3] = {0.0, 0.0, 1.0}, o[3] = {0.0, 0.0, 0.0};
+            if (j > 0) {
+                for (int r = 0; r < 3; r++) {
+                    z[r] = F[j - 1][4 * r + 2];
+                    o[r] = F[j - 1][4 * r + 3];
+                }
+            }
+            double l[3] = {E[3] - o[0], E[7] - o[1], E[11] - o[2]};
+            J[j] = z[1] * l[2] - z[2] * l[1];
+            J[6 + j] = z[2] * l[0] - z[0] * l[2];
+            J[12 + j] = z[0] * l[1] - z[1] * l[0];
+            J[18 + j] = z[0];
+            J[24 + j] = z[1];
+            J[30 + j] = z[2];
+        }
+        double det = solve6(J, b, x);
+        if (!isfinite(det)) {
+            return -1;
+        }
+        if (fabs(det) < min_det) {
+            return 1;
+        }
+        for (int j = 0; j < 6; j++) {
+            q[j] += x[j];
+        }
+        if (!all_finite(q, 6)) {
+            return -1;
+        }
+    }
+    return 1;
+}
+
+static PyObject *k_ur_newton(PyObject *self, PyObject *args)
+{
+    PyObject *o_dh, *o_R, *o_t, *o_q, *o_out;
+    int iterations;
+    double tol_mm, tol_rad, min_det, max_jump;
+    if (!PyArg_ParseTuple(args, "OOOOiddddO", &o_dh, &o_R, &o_t, &o_q, &iterations, &tol_mm, &tol_rad,
+                          &min_det, &max_jump, &o_out)) {
+        return NULL;
+    }
+    Py_buffer views[5];
+    memset(views, 0, sizeof(views));
+    PyObject *result = NULL;
+    const Py_ssize_t s64[2] = {6, 4}, s33[2] = {3, 3}, s3[1] = {3}, s6[1] = {6};
+    const double *dh = get_f64(o_dh, &views[0], "dh", 2, s64, 0);
+    const double *R = dh == NULL ? NULL : get_f64(o_R, &views[1], "R", 2, s33, 0);
+    const double *t = R == NULL ? NULL : get_f64(o_t, &views[2], "t", 1, s3, 0);
+    const double *q = t == NULL ? NULL : get_f64(o_q, &views[3], "q_seed", 1, s6, 0);
+    double *out = q == NULL ? NULL : get_f64(o_out, &views[4], "q_out", 1, s6, 1);
+    if (out != NULL) {
+        int status = -1;
+        if (all_finite(dh, 24) && all_finite(R, 9) && all_finite(t, 3) && all_finite(q, 6)) {
+            status = ur_newton_core(dh, R, t, q, iterations, tol_mm, tol_rad, min_det, max_jump, out);
+        }
+        result = PyLong_FromLong(status);
+    }
+    release(views, 5);
+    return result;
+}
+
 /* ---- module --------------------------------------------------------------------------------- */
 
 static PyMethodDef native_methods[] = {
     {"horn", k_horn, METH_VARARGS, horn_doc},
     {"track", k_track, METH_VARARGS, track_doc},
+    {"ur_newton", k_ur_newton, METH_VARARGS, ur_newton_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -20,7 +20,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from hil.errors import GeometryError
-from hil.geometry.transform import RigidTransform
+from hil.geometry import native
+from hil.geometry.transform import RigidTransform, matrix_to_rotvec
 
 FloatArray = NDArray[np.float64]
 
@@ -160,6 +161,75 @@ def ur_forward(q_rad: ArrayLike, model: str = "ur3") -> RigidTransform:
     """
     T = ur_joint_frames(q_rad, model)[-1]
     return RigidTransform(T[:3, :3], T[:3, 3])
+
+
+@functools.cache
+def _dh_array(model: str) -> FloatArray:
+    """:func:`_dh_columns` as a read-only (6, 4) float64 array (the compiled Newton step's table)."""
+    a = np.array(_dh_columns(model), dtype=np.float64)
+    a.setflags(write=False)
+    return a
+
+
+def ur_newton_ik(T_base_from_tool0: RigidTransform, q_seed_rad: FloatArray, model: str = "ur3", *,
+                 iterations: int, tol_mm: float, tol_rad: float, min_det_mm3: float,
+                 max_jump_rad: float) -> FloatArray | None:
+    """Inverse kinematics for a small step: Newton steps with the geometric Jacobian from
+    ``q_seed_rad`` (the same branch as the seed), for the flange pose ``T_base_from_tool0`` (mm).
+
+    Returns the joint angles (6, rad, a fresh array) once the position error is below ``tol_mm``
+    and the orientation error (rotation vector) below ``tol_rad``, or None when it does not get
+    there cleanly: ``iterations`` ran out, ``|det J|`` fell below ``min_det_mm3`` (near a
+    singularity), or a joint ended more than ``max_jump_rad`` from the seed (a flip). Callers fall
+    back to :func:`ur_inverse` on None. Runs compiled (``hil/geometry/_native.c``,
+    :mod:`hil.geometry.native`) when built and selected, else :func:`ur_newton_ik_numpy`; the two
+    agree to rounding (tests/kinematics/test_newton.py). Never blocks.
+
+    Raises:
+        GeometryError: ``q_seed_rad`` is not 6 finite values, or the model is unknown.
+    """
+    q_seed = _as_q(q_seed_rad, "q_seed_rad")
+    k = native.active()
+    if k is not None:
+        q = np.empty(6)
+        status = k.ur_newton(_dh_array(model), T_base_from_tool0.R, T_base_from_tool0.t, q_seed, iterations,
+                             tol_mm, tol_rad, min_det_mm3, max_jump_rad, q)
+        if status == 0:
+            return q
+        if status == 1:
+            return None
+    return ur_newton_ik_numpy(T_base_from_tool0, q_seed, model, iterations=iterations, tol_mm=tol_mm,
+                              tol_rad=tol_rad, min_det_mm3=min_det_mm3, max_jump_rad=max_jump_rad)
+
+
+def ur_newton_ik_numpy(T_base_from_tool0: RigidTransform, q_seed_rad: FloatArray, model: str = "ur3", *,
+                       iterations: int, tol_mm: float, tol_rad: float, min_det_mm3: float,
+                       max_jump_rad: float) -> FloatArray | None:
+    """:func:`ur_newton_ik` in numpy (the reference the compiled code is tested against)."""
+    q_seed = _as_q(q_seed_rad, "q_seed_rad")
+    q = q_seed.copy()
+    for _ in range(iterations):
+        frames = ur_joint_frames(q, model)
+        T_e = frames[-1]
+        dp = T_base_from_tool0.t - T_e[:3, 3]
+        dw = matrix_to_rotvec(T_base_from_tool0.R @ T_e[:3, :3].T)
+        if float(np.linalg.norm(dp)) < tol_mm and float(np.linalg.norm(dw)) < tol_rad:
+            if float(np.max(np.abs(q - q_seed))) > max_jump_rad:
+                return None
+            return q
+        axes = np.array([(0.0, 0.0, 1.0)] + [f[:3, 2] for f in frames[:5]])      # (6, 3)
+        origins = np.array([(0.0, 0.0, 0.0)] + [f[:3, 3] for f in frames[:5]])
+        lever = T_e[:3, 3] - origins
+        J = np.empty((6, 6))
+        # axes x lever, column-wise (np.cross costs ~60 us here, this ~5)
+        J[0] = axes[:, 1] * lever[:, 2] - axes[:, 2] * lever[:, 1]
+        J[1] = axes[:, 2] * lever[:, 0] - axes[:, 0] * lever[:, 2]
+        J[2] = axes[:, 0] * lever[:, 1] - axes[:, 1] * lever[:, 0]
+        J[3:] = axes.T
+        if abs(float(np.linalg.det(J))) < min_det_mm3:
+            return None
+        q = q + np.linalg.solve(J, np.concatenate([dp, dw]))
+    return None
 
 
 def wrap_to_pi(q_rad: ArrayLike) -> FloatArray:
