@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import select
 import signal
 import socket
 import subprocess
@@ -151,6 +152,10 @@ class ServoProcess:
         self.regions = Regions.create(shared=True)
         ours, theirs = socket.socketpair()
         self._conn = Connection(ours.detach())
+        # whether a message waits, without the selector Connection.poll builds per call (the
+        # supervisor asks at every robot state read, on the pair's path)
+        self._readable = select.poll()
+        self._readable.register(self._conn.fileno(), select.POLLIN)
         try:
             self._proc = subprocess.Popen(
                 [sys.executable, "-m", "hil.servo.child", str(theirs.fileno()), str(os.getpid())],
@@ -343,7 +348,7 @@ class ServoProcess:
         while True:
             remaining = max(deadline - time.monotonic(), 0.0)
             try:
-                if not self._conn.poll(remaining):
+                if not (self._conn.poll(remaining) if remaining > 0 else self._readable.poll(0)):
                     return None
                 msg = self._conn.recv()
             except (EOFError, OSError):
@@ -355,7 +360,7 @@ class ServoProcess:
                 self._crash = f"servo process crashed: {msg[1]}"
             if want is not None and want(msg):
                 return msg
-            if remaining <= 0 and not self._conn.poll(0):
+            if remaining <= 0 and not self._readable.poll(0):
                 return None
 
     def _wait_for(self, want: Any, timeout_s: float) -> Any:
