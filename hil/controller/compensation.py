@@ -30,7 +30,7 @@ FloatArray = NDArray[np.float64]
 def rigid_change(reference_mm: FloatArray, live_mm: FloatArray) -> Registration | None:
     """``T_live_from_ref`` from corresponding marker rows (NaN rows = not seen), seed 000 eqs
     17-21 (Horn). Returns None with fewer than 3 usable, non-degenerate pairs."""
-    ok = np.all(np.isfinite(reference_mm), axis=1) & np.all(np.isfinite(live_mm), axis=1)
+    ok = np.isfinite(reference_mm).all(axis=1) & np.isfinite(live_mm).all(axis=1)
     if int(ok.sum()) < 3:
         return None
     try:

@@ -41,7 +41,7 @@ STATE_HISTORY = 8
 
 def count_seen(markers: FloatArray | None) -> int:
     """Markers with a position (finite rows)."""
-    return 0 if markers is None else int(np.all(np.isfinite(markers), axis=1).sum())
+    return 0 if markers is None else int(np.isfinite(markers).all(axis=1).sum())
 
 
 def mean_transform(ts: list[RigidTransform]) -> RigidTransform:
@@ -78,8 +78,10 @@ class Estimate:
         self.resumed_ns: int | None = None
         #: the flange set :meth:`T_optical_from_tcp_measured` last registered, and its result
         self._tcp_measured: tuple[FloatArray | None, RigidTransform | None] = (None, None)
-        #: what :meth:`desired_tcp_robot_local` composed its chain of, and the chain (L, R)
-        self._chain: tuple[tuple[object, ...], RigidTransform, RigidTransform] | None = None
+        #: what :meth:`desired_tcp_robot_local` composed its chain of (T_bias, robot_reg,
+        #: guide_plan, T_center), then the chain's L and R
+        self._chain: tuple[RigidTransform, RobotRegistration, GuidePlan, RigidTransform,
+                           RigidTransform, RigidTransform] | None = None
 
     # ------------------------------------------------------------------ updates
     def restart_registration(self) -> None:
@@ -187,13 +189,13 @@ class Estimate:
         velocity cost two compositions each instead of seven (the supervisor's latency)."""
         assert self.robot_reg is not None
         assert self.guide_plan is not None
-        parts = (self.T_bias, self.robot_reg, self.guide_plan, self.T_center)
-        if self._chain is None or any(a is not b for a, b in zip(self._chain[0], parts, strict=True)):
+        chain = self._chain
+        if (chain is None or chain[0] is not self.T_bias or chain[1] is not self.robot_reg
+                or chain[2] is not self.guide_plan or chain[3] is not self.T_center):
             L = self.T_bias @ self.robot_reg.T_robot_from_optical @ self.T_center
             R = self.T_center.inverse() @ self.T_optical_from_tcp_planned()
-            self._chain = (parts, L, R)
-        _, L, R = self._chain
-        return L @ T_local @ R
+            chain = self._chain = (self.T_bias, self.robot_reg, self.guide_plan, self.T_center, L, R)
+        return chain[4] @ T_local @ chain[5]
 
     def gate_deviation_mm(self) -> float:
         """RMS deviation of the live skin markers from the reference (mm); inf before

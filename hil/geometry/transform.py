@@ -20,6 +20,9 @@ from hil.errors import GeometryError
 FloatArray = NDArray[np.float64]
 
 _ORTHO_TOL = 1e-6
+#: the 3x3 identity, read-only (np.eye is Python code; Rodrigues runs in every pair's path)
+_EYE3: FloatArray = np.eye(3)
+_EYE3.setflags(write=False)
 
 
 def as_points(points: ArrayLike, name: str = "points") -> FloatArray:
@@ -39,7 +42,7 @@ def as_points(points: ArrayLike, name: str = "points") -> FloatArray:
         arr = arr[np.newaxis, :]
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise GeometryError(f"{name} must have shape (N, 3), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         raise GeometryError(f"{name} contains NaN or infinite values")
     return arr
 
@@ -99,7 +102,7 @@ class RigidTransform:
         R = np.array(self.R, dtype=np.float64, copy=True)
         t = np.array(self.t, dtype=np.float64, copy=True).reshape(-1)
         _check_rotation(R)
-        if t.shape != (3,) or not np.all(np.isfinite(t)):
+        if t.shape != (3,) or not np.isfinite(t).all():
             raise GeometryError(f"translation must be 3 finite values, got {self.t!r}")
         R.setflags(write=False)
         t.setflags(write=False)
@@ -309,7 +312,7 @@ def matrix_to_quaternion(R: ArrayLike) -> FloatArray:
     else:
         s = math.sqrt(1.0 + m22 - m00 - m11) * 2.0
         q = np.array([(m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, 0.25 * s])
-    q /= np.linalg.norm(q)
+    q /= math.sqrt(float(q.dot(q)))   # np.linalg.norm's own sum, without its Python layers
     if q[0] < 0:
         q = -q
     return q
@@ -322,16 +325,16 @@ def rotvec_to_matrix(rotvec: ArrayLike) -> FloatArray:
         GeometryError: not 3 finite values, or an angle too large to represent (norm overflows).
     """
     v = np.asarray(rotvec, dtype=np.float64).reshape(-1)
-    if v.shape != (3,) or not np.all(np.isfinite(v)):
+    if v.shape != (3,) or not np.isfinite(v).all():
         raise GeometryError(f"rotation vector must be 3 finite values, got {rotvec!r}")
     theta = math.hypot(float(v[0]), float(v[1]), float(v[2]))  # no overflow in the squares
     if not math.isfinite(theta):
         raise GeometryError(f"rotation vector angle overflows a float, got {rotvec!r}")
     if theta < 1e-12:
-        return np.eye(3)
+        return _EYE3.copy()
     k = v / theta
     K = skew(k)
-    R: FloatArray = np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
+    R: FloatArray = _EYE3 + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
     return R
 
 
@@ -343,7 +346,8 @@ def matrix_to_rotvec(R: ArrayLike) -> FloatArray:
     """
     q = matrix_to_quaternion(R)
     w = max(-1.0, min(1.0, float(q[0])))
-    s = float(np.linalg.norm(q[1:]))
+    v = q[1:]
+    s = math.sqrt(float(v.dot(v)))   # np.linalg.norm's own sum, without its Python layers
     if s < 1e-12:
         return np.zeros(3)
     angle = 2.0 * math.atan2(s, w)

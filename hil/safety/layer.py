@@ -95,7 +95,7 @@ class SafetyLayer:
 
     def _check_box(self, kind: str, T: RigidTransform) -> None:
         p = T.t
-        if not np.all(np.isfinite(p)) or np.any(p < self._box_lo_mm) or np.any(p > self._box_hi_mm):
+        if not np.isfinite(p).all() or (p < self._box_lo_mm).any() or (p > self._box_hi_mm).any():
             box = f"{list(self.limits.workspace_min_mm)}..{list(self.limits.workspace_max_mm)} mm"
             raise self._refuse(kind, "workspace", f"target {np.round(p, 3).tolist()} mm outside box {box}")
 
@@ -207,7 +207,7 @@ class SafetyLayer:
             DriverError: the servo loop is gone.
         """
         self._check_box("track", T_robot_from_tcp)
-        if not (np.all(np.isfinite(v_mm_s)) and np.all(np.isfinite(w_rad_s))):
+        if not (np.isfinite(v_mm_s).all() and np.isfinite(w_rad_s).all()):
             raise self._refuse("track", "velocity", "setpoint velocity is not finite")
         self._fresh_state("track", state)
         robot = self._tracker()
