@@ -31,6 +31,7 @@
 /* hil.geometry.registration's thresholds (COINCIDENT_TOL_MM, COLLINEAR_REL_TOL) */
 #define COINCIDENT_TOL_MM 1e-9
 #define COLLINEAR_REL_TOL 1e-6
+#define MAX_COORDINATE_MM 1e9   /* hil.geometry.registration.MAX_COORDINATE_MM */
 #define JACOBI_MAX_SWEEPS 60
 
 /* ---- buffers ------------------------------------------------------------------------------ */
@@ -219,14 +220,25 @@ static int all_finite(const double *x, Py_ssize_t count)
     return 1;
 }
 
+/* Whether every value is finite and within +-bound (NaN fails the comparison). */
+static int all_within(const double *x, Py_ssize_t count, double bound)
+{
+    for (Py_ssize_t i = 0; i < count; i++) {
+        if (!(fabs(x[i]) <= bound)) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
 PyDoc_STRVAR(horn_doc,
 "horn(fixed, moving, R, t, residuals) -> float\n\n"
 "Horn's registration with unit weights (hil.geometry.registration.register_horn): fixed, moving\n"
 "(N, 3) float64 C-contiguous, mm; writes R (3, 3) and t (3,) of T_fixed_from_moving and the\n"
 "residuals (N,) |R m_i + t - f_i| in mm; returns the FRE (RMS of the residuals, mm). Returns\n"
-"-1.0 (outputs undefined) for N < 3, NaN/inf, a coincident or collinear set, no convergence or\n"
-"a non-finite result (an overflow): the numpy code decides those (and raises). TypeError /\n"
-"ValueError for a bad buffer.");
+"-1.0 (outputs undefined) for N < 3, NaN/inf or a coordinate beyond 1e9 mm, a coincident or\n"
+"collinear set, no convergence or a non-finite result: the numpy code decides those (and\n"
+"raises). TypeError / ValueError for a bad buffer.");
 
 static PyObject *k_horn(PyObject *self, PyObject *args)
 {
@@ -254,7 +266,7 @@ static PyObject *k_horn(PyObject *self, PyObject *args)
     if (res == NULL) {
         goto done;
     }
-    if (n < 3 || !all_finite(f, 3 * n) || !all_finite(m, 3 * n)
+    if (n < 3 || !all_within(f, 3 * n, MAX_COORDINATE_MM) || !all_within(m, 3 * n, MAX_COORDINATE_MM)
         || configuration_ok(f, n) != 0 || configuration_ok(m, n) != 0) {
         result = PyFloat_FromDouble(-1.0);
         goto done;

@@ -29,6 +29,10 @@ FloatArray = NDArray[np.float64]
 COLLINEAR_REL_TOL = 1e-6
 #: Absolute spread (mm) below which a point set counts as coincident (all points at one place).
 COINCIDENT_TOL_MM = 1e-9
+#: Largest coordinate magnitude registered, mm (a kilometre is 1e6 mm: no rig measures beyond this,
+#: and below it every sum and product of Horn's method stays finite; beyond it numpy's eigen-solver
+#: met infinities and raised LinAlgError).
+MAX_COORDINATE_MM = 1e9
 
 _EYE3 = np.eye(3)
 _EYE3.setflags(write=False)
@@ -84,6 +88,11 @@ def _validate(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     f = as_points(fixed, "fixed")
     m = as_points(moving, "moving")
+    for pts, name in ((f, "fixed"), (m, "moving")):
+        far = float(np.abs(pts).max()) if pts.size else 0.0
+        if far > MAX_COORDINATE_MM:
+            raise GeometryError(f"{name} has a coordinate of {far:.3g} mm, beyond the "
+                                f"{MAX_COORDINATE_MM:g} mm any rig measures (wrong units?)")
     if f.shape[0] != m.shape[0]:
         raise GeometryError(
             f"fixed has {f.shape[0]} points but moving has {m.shape[0]}; "

@@ -6,7 +6,7 @@ buffer is a TypeError / ValueError naming the argument."""
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -18,7 +18,7 @@ from hil.compiled import CompiledKernel
 from hil.controller.registration import track, track_numpy
 from hil.errors import DegenerateConfigurationError, GeometryError
 from hil.geometry import native
-from hil.geometry.registration import Registration, register_horn, register_horn_numpy
+from hil.geometry.registration import register_horn, register_horn_numpy
 from hil.geometry.transform import RigidTransform
 
 from .strategies import point_sets, rigid_transforms
@@ -173,17 +173,20 @@ def test_more_rows_than_the_compiled_arrays_hold_go_the_numpy_way(compiled: obje
     assert np.array_equal(track(points, points[:1] + 0.1, 1.0), points[:1])
 
 
-def test_an_overflowing_registration_is_decided_by_the_numpy_code(compiled: object) -> None:
-    """Coordinates whose squares overflow: the compiled code never returns a non-finite
-    transform; the outcome (here an error) is the numpy code's."""
-    moving = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]) * 1e200
-    fixed = moving[:, [1, 0, 2]]
+@pytest.mark.parametrize("scale", [1e200, 1.5e9])
+def test_coordinates_beyond_any_rig_are_a_typed_error_either_way(compiled: object, scale: float) -> None:
+    """Coordinates beyond MAX_COORDINATE_MM (1e9 mm; at 1e200 the squares overflow): the compiled
+    code declines, and both paths raise the same GeometryError naming the set."""
+    moving = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]) * scale
+    fixed = np.column_stack([-moving[:, 1], moving[:, 0], moving[:, 2]]) / scale
+    for fn in (register_horn, register_horn_numpy):
+        with pytest.raises(GeometryError, match=r"moving has a coordinate of .* beyond the 1e\+09 mm"):
+            fn(fixed, moving)
 
-    def outcome(fn: Callable[[Any, Any], Registration]) -> object:
-        try:
-            reg = fn(fixed, moving)
-        except Exception as exc:  # noqa: BLE001 - the class is what is compared
-            return type(exc)
-        return bool(np.all(np.isfinite(reg.T_fixed_from_moving.t)))
 
-    assert outcome(register_horn) == outcome(register_horn_numpy)
+def test_coordinates_at_the_bound_register(compiled: object) -> None:
+    moving = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]) * 1e9
+    fixed = np.column_stack([-moving[:, 1], moving[:, 0], moving[:, 2]])   # 90 degrees about z
+    got, ref = register_horn(fixed, moving), register_horn_numpy(fixed, moving)
+    assert got.fre_rms_mm < 1e-3
+    np.testing.assert_allclose(got.T_fixed_from_moving.R, ref.T_fixed_from_moving.R, rtol=0, atol=1e-12)
