@@ -6,7 +6,6 @@ buffer is a TypeError / ValueError naming the argument."""
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -25,14 +24,9 @@ from .strategies import point_sets, rigid_transforms
 
 
 @pytest.fixture
-def compiled() -> Iterator[Any]:
-    """The compiled code selected for the test (the previous selection restored after)."""
-    assert native.is_built(), native.native_status()
-    previous = native.use_native(True)
-    k = native.active()
-    assert k is not None
-    yield k
-    native.use_native(previous)
+def compiled(compiled_geometry: Any) -> Any:
+    """The compiled code selected for the test (tests/conftest.py)."""
+    return compiled_geometry
 
 
 def test_the_compiled_geometry_is_built_and_selected_by_default() -> None:

@@ -4,7 +4,6 @@ does, leave non-finite input to the numpy code, and reach the pose they were ask
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -23,17 +22,6 @@ SETTINGS: dict[str, Any] = {"iterations": 6, "tol_mm": 1e-6, "tol_rad": 1e-9, "m
                             "max_jump_rad": 0.6}
 #: a UR3 pose away from its singularities (rad)
 Q_HOME = np.array([0.3, -1.2, 1.4, -1.8, -1.5, 0.4])
-
-
-@pytest.fixture
-def compiled() -> Iterator[Any]:
-    """The compiled code selected for the test (the previous selection restored after)."""
-    assert native.is_built(), native.native_status()
-    previous = native.use_native(True)
-    k = native.active()
-    assert k is not None
-    yield k
-    native.use_native(previous)
 
 
 def _both(T: RigidTransform, q_seed: np.ndarray, model: str = "ur3",
@@ -97,7 +85,7 @@ def test_far_targets_and_flips_agree_with_numpy(q_seed: np.ndarray, jump: np.nda
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
 
 
-def test_a_jump_over_the_limit_is_no_solution(compiled: Any) -> None:
+def test_a_jump_over_the_limit_is_no_solution(compiled_geometry: Any) -> None:
     q_target = Q_HOME + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.3])
     assert ur_newton_ik(ur_forward(q_target), Q_HOME, **{**SETTINGS, "max_jump_rad": 0.2}) is None
     got = ur_newton_ik(ur_forward(q_target), Q_HOME, **SETTINGS)
@@ -105,13 +93,13 @@ def test_a_jump_over_the_limit_is_no_solution(compiled: Any) -> None:
     np.testing.assert_allclose(got, q_target, rtol=0, atol=1e-9)
 
 
-def test_out_of_iterations_is_no_solution(compiled: Any) -> None:
+def test_out_of_iterations_is_no_solution(compiled_geometry: Any) -> None:
     T = ur_forward(Q_HOME + 0.04)
     assert ur_newton_ik(T, Q_HOME, **{**SETTINGS, "iterations": 1}) is None
     assert ur_newton_ik_numpy(T, Q_HOME, **{**SETTINGS, "iterations": 1}) is None
 
 
-def test_a_singular_seed_is_no_solution(compiled: Any) -> None:
+def test_a_singular_seed_is_no_solution(compiled_geometry: Any) -> None:
     """Wrist singularity (q5 = 0: joints 4 and 6 aligned): |det J| is 0."""
     q = Q_HOME.copy()
     q[4] = 0.0
@@ -121,37 +109,33 @@ def test_a_singular_seed_is_no_solution(compiled: Any) -> None:
     assert ref is None
 
 
-def test_the_seed_itself_is_returned_at_once(compiled: Any) -> None:
+def test_the_seed_itself_is_returned_at_once(compiled_geometry: Any) -> None:
     got = ur_newton_ik(ur_forward(Q_HOME), Q_HOME, **SETTINGS)
     assert got is not None
     np.testing.assert_array_equal(got, Q_HOME)
 
 
-def test_a_non_finite_seed_is_a_typed_error(compiled: Any) -> None:
+def test_a_non_finite_seed_is_a_typed_error(compiled_geometry: Any) -> None:
     with pytest.raises(GeometryError, match="q_seed_rad must be 6 finite"):
         ur_newton_ik(ur_forward(Q_HOME), np.array([0.0, np.nan, 0, 0, 0, 0]), **SETTINGS)
 
 
-def test_non_finite_input_goes_the_numpy_way(compiled: Any) -> None:
-    """The compiled code declines (-1); the numpy code then decides - the same as without it."""
-    out = np.empty(6)
-    status = compiled.ur_newton(_dh_array("ur3"), np.eye(3), np.array([np.inf, 0.0, 0.0]), Q_HOME, 6,
-                                1e-6, 1e-9, 1e3, 0.6, out)
-    assert status == -1
-    status = compiled.ur_newton(_dh_array("ur3"), np.full((3, 3), np.nan), np.zeros(3), Q_HOME, 6,
-                                1e-6, 1e-9, 1e3, 0.6, out)
-    assert status == -1
+def test_non_finite_input_goes_the_numpy_way(compiled_geometry: Any) -> None:
+    """The compiled code declines (-1), and ur_newton_ik then runs the numpy code. (Through the
+    public function the target is a checked transform; this is the C contract.)"""
+    k, out, dh = compiled_geometry, np.empty(6), _dh_array("ur3")
+    inf_t = np.array([np.inf, 0.0, 0.0])
+    assert k.ur_newton(dh, np.eye(3), inf_t, Q_HOME, 6, 1e-6, 1e-9, 1e3, 0.6, out) == -1
+    assert k.ur_newton(dh, np.full((3, 3), np.nan), np.zeros(3), Q_HOME, 6, 1e-6, 1e-9, 1e3, 0.6, out) == -1
 
 
-def test_bad_buffers_name_the_argument(compiled: Any) -> None:
-    out = np.empty(6)
-    dh = _dh_array("ur3")
+def test_bad_buffers_name_the_argument(compiled_geometry: Any) -> None:
+    k, out, dh = compiled_geometry, np.empty(6), _dh_array("ur3")
     with pytest.raises(ValueError, match="dh: dimension 0 has length 5"):
-        compiled.ur_newton(dh[:5].copy(), np.eye(3), np.zeros(3), Q_HOME, 6, 1e-6, 1e-9, 1e3, 0.6, out)
+        k.ur_newton(dh[:5].copy(), np.eye(3), np.zeros(3), Q_HOME, 6, 1e-6, 1e-9, 1e3, 0.6, out)
     with pytest.raises(TypeError, match="q_seed: expected float64"):
-        compiled.ur_newton(dh, np.eye(3), np.zeros(3), Q_HOME.astype(np.float32), 6, 1e-6, 1e-9, 1e3, 0.6,
-                           out)
+        k.ur_newton(dh, np.eye(3), np.zeros(3), Q_HOME.astype(np.float32), 6, 1e-6, 1e-9, 1e3, 0.6, out)
     ro = np.empty(6)
     ro.setflags(write=False)
     with pytest.raises(TypeError, match="q_out: expected a writable"):
-        compiled.ur_newton(dh, np.eye(3), np.zeros(3), Q_HOME, 6, 1e-6, 1e-9, 1e3, 0.6, ro)
+        k.ur_newton(dh, np.eye(3), np.zeros(3), Q_HOME, 6, 1e-6, 1e-9, 1e3, 0.6, ro)
