@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from hil.controller.config import CompensationConfig
 from hil.errors import GeometryError
+from hil.geometry import native
 from hil.geometry.registration import Registration, register_horn
 from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 from hil.servo.limiter import RateLimiter
@@ -99,17 +100,55 @@ class MotionFilter:
         self._v = self._v + (self.beta / dt) * r
         self._t_ns = t_ns
 
-    def estimate(self, t_ns: int | None = None, max_horizon_s: float = 0.0) -> RigidTransform:
-        """The filtered change, extrapolated to ``t_ns`` (at most ``max_horizon_s`` ahead of the
-        last sample; never backwards).
+    def update_about(self, T_meas: RigidTransform, T_center: RigidTransform, t_ns: int) -> None:
+        """:meth:`update` with the measured change ``T_meas`` expressed about ``T_center``:
+        feeds ``T_center^-1 @ T_meas @ T_center``. Runs compiled (``filter_feed``,
+        hil/geometry/_native.c) when selected and the filter has a sample; the numpy code
+        otherwise and for any value the compiled code declines. The two agree to rounding
+        (tests/controller/test_control_law.py)."""
+        k = native.active()
+        if k is not None and self._x is not None:
+            dt = (t_ns - self._t_ns) * 1e-9
+            if dt <= 0:
+                return
+            if k.filter_feed(T_meas.R, T_meas.t, T_center.R, T_center.t, self._x, self._v, dt,
+                             self.alpha, self.beta) == 0:
+                self._t_ns = t_ns
+                return
+        self.update(T_center.inverse() @ T_meas @ T_center, t_ns)
+
+    def horizon_s(self, t_ns: int | None, max_horizon_s: float) -> float:
+        """How far :meth:`estimate` extrapolates for ``t_ns``: the time since the last sample,
+        s, within [0, ``max_horizon_s``] (0 for None)."""
+        return 0.0 if t_ns is None else min(max((t_ns - self._t_ns) * 1e-9, 0.0), max_horizon_s)
+
+    def vectors(self) -> tuple[FloatArray, FloatArray]:
+        """The state (x, v): the change's 6-vector (t mm, rotation vector rad) at the last
+        sample and its rate (per s). The arrays are the filter's own: read, never write.
 
         Raises:
             GeometryError: nothing fed yet.
         """
         if self._x is None:
             raise GeometryError("motion filter has no sample yet")
-        h = 0.0 if t_ns is None else min(max((t_ns - self._t_ns) * 1e-9, 0.0), max_horizon_s)
-        return _from_vec(self._x + self._v * h)
+        return self._x, self._v
+
+    def estimate(self, t_ns: int | None = None, max_horizon_s: float = 0.0) -> RigidTransform:
+        """The filtered change, extrapolated to ``t_ns`` (at most ``max_horizon_s`` ahead of the
+        last sample; never backwards). Compiled (``filter_pose``) when selected, as
+        :meth:`update_about`.
+
+        Raises:
+            GeometryError: nothing fed yet.
+        """
+        x, v = self.vectors()
+        h = self.horizon_s(t_ns, max_horizon_s)
+        k = native.active()
+        if k is not None:
+            R, t = np.empty((3, 3)), np.empty(3)
+            if k.filter_pose(x, v, h, R, t) == 0:
+                return RigidTransform._composed(R, t)
+        return _from_vec(x + v * h)
 
     @property
     def speed_mm_s(self) -> float:

@@ -31,6 +31,7 @@ from hil.controller.gate import BreathHoldGate, rms_deviation_mm
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, RigGeometry
 from hil.controller.registration import PatientRegistration, RobotRegistration
+from hil.geometry import native
 from hil.geometry.registration import register_horn
 from hil.geometry.transform import RigidTransform
 
@@ -187,6 +188,11 @@ class Estimate:
         T_optical_from_tcp_planned``. Both are kept while what they are made of is the same
         object (every part is immutable and replaced, never changed), so a pair's setpoint and its
         velocity cost two compositions each instead of seven (the supervisor's latency)."""
+        L, R = self._chain_ends()
+        return L @ T_local @ R
+
+    def _chain_ends(self) -> tuple[RigidTransform, RigidTransform]:
+        """(L, R) of :meth:`desired_tcp_robot_local`, rebuilt when a part was replaced."""
         assert self.robot_reg is not None
         assert self.guide_plan is not None
         chain = self._chain
@@ -195,7 +201,37 @@ class Estimate:
             L = self.T_bias @ self.robot_reg.T_robot_from_optical @ self.T_center
             R = self.T_center.inverse() @ self.T_optical_from_tcp_planned()
             chain = self._chain = (self.T_bias, self.robot_reg, self.guide_plan, self.T_center, L, R)
-        return chain[4] @ T_local @ chain[5]
+        return chain[4], chain[5]
+
+    def tracking_setpoint(self, t_ns: int, max_horizon_s: float, velocity_step_s: float
+                          ) -> tuple[RigidTransform, FloatArray, FloatArray]:
+        """The tracking setpoint for the filtered patient change at ``t_ns`` (controller clock,
+        ns): the TCP pose (robot frame, mm) :meth:`desired_tcp_robot_local` gives for
+        ``filter.estimate(t_ns, max_horizon_s)``, and its linear (mm/s) and angular (rad/s, robot
+        frame) velocity, the difference over ``velocity_step_s`` of the filter's extrapolation
+        ``(D1.t - D0.t) / step`` and ``rotvec(D1 @ D0^-1) / step`` (both zero when
+        ``velocity_step_s`` is 0). Runs compiled (``tcp_setpoint``, hil/geometry/_native.c) when
+        selected, else (and for any value the compiled code declines) in numpy; the two agree to
+        rounding (tests/controller/test_control_law.py). Never blocks.
+
+        Raises:
+            GeometryError: the motion filter has no sample yet.
+        """
+        f = self.filter
+        x, v = f.vectors()
+        t1_ns = t_ns + round(velocity_step_s * 1e9)
+        k = native.active()
+        if k is not None:
+            L, R = self._chain_ends()
+            D_R, D_t, vel, w = np.empty((3, 3)), np.empty(3), np.empty(3), np.empty(3)
+            if k.tcp_setpoint(x, v, f.horizon_s(t_ns, max_horizon_s), f.horizon_s(t1_ns, max_horizon_s),
+                              velocity_step_s, L.R, L.t, R.R, R.t, D_R, D_t, vel, w) == 0:
+                return RigidTransform._composed(D_R, D_t), vel, w
+        D0 = self.desired_tcp_robot_local(f.estimate(t_ns, max_horizon_s))
+        if velocity_step_s <= 0:
+            return D0, np.zeros(3), np.zeros(3)
+        D1 = self.desired_tcp_robot_local(f.estimate(t1_ns, max_horizon_s))
+        return D0, (D1.t - D0.t) / velocity_step_s, (D1 @ D0.inverse()).as_rotvec() / velocity_step_s
 
     def gate_deviation_mm(self) -> float:
         """RMS deviation of the live skin markers from the reference (mm); inf before

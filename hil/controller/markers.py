@@ -57,7 +57,7 @@ class MarkerTracker:
             if reference_hook is not None:
                 reference_hook()
             if est.T_change_meas is not None:
-                est.filter.update(est.local(est.T_change_meas), exposure_t_ns)
+                est.filter.update_about(est.T_change_meas, est.T_center, exposure_t_ns)
         else:
             est.live_mm = identify(pts, est.plan.fiducials_mm, tol)
         layout = est.rig.flange_markers_tcp_mm

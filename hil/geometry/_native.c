@@ -5,10 +5,13 @@
  *          register_horn, seed 000 eqs 17-21), with that module's configuration checks;
  *   track: the greedy frame-to-frame marker assignment (hil.controller.registration.track);
  *   ur_newton: the Newton steps of a UR arm's inverse kinematics for a small step
- *          (hil.kinematics.ur.ur_newton_ik: the simulated arm's servo command, every period).
+ *          (hil.kinematics.ur.ur_newton_ik: the simulated arm's servo command, every period);
+ *   filter_feed, filter_pose, tcp_setpoint: the per-pair control law of COMPENSATE, the motion
+ *          filter's step and pose (hil.controller.compensation.MotionFilter) and the tracking
+ *          setpoint with its velocity (hil.controller.estimate.Estimate.tracking_setpoint).
  *
- * Why: horn and track run for every stereo pair on the path from the exposure to the servo
- * setpoint, ur_newton in every servo period between the setpoint and the command. On a
+ * Why: horn, track and the control law run for every stereo pair on the path from the exposure
+ * to the servo setpoint, ur_newton in every servo period between the setpoint and the command. On a
  * shared host, numpy code that runs once per camera period finds its instructions and data
  * evicted and takes several times its hot-loop time (docs/benchmarks.md); this code is small.
  *
@@ -650,12 +653,250 @@ static PyObject *k_ur_newton(PyObject *self, PyObject *args)
     return result;
 }
 
+/* ---- the per-pair control law ------------------------------------------------------------ */
+
+/* C = A B (3 x 3, row-major; C must not alias A or B). */
+static void mat3_mul(const double *A, const double *B, double *C)
+{
+    for (int r = 0; r < 3; r++) {
+        for (int c = 0; c < 3; c++) {
+            C[3 * r + c] = A[3 * r] * B[c] + A[3 * r + 1] * B[3 + c] + A[3 * r + 2] * B[6 + c];
+        }
+    }
+}
+
+/* The composition (AR, At) @ (BR, Bt) = (AR BR, AR Bt + At) into (CR, Ct) (no aliasing). */
+static void rigid_compose(const double *AR, const double *At, const double *BR, const double *Bt,
+                          double *CR, double *Ct)
+{
+    mat3_mul(AR, BR, CR);
+    for (int r = 0; r < 3; r++) {
+        Ct[r] = AR[3 * r] * Bt[0] + AR[3 * r + 1] * Bt[1] + AR[3 * r + 2] * Bt[2] + At[r];
+    }
+}
+
+/* Rodrigues, as hil.geometry.transform.rotvec_to_matrix: theta = |rv|; below 1e-12 the identity;
+ * else R = I + sin(theta) K + (1 - cos(theta)) K K with K = [rv / theta]x. Returns -1 when theta
+ * is not finite (the numpy code decides), else 0. */
+static int rodrigues(const double *rv, double *R)
+{
+    double theta = sqrt(rv[0] * rv[0] + rv[1] * rv[1] + rv[2] * rv[2]);
+    if (!isfinite(theta)) {
+        return -1;
+    }
+    for (int i = 0; i < 9; i++) {
+        R[i] = (i % 4 == 0) ? 1.0 : 0.0;
+    }
+    if (theta < 1e-12) {
+        return 0;
+    }
+    double k0 = rv[0] / theta, k1 = rv[1] / theta, k2 = rv[2] / theta;
+    double K[9] = {0.0, -k2, k1, k2, 0.0, -k0, -k1, k0, 0.0}, KK[9];
+    mat3_mul(K, K, KK);
+    double s = sin(theta), c1 = 1.0 - cos(theta);
+    for (int i = 0; i < 9; i++) {
+        R[i] = R[i] + s * K[i] + c1 * KK[i];
+    }
+    return 0;
+}
+
+/* The pose of the motion filter's 6-vector y = x + v h (t mm, rotation vector rad). */
+static int filter_pose_core(const double *x, const double *v, double h, double *R, double *t)
+{
+    double y[6];
+    for (int i = 0; i < 6; i++) {
+        y[i] = x[i] + v[i] * h;
+    }
+    if (!all_finite(y, 6) || rodrigues(y + 3, R) != 0) {
+        return -1;
+    }
+    memcpy(t, y, 3 * sizeof(double));
+    return 0;
+}
+
+PyDoc_STRVAR(filter_feed_doc,
+"filter_feed(R, t, Rc, tc, x, v, dt_s, alpha, beta) -> int\n\n"
+"One alpha-beta step of hil.controller.compensation.MotionFilter for the measured change (R (3, 3),\n"
+"t (3,) mm, optical frame) expressed about the centre (Rc, tc): z = [t', rotvec(R')] of\n"
+"(Rc, tc)^-1 @ (R, t) @ (Rc, tc); x_pred = x + v dt_s; r = z - x_pred; x = x_pred + alpha r;\n"
+"v = v + (beta / dt_s) r, written into x (6,) and v (6,) in place. dt_s > 0. Returns 0, or -1\n"
+"(x and v unchanged) when a value is not finite: the numpy code decides. TypeError / ValueError\n"
+"for a bad buffer.");
+
+static PyObject *k_filter_feed(PyObject *self, PyObject *args)
+{
+    PyObject *o_R, *o_t, *o_Rc, *o_tc, *o_x, *o_v;
+    double dt, alpha, beta;
+    if (!PyArg_ParseTuple(args, "OOOOOOddd", &o_R, &o_t, &o_Rc, &o_tc, &o_x, &o_v, &dt, &alpha, &beta)) {
+        return NULL;
+    }
+    Py_buffer views[6];
+    memset(views, 0, sizeof(views));
+    PyObject *result = NULL;
+    const Py_ssize_t s33[2] = {3, 3}, s3[1] = {3}, s6[1] = {6};
+    const double *R = get_f64(o_R, &views[0], "R", 2, s33, 0);
+    const double *t = R == NULL ? NULL : get_f64(o_t, &views[1], "t", 1, s3, 0);
+    const double *Rc = t == NULL ? NULL : get_f64(o_Rc, &views[2], "Rc", 2, s33, 0);
+    const double *tc = Rc == NULL ? NULL : get_f64(o_tc, &views[3], "tc", 1, s3, 0);
+    double *x = tc == NULL ? NULL : get_f64(o_x, &views[4], "x", 1, s6, 1);
+    double *v = x == NULL ? NULL : get_f64(o_v, &views[5], "v", 1, s6, 1);
+    if (v != NULL) {
+        int status = -1;
+        if (all_finite(R, 9) && all_finite(t, 3) && all_finite(Rc, 9) && all_finite(tc, 3)
+                && all_finite(x, 6) && all_finite(v, 6) && isfinite(dt) && dt > 0.0) {
+            double RcT[9], mtc[3], AR[9], At[3], BR[9], Bt[3], z[6], xn[6], vn[6];
+            for (int r = 0; r < 3; r++) {   /* (Rc, tc)^-1 = (Rc^T, -Rc^T tc) */
+                for (int c = 0; c < 3; c++) {
+                    RcT[3 * r + c] = Rc[3 * c + r];
+                }
+            }
+            for (int r = 0; r < 3; r++) {
+                mtc[r] = -RcT[3 * r] * tc[0] - RcT[3 * r + 1] * tc[1] - RcT[3 * r + 2] * tc[2];
+            }
+            rigid_compose(RcT, mtc, R, t, AR, At);
+            rigid_compose(AR, At, Rc, tc, BR, Bt);
+            memcpy(z, Bt, sizeof(Bt));
+            rotvec_of(BR, z + 3);
+            double g = beta / dt;
+            for (int i = 0; i < 6; i++) {
+                double x_pred = x[i] + v[i] * dt, r = z[i] - x_pred;
+                xn[i] = x_pred + alpha * r;
+                vn[i] = v[i] + g * r;
+            }
+            if (all_finite(xn, 6) && all_finite(vn, 6)) {
+                memcpy(x, xn, sizeof(xn));
+                memcpy(v, vn, sizeof(vn));
+                status = 0;
+            }
+        }
+        result = PyLong_FromLong(status);
+    }
+    release(views, 6);
+    return result;
+}
+
+PyDoc_STRVAR(filter_pose_doc,
+"filter_pose(x, v, h_s, R_out, t_out) -> int\n\n"
+"The pose of the motion filter's state extrapolated by h_s: y = x + v h_s (6,: t mm, rotation\n"
+"vector rad), R_out (3, 3) = Rodrigues(y[3:]) as hil.geometry.transform.rotvec_to_matrix,\n"
+"t_out (3,) = y[:3]. Returns 0, or -1 when a value is not finite (the numpy code decides).\n"
+"TypeError / ValueError for a bad buffer.");
+
+static PyObject *k_filter_pose(PyObject *self, PyObject *args)
+{
+    PyObject *o_x, *o_v, *o_R, *o_t;
+    double h;
+    if (!PyArg_ParseTuple(args, "OOdOO", &o_x, &o_v, &h, &o_R, &o_t)) {
+        return NULL;
+    }
+    Py_buffer views[4];
+    memset(views, 0, sizeof(views));
+    PyObject *result = NULL;
+    const Py_ssize_t s33[2] = {3, 3}, s3[1] = {3}, s6[1] = {6};
+    const double *x = get_f64(o_x, &views[0], "x", 1, s6, 0);
+    const double *v = x == NULL ? NULL : get_f64(o_v, &views[1], "v", 1, s6, 0);
+    double *R = v == NULL ? NULL : get_f64(o_R, &views[2], "R_out", 2, s33, 1);
+    double *t = R == NULL ? NULL : get_f64(o_t, &views[3], "t_out", 1, s3, 1);
+    if (t != NULL) {
+        result = PyLong_FromLong(filter_pose_core(x, v, h, R, t));
+    }
+    release(views, 4);
+    return result;
+}
+
+PyDoc_STRVAR(tcp_setpoint_doc,
+"tcp_setpoint(x, v, h0_s, h1_s, dt_s, LR, Lt, RR, Rt, R_out, t_out, vel_out, w_out) -> int\n\n"
+"The tracking setpoint of hil.controller.estimate.Estimate.tracking_setpoint: D0 = L @ X0 @ Rr\n"
+"with X0 the filter's pose at h0_s (filter_pose), written into R_out (3, 3) and t_out (3,) mm;\n"
+"with dt_s > 0 also D1 = L @ X1 @ Rr at h1_s, vel_out (3,) = (D1.t - D0.t) / dt_s mm/s and\n"
+"w_out (3,) = rotvec(D1.R D0.R^T) / dt_s rad/s, else both zero. L = (LR, Lt), Rr = (RR, Rt) are\n"
+"the chain's outer transforms. Returns 0, or -1 when a value is not finite (the numpy code\n"
+"decides). TypeError / ValueError for a bad buffer.");
+
+static int tcp_setpoint_core(const double *x, const double *v, double h0, double h1, double dt,
+                             const double *LR, const double *Lt, const double *RR, const double *Rt,
+                             double *R_out, double *t_out, double *vel, double *w)
+{
+    double XR[9], Xt[3], AR[9], At[3], D0R[9], D0t[3];
+    if (filter_pose_core(x, v, h0, XR, Xt) != 0) {
+        return -1;
+    }
+    rigid_compose(LR, Lt, XR, Xt, AR, At);
+    rigid_compose(AR, At, RR, Rt, D0R, D0t);
+    double dv[3] = {0.0, 0.0, 0.0}, dw[3] = {0.0, 0.0, 0.0};
+    if (dt > 0.0) {
+        double D1R[9], D1t[3], D0RT[9], M[9];
+        if (filter_pose_core(x, v, h1, XR, Xt) != 0) {
+            return -1;
+        }
+        rigid_compose(LR, Lt, XR, Xt, AR, At);
+        rigid_compose(AR, At, RR, Rt, D1R, D1t);
+        for (int r = 0; r < 3; r++) {
+            dv[r] = (D1t[r] - D0t[r]) / dt;
+            for (int c = 0; c < 3; c++) {
+                D0RT[3 * r + c] = D0R[3 * c + r];
+            }
+        }
+        mat3_mul(D1R, D0RT, M);
+        rotvec_of(M, dw);
+        for (int r = 0; r < 3; r++) {
+            dw[r] = dw[r] / dt;
+        }
+    }
+    if (!all_finite(D0R, 9) || !all_finite(D0t, 3) || !all_finite(dv, 3) || !all_finite(dw, 3)) {
+        return -1;
+    }
+    memcpy(R_out, D0R, sizeof(D0R));
+    memcpy(t_out, D0t, sizeof(D0t));
+    memcpy(vel, dv, sizeof(dv));
+    memcpy(w, dw, sizeof(dw));
+    return 0;
+}
+
+static PyObject *k_tcp_setpoint(PyObject *self, PyObject *args)
+{
+    PyObject *o[10];
+    double h0, h1, dt;
+    if (!PyArg_ParseTuple(args, "OOdddOOOOOOOO", &o[0], &o[1], &h0, &h1, &dt, &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &o[7], &o[8], &o[9])) {
+        return NULL;
+    }
+    static const char *names[10] = {"x", "v", "LR", "Lt", "RR", "Rt", "R_out", "t_out", "vel_out", "w_out"};
+    const Py_ssize_t s33[2] = {3, 3}, s3[1] = {3}, s6[1] = {6};
+    const Py_ssize_t *shapes[10] = {s6, s6, s33, s3, s33, s3, s33, s3, s3, s3};
+    static const int ndims[10] = {1, 1, 2, 1, 2, 1, 2, 1, 1, 1};
+    Py_buffer views[10];
+    memset(views, 0, sizeof(views));
+    double *p[10];
+    PyObject *result = NULL;
+    int i = 0;
+    for (; i < 10; i++) {
+        p[i] = get_f64(o[i], &views[i], names[i], ndims[i], shapes[i], i >= 6);
+        if (p[i] == NULL) {
+            break;
+        }
+    }
+    if (i == 10) {
+        int status = -1;
+        if (all_finite(p[2], 9) && all_finite(p[3], 3) && all_finite(p[4], 9) && all_finite(p[5], 3)
+                && isfinite(h0) && isfinite(h1) && isfinite(dt)) {
+            status = tcp_setpoint_core(p[0], p[1], h0, h1, dt, p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9]);
+        }
+        result = PyLong_FromLong(status);
+    }
+    release(views, 10);
+    return result;
+}
+
 /* ---- module --------------------------------------------------------------------------------- */
 
 static PyMethodDef native_methods[] = {
     {"horn", k_horn, METH_VARARGS, horn_doc},
     {"track", k_track, METH_VARARGS, track_doc},
     {"ur_newton", k_ur_newton, METH_VARARGS, ur_newton_doc},
+    {"filter_feed", k_filter_feed, METH_VARARGS, filter_feed_doc},
+    {"filter_pose", k_filter_pose, METH_VARARGS, filter_pose_doc},
+    {"tcp_setpoint", k_tcp_setpoint, METH_VARARGS, tcp_setpoint_doc},
     {NULL, NULL, 0, NULL},
 };
 

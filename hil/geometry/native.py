@@ -1,8 +1,11 @@
-"""The one place that selects the compiled per-pair marker geometry (``hil/geometry/_native.c``)
-or the numpy reference code: :func:`hil.geometry.registration.register_horn` (unit weights),
-:func:`hil.controller.registration.track` and :func:`hil.kinematics.ur.ur_newton_ik`.
+"""The one place that selects the compiled per-pair geometry (``hil/geometry/_native.c``) or the
+numpy reference code: :func:`hil.geometry.registration.register_horn` (unit weights),
+:func:`hil.controller.registration.track`, COMPENSATE's control law
+(:meth:`hil.controller.compensation.MotionFilter.update_about` and ``estimate``,
+:meth:`hil.controller.estimate.Estimate.tracking_setpoint`) and
+:func:`hil.kinematics.ur.ur_newton_ik`.
 
-The first two run for every stereo pair between the exposure and the servo setpoint, the third
+All but the last run for every stereo pair between the exposure and the servo setpoint, the last
 (the simulated arm's servo command) in every servo period. On a shared host,
 numpy code that runs once per camera period takes several times its hot-loop time (its code and
 data are evicted in between; docs/benchmarks.md "Issue 16: cold code on the pair's path"); the

@@ -244,15 +244,16 @@ class RigidTransform:
     def rotation_angle_rad(self) -> float:
         """Angle of the rotation part, rad, in [0, pi]."""
         # atan2 of (sin, cos) keeps full precision near 0 and pi, unlike acos of the trace.
-        c = (float(np.trace(self.R)) - 1.0) / 2.0
-        R = self.R
-        s = 0.5 * math.sqrt(
-            (R[2, 1] - R[1, 2]) ** 2 + (R[0, 2] - R[2, 0]) ** 2 + (R[1, 0] - R[0, 1]) ** 2
-        )
+        # Plain floats: the same operations in the same order as np.trace and the indexing
+        # (bit-identical), without numpy's per-element layers (a bound check per pair).
+        (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = self.R.tolist()
+        c = (m00 + m11 + m22 - 1.0) / 2.0
+        s = 0.5 * math.sqrt((m21 - m12) ** 2 + (m02 - m20) ** 2 + (m10 - m01) ** 2)
         return math.atan2(s, c)
 
     def translation_norm(self) -> float:
-        return float(np.linalg.norm(self.t))
+        """|t|, mm: the same dot product np.linalg.norm takes, without its Python layers."""
+        return math.sqrt(float(self.t.dot(self.t)))
 
     def is_close(self, other: RigidTransform, atol_mm: float = 1e-9, atol_rad: float = 1e-9) -> bool:
         """True when both the relative rotation angle and translation difference are within tolerance."""

@@ -21,8 +21,6 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from hil.controller import events as ev
 from hil.controller.commands import Track
 from hil.controller.compensation import correction_out_of_bounds, interpolate_pose
@@ -163,17 +161,12 @@ class CompensatePhase(Phase):
         Returns (the horizon at publication, s; the pose at publication)."""
         ctx, c, est = self.ctx, self.ctx.cfg.compensation, self.ctx.est
         t_exp = frame.left.t_ns
-        D0 = est.desired_tcp_robot_local(est.filter.estimate(t_exp, c.max_prediction_s))
-        if c.predict_latency and c.max_prediction_s > 0:
-            dt_s = _VELOCITY_STEP_S
-            t_next_ns = t_exp + round(dt_s * 1e9)
-            D1 = est.desired_tcp_robot_local(est.filter.estimate(t_next_ns, c.max_prediction_s))
-            v = (D1.t - D0.t) / dt_s
-            w = (D1 @ D0.inverse()).as_rotvec() / dt_s
-            servo_dt = 1.0 / ctx.robot.control_rate_hz
-            lead_s, max_h = 0.5 * servo_dt + c.actuation_lag_s, c.max_prediction_s
+        predict = c.predict_latency and c.max_prediction_s > 0
+        D0, v, w = est.tracking_setpoint(t_exp, c.max_prediction_s, _VELOCITY_STEP_S if predict else 0.0)
+        if predict:
+            lead_s, max_h = 0.5 / ctx.robot.control_rate_hz + c.actuation_lag_s, c.max_prediction_s
         else:
-            v, w, lead_s, max_h = np.zeros(3), np.zeros(3), 0.0, 0.0
+            lead_s, max_h = 0.0, 0.0
         timing = ctx.servo_timing()
         valid_until = t_exp + round(timing.camera_max_age_s * 1e9)
         ctx.execute(Track(D0, v, w, t_ref_ns=t_exp, valid_until_ns=valid_until, exposure_t_ns=t_exp,
