@@ -203,7 +203,8 @@ class Controller(ControllerParts):
             return
         if st is None:
             return  # an operator input waits: the next tick takes it before waiting for a pair
-        self.fire(Event.ROBOT_STATE_RECEIVED)
+        if not self.pipeline.pair_arrived:   # with a pair: once its setpoint is out (_on_pair)
+            self.fire(Event.ROBOT_STATE_RECEIVED)
         deferred = self.pipeline.tracker_deferred
         if self.est.tracker_samples and not deferred:
             self.fire(Event.TRACKER_SAMPLE_RECEIVED)
@@ -227,6 +228,7 @@ class Controller(ControllerParts):
         phase = self.phases[self.state] if self.state in self.STEPPED else None
         if phase is not None:   # the pair's setpoint first (latency); the judgement follows
             phase.command(TickInputs(detected_ns, command, frame, points, st, self.est.tracker_samples))
+        self.fire(Event.ROBOT_STATE_RECEIVED)   # a data event every state stays in: off the pair's path
         if self.pipeline.tracker_deferred and not self._read_deferred_tracker():
             return
         inputs = TickInputs(detected_ns, command, frame, points, st, self.est.tracker_samples)
