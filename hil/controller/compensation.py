@@ -152,7 +152,9 @@ class MotionFilter:
 
     @property
     def speed_mm_s(self) -> float:
-        return float(np.linalg.norm(self._v[:3]))
+        """|translational rate|, mm/s (np.linalg.norm's own dot product, without its layers)."""
+        v = self._v[:3]
+        return math.sqrt(float(v.dot(v)))
 
 
 def interpolate_pose(a: RigidTransform, b: RigidTransform, f: float) -> RigidTransform:

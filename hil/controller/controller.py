@@ -7,9 +7,10 @@ A tick (docs/architecture.md draws it): the owed stop is retried and the operato
 decided -> the devices are read (:mod:`~hil.controller.pipeline`: the next pair, waited for at most
 a supervisor period) -> the supervisor checks the watchdogs and the robot
 (:mod:`~hil.controller.supervisor`) -> when a new pair arrived, perception identifies and tracks
-the markers into the estimate (:mod:`~hil.controller.markers`) -> the current phase publishes the
-pair's setpoint (``Phase.command``: COMPENSATE's, so the frame -> command latency carries nothing
-else) -> the tracker is read and its watchdog judged, when its samples take no part in the
+the patient's markers into the estimate (:mod:`~hil.controller.markers`) -> the current phase
+publishes the pair's setpoint (``Phase.command``: COMPENSATE's, so the frame -> command latency
+carries nothing else) -> the flange markers (earlier when the setpoint needs them: a bias
+correction) -> the tracker is read and its watchdog judged, when its samples take no part in the
 markers (else it was read with the other devices) -> the camera cross-check and the frame's
 record -> the current phase steps
 (:mod:`~hil.controller.phases`) -> its commands are executed through the safety layer and its
@@ -34,6 +35,7 @@ from hil.controller import events as ev
 from hil.controller.commands import Command, Hold, MoveLinear, Stop, Track
 from hil.controller.fsm import HALT_STATES, RECOVERY, Event, FireResult, State
 from hil.controller.inputs import TickInputs
+from hil.controller.markers import FlangeUpdate
 from hil.controller.metrics import RunSummary
 from hil.controller.operator_input import OperatorCommand, WakingOperator, as_command
 from hil.controller.parts import ControllerParts
@@ -222,12 +224,15 @@ class Controller(ControllerParts):
         """A tick's new pair (module doc): markers, the setpoint, the deferred tracker, the
         cross-check and the record, then the phase's step and what it asks for."""
         points = self.pipeline.located(frame)
-        self.markers.update(self.est, points, frame.left.t_ns,
-                            lambda: self.roles.reference_sensor(self.est, self.state))
+        self.markers.update_patient(self.est, points, frame.left.t_ns,
+                                    lambda: self.roles.reference_sensor(self.est, self.state))
         detected_ns = self.clock.now_ns()
+        flange = FlangeUpdate(self.markers, self.est, points)
         phase = self.phases[self.state] if self.state in self.STEPPED else None
         if phase is not None:   # the pair's setpoint first (latency); the judgement follows
-            phase.command(TickInputs(detected_ns, command, frame, points, st, self.est.tracker_samples))
+            phase.command(TickInputs(detected_ns, command, frame, points, st, self.est.tracker_samples),
+                          flange)
+        flange()   # off the pair's path unless the setpoint needed it
         self.fire(Event.ROBOT_STATE_RECEIVED)   # a data event every state stays in: off the pair's path
         if self.pipeline.tracker_deferred and not self._read_deferred_tracker():
             return

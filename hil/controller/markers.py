@@ -7,7 +7,9 @@ markers in layout order; NaN rows are markers not seen this pair. Once registere
 rigid change of the patient (optical frame) is computed and fed to the motion filter.
 
 Tracking first (each predicted marker takes the nearest point within ``TRACK_TOLERANCE_MM``); a
-full identification against the layout when fewer than three markers are tracked.
+full identification against the layout when fewer than three markers are tracked. The skin and the
+flange are updated by separate calls: the controller updates the flange after the pair's setpoint
+is out unless the setpoint needs it (a bias correction).
 """
 
 from __future__ import annotations
@@ -38,28 +40,43 @@ class MarkerTracker:
 
     def update(self, est: Estimate, points_mm: FloatArray, exposure_t_ns: int,
                reference_hook: Callable[[], None] | None = None) -> None:
-        """Identify/track ``points_mm`` (M, 3) into ``est``. ``reference_hook`` runs after the
-        patient change is measured and before it is filtered (the reference sensor may stand in
-        for it). Never raises for missing markers: they are NaN rows."""
+        """Identify/track ``points_mm`` (M, 3) into ``est``: :meth:`update_patient`, then
+        :meth:`update_flange`. Never raises for missing markers: they are NaN rows."""
+        self.update_patient(est, points_mm, exposure_t_ns, reference_hook)
+        self.update_flange(est, points_mm)
+
+    def update_patient(self, est: Estimate, points_mm: FloatArray, exposure_t_ns: int,
+                       reference_hook: Callable[[], None] | None = None) -> None:
+        """The skin markers of ``points_mm`` (M, 3) into ``est`` and, once registered, the
+        patient's measured change, fed to the motion filter at ``exposure_t_ns``.
+        ``reference_hook`` runs after the change is measured and before it is filtered (the
+        reference sensor may stand in for it). The flange markers are left for
+        :meth:`update_flange` (independent of these: each tracks its own previous set)."""
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         tol = self.match_tolerance_mm
-        if est.patient_reg is not None:
-            ref = est.patient_reg.reference_optical_mm
-            prev = est.live_mm
-            predicted = ref if prev is None else np.where(np.isfinite(prev), prev, ref)
-            live = track(pts, predicted, TRACK_TOLERANCE_MM)
-            if count_seen(live) < 3:
-                found = identify(pts, np.nan_to_num(ref), tol)
-                live = found if found is not None else live
-            est.live_mm = live
-            reg = rigid_change(ref, live)
-            est.T_change_meas = None if reg is None else reg.T_fixed_from_moving
-            if reference_hook is not None:
-                reference_hook()
-            if est.T_change_meas is not None:
-                est.filter.update_about(est.T_change_meas, est.T_center, exposure_t_ns)
-        else:
+        if est.patient_reg is None:
             est.live_mm = identify(pts, est.plan.fiducials_mm, tol)
+            return
+        ref = est.patient_reg.reference_optical_mm
+        prev = est.live_mm
+        predicted = ref if prev is None else np.where(np.isfinite(prev), prev, ref)
+        live = track(pts, predicted, TRACK_TOLERANCE_MM)
+        if count_seen(live) < 3:
+            found = identify(pts, np.nan_to_num(ref), tol)
+            live = found if found is not None else live
+        est.live_mm = live
+        reg = rigid_change(ref, live)
+        est.T_change_meas = None if reg is None else reg.T_fixed_from_moving
+        if reference_hook is not None:
+            reference_hook()
+        if est.T_change_meas is not None:
+            est.filter.update_about(est.T_change_meas, est.T_center, exposure_t_ns)
+
+    def update_flange(self, est: Estimate, points_mm: FloatArray) -> None:
+        """The flange markers of ``points_mm`` (M, 3) into ``est`` (layout order; a new array,
+        which :meth:`Estimate.T_optical_from_tcp_measured` keys its registration on)."""
+        pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        tol = self.match_tolerance_mm
         layout = est.rig.flange_markers_tcp_mm
         if est.flange_mm is not None and count_seen(est.flange_mm) >= 3:
             fl = track(pts, est.flange_mm, TRACK_TOLERANCE_MM)
@@ -70,3 +87,20 @@ class MarkerTracker:
             fl2 = identify(pts, layout, tol)
             fl = fl2 if fl2 is not None else np.full(layout.shape, np.nan)
         est.flange_mm = fl
+
+
+class FlangeUpdate:
+    """One pair's :meth:`MarkerTracker.update_flange`, run by the first call only: the setpoint's
+    command calls it when it needs the flange (a bias correction), the tick once the setpoint
+    is out."""
+
+    __slots__ = ("_est", "_points_mm", "_tracker", "done")
+
+    def __init__(self, tracker: MarkerTracker, est: Estimate, points_mm: FloatArray) -> None:
+        self._tracker, self._est, self._points_mm = tracker, est, points_mm
+        self.done = False
+
+    def __call__(self) -> None:
+        if not self.done:
+            self.done = True
+            self._tracker.update_flange(self._est, self._points_mm)

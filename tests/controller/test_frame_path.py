@@ -3,7 +3,8 @@ published as soon as its markers are in the estimate, before the camera cross-ch
 record and the phase's judgement, exactly once per pair; the tracker is read after it unless a
 reference sensor takes part in the markers, and its watchdog is still judged in that tick; and the
 camera-measured TCP pose (a Horn registration of the flange markers) is computed once per flange
-set however many parts of the tick ask for it."""
+set however many parts of the tick ask for it; the flange markers are brought in after the setpoint
+unless its bias correction needs them first."""
 
 from __future__ import annotations
 
@@ -58,7 +59,7 @@ def test_a_pairs_setpoint_is_published_once_and_before_its_cross_check_and_recor
     order = _spy_order(monkeypatch)
     horn_calls: list[int] = []
     updates: list[int] = []
-    write, update, horn = SessionLog.write, MarkerTracker.update, estimate_mod.register_horn
+    write, update, horn = SessionLog.write, MarkerTracker.update_flange, estimate_mod.register_horn
 
     def write_spy(self: SessionLog, event: str, **fields: Any) -> Any:
         if event == "frame_measured":
@@ -74,7 +75,7 @@ def test_a_pairs_setpoint_is_published_once_and_before_its_cross_check_and_recor
         return horn(*args, **kwargs)
 
     monkeypatch.setattr(SessionLog, "write", write_spy)
-    monkeypatch.setattr(MarkerTracker, "update", update_spy)
+    monkeypatch.setattr(MarkerTracker, "update_flange", update_spy)
     monkeypatch.setattr(estimate_mod, "register_horn", horn_spy)
     s = run_procedure(CONFIG, load_setup(CONFIG), PLAN, auto=True, session_dir=tmp_path, max_duration_s=40.0)
     assert s.final_state == "done"
@@ -83,9 +84,42 @@ def test_a_pairs_setpoint_is_published_once_and_before_its_cross_check_and_recor
     assert len(published) == len(set(published))   # once per pair
     for seq in published:
         assert order.index(("publish", seq)) < order.index(("crosscheck", seq)) < order.index(("record", seq))
-    # the flange set is registered at most once per marker update (cross-check, bias, guide error
+    # the flange set is registered at most once per flange update (cross-check, bias, guide error
     # and the snapshots share it)
     assert 0 < len(horn_calls) <= len(updates)
+
+
+def test_the_flange_markers_follow_the_setpoint_unless_its_bias_correction_needs_them(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from hil.cli.cmd_run import run_procedure
+
+    order = _spy_order(monkeypatch)
+    flange, bias = MarkerTracker.update_flange, estimate_mod.Estimate.bias_measurement
+
+    def flange_spy(self: MarkerTracker, est: Any, points_mm: Any) -> None:
+        order.append(("flange", est.last_frame.left.seq))
+        flange(self, est, points_mm)
+
+    def bias_spy(self: Any, frame: Any) -> Any:
+        order.append(("bias", frame.left.seq))
+        return bias(self, frame)
+
+    monkeypatch.setattr(MarkerTracker, "update_flange", flange_spy)
+    monkeypatch.setattr(estimate_mod.Estimate, "bias_measurement", bias_spy)
+    s = run_procedure(CONFIG, load_setup(CONFIG), PLAN, auto=True, session_dir=tmp_path, max_duration_s=40.0)
+    assert s.final_state == "done"
+    published = [seq for what, seq in order if what == "publish"]
+    with_bias = [seq for seq in published if ("bias", seq) in order
+                 and order.index(("bias", seq)) < order.index(("publish", seq))]
+    assert with_bias, "no pair's setpoint carried a bias correction: the test would prove nothing"
+    assert len(with_bias) < len(published), "every setpoint carried a bias correction"
+    for seq in published:
+        assert order.count(("flange", seq)) == 1   # once per pair
+        if seq in with_bias:
+            assert order.index(("flange", seq)) < order.index(("bias", seq)) < order.index(("publish", seq))
+        else:
+            at = order.index(("flange", seq))
+            assert order.index(("publish", seq)) < at < order.index(("crosscheck", seq))
 
 
 def _reads_between(order: list[tuple[str, int]], a: tuple[str, int], b: tuple[str, int]) -> int:

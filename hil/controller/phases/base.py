@@ -121,13 +121,15 @@ class Phase:
     def on_enter(self, transition: str) -> PhaseResult:
         return PhaseResult()
 
-    def command(self, inputs: TickInputs) -> None:
+    def command(self, inputs: TickInputs, flange: Callable[[], None]) -> None:
         """The latency-critical part of a pair, before the tick's slower supervision and records:
         a phase that streams a setpoint per pair publishes it here (COMPENSATE). It fires
         nothing: whatever it cannot decide is left to :meth:`step`, which the tick calls after it
         for the same pair unless the pair faulted meanwhile. ``inputs.tracker`` may still hold
         the previous read's samples here (the tracker is read after it unless its samples take
-        part in the markers); :meth:`step` gets this pair's. Default: nothing."""
+        part in the markers); :meth:`step` gets this pair's. The estimate's flange markers are
+        the previous pair's until ``flange()`` brings this pair's in (once; the tick calls it
+        after this returns): a command that uses them calls it first. Default: nothing."""
 
     def step(self, inputs: TickInputs) -> PhaseResult:
         """One stereo pair while the phase is current."""

@@ -17,6 +17,7 @@ publishes.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from typing import TYPE_CHECKING
@@ -82,18 +83,19 @@ class CompensatePhase(Phase):
         self.ctx.safety.start_tracking()   # the loop restarts from the actual pose, at rest
         return PhaseResult()
 
-    def command(self, inputs: TickInputs) -> None:
+    def command(self, inputs: TickInputs, flange: Callable[[], None]) -> None:
         """Publish the pair's setpoint first, when nothing stands in the way (in time, the change
         measured, within the correction bounds); the tick's cross-check, records and
         :meth:`step`'s judgement follow. When something does, nothing is published here and
-        :meth:`step` says why."""
+        :meth:`step` says why. ``flange`` brings the pair's flange markers in: called only when a
+        bias correction is due (:meth:`_send`)."""
         self.s.sent = None
         c, est = self.ctx.cfg.compensation, self.ctx.est
         if self.elapsed_s() > c.timeout_s or est.T_change_meas is None or not est.filter.initialised:
             return
         change = est.filter.estimate()  # about the entry point
         if correction_out_of_bounds(change, c) is None:
-            self.s.sent = self._send(inputs, change)
+            self.s.sent = self._send(inputs, change, flange)
 
     def step(self, inputs: TickInputs) -> PhaseResult:
         ctx, s, c, est = self.ctx, self.s, self.ctx.cfg.compensation, self.ctx.est
@@ -136,13 +138,18 @@ class CompensatePhase(Phase):
             s.sub = CompensateSub.TRACKING
         return out
 
-    def _send(self, inputs: TickInputs, change: RigidTransform) -> _Sent:
-        """The slow optical bias correction (seed 001 §2.3), then the setpoint (:meth:`_publish`)."""
+    def _send(self, inputs: TickInputs, change: RigidTransform,
+              flange: Callable[[], None] | None = None) -> _Sent:
+        """The slow optical bias correction (seed 001 §2.3), then the setpoint (:meth:`_publish`).
+        ``flange``: brings the pair's flange markers in before the bias is measured (None: they
+        are in)."""
         ctx, c, est, frame = self.ctx, self.ctx.cfg.compensation, self.ctx.est, inputs.frame
         now = ctx.clock.now_ns()
         st = est.last_state
         if (c.bias_gain > 0 and est.filter.speed_mm_s < c.bias_max_speed_mm_s and st is not None
                 and st.tcp_speed_mm_s < c.bias_max_speed_mm_s):
+            if flange is not None:
+                flange()
             D = est.bias_measurement(frame)
             if D is not None:
                 est.T_bias = interpolate_pose(est.T_bias, D, c.bias_gain)
