@@ -83,6 +83,29 @@ static void release(Py_buffer *views, int n)
     }
 }
 
+/* One buffer of a call: its name, dimensions (1: (len[0],), 2: (len[0], len[1])), whether it is
+ * written. */
+typedef struct {
+    const char *name;
+    int ndim;
+    Py_ssize_t len[2];
+    int writable;
+} BufSpec;
+
+/* get_f64 for objs[i] by spec[i], i < n, into p[i]; 0, or -1 with the error set at the first bad
+ * one. The caller releases all n views (zeroed here first) either way. */
+static int get_all(PyObject *const *objs, const BufSpec *spec, int n, Py_buffer *views, double **p)
+{
+    memset(views, 0, (size_t)n * sizeof(Py_buffer));
+    for (int i = 0; i < n; i++) {
+        p[i] = get_f64(objs[i], &views[i], spec[i].name, spec[i].ndim, spec[i].len, spec[i].writable);
+        if (p[i] == NULL) {
+            return -1;
+        }
+    }
+    return 0;
+}
+
 /* ---- symmetric eigen-decomposition (n <= 4) ------------------------------------------------ */
 
 /* Cyclic Jacobi rotations on the symmetric n x n matrix ``a`` (row-major 4 x 4 storage, destroyed:
@@ -725,22 +748,18 @@ PyDoc_STRVAR(filter_feed_doc,
 
 static PyObject *k_filter_feed(PyObject *self, PyObject *args)
 {
-    PyObject *o_R, *o_t, *o_Rc, *o_tc, *o_x, *o_v;
-    double dt, alpha, beta;
-    if (!PyArg_ParseTuple(args, "OOOOOOddd", &o_R, &o_t, &o_Rc, &o_tc, &o_x, &o_v, &dt, &alpha, &beta)) {
+    static const BufSpec spec[6] = {{"R", 2, {3, 3}, 0}, {"t", 1, {3}, 0}, {"Rc", 2, {3, 3}, 0},
+                                    {"tc", 1, {3}, 0}, {"x", 1, {6}, 1}, {"v", 1, {6}, 1}};
+    PyObject *o[6];
+    double dt, alpha, beta, *p[6];
+    if (!PyArg_ParseTuple(args, "OOOOOOddd", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &dt, &alpha, &beta)) {
         return NULL;
     }
     Py_buffer views[6];
-    memset(views, 0, sizeof(views));
     PyObject *result = NULL;
-    const Py_ssize_t s33[2] = {3, 3}, s3[1] = {3}, s6[1] = {6};
-    const double *R = get_f64(o_R, &views[0], "R", 2, s33, 0);
-    const double *t = R == NULL ? NULL : get_f64(o_t, &views[1], "t", 1, s3, 0);
-    const double *Rc = t == NULL ? NULL : get_f64(o_Rc, &views[2], "Rc", 2, s33, 0);
-    const double *tc = Rc == NULL ? NULL : get_f64(o_tc, &views[3], "tc", 1, s3, 0);
-    double *x = tc == NULL ? NULL : get_f64(o_x, &views[4], "x", 1, s6, 1);
-    double *v = x == NULL ? NULL : get_f64(o_v, &views[5], "v", 1, s6, 1);
-    if (v != NULL) {
+    if (get_all(o, spec, 6, views, p) == 0) {
+        const double *R = p[0], *t = p[1], *Rc = p[2], *tc = p[3];
+        double *x = p[4], *v = p[5];
         int status = -1;
         if (all_finite(R, 9) && all_finite(t, 3) && all_finite(Rc, 9) && all_finite(tc, 3)
                 && all_finite(x, 6) && all_finite(v, 6) && isfinite(dt) && dt > 0.0) {
@@ -784,21 +803,17 @@ PyDoc_STRVAR(filter_pose_doc,
 
 static PyObject *k_filter_pose(PyObject *self, PyObject *args)
 {
-    PyObject *o_x, *o_v, *o_R, *o_t;
-    double h;
-    if (!PyArg_ParseTuple(args, "OOdOO", &o_x, &o_v, &h, &o_R, &o_t)) {
+    static const BufSpec spec[4] = {{"x", 1, {6}, 0}, {"v", 1, {6}, 0}, {"R_out", 2, {3, 3}, 1},
+                                    {"t_out", 1, {3}, 1}};
+    PyObject *o[4];
+    double h, *p[4];
+    if (!PyArg_ParseTuple(args, "OOdOO", &o[0], &o[1], &h, &o[2], &o[3])) {
         return NULL;
     }
     Py_buffer views[4];
-    memset(views, 0, sizeof(views));
     PyObject *result = NULL;
-    const Py_ssize_t s33[2] = {3, 3}, s3[1] = {3}, s6[1] = {6};
-    const double *x = get_f64(o_x, &views[0], "x", 1, s6, 0);
-    const double *v = x == NULL ? NULL : get_f64(o_v, &views[1], "v", 1, s6, 0);
-    double *R = v == NULL ? NULL : get_f64(o_R, &views[2], "R_out", 2, s33, 1);
-    double *t = R == NULL ? NULL : get_f64(o_t, &views[3], "t_out", 1, s3, 1);
-    if (t != NULL) {
-        result = PyLong_FromLong(filter_pose_core(x, v, h, R, t));
+    if (get_all(o, spec, 4, views, p) == 0) {
+        result = PyLong_FromLong(filter_pose_core(p[0], p[1], h, p[2], p[3]));
     }
     release(views, 4);
     return result;
@@ -855,32 +870,24 @@ static int tcp_setpoint_core(const double *x, const double *v, double h0, double
 
 static PyObject *k_tcp_setpoint(PyObject *self, PyObject *args)
 {
+    static const BufSpec spec[10] = {
+        {"x", 1, {6}, 0}, {"v", 1, {6}, 0}, {"LR", 2, {3, 3}, 0}, {"Lt", 1, {3}, 0},
+        {"RR", 2, {3, 3}, 0}, {"Rt", 1, {3}, 0}, {"R_out", 2, {3, 3}, 1}, {"t_out", 1, {3}, 1},
+        {"vel_out", 1, {3}, 1}, {"w_out", 1, {3}, 1}};
     PyObject *o[10];
-    double h0, h1, dt;
+    double h0, h1, dt, *p[10];
     if (!PyArg_ParseTuple(args, "OOdddOOOOOOOO", &o[0], &o[1], &h0, &h1, &dt, &o[2], &o[3], &o[4], &o[5],
                           &o[6], &o[7], &o[8], &o[9])) {
         return NULL;
     }
-    static const char *names[10] = {"x", "v", "LR", "Lt", "RR", "Rt", "R_out", "t_out", "vel_out", "w_out"};
-    const Py_ssize_t s33[2] = {3, 3}, s3[1] = {3}, s6[1] = {6};
-    const Py_ssize_t *shapes[10] = {s6, s6, s33, s3, s33, s3, s33, s3, s3, s3};
-    static const int ndims[10] = {1, 1, 2, 1, 2, 1, 2, 1, 1, 1};
     Py_buffer views[10];
-    memset(views, 0, sizeof(views));
-    double *p[10];
     PyObject *result = NULL;
-    int i = 0;
-    for (; i < 10; i++) {
-        p[i] = get_f64(o[i], &views[i], names[i], ndims[i], shapes[i], i >= 6);
-        if (p[i] == NULL) {
-            break;
-        }
-    }
-    if (i == 10) {
+    if (get_all(o, spec, 10, views, p) == 0) {
         int status = -1;
         if (all_finite(p[2], 9) && all_finite(p[3], 3) && all_finite(p[4], 9) && all_finite(p[5], 3)
                 && isfinite(h0) && isfinite(h1) && isfinite(dt)) {
-            status = tcp_setpoint_core(p[0], p[1], h0, h1, dt, p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9]);
+            status = tcp_setpoint_core(p[0], p[1], h0, h1, dt, p[2], p[3], p[4], p[5], p[6], p[7], p[8],
+                                       p[9]);
         }
         result = PyLong_FromLong(status);
     }

@@ -1,4 +1,5 @@
-"""A minimal in-memory robot, and a base for stub cameras, for controller unit tests (no simulator)."""
+"""A minimal in-memory robot, a base for stub cameras, and an estimate with its setpoint chain
+set, for controller unit tests (no simulator)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,11 @@ from drivers.interfaces.camera import StereoCamera
 from drivers.interfaces.errors import DisconnectedError
 from drivers.interfaces.robot import FollowingModel, MotionLimits, Robot, RobotMode, RobotState, SafetyStatus
 from hil.clock import ManualClock
+from hil.controller.config import ProcedureConfig
+from hil.controller.estimate import Estimate
+from hil.controller.plan_file import load_plan
+from hil.controller.planning import GuidePlan, RigGeometry
+from hil.controller.registration import RobotRegistration
 from hil.geometry.transform import RigidTransform
 from hil.vision.camera_model import StereoCalibration
 
@@ -101,3 +107,17 @@ class StubCamera(StereoCamera):
     @property
     def image_size(self) -> tuple[int, int]:
         return self._image_size
+
+
+def chain_estimate(T_robot_from_optical: RigidTransform, T_robot_from_tcp: RigidTransform,
+                   T_center: RigidTransform, T_bias: RigidTransform) -> Estimate:
+    """An estimate of configs/plans/sim_plan.json whose setpoint chain has the given parts: the
+    robot registration, the planned TCP pose (robot frame), the entry-centred frame and the bias."""
+    est = Estimate(load_plan("configs/plans/sim_plan.json"),
+                   RigGeometry(RigidTransform.identity(), np.zeros((3, 3)), RigidTransform.identity()),
+                   ProcedureConfig())
+    est.robot_reg = RobotRegistration(T_robot_from_optical, 0.1, 12)
+    est.guide_plan = GuidePlan(np.zeros(3), np.array([0.0, 0.0, -80.0]), RigidTransform.identity(),
+                               T_robot_from_tcp, None, 20.0)
+    est.T_center, est.T_bias = T_center, T_bias
+    return est

@@ -17,18 +17,13 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from hil.controller.compensation import MotionFilter
-from hil.controller.config import ProcedureConfig
 from hil.controller.estimate import Estimate
-from hil.controller.plan_file import load_plan
-from hil.controller.planning import GuidePlan, RigGeometry
-from hil.controller.registration import RobotRegistration
 from hil.errors import GeometryError
 from hil.geometry import native
 from hil.geometry.transform import RigidTransform
+from tests.controller.fakes import chain_estimate
 from tests.geometry.strategies import rigid_transforms
 
-PLAN = load_plan("configs/plans/sim_plan.json")
-RIG = RigGeometry(RigidTransform.identity(), np.zeros((3, 3)), RigidTransform.identity())
 T0_NS = 1_000_000_000
 
 
@@ -108,16 +103,6 @@ def test_filter_pose_agrees_with_numpy(samples: list[RigidTransform], dts: list[
     _assert_vec_close(Tc.t, Tn.t, 1e3)
 
 
-def _estimate(T_robot_from_optical: RigidTransform, T_robot_from_tcp: RigidTransform,
-              T_center: RigidTransform, T_bias: RigidTransform) -> Estimate:
-    est = Estimate(PLAN, RIG, ProcedureConfig())
-    est.robot_reg = RobotRegistration(T_robot_from_optical, 0.1, 12)
-    est.guide_plan = GuidePlan(np.zeros(3), np.array([0.0, 0.0, -80.0]), RigidTransform.identity(),
-                               T_robot_from_tcp, None, 20.0)
-    est.T_center, est.T_bias = T_center, T_bias
-    return est
-
-
 def _setpoint(est: Estimate, t_ns: int, max_horizon_s: float, step_s: float,
               compiled: bool) -> tuple[RigidTransform, np.ndarray, np.ndarray]:
     previous = native.use_native(compiled)
@@ -135,7 +120,7 @@ def test_tracking_setpoint_agrees_with_numpy(T_ro: RigidTransform, T_rt: RigidTr
                                              T_center: RigidTransform, T_bias: RigidTransform,
                                              samples: list[RigidTransform], dt: float, max_horizon_s: float,
                                              step_s: float) -> None:
-    est = _estimate(T_ro, T_rt, T_center, T_bias)
+    est = chain_estimate(T_ro, T_rt, T_center, T_bias)
     # slow changes (as the filter sees them): the velocity's difference is then well-conditioned
     small = [RigidTransform.from_rotvec(T.as_rotvec() * 0.01, T.t * 0.01) for T in samples]
     est.filter = _fed(small, [dt], T_center, 0.6, 0.2, compiled=False)
@@ -157,7 +142,7 @@ def test_tracking_setpoint_agrees_with_numpy(T_ro: RigidTransform, T_rt: RigidTr
 def test_the_compiled_setpoint_is_the_one_used(compiled_geometry: Any) -> None:
     """The compiled call itself succeeds on a typical pair (so the estimate's answer is its),
     and gives the pose the numpy chain composes."""
-    est = _estimate(RigidTransform.from_rotvec((0.1, -0.2, 0.3), (400.0, -50.0, 300.0)),
+    est = chain_estimate(RigidTransform.from_rotvec((0.1, -0.2, 0.3), (400.0, -50.0, 300.0)),
                     RigidTransform.from_rotvec((3.0, 0.1, 0.0), (300.0, 100.0, 200.0)),
                     RigidTransform.from_translation((10.0, 20.0, 500.0)),
                     RigidTransform.from_rotvec((0.001, 0.0, 0.0), (0.2, -0.1, 0.0)))
@@ -223,7 +208,7 @@ def test_a_filter_fed_in_the_past_keeps_its_state(compiled_geometry: Any) -> Non
 
 
 def test_nothing_fed_raises(numpy_geometry: None) -> None:
-    est = _estimate(*[RigidTransform.identity()] * 4)
+    est = chain_estimate(*[RigidTransform.identity()] * 4)
     with pytest.raises(GeometryError, match="no sample yet"):
         est.tracking_setpoint(T0_NS, 0.1, 0.01)
     native.use_native(True)

@@ -7,26 +7,11 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hil.controller.config import ProcedureConfig
-from hil.controller.estimate import Estimate
-from hil.controller.plan_file import load_plan
-from hil.controller.planning import GuidePlan, RigGeometry
+from hil.controller.planning import GuidePlan
 from hil.controller.registration import RobotRegistration
 from hil.geometry.transform import RigidTransform
+from tests.controller.fakes import chain_estimate
 from tests.geometry.strategies import rigid_transforms
-
-PLAN = load_plan("configs/plans/sim_plan.json")
-RIG = RigGeometry(RigidTransform.identity(), np.zeros((3, 3)), RigidTransform.identity())
-
-
-def _estimate(T_robot_from_optical: RigidTransform, T_robot_from_tcp: RigidTransform,
-              T_center: RigidTransform, T_bias: RigidTransform) -> Estimate:
-    est = Estimate(PLAN, RIG, ProcedureConfig())
-    est.robot_reg = RobotRegistration(T_robot_from_optical, 0.1, 12)
-    est.guide_plan = GuidePlan(np.zeros(3), np.array([0.0, 0.0, -80.0]), RigidTransform.identity(),
-                               T_robot_from_tcp, None, 20.0)
-    est.T_center, est.T_bias = T_center, T_bias
-    return est
 
 
 def _assert_same(a: RigidTransform, b: RigidTransform) -> None:
@@ -38,7 +23,7 @@ def _assert_same(a: RigidTransform, b: RigidTransform) -> None:
 @given(rigid_transforms(), rigid_transforms(), rigid_transforms(), rigid_transforms(), rigid_transforms())
 def test_local_chain_is_the_full_chain(T_ro: RigidTransform, T_rt: RigidTransform, T_center: RigidTransform,
                                        T_bias: RigidTransform, T_local: RigidTransform) -> None:
-    est = _estimate(T_ro, T_rt, T_center, T_bias)
+    est = chain_estimate(T_ro, T_rt, T_center, T_bias)
     _assert_same(est.desired_tcp_robot_local(T_local), est.desired_tcp_robot(est.global_(T_local)))
 
 
@@ -50,7 +35,7 @@ PARTS = ["T_bias", "robot_reg", "guide_plan", "T_center"]
 def test_replacing_a_part_rebuilds_the_chain(T_new: RigidTransform, T_local: RigidTransform,
                                              part: str) -> None:
     base = RigidTransform.from_translation((10.0, -20.0, 300.0))
-    est = _estimate(base, RigidTransform.from_rotvec((0.0, 0.2, 0.0), (0.0, 100.0, 200.0)),
+    est = chain_estimate(base, RigidTransform.from_rotvec((0.0, 0.2, 0.0), (0.0, 100.0, 200.0)),
                     RigidTransform.from_translation((5.0, 5.0, 5.0)), RigidTransform.identity())
     est.desired_tcp_robot_local(T_local)   # the chain is built and kept
     if part == "robot_reg":
@@ -65,7 +50,7 @@ def test_replacing_a_part_rebuilds_the_chain(T_new: RigidTransform, T_local: Rig
 
 
 def test_unchanged_parts_keep_the_chain() -> None:
-    est = _estimate(RigidTransform.identity(), RigidTransform.identity(), RigidTransform.identity(),
+    est = chain_estimate(RigidTransform.identity(), RigidTransform.identity(), RigidTransform.identity(),
                     RigidTransform.identity())
     est.desired_tcp_robot_local(RigidTransform.identity())
     kept = est._chain
