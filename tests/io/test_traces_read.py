@@ -160,7 +160,7 @@ def test_explicit_format_overrides_detection(tmp_path: Path) -> None:
     assert read_trace(path, "6dof").format == "6dof"
 
 
-def test_trace_error_is_an_input_file_error(tmp_path: Path) -> None:
+def test_trace_error_is_an_input_file_error() -> None:
     err = TraceError("f.txt", "bad", 3)
     assert isinstance(err, InputFileError)
     assert isinstance(err, HilError)
