@@ -207,14 +207,62 @@ class PatientMotion:
         self.irregular = IrregularityScript(sim.breathing, sim.seed)
         self.holds: list[BreathHoldConfig] = list(sim.breath_holds)
 
-    def sample(self, t_s: float) -> MotionSample:
+    def hold_at(self, t_s: float) -> tuple[float, int]:
+        """(weight 0..1, index in ``holds``) of the breath-hold in force at ``t_s``: the heaviest,
+        the first of equals; (0.0, -1) when none is."""
+        best_w, best_i = 0.0, -1
+        for i, h in enumerate(self.holds):
+            w = hold_weight(t_s, h, self.sim.hold_ramp_s)
+            if w > best_w:
+                best_w, best_i = w, i
+        return best_w, best_i
+
+    def breathing_mm(self, t_s: float) -> tuple[float, float, float]:
+        """(breathing displacement with holds, hold weight, that plus the baseline wander and
+        coughs), mm along the breathing direction, at ``t_s``."""
         b = self.breathing.displacement_mm(t_s)
-        w = max((hold_weight(t_s, h, self.sim.hold_ramp_s) for h in self.holds), default=0.0)
+        w, i = self.hold_at(t_s)
         if w > 0.0:
-            active = max(self.holds, key=lambda h: hold_weight(t_s, h, self.sim.hold_ramp_s))
+            active = self.holds[i]
             b = (1.0 - w) * b + w * active.level * self.breathing.amplitude_at(active.start_s)
-        b_total = b + self.irregular.offset_mm(t_s)
+        return b, w, b + self.irregular.offset_mm(t_s)
+
+    def rigid_offset_mm(self, t_s: float) -> FloatArray:
+        """The rigid translation besides breathing: drift and tremor (image frame, mm)."""
+        out: FloatArray = drift_mm(t_s, self.sim.drift) + self.tremor.offset_mm(t_s)
+        return out
+
+    def T_rigid(self, t_s: float) -> RigidTransform:
+        """The deformable body's rigid part: shifts after drift and tremor (no breathing)."""
+        T_offset = RigidTransform.from_translation(self.rigid_offset_mm(t_s))
+        return shift_transform(t_s, self.sim.shifts) @ T_offset
+
+    def sample(self, t_s: float) -> MotionSample:
+        """The rigid body's motion at ``t_s``: breathing along its direction, drift, tremor, shifts."""
+        b, w, b_total = self.breathing_mm(t_s)
         offset = (self.breathing.direction * b_total + drift_mm(t_s, self.sim.drift)
                   + self.tremor.offset_mm(t_s))
         T = shift_transform(t_s, self.sim.shifts) @ RigidTransform.from_translation(offset)
         return MotionSample(T, b, w)
+
+
+class ModelSignal:
+    """The body's breathing signal from the scripted breathing (:class:`PatientMotion`): its
+    displacement with holds, wander and coughs over ``[simulation.breathing] amplitude_mm``
+    (0 end-exhale, about 1 end-inhale; 0 when the amplitude is 0)."""
+
+    def __init__(self, motion: PatientMotion) -> None:
+        self.motion = motion
+        self._amplitude_mm = motion.sim.breathing.amplitude_mm
+
+    @property
+    def period_s(self) -> float:
+        return self.motion.sim.breathing.period_s
+
+    def s(self, t_s: float) -> float:
+        if self._amplitude_mm <= 0.0:
+            return 0.0
+        return self.motion.breathing_mm(t_s)[2] / self._amplitude_mm
+
+    def hold(self, t_s: float) -> tuple[float, int]:
+        return self.motion.hold_at(t_s)

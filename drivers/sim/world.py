@@ -21,12 +21,14 @@ from numpy.typing import NDArray
 from drivers.interfaces.errors import DriverError
 from drivers.interfaces.lifecycle import DeviceState
 from drivers.interfaces.robot import Robot
+from drivers.sim.body import BodyState, DeformableBody, body_from_config, skin_point
 from drivers.sim.motion import MotionSample, PatientMotion, stream_rng
 from drivers.sim.rig_errors import true_flange_markers
 from hil.clock import Clock
 from hil.config.setup import FramesConfig, SetupConfig
 from hil.config.simulation import BreathHoldConfig, PatientConfig, SimulationConfig
 from hil.errors import ConfigError
+from hil.geometry.registration import register_horn
 from hil.geometry.transform import RigidTransform
 from hil.log import get_logger
 from hil.rigcal.truth import RigTruth
@@ -50,13 +52,6 @@ class Phantom:
     inner_diameter_mm: float
 
 
-def _skin(x: float, y: float, radius_mm: float) -> tuple[FloatArray, FloatArray]:
-    """Point on the cylinder skin (axis along y, top line z = 0) above (x, y), and its normal."""
-    z = math.sqrt(radius_mm**2 - x**2) - radius_mm
-    n = np.array([x, 0.0, z + radius_mm]) / radius_mm
-    return np.array([x, y, z]), n
-
-
 def phantom_from_config(cfg: PatientConfig) -> Phantom:
     """The phantom geometry: a pure function of the patient config (no randomness), so a bundled
     plan file stays consistent with the simulator. Markers lie on a golden-angle spiral (no
@@ -67,10 +62,10 @@ def phantom_from_config(cfg: PatientConfig) -> Phantom:
     for k in range(n):
         r = c * math.sqrt(k + 0.5)
         a = k * _GOLDEN_ANGLE_RAD + 0.3
-        p, nv = _skin(r * math.cos(a), r * math.sin(a), cfg.torso_radius_mm)
+        p, nv = skin_point(r * math.cos(a), r * math.sin(a), cfg.torso_radius_mm)
         pts.append(p)
         normals.append(nv)
-    entry, _ = _skin(cfg.entry_xy_mm[0], cfg.entry_xy_mm[1], cfg.torso_radius_mm)
+    entry, _ = skin_point(cfg.entry_xy_mm[0], cfg.entry_xy_mm[1], cfg.torso_radius_mm)
     return Phantom(
         markers_mm=np.array(pts), normals=np.array(normals), entry_mm=entry,
         target_mm=entry + np.asarray(cfg.target_offset_mm, dtype=np.float64),
@@ -186,6 +181,8 @@ class SimWorld:
         self.t0_ns = clock.now_ns()
         self.phantom = phantom_from_config(sim.patient)
         self.motion = PatientMotion(sim)
+        #: the deformable body (``[simulation.body] model = "deformable"``); None: the rigid body
+        self.body: DeformableBody | None = body_from_config(sim, self.phantom, self.motion)
         self.T_optical_from_image0 = sim.patient.T_optical_from_image.as_transform()
         self.T_optical_from_robot = sim.T_optical_from_robot.as_transform()
         self.T_optical_from_tracker = sim.T_optical_from_tracker.as_transform()
@@ -271,19 +268,46 @@ class SimWorld:
             return self.motion.sample(self.t_s(t_ns))
 
     def T_optical_from_image(self, t_ns: int) -> RigidTransform:
-        """Where the phantom (CT frame) is at ``t_ns``, seen from the left camera."""
-        return self.T_optical_from_image0 @ self.motion_at(t_ns).T_image0_from_image
+        """Where the phantom (CT frame) is at ``t_ns``, seen from the left camera: the rigid body's
+        whole motion, or the deformable body's rigid part (drift, shifts, tremor)."""
+        if self.body is None:
+            return self.T_optical_from_image0 @ self.motion_at(t_ns).T_image0_from_image
+        with self._lock:
+            return self.T_optical_from_image0 @ self.motion.T_rigid(self.t_s(t_ns))
+
+    def body_state(self, t_ns: int) -> BodyState:
+        """The body at ``t_ns`` in the optical frame: skin markers, their normals, entry, target."""
+        t_s = self.t_s(t_ns)
+        with self._lock:
+            if self.body is None:
+                T = self.T_optical_from_image0 @ self.motion.sample(t_s).T_image0_from_image
+                ph = self.phantom
+                return BodyState(markers_mm=T.apply(ph.markers_mm), normals=T.apply_vector(ph.normals),
+                                 entry_mm=T.apply(ph.entry_mm), target_mm=T.apply(ph.target_mm))
+            T = self.T_optical_from_image0 @ self.motion.T_rigid(t_s)
+            b = self.body.state(t_s)
+        return BodyState(markers_mm=T.apply(b.markers_mm), normals=T.apply_vector(b.normals),
+                         entry_mm=T.apply(b.entry_mm), target_mm=T.apply(b.target_mm))
 
     def patient_markers_optical(self, t_ns: int) -> tuple[FloatArray, FloatArray]:
         """Skin marker centres (N,3) and unit normals (N,3) in the optical frame at ``t_ns``."""
-        T = self.T_optical_from_image(t_ns)
-        return T.apply(self.phantom.markers_mm), T.apply_vector(self.phantom.normals)
+        b = self.body_state(t_ns)
+        return b.markers_mm, b.normals
 
     def target_optical(self, t_ns: int) -> FloatArray:
-        return self.T_optical_from_image(t_ns).apply(self.phantom.target_mm)
+        return self.body_state(t_ns).target_mm
 
     def entry_optical(self, t_ns: int) -> FloatArray:
-        return self.T_optical_from_image(t_ns).apply(self.phantom.entry_mm)
+        return self.body_state(t_ns).entry_mm
+
+    def body_rigid_residual_mm(self, t_ns: int) -> float:
+        """How far the true skin markers are from a rigid copy of the CT's at ``t_ns``: the RMS
+        residual of Horn's fit (seed 000 eqs 17-21) of the CT markers onto them, mm (0 for the
+        rigid body, not computed)."""
+        if self.body is None:
+            return 0.0
+        markers, _ = self.patient_markers_optical(t_ns)
+        return float(register_horn(markers, self.phantom.markers_mm).fre_rms_mm)
 
     def T_optical_from_flange(self, t_ns: int) -> RigidTransform | None:
         if self._robot is None:

@@ -14,6 +14,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
+from hil.config.body import BodyConfig, BodyTraceConfig, SkinFieldConfig, TargetMotionConfig
 from hil.config.faults import FaultChannelConfig, FaultSpec
 from hil.config.setup import (
     CalibrationConfig,
@@ -96,6 +97,10 @@ def config_reference_markdown(registry: DriverRegistry) -> str:
         model_table("[simulation.tremor]", TremorConfig),
         model_table("[[simulation.breath_holds]]", BreathHoldConfig),
         model_table("[simulation.rig_errors]", RigErrorsConfig),
+        model_table("[simulation.body]", BodyConfig),
+        model_table("[simulation.body.skin]", SkinFieldConfig),
+        model_table("[simulation.body.target]", TargetMotionConfig),
+        model_table("[simulation.body.trace]", BodyTraceConfig),
         model_table("[[faults]]", FaultSpec),
         model_table("[fault_channel]", FaultChannelConfig),
         model_table("[servo]", ServoConfig),

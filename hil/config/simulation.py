@@ -11,6 +11,7 @@ from typing import Literal
 
 from pydantic import BaseModel, Field, model_validator
 
+from hil.config.body import BodyConfig
 from hil.config.types import STRICT, TransformConfig, Vec3
 
 
@@ -173,6 +174,7 @@ class SimulationConfig(BaseModel):
     drift: DriftConfig = DriftConfig()
     shifts: tuple[ShiftConfig, ...] = ()
     tremor: TremorConfig = TremorConfig()
+    body: BodyConfig = Field(BodyConfig(), description="rigid or deformable body, trace-driven or not")
     rig_errors: RigErrorsConfig = Field(RigErrorsConfig(), description="rig errors unknown to the controller")
     breath_holds: tuple[BreathHoldConfig, ...] = ()
     hold_ramp_s: float = Field(0.4, ge=0, description="ease in/out of a breath-hold")
