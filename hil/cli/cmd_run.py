@@ -17,6 +17,7 @@ from typing import Any, TextIO
 
 from hil.clock import Clock, ManualClock, MonotonicClock
 from hil.config import build_devices, default_setup_path, load_setup
+from hil.config.overrides import TRACE_FORMATS, with_trace
 from hil.config.setup import SetupConfig
 from hil.controller.assembly import (
     RobotWrapper,
@@ -55,6 +56,11 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--max-duration", type=float, help="stop after this many seconds of procedure time")
     p.add_argument("--no-report", action="store_true",
                    help="do not build the HTML report (hil report) after the session")
+    p.add_argument("--trace", metavar="FILE",
+                   help="drive the simulated patient by a recorded trace (docs/traces.md): the body becomes "
+                        "deformable ([simulation.body.trace] path)")
+    p.add_argument("--trace-format", default="auto", choices=TRACE_FORMATS,
+                   help="the trace's format (default: told from the file)")
     p.set_defaults(func=run)
 
 
@@ -123,6 +129,8 @@ def _resolve(args: argparse.Namespace) -> tuple[Path, SetupConfig, ProcedurePlan
             raise InputFileError("--seed", f"must be >= 0, got {args.seed}")
         sim = setup.simulation.model_copy(update={"seed": args.seed})
         setup = setup.model_copy(update={"simulation": sim})
+    if args.trace:
+        setup = with_trace(setup, args.trace, args.trace_format)
     if args.plan:
         plan_path = Path(args.plan)
     else:
@@ -227,6 +235,12 @@ def print_text(s: RunSummary, out: TextIO) -> None:
     out.write(f"robot reg. FRE   {_fmt(s.robot_fre_mm, 'mm')}\n")
     out.write(f"lock error       {_fmt(s.lock_error_mm, 'mm')}, direction "
               f"{_fmt(s.lock_direction_error_deg, 'deg')} (vs simulator truth)\n")
+    if s.target_error_mm is not None:
+        out.write(f"target error     {_fmt(s.target_error_mm, 'mm')} at lock, max "
+                  f"{_fmt(s.target_error_max_mm, 'mm')} over the hold (guide axis to the true target)\n")
+    if s.body_rigid_residual_mm_p95:
+        out.write(f"body non-rigid   p95 {_fmt(s.body_rigid_residual_mm_p95, 'mm')} "
+                  "(rigid-fit residual of the true skin markers)\n")
     out.write(f"compensation     RMS {_fmt(s.comp_error_rms_mm, 'mm')}, "
               f"p95 {_fmt(s.comp_error_p95_mm, 'mm')}\n")
     out.write(f"latency          p50 {_fmt(s.latency_ms['p50'], 'ms', 1)}, "
