@@ -11,12 +11,16 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from hil.controller import events as ev
+from hil.controller.compensation import rigid_change
 from hil.controller.estimate import Estimate
 from hil.controller.fsm import State
 from hil.controller.truth import GroundTruth
 from hil.session.log import SessionLog
+
+FloatArray = NDArray[np.float64]
 
 if TYPE_CHECKING:
     from hil.controller.planning import RigGeometry
@@ -58,14 +62,29 @@ class RunSummary:
     tracked_needle: dict[str, float] | None = None
     #: marker-location time per stereo pair, p50 / p95 (ms; set by hil run from its locator)
     locate_ms: dict[str, float | None] = field(default_factory=lambda: {"p50": None, "p95": None})
+    #: the guide axis line's closest distance to the true target at lock (first LOCK sample), and
+    #: its largest over the hold (every LOCK sample), mm (simulation only)
+    target_error_mm: float | None = None
+    target_error_max_mm: float | None = None
+    #: the guide axis line's closest distance to the true entry at lock, mm
+    entry_axis_error_mm: float | None = None
+    #: the true skin markers' rigid-fit residual over the run: p95 and max, mm
+    body_rigid_residual_mm_p95: float | None = None
+    body_rigid_residual_mm_max: float | None = None
+    #: the guide axis line to the true target while compensating, p95 mm
+    comp_target_error_p95_mm: float | None = None
+    #: the measured rigid change's FRE (live skin markers against the registered reference) over
+    #: the run after registration: p50 and p95, mm
+    change_fre_mm: dict[str, float | None] = field(default_factory=lambda: {"p50": None, "p95": None})
     comp_errors_mm: list[float] = field(default_factory=list, repr=False)
     comp_error_age_s: list[float] = field(default_factory=list, repr=False)
+    lock_target_errors_mm: list[float] = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON summary (docs/run.md); the per-tick error series is left out."""
+        """The JSON summary (docs/run.md); the per-tick error series are left out."""
         d = dict(self.__dict__)
-        d.pop("comp_errors_mm")
-        d.pop("comp_error_age_s")
+        for series in ("comp_errors_mm", "comp_error_age_s", "lock_target_errors_mm"):
+            d.pop(series)
         return d
 
 
@@ -102,22 +121,59 @@ class RunMetrics:
         return (self.gate_open_samples / self.gate_samples) if self.gate_samples else None
 
 
+@dataclass(frozen=True)
+class TruthSample:
+    """The real guide against the real body at one snapshot (simulation only).
+
+    Attributes:
+        position_mm: guide origin to the ideal stand-off point on the true moving path (the
+            lock error's measure).
+        direction_deg: guide axis against the true entry -> target direction.
+        target_mm: the guide axis line's closest distance to the true (internal) target: how far
+            a needle inserted now would pass from it.
+        entry_mm: the guide axis line's closest distance to the true (skin) entry.
+    """
+
+    position_mm: float
+    direction_deg: float
+    target_mm: float
+    entry_mm: float
+
+
+def line_distance_mm(origin: FloatArray, axis: FloatArray, point: FloatArray) -> float:
+    """Distance (mm) from ``point`` to the line through ``origin`` along the unit ``axis``."""
+    d = point - origin
+    return float(np.linalg.norm(d - (d @ axis) * axis))
+
+
 class TruthMeter:
     """Simulation only, an observer of the controller's snapshots (never used for control): after
     each tick in COMPENSATE or LOCK, the real guide's error against the real moving path
     (``truth_error``), from the simulator's truth and the arm's pose the snapshot read when it was
-    built (``ControllerSnapshot.robot_now``, at ``t_ns``). Its lists feed the run summary."""
+    built (``ControllerSnapshot.robot_now``, at ``t_ns``): :class:`TruthSample`. After every
+    tick, the true body's rigid-fit residual (how far it is from rigid) and the FRE of the
+    measured rigid change (what the controller could see of it). Its lists feed the run summary."""
 
     def __init__(self, truth: GroundTruth | None, rig: RigGeometry, session: SessionLog) -> None:
         self.truth, self.rig, self.session = truth, rig, session
         self.comp_errors_mm = samples()
         self.comp_error_age_s = samples()   # time since COMPENSATE was entered, per sample
+        self.comp_target_errors_mm = samples()
         self.lock_errors: list[tuple[float, float]] = []
+        self.lock_samples: list[TruthSample] = []
+        self.rigid_residuals_mm = samples()
+        self.change_fre_mm = samples()      # the measured rigid change's FRE, per registered pair
         self.__name__ = "truth_meter"   # how the observer is named in an observer_failed record
 
     def errors(self, snap: ControllerSnapshot) -> tuple[float, float] | None:
         """(position error mm, direction error deg) of the guide, or None without a plan or a
         robot state."""
+        sample = self.sample(snap)
+        return None if sample is None else (sample.position_mm, sample.direction_deg)
+
+    def sample(self, snap: ControllerSnapshot) -> TruthSample | None:
+        """The guide against the true body at the snapshot, or None without a plan or a robot
+        state."""
         state, standoff_mm = snap.robot_now, snap.standoff_mm
         if self.truth is None or state is None or standoff_mm is None:
             return None
@@ -132,21 +188,36 @@ class TruthMeter:
         u = (target - entry) / np.linalg.norm(target - entry)
         ideal = entry - standoff_mm * u
         pos = float(np.linalg.norm(T_guide.t - ideal))
-        cosang = float(np.clip(T_guide.R[:, 2] @ u, -1.0, 1.0))
-        return pos, math.degrees(math.acos(cosang))
+        axis = T_guide.R[:, 2]
+        cosang = float(np.clip(axis @ u, -1.0, 1.0))
+        return TruthSample(position_mm=pos, direction_deg=math.degrees(math.acos(cosang)),
+                           target_mm=line_distance_mm(T_guide.t, axis, target),
+                           entry_mm=line_distance_mm(T_guide.t, axis, entry))
 
     def __call__(self, snap: ControllerSnapshot) -> None:
         """Observe one snapshot (the controller's thread, after the tick)."""
+        if self.truth is None:
+            return
+        residual = float(self.truth.body_rigid_residual_mm(snap.t_ns))
+        self.rigid_residuals_mm.append(residual)
+        if snap.reference_optical_mm is not None and snap.live_mm is not None:
+            change = rigid_change(snap.reference_optical_mm, snap.live_mm)
+            if change is not None:
+                self.change_fre_mm.append(change.fre_rms_mm)
         state = State(snap.state)
         if state not in (State.COMPENSATE, State.LOCK):
             return
-        errs = self.errors(snap)
-        if errs is None:
+        sample = self.sample(snap)
+        if sample is None:
             return
         if state is State.COMPENSATE:
             entered_s = snap.timeline[-1].t_s if snap.timeline else 0.0
-            self.comp_errors_mm.append(errs[0])
+            self.comp_errors_mm.append(sample.position_mm)
             self.comp_error_age_s.append(snap.t_s - entered_s)
+            self.comp_target_errors_mm.append(sample.target_mm)
         else:
-            self.lock_errors.append(errs)
-        self.session.write(ev.TRUTH_ERROR, state=state, position_mm=errs[0], direction_deg=errs[1])
+            self.lock_errors.append((sample.position_mm, sample.direction_deg))
+            self.lock_samples.append(sample)
+        self.session.write(ev.TRUTH_ERROR, state=state, position_mm=sample.position_mm,
+                           direction_deg=sample.direction_deg, target_mm=sample.target_mm,
+                           entry_axis_mm=sample.entry_mm, body_rigid_residual_mm=residual)

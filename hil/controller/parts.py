@@ -459,6 +459,23 @@ class ControllerParts(abc.ABC):
             commands_refused=self.safety.commands_refused, faults=list(self.faults),
             session_log=str(self.session.path), comp_errors_mm=list(comp),
             comp_error_age_s=list(tm.comp_error_age_s), needle_direction_error_deg=self.needle.summary_deg(),
-            tracked_needle=self.roles.tracked_needle,
+            tracked_needle=self.roles.tracked_needle, **_body_truth(tm),
         )
 
+
+
+def _body_truth(tm: TruthMeter) -> dict[str, Any]:
+    """The summary's deformable-body truth fields (docs/run.md) from the truth meter."""
+    lock = tm.lock_samples
+    targets = [x.target_mm for x in lock]
+    res = tm.rigid_residuals_mm
+    return {
+        "target_error_mm": targets[0] if targets else None,
+        "target_error_max_mm": max(targets) if targets else None,
+        "entry_axis_error_mm": lock[0].entry_mm if lock else None,
+        "body_rigid_residual_mm_p95": percentile(res, 95),
+        "body_rigid_residual_mm_max": max(res) if res else None,
+        "comp_target_error_p95_mm": percentile(tm.comp_target_errors_mm, 95),
+        "change_fre_mm": {"p50": percentile(tm.change_fre_mm, 50), "p95": percentile(tm.change_fre_mm, 95)},
+        "lock_target_errors_mm": targets,
+    }

@@ -35,6 +35,11 @@ class GroundTruth(Protocol):
         """True target point (optical frame, mm) at ``t_ns``."""
         ...
 
+    def body_rigid_residual_mm(self, t_ns: int) -> float:
+        """How far the true skin markers are from rigid at ``t_ns``: the RMS residual of a rigid
+        fit of the CT's markers onto them, mm (0 for a rigid body)."""
+        ...
+
     def T_optical_from_flange(self, t_ns: int) -> RigidTransform | None:
         """The true flange pose at ``t_ns`` (optical frame; a simulator with a real rig's errors
         knows the real arm, not only its late, imprecise report), or None when it has no arm."""

@@ -26,8 +26,8 @@ def _write(tmp_path: Path, text: str) -> Path:
 
 def test_the_shipped_configs_are_the_expected_ones() -> None:
     assert [p.name for p in SHIPPED] == [
-        "sim.toml", "sim_faults.toml", "sim_needle.toml", "sim_needle_collinear.toml", "sim_realistic.toml",
-        "sim_ursim.toml",
+        "sim.toml", "sim_faults.toml", "sim_needle.toml", "sim_needle_collinear.toml", "sim_patient.toml",
+        "sim_realistic.toml", "sim_ursim.toml",
         "ur3_aravis_aurora.toml", "ur3_aravis_fob.toml", "ur3_v4l2.toml"]
 
 
@@ -49,6 +49,19 @@ def test_sim_config_is_complete(registry: DriverRegistry) -> None:
     assert setup.config_dir == CONFIGS
 
 
+def test_sim_patient_is_the_realistic_rig_with_a_deformable_body(registry: DriverRegistry) -> None:
+    patient = load_setup(CONFIGS / "sim_patient.toml", registry)
+    realistic = load_setup(CONFIGS / "sim_realistic.toml", registry)
+    assert patient.simulation.body.model == "deformable"
+    assert patient.simulation.body.trace.path is None
+    assert patient.simulation.rig_errors == realistic.simulation.rig_errors
+    assert patient.simulation.patient == realistic.simulation.patient
+    assert patient.simulation.breathing == realistic.simulation.breathing
+    assert (patient.camera, patient.robot, patient.procedure) == (realistic.camera, realistic.robot,
+                                                                  realistic.procedure)
+    assert realistic.simulation.body.model == "rigid"
+
+
 def test_sim_faults_has_one_fault_of_each_kind(registry: DriverRegistry) -> None:
     setup = load_setup(CONFIGS / "sim_faults.toml", registry)
     assert sorted(f.kind for f in setup.faults) == sorted(FaultKind)
@@ -61,7 +74,7 @@ def test_default_setup_is_the_embedded_sim_toml(monkeypatch: pytest.MonkeyPatch)
     assert default_setup_path() == Path("/x/y.toml")
 
 
-@pytest.mark.parametrize("name", ["sim", "sim_faults", "sim_realistic"])
+@pytest.mark.parametrize("name", ["sim", "sim_faults", "sim_realistic", "sim_patient"])
 def test_bundled_plan_matches_the_simulated_phantom(name: str, registry: DriverRegistry) -> None:
     """configs/plans/<setup>_plan.json is the CT plan of that setup's simulated phantom."""
     from drivers.sim.world import phantom_from_config
