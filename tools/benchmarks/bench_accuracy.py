@@ -1,7 +1,7 @@
 """Accuracy of the whole simulated procedure over many seeds.
 
 Run: ``tools/bench accuracy [--json] [--runs N] [--first-seed S] [--follow-s S] [--config FILE]
-[--no-rig-calibration]``
+[--no-rig-calibration] [--trace FILE [--trace-format F]]``
 
 Each run is ``hil run`` on the simulator (configs/sim.toml by default) with seed-001-like camera
 noise (the sim camera's defaults: 1394 px, 120 mm baseline, 2 grey levels of sensor noise, blur),
@@ -9,7 +9,13 @@ breathing of 10 mm amplitude and 4 s period, and micro-motion (tremor). The real
 registration, gate, compensation and safety layer run in the loop; errors are measured against the
 simulator's truth. Prints guide position error at lock (mean, RMS, max), direction error,
 compensation error, gate open fraction and time to lock. Targets: <= 0.5 mm RMS at lock, <= 1 mm
-p95 while compensating.
+p95 while compensating. Beside them, against the simulator's truth: the target error (the guide
+axis line's closest distance to the true internal target at lock, and over the hold), the axis's
+distance to the true entry, the true skin markers' rigid-fit residual (how far the body is from
+rigid: 0 for the rigid phantom) and the measured rigid change's FRE over the run.
+
+``--trace FILE`` drives the simulated patient by a recorded trace (any format of docs/traces.md;
+the body becomes deformable), e.g. on ``configs/sim_patient.toml``.
 
 Two compensation figures: the normal procedure compensates during the requested breath-hold
 (micro-motion only); a second run per seed (``--follow-s``, default 12 s) opens the gate at once
@@ -39,8 +45,10 @@ import numpy as np
 from hil.cli.cmd_run import run_procedure
 from hil.config import SetupConfig, build_devices, default_setup_path, load_setup
 from hil.config.build import clock_for
+from hil.config.overrides import TRACE_FORMATS, with_trace
 from hil.config.simulation import RigErrorsConfig
 from hil.controller.plan_file import ProcedurePlan, load_plan
+from hil.errors import HilError
 from hil.log import configure_logging
 from hil.rigcal.collect import auto_confirm
 from hil.rigcal.runner import run_rig_calibration
@@ -48,6 +56,10 @@ from hil.rigcal.runner import run_rig_calibration
 
 def _rms(xs: list[float]) -> float | None:
     return float(np.sqrt(np.mean(np.square(xs)))) if xs else None
+
+
+def _p95(xs: list[float]) -> float | None:
+    return float(np.percentile(xs, 95)) if xs else None
 
 
 def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Path,
@@ -84,6 +96,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
     runs: list[dict[str, Any]] = []
     comp_all: list[float] = []
     follow_all: list[float] = []
+    hold_targets: list[float] = []
     rig_errors: list[dict[str, Any]] = []
     for k in range(args.runs):
         seed = args.first_seed + k
@@ -98,13 +111,18 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
             setup = setup.model_copy(update={"calibration": cal})
         s = run_procedure(cfg_path, setup, plan, auto=True, session_dir=tmp)
         comp_all += s.comp_errors_mm
+        hold_targets += s.lock_target_errors_mm
         if args.follow_s > 0:
             follow_all += _follow_run(cfg_path, setup, plan, tmp, args.follow_s)
         runs.append({"seed": seed, "final_state": s.final_state, "lock_error_mm": s.lock_error_mm,
                      "lock_direction_error_deg": s.lock_direction_error_deg,
                      "comp_error_p95_mm": s.comp_error_p95_mm, "gate_open_fraction": s.gate_open_fraction,
                      "time_to_lock_s": s.time_to_lock_s, "fre_mm": s.fre_mm,
-                     "latency_ms_p95": s.latency_ms["p95"]})
+                     "latency_ms_p95": s.latency_ms["p95"], "target_error_mm": s.target_error_mm,
+                     "target_error_max_mm": s.target_error_max_mm,
+                     "entry_axis_error_mm": s.entry_axis_error_mm,
+                     "body_rigid_residual_mm_p95": s.body_rigid_residual_mm_p95,
+                     "change_fre_mm_p95": s.change_fre_mm["p95"]})
         if not args.json:
             print(f"{'calibrated' if calibrate else 'as given'} seed {seed}: {s.final_state}, "
                   f"lock {s.lock_error_mm}, dir {s.lock_direction_error_deg}", file=sys.stderr)
@@ -114,6 +132,11 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
     dirs = [float(r["lock_direction_error_deg"]) for r in locked]
     ttl = [float(r["time_to_lock_s"]) for r in runs if r["time_to_lock_s"] is not None]
     gates = [float(r["gate_open_fraction"]) for r in runs if r["gate_open_fraction"] is not None]
+    targets = [float(r["target_error_mm"]) for r in locked if r["target_error_mm"] is not None]
+    entries = [float(r["entry_axis_error_mm"]) for r in locked if r["entry_axis_error_mm"] is not None]
+    residuals = [float(r["body_rigid_residual_mm_p95"]) for r in runs
+                 if r["body_rigid_residual_mm_p95"] is not None]
+    fres = [float(r["change_fre_mm_p95"]) for r in runs if r["change_fre_mm_p95"] is not None]
     out: dict[str, Any] = {
         "runs": len(runs),
         "runs_done": sum(r["final_state"] == "done" for r in runs),
@@ -125,6 +148,13 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
         "comp_err_mm_rms_following": _rms(follow_all),
         "comp_err_mm_rms_hold": _rms(comp_all),
         "comp_err_mm_p95_hold": float(np.percentile(comp_all, 95)) if comp_all else None,
+        "target_err_mm_rms": _rms(targets),
+        "target_err_mm_p95": _p95(targets),
+        "target_err_mm_max": max(targets) if targets else None,
+        "target_err_hold_mm_p95": _p95(hold_targets),
+        "entry_axis_err_mm_rms": _rms(entries),
+        "body_rigid_residual_mm_p95": _p95(residuals),
+        "change_fre_mm_p95": _p95(fres),
         "gate_open_fraction_mean": statistics.fmean(gates) if gates else None,
         "time_to_lock_s_median": statistics.median(ttl) if ttl else None,
         "per_run": runs,
@@ -149,6 +179,12 @@ def _print(cols: dict[str, dict[str, Any]]) -> None:
             ("comp. following p95", lambda o: f(o["comp_err_mm_p95"], "mm")),
             ("comp. following RMS", lambda o: f(o["comp_err_mm_rms_following"], "mm")),
             ("comp. breath-hold p95", lambda o: f(o["comp_err_mm_p95_hold"], "mm")),
+            ("target error RMS", lambda o: f(o["target_err_mm_rms"], "mm")),
+            ("target error p95", lambda o: f(o["target_err_mm_p95"], "mm")),
+            ("target over hold p95", lambda o: f(o["target_err_hold_mm_p95"], "mm")),
+            ("axis to entry RMS", lambda o: f(o["entry_axis_err_mm_rms"], "mm")),
+            ("body residual p95", lambda o: f(o["body_rigid_residual_mm_p95"], "mm")),
+            ("change FRE p95", lambda o: f(o["change_fre_mm_p95"], "mm")),
             ("gate open fraction", lambda o: f(o["gate_open_fraction_mean"], "")),
             ("time to lock median", lambda o: f(o["time_to_lock_s_median"], "s"))]
     names = list(cols)
@@ -172,13 +208,24 @@ def main(argv: list[str] | None = None) -> int:
                     help="per seed, also follow free breathing for this long (0: skip)")
     ap.add_argument("--no-rig-calibration", action="store_true",
                     help="with [simulation.rig_errors] set: skip the calibrated-rig column")
+    ap.add_argument("--trace", metavar="FILE",
+                    help="drive the simulated patient by this recorded trace (docs/traces.md; the body "
+                         "becomes deformable)")
+    ap.add_argument("--trace-format", default="auto", choices=TRACE_FORMATS,
+                    help="the trace's format (default: told from the file)")
     ap.add_argument("--json", action="store_true", help="one JSON object on stdout")
     args = ap.parse_args(argv)
     if args.runs < 1:
         ap.error("--runs must be >= 1")
     configure_logging(level="error")
     cfg_path = Path(args.config) if args.config else default_setup_path()
-    base = load_setup(cfg_path)
+    try:
+        base = load_setup(cfg_path)
+        if args.trace:
+            base = with_trace(base, args.trace, args.trace_format)
+    except HilError as exc:
+        print(f"tools/bench accuracy: error: {exc}", file=sys.stderr)
+        return 2
     bundled = cfg_path.resolve().parent / "plans" / f"{cfg_path.stem}_plan.json"
     plan_path = Path(args.plan) if args.plan else bundled
     plan = load_plan(plan_path)
@@ -189,6 +236,8 @@ def main(argv: list[str] | None = None) -> int:
         if side_by_side:
             out["calibrated"] = _bench(cfg_path, base, plan, args, Path(tmp), calibrate=True)
     out["wall_s"] = round(time.perf_counter() - t0, 1)
+    out["config"] = str(cfg_path)
+    out["trace"] = args.trace
     if args.json:
         print(json.dumps(out))
     else:
