@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -42,6 +42,8 @@ from hil.rigcal.samples import FloatArray, PosePairs, SamplesError, check_motion
 SETUPS = ("eye-to-hand", "eye-in-hand")
 HAND_EYE_METHODS = ("TSAI", "PARK", "HORAUD", "ANDREFF", "DANIILIDIS")
 ROBOT_WORLD_METHODS = ("SHAH", "LI")
+#: rounds of outlier rejection (each drops every pair beyond the threshold, then refits)
+MAX_REJECTION_ROUNDS = 6
 
 
 @dataclass(frozen=True)
@@ -87,7 +89,6 @@ class OfflineResult:
     methods: dict[str, dict[str, Any]]
     start: str
     solve_s: float
-    methods_x: dict[str, FloatArray] = field(default_factory=dict)
 
     @property
     def outliers(self) -> list[str]:
@@ -274,7 +275,7 @@ def solve_offline(pairs: PosePairs, setup: str, path: str, settings: OfflineSett
     X, Z = forms[start]
     active = np.ones(len(fit), dtype=bool)
     cap = int(st.max_outlier_fraction * len(fit))
-    for _ in range(6):
+    for _ in range(MAX_REJECTION_ROUNDS):
         X, Z = refine(X, Z, B[active], C[active], eye_in_hand, sig_mm, sig_deg)
         e_mm, e_deg = _norms(X, Z, B, C, eye_in_hand)
         scores = np.hypot(e_mm / sig_mm, e_deg / sig_deg)
@@ -282,6 +283,9 @@ def solve_offline(pairs: PosePairs, setup: str, path: str, settings: OfflineSett
         if not drop:
             break
         active[drop] = False
+    else:   # the last round dropped pairs: fit once more without them
+        X, Z = refine(X, Z, B[active], C[active], eye_in_hand, sig_mm, sig_deg)
+        e_mm, e_deg = _norms(X, Z, B, C, eye_in_hand)
     solve_s = clock() - t0
     per_pair = [PairError(fit.where[i], float(e_mm[i]), float(e_deg[i]), "used" if active[i] else "outlier")
                 for i in range(len(fit))]
@@ -295,4 +299,4 @@ def solve_offline(pairs: PosePairs, setup: str, path: str, settings: OfflineSett
     methods: dict[str, dict[str, Any]] = {m: difference(fx, X) for m, (fx, _) in forms.items()}
     methods.update({m: {"failed": why} for m, why in failed.items()})
     return OfflineResult(setup, X, Z, len(pairs), tuple(per_pair), _rms(e_mm[active]), _rms(e_deg[active]),
-                         validation, methods, start, solve_s, {m: fx for m, (fx, _) in forms.items()})
+                         validation, methods, start, solve_s)

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from hil.rigcal.sample_readers import detect_format, read_samples
 from hil.rigcal.samples import PosePairs, RecordedStreams, SamplesError, check_motion, transform
@@ -213,3 +215,30 @@ def test_too_little_rotation() -> None:
         check_motion(p, "f.yml")
     assert str(exc.value) == ("f.yml: degenerate motion: the robot rotates at most 0.00 deg between "
                               "two poses (need >= 5 deg)")
+
+
+@settings(max_examples=25)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(5, 12), metres=st.booleans(),
+       layout=st.sampled_from(["quat", "matrix"]))
+def test_csv_round_trip_property(tmp_path_factory: pytest.TempPathFactory, seed: int, n: int, metres: bool,
+                                 layout: str) -> None:
+    """Any poses written in either layout and unit come back in mm (units judged per stream)."""
+    _, _, B, C = synth_pairs(np.random.default_rng(seed), n, eye_in_hand=bool(seed % 2))
+    f = tmp_path_factory.mktemp("csv") / "s.csv"
+    write_csv_pairs(f, B, C, scale=1e-3 if metres else 1.0, layout=layout)
+    got = read_samples(f, "csv", eye_in_hand=False)
+    assert isinstance(got, PosePairs)
+    np.testing.assert_allclose(got.T_base_from_flange, B, atol=1e-9)
+    np.testing.assert_allclose(got.T_camera_from_target, C, atol=1e-9)
+
+
+@given(q=st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(lambda v: np.linalg.norm(v) > 0.1))
+def test_quaternion_scalar_last_property(q: list[float]) -> None:
+    """Our (qx, qy, qz, qw) parser agrees with scipy's scalar-last quaternions."""
+    from scipy.spatial.transform import Rotation
+
+    from hil.rigcal.samples import quaternion_xyzw_to_matrix
+
+    v = np.array(q) / np.linalg.norm(q)
+    np.testing.assert_allclose(quaternion_xyzw_to_matrix(v, "f", "here"), Rotation.from_quat(v).as_matrix(),
+                               atol=1e-12)

@@ -128,3 +128,21 @@ def test_stream_alignment_recovers_a_known_offset(offset_ms: float) -> None:
 def test_inverse_is_the_inverse() -> None:
     T = synth_pairs(np.random.default_rng(9), 3, False)[2]
     np.testing.assert_allclose(inverse(T) @ T, np.broadcast_to(np.eye(4), T.shape), atol=1e-12)
+
+
+def test_stream_alignment_with_the_camera_faster() -> None:
+    """Robot at 20 Hz, camera at 60 Hz whose stamps are 25 ms early: the camera stream is the
+    one interpolated, the offset comes back as -25 ms."""
+    rng = np.random.default_rng(6)
+    X, Z = synth_pairs(rng, 1, False)[:2]
+    t_rob = np.arange(0.0, 30.0, 0.05)
+    t_cam = np.arange(0.004, 30.0, 1 / 60)
+    C = Z @ _trajectory(t_cam) @ X
+    streams = RecordedStreams(
+        PoseStream(t_rob, _trajectory(t_rob), tuple(f"line {i}" for i in range(len(t_rob)))),
+        PoseStream(t_cam - 0.025, C, tuple(f"line {i}" for i in range(len(t_cam)))))
+    a = align_streams(streams, "synthetic")
+    assert a.interpolated == "camera"
+    assert a.time_offset_ms == pytest.approx(-25.0, abs=2.0)
+    r = solve_offline(a.pairs, "eye-to-hand", "synthetic")
+    assert _err(r.X, X)[0] < 1.0
