@@ -107,8 +107,20 @@ def _chordal_mean(T: FloatArray) -> FloatArray:
     return transform(R, T[:, :3, 3].mean(axis=0))
 
 
+class ClosedFormError(ValueError):
+    """A closed form returned something that is not a rigid transform (NaN, a reflection)."""
+
+
 def _cv_pose(R: Any, t: Any) -> FloatArray:
-    return transform(np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).reshape(3))
+    """The 4x4 of an OpenCV result, its rotation projected on SO(3) (:func:`_proper`).
+
+    Raises:
+        ClosedFormError: not a rigid transform.
+    """
+    T = _proper(transform(np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).reshape(3)))
+    if T is None:
+        raise ClosedFormError("its result is not a rotation (data that method cannot solve)")
+    return T
 
 
 def _split(T: FloatArray) -> tuple[list[FloatArray], list[FloatArray]]:
@@ -121,6 +133,7 @@ def closed_form(method: str, B: FloatArray, C: FloatArray,
 
     Raises:
         cv2.error: OpenCV refused the data.
+        ClosedFormError: OpenCV returned NaN or a non-rotation.
     """
     import cv2  # imported lazily, as elsewhere in the core
 
@@ -211,15 +224,25 @@ def _closed_forms(B: FloatArray, C: FloatArray, eye_in_hand: bool
     failed: dict[str, str] = {}
     for m in HAND_EYE_METHODS + ROBOT_WORLD_METHODS:
         try:
-            X, Z = closed_form(m, B, C, eye_in_hand)
+            ok[m] = closed_form(m, B, C, eye_in_hand)
         except cv2.error as exc:
             failed[m] = str(exc).strip().splitlines()[-1]
-            continue
-        if np.all(np.isfinite(X)) and np.all(np.isfinite(Z)):
-            ok[m] = (X, Z)
-        else:
-            failed[m] = "not finite"
+        except ClosedFormError as exc:
+            failed[m] = str(exc)
     return ok, failed
+
+
+def _proper(T: FloatArray) -> FloatArray | None:
+    """``T`` with its rotation projected on SO(3) (SVD) when it is within 0.01 of a rotation
+    (max abs entry of ``R^T R - I``, det > 0) and finite; else None. A closed form fed data it
+    cannot solve may return a reflection or a non-orthonormal matrix."""
+    if not np.all(np.isfinite(T)):
+        return None
+    R = T[:3, :3]
+    if np.max(np.abs(R.T @ R - np.eye(3))) > 0.01 or np.linalg.det(R) <= 0.0:
+        return None
+    u, _, vt = np.linalg.svd(R)
+    return transform(u @ vt, T[:3, 3])
 
 
 def _best_start(forms: dict[str, tuple[FloatArray, FloatArray]], B: FloatArray, C: FloatArray,
