@@ -180,8 +180,10 @@ def make_pairs(T_robot: FloatArray, T_camera: FloatArray, where: tuple[str, ...]
     """Pairs from raw poses in the file's units: counts checked, units converted to mm.
 
     Raises:
-        SamplesError: mismatched counts, units that cannot be told.
+        SamplesError: no pairs, mismatched counts, units that cannot be told.
     """
+    if len(T_robot) == 0 and len(T_camera) == 0:
+        raise SamplesError(path, "no pose pairs in the file")
     if len(T_robot) != len(T_camera):
         raise SamplesError(path, f"mismatched counts: {len(T_robot)} robot poses but {len(T_camera)} "
                                  "camera poses")

@@ -100,10 +100,16 @@ def align_streams(streams: RecordedStreams, path: str, max_offset_ms: float = MA
     """Pose pairs and the time offset from two unsynchronised streams (module doc).
 
     Raises:
-        SamplesError: the offset cannot be estimated (too few samples, no rotation, offset beyond
-            ``+-max_offset_ms``) or no sample of the slower stream can be paired.
+        SamplesError: the streams overlap less than 1 s, the offset cannot be estimated (too few
+            samples, no rotation, offset beyond ``+-max_offset_ms``) or no sample of the slower
+            stream can be paired.
     """
     rob, cam = streams.robot, streams.camera
+    lo, hi = max(rob.t_s[0], cam.t_s[0]), min(rob.t_s[-1], cam.t_s[-1])
+    if hi - lo < 1.0:
+        raise SamplesError(path, f"the streams overlap for {max(hi - lo, 0.0):.2f} s only (robot "
+                                 f"{rob.t_s[0]:.3f}..{rob.t_s[-1]:.3f} s, camera {cam.t_s[0]:.3f}.."
+                                 f"{cam.t_s[-1]:.3f} s; need >= 1 s)")
     robot_faster = len(rob.t_s) / np.ptp(rob.t_s) >= len(cam.t_s) / np.ptp(cam.t_s)
     fast, slow = (rob, cam) if robot_faster else (cam, rob)
     tf, wf = angular_speed(fast)

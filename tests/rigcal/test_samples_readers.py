@@ -242,3 +242,26 @@ def test_quaternion_scalar_last_property(q: list[float]) -> None:
     v = np.array(q) / np.linalg.norm(q)
     np.testing.assert_allclose(quaternion_xyzw_to_matrix(v, "f", "here"), Rotation.from_quat(v).as_matrix(),
                                atol=1e-12)
+
+
+def test_header_only(tmp_path: Path) -> None:
+    f = tmp_path / "s.csv"
+    write_csv_pairs(f, np.zeros((0, 4, 4)), np.zeros((0, 4, 4)))
+    assert _message(f, "csv") == f"{f}: no pose pairs in the file"
+
+
+def test_streams_that_do_not_overlap(tmp_path: Path) -> None:
+    from hil.rigcal.streams import align_streams
+
+    f = tmp_path / "s.csv"
+    cols = "t," + ",".join(f"{s}_{c}" for s in ("robot", "camera")
+                           for c in ("x", "y", "z", "qx", "qy", "qz", "qw"))
+    rows = [cols] + [f"{k},0.4,0,0.3,0,0,0,1,,,,,,," for k in range(3)] \
+        + [f"{k},,,,,,,,0.1,0.2,0.8,0,0,0,1" for k in range(5, 8)]
+    f.write_text("\n".join(rows) + "\n")
+    got = read_samples(f, "csv", eye_in_hand=False)
+    assert isinstance(got, RecordedStreams)
+    with pytest.raises(SamplesError) as exc:
+        align_streams(got, str(f))
+    assert str(exc.value) == (f"{f}: the streams overlap for 0.00 s only (robot 0.000..2.000 s, camera "
+                              "5.000..7.000 s; need >= 1 s)")
