@@ -282,18 +282,23 @@ def solve_offline(pairs: PosePairs, setup: str, path: str, settings: OfflineSett
     """X and Z from recorded pairs (module doc). ``path`` names the file in messages.
 
     Raises:
-        SamplesError: too few pairs, degenerate motion, or no closed form succeeded.
+        SamplesError: too few pairs, degenerate motion (both judged on every pair read), or no
+            closed form succeeded.
+        ValueError: ``setup`` is not one of :data:`SETUPS`.
     """
+    if setup not in SETUPS:
+        raise ValueError(f"setup must be one of {SETUPS}, got {setup!r}")
     st = settings or OfflineSettings()
     eye_in_hand = setup == "eye-in-hand"
     t0 = clock()
+    check_motion(pairs, path)
     fit_idx, held_idx = _select(len(pairs), st)
     fit = pairs.subset(fit_idx)
-    check_motion(fit, path)
     B, C = fit.T_base_from_flange, fit.T_camera_from_target
     forms, failed = _closed_forms(B, C, eye_in_hand)
     if not forms:
-        raise SamplesError(path, f"no closed-form hand-eye method succeeded ({failed})")
+        why = "; ".join(f"{m}: {w}" for m, w in failed.items())
+        raise SamplesError(path, f"no closed-form hand-eye method succeeded ({why})")
     start, sig_mm, sig_deg = _best_start(forms, B, C, eye_in_hand)
     X, Z = forms[start]
     active = np.ones(len(fit), dtype=bool)

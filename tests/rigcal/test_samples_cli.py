@@ -82,3 +82,18 @@ def test_missing_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
 def test_option_mistakes(argv: list[str], err: str, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["rig-calibrate", *argv]) == 2
     assert capsys.readouterr().err == f"hil rig-calibrate: error: {err}\n"
+
+
+def test_fewest_pairs_accepted_and_one_fewer_refused(tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    X, _, B, C = synth_pairs(np.random.default_rng(24), 6, False)
+    f = tmp_path / "six.csv"
+    write_csv_pairs(f, B, C)
+    assert main(["rig-calibrate", "--samples", str(f), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["pairs"] == 6
+    assert s["pairs_used"] == 5       # the 5th is held out
+    assert np.linalg.norm(np.array(s["X"])[:3, 3] - X[:3, 3]) < 1e-6
+    write_csv_pairs(f, B[:5], C[:5])
+    assert main(["rig-calibrate", "--samples", str(f), "--json"]) == 2
+    assert capsys.readouterr().err == f"hil rig-calibrate: error: {f}: too few pairs: 5 (need >= 6)\n"
