@@ -5,6 +5,9 @@ poses) and device time offsets, written as a rig calibration file that ``hil run
 Every move is confirmed by the operator on stdin (``y`` go, anything else aborts) unless
 ``--auto``. Exit code 0 when the file was written; a refusal or failure is one line on stderr,
 exit code 2, the arm stopped and nothing written.
+
+``hil rig-calibrate --samples FILE`` is the offline mode (no devices, no CONFIG): hand-eye from
+recorded pose pairs or streams (:mod:`hil.rigcal.offline_run`).
 """
 
 from __future__ import annotations
@@ -19,7 +22,10 @@ from hil.config import build_devices, load_setup
 from hil.config.build import clock_for
 from hil.errors import InputFileError
 from hil.rigcal.collect import Confirm, auto_confirm
+from hil.rigcal.offline import SETUPS
+from hil.rigcal.offline_run import print_offline_text, run_offline
 from hil.rigcal.runner import run_rig_calibration
+from hil.rigcal.sample_readers import FORMATS
 
 
 def add_parser(sub: Any) -> None:
@@ -29,9 +35,18 @@ def add_parser(sub: Any) -> None:
                     "jointly (per-pose residuals, outlier rejection, held-out validation), then a short "
                     "sinusoidal motion for the camera/robot/tracker time offsets; write the rig calibration "
                     "file (docs/rig-calibration.md) that [calibration] rig points hil run at.")
-    p.add_argument("config", help="setup TOML")
+    p.add_argument("config", nargs="?", help="setup TOML (live mode; not with --samples)")
     p.add_argument("--out", help="rig calibration file to write (default: calibration/<config>_rig.json "
-                                 "next to the config)")
+                                 "next to the config); with --samples, the hand-eye result file "
+                                 "(default: none written)")
+    off = p.add_argument_group("offline, from recorded samples (docs/rig-calibration.md)")
+    off.add_argument("--samples", metavar="FILE", help="solve from recorded pose pairs or streams: no "
+                                                       "devices, no CONFIG")
+    off.add_argument("--setup", choices=SETUPS, help="camera fixed (eye-to-hand) or on the flange "
+                                                     "(eye-in-hand); default eye-in-hand for eth, "
+                                                     "else eye-to-hand")
+    off.add_argument("--format", choices=FORMATS, help="samples format (default: from the file name "
+                                                       "and content)")
     p.add_argument("--auto", action="store_true", help="confirm every move automatically (simulation)")
     part = p.add_mutually_exclusive_group()
     part.add_argument("--temporal", action="store_true",
@@ -83,7 +98,16 @@ def print_text(s: dict[str, Any], out: TextIO) -> None:
         out.write(f"truth: offset    {dev:<8} {e:+.2f} ms from the true offset\n")
 
 
+_LIVE_ONLY = ("auto", "temporal", "no_temporal", "poses", "seed")
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.samples is not None:
+        return run_samples(args)
+    if args.config is None:
+        raise InputFileError("CONFIG", "give a setup TOML (live) or --samples FILE (offline)")
+    if args.setup is not None or args.format is not None:
+        raise InputFileError("--setup/--format", "only with --samples FILE")
     config_path = Path(args.config)
     setup = load_setup(config_path)
     if args.seed is not None:
@@ -107,4 +131,19 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write(json.dumps(outcome.summary, default=str) + "\n")
     else:
         print_text(outcome.summary, sys.stdout)
+    return 0
+
+
+def run_samples(args: argparse.Namespace) -> int:
+    """The offline mode: nothing but the samples file is read, nothing moves."""
+    if args.config is not None:
+        raise InputFileError(args.config, "give either CONFIG (live) or --samples FILE (offline), not both")
+    for name in _LIVE_ONLY:
+        if getattr(args, name) not in (None, False):
+            raise InputFileError("--" + name.replace("_", "-"), "only in the live mode (not with --samples)")
+    s = run_offline(Path(args.samples), args.format, args.setup, Path(args.out) if args.out else None)
+    if args.json:
+        sys.stdout.write(json.dumps(s) + "\n")
+    else:
+        print_offline_text(s, sys.stdout)
     return 0
