@@ -29,10 +29,10 @@ from numpy.typing import NDArray
 
 from drivers.sim.body import BodyPhantom, BreathingSignal, DeformableBody, TargetMotion
 from drivers.sim.motion import PatientMotion, stream_rng
-from drivers.sim.thin_plate import thin_plate_weights
 from hil.config.body import BodyTraceConfig
 from hil.config.simulation import SimulationConfig
 from hil.errors import InputFileError
+from hil.geometry.thin_plate import thin_plate_weights
 from hil.io.traces import Trace, read_trace, resample
 
 FloatArray = NDArray[np.float64]

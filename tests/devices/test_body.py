@@ -11,12 +11,12 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from drivers.sim.body import NORMAL_STEP_MM, SkinField, SmoothField
-from drivers.sim.thin_plate import thin_plate_weights
 from drivers.sim.world import SimWorld
 from hil.clock import ManualClock
 from hil.config.body import BodyConfig, SkinFieldConfig, TargetMotionConfig
 from hil.config.setup import FramesConfig
 from hil.config.simulation import BreathHoldConfig, BreathingConfig, SimulationConfig, TremorConfig
+from hil.geometry.thin_plate import thin_plate_weights
 
 STILL = TremorConfig(amplitude_mm=0.0)
 

@@ -1,6 +1,7 @@
 """Thin-plate spline interpolation over the skin's (x, y) (Bookstein 1989, IEEE TPAMI 11(6)).
 
-Used where recorded skin points drive the deformable body (:mod:`drivers.sim.body_trace`): the
+Used where recorded skin points drive the simulated deformable body, and by the local change
+estimator of COMPENSATE (:mod:`hil.controller.change_estimate`): the
 spline through the recorded displacements is exact at the recorded points, minimises bending
 energy between them and is affine far from them.
 """
