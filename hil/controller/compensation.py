@@ -16,6 +16,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from hil.controller.change_estimate import ChangeFit
 from hil.controller.config import CompensationConfig
 from hil.errors import GeometryError
 from hil.geometry import native
@@ -23,7 +24,8 @@ from hil.geometry.registration import Registration, register_horn
 from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 from hil.servo.limiter import RateLimiter
 
-__all__ = ["MotionFilter", "RateLimiter", "correction_out_of_bounds", "interpolate_pose", "rigid_change"]
+__all__ = ["MotionFilter", "RateLimiter", "change_out_of_bounds", "correction_out_of_bounds",
+           "deformation_out_of_bounds", "interpolate_pose", "rigid_change"]
 
 FloatArray = NDArray[np.float64]
 
@@ -46,6 +48,23 @@ def _to_vec(T: RigidTransform) -> FloatArray:
 
 def _from_vec(x: FloatArray) -> RigidTransform:
     return RigidTransform(rotvec_to_matrix(x[3:]), x[:3])
+
+
+def deformation_out_of_bounds(fit: ChangeFit | None, cfg: CompensationConfig) -> str | None:
+    """The deformation monitor: None while the skin markers' rigid-fit residual (the last pair's
+    :attr:`ChangeFit.rigid_fre_mm`) is within ``deformation_bound_mm``, else the reason (the body no
+    longer moves as the model explains: a cough, the patient moving on the table, a marker come
+    off or swapped)."""
+    if fit is None or fit.rigid_fre_mm <= cfg.deformation_bound_mm:
+        return None
+    return (f"the skin markers no longer move as one body: rigid-fit residual {fit.rigid_fre_mm:.1f} mm "
+            f"beyond {cfg.deformation_bound_mm} mm (the change estimate cannot be vouched for)")
+
+
+def change_out_of_bounds(T_change: RigidTransform, fit: ChangeFit | None,
+                         cfg: CompensationConfig) -> str | None:
+    """:func:`correction_out_of_bounds`, then :func:`deformation_out_of_bounds`."""
+    return correction_out_of_bounds(T_change, cfg) or deformation_out_of_bounds(fit, cfg)
 
 
 def correction_out_of_bounds(T_change: RigidTransform, cfg: CompensationConfig) -> str | None:

@@ -122,6 +122,11 @@ class GateConfig(BaseModel):
     model_config = _STRICT
 
     tolerance_mm: float = Field(1.5, gt=0, description="RMS deviation of live markers from the reference")
+    marker_tolerance_mm: float | None = Field(
+        3.0, gt=0, description="and no marker farther than this from its reference (None: not checked)")
+    shape_tolerance_mm: float | None = Field(
+        1.0, gt=0, description="and the shape back: the rigid-fit residual of the live markers against the "
+                               "reference at most this (None: not checked)")
     dwell_s: float = Field(1.0, ge=0, description="the deviation must stay under tolerance this long "
                                                   "(longer than the natural end-exhale pause)")
     timeout_s: float = Field(30.0, gt=0, description="give up waiting (back to waiting, with a message)")
@@ -150,6 +155,16 @@ class CompensationConfig(BaseModel):
     bias_max_speed_mm_s: float = Field(3.0, gt=0, description="update the optical bias only slower than this")
     settle_s: float = Field(0.3, ge=0, description="error must stay under lock tolerance this long")
     timeout_s: float = Field(60.0, gt=0)
+    estimator: Literal["rigid", "weighted", "local-tps"] = Field(
+        "rigid", description="how the change is estimated from the skin markers (docs/compensation.md): "
+                             "rigid (all markers), weighted (markers near the entry), local-tps (the "
+                             "entry's own displacement by a thin-plate spline)")
+    weight_sigma_mm: float = Field(
+        60.0, gt=0, le=1000, description="weighted / local-tps: a marker's weight is exp(-(d/sigma)^2), "
+                                         "d its distance from the entry")
+    deformation_bound_mm: float = Field(
+        4.0, gt=0, description="rigid-fit residual of the skin markers beyond which the body no longer moves "
+                               "as the model explains: pause, ask the operator")
 
 
 class NeedleCheckConfig(BaseModel):

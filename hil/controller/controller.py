@@ -241,7 +241,7 @@ class Controller(ControllerParts):
         if reason is not None:
             self.fault(reason)
             return
-        self.metrics.on_frame(self.est, self.state, self.cfg.gate.tolerance_mm)
+        self.metrics.on_frame(self.est, self.state)
         self.metrics.detect_ms.append((detected_ns - frame.left.t_ns) * 1e-6)
         self._log_frame(frame, st)
         self.fire(Event.FRAME_RECEIVED)

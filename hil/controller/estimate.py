@@ -25,9 +25,10 @@ from numpy.typing import NDArray
 from drivers.interfaces.camera import StereoFrame
 from drivers.interfaces.robot import RobotState
 from drivers.interfaces.tracker import TrackerSample
+from hil.controller.change_estimate import ChangeFit
 from hil.controller.compensation import MotionFilter, interpolate_pose
 from hil.controller.config import ProcedureConfig
-from hil.controller.gate import BreathHoldGate, rms_deviation_mm
+from hil.controller.gate import BreathHoldGate, GateMeasures, gate_measures, rms_deviation_mm
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, RigGeometry
 from hil.controller.registration import PatientRegistration, RobotRegistration
@@ -68,6 +69,9 @@ class Estimate:
         self.T_center = RigidTransform.identity()
         self.gate: BreathHoldGate | None = None
         self.filter = MotionFilter(cfg.compensation.filter_alpha, cfg.compensation.filter_beta)
+        self.comp_cfg, self.gate_cfg = cfg.compensation, cfg.gate
+        #: the last pair's change estimate (estimator, rigid-fit residuals: the deformation monitor)
+        self.change_fit: ChangeFit | None = None
         self.live_mm: FloatArray | None = None      # skin markers, reference order
         self.flange_mm: FloatArray | None = None    # flange markers, layout order
         self.T_change_meas: RigidTransform | None = None
@@ -89,6 +93,7 @@ class Estimate:
         """Entering REGISTER: forget the patient registration, live markers, filter and bias."""
         self.patient_reg = None
         self.live_mm = None
+        self.change_fit = None
         self.filter.reset()
         self.T_bias = RigidTransform.identity()
 
@@ -232,6 +237,18 @@ class Estimate:
             return D0, np.zeros(3), np.zeros(3)
         D1 = self.desired_tcp_robot_local(f.estimate(t1_ns, max_horizon_s))
         return D0, (D1.t - D0.t) / velocity_step_s, (D1 @ D0.inverse()).as_rotvec() / velocity_step_s
+
+    def gate_measures(self) -> GateMeasures:
+        """How far the live skin markers are from the reference state (RMS, worst marker, shape);
+        all inf before registration or without live markers."""
+        if self.patient_reg is None:
+            return gate_measures(np.zeros((0, 3)), None)
+        return gate_measures(self.patient_reg.reference_optical_mm, self.live_mm)
+
+    def gate_problem(self) -> str | None:
+        """Why the body is not back in the registered state by ``[procedure.gate]`` (None: it is;
+        the gate's checks without its dwell)."""
+        return self.gate_measures().problem(self.gate_cfg)
 
     def gate_deviation_mm(self) -> float:
         """RMS deviation of the live skin markers from the reference (mm); inf before

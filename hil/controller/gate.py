@@ -1,9 +1,12 @@
 """GATE: the hold-breath gate (seed 003 section 3, clinical step 4).
 
 A reference marker state is recorded at registration (the patient holding breath). The gate
-opens when the RMS deviation of the live markers from that reference stays under
-``tolerance_mm`` for ``dwell_s``; any sample over tolerance (or without enough markers) restarts
-the dwell. ``timeout_s`` after :meth:`BreathHoldGate.restart` without opening, the gate reports a
+opens when the body is back in that state for ``dwell_s``: the RMS deviation of the live markers
+from the reference under ``tolerance_mm``, no marker farther than ``marker_tolerance_mm`` from its
+reference, and the shape back (the RMS residual of a rigid fit of the reference onto the live
+markers under ``shape_tolerance_mm``: a body that deforms can bring the markers back on average
+but not each of them). Any sample that fails a check (or without enough markers) restarts the
+dwell. ``timeout_s`` after :meth:`BreathHoldGate.restart` without opening, the gate reports a
 time-out (the controller goes back to waiting and says so). Like bluesky's suspenders the gate
 gives a human-readable justification of its state.
 """
@@ -17,6 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hil.controller.config import GateConfig
+from hil.errors import GeometryError
+from hil.geometry.registration import register_horn
 
 FloatArray = NDArray[np.float64]
 
@@ -36,6 +41,53 @@ def rms_deviation_mm(reference_mm: FloatArray, live_mm: FloatArray) -> tuple[flo
 
 
 @dataclass(frozen=True)
+class GateMeasures:
+    """How far the live markers are from the reference state: ``rms_mm`` (inf without markers),
+    ``markers`` used, the largest single-marker distance ``max_marker_mm``, and the ``shape_mm``
+    (RMS residual of the rigid fit reference -> live; inf with fewer than 3 markers), mm."""
+
+    rms_mm: float
+    markers: int
+    max_marker_mm: float
+    shape_mm: float
+
+    def problem(self, cfg: GateConfig) -> str | None:
+        """Why the body is not back in the reference state by ``cfg``'s tolerances (None: it is)."""
+        if self.markers < MIN_GATE_MARKERS:
+            return f"only {self.markers} reference markers seen (need {MIN_GATE_MARKERS})"
+        if self.rms_mm > cfg.tolerance_mm:
+            return (f"markers {self.rms_mm:.2f} mm RMS from the reference state "
+                    f"(tolerance {cfg.tolerance_mm} mm)")
+        if cfg.marker_tolerance_mm is not None and self.max_marker_mm > cfg.marker_tolerance_mm:
+            return (f"a marker {self.max_marker_mm:.2f} mm from its reference "
+                    f"(tolerance {cfg.marker_tolerance_mm} mm)")
+        if cfg.shape_tolerance_mm is not None and self.shape_mm > cfg.shape_tolerance_mm:
+            return (f"the body's shape {self.shape_mm:.2f} mm from the reference after removing a rigid "
+                    f"motion (tolerance {cfg.shape_tolerance_mm} mm)")
+        return None
+
+
+def gate_measures(reference_mm: FloatArray, live_mm: FloatArray | None) -> GateMeasures:
+    """:class:`GateMeasures` of the rows where both sets are finite (a missing live marker is a
+    NaN row)."""
+    if live_mm is None:
+        return GateMeasures(math.inf, 0, math.inf, math.inf)
+    live = np.asarray(live_mm, dtype=np.float64)
+    ok = np.all(np.isfinite(reference_mm), axis=1) & np.all(np.isfinite(live), axis=1)
+    n = int(ok.sum())
+    if n == 0:
+        return GateMeasures(math.inf, 0, math.inf, math.inf)
+    d = np.linalg.norm(live[ok] - reference_mm[ok], axis=1)
+    shape = math.inf
+    if n >= MIN_GATE_MARKERS:
+        try:
+            shape = float(register_horn(live[ok], reference_mm[ok]).fre_rms_mm)
+        except GeometryError:
+            shape = math.inf
+    return GateMeasures(float(np.sqrt(np.mean(d * d))), n, float(d.max()), shape)
+
+
+@dataclass(frozen=True)
 class GateStatus:
     """One gate update: ``open``; the current ``deviation_rms_mm`` (inf without markers);
     ``dwell_s`` under tolerance so far; ``timed_out`` (only reported once per wait)."""
@@ -46,6 +98,8 @@ class GateStatus:
     dwell_s: float
     timed_out: bool
     justification: str
+    max_marker_mm: float = math.inf
+    shape_mm: float = math.inf
 
 
 class BreathHoldGate:
@@ -73,11 +127,10 @@ class BreathHoldGate:
         """Feed one sample taken at ``t_ns`` (None: no markers seen)."""
         if self._wait_start_ns is None:
             self.restart(t_ns)
-        if live_mm is None:
-            rms, n = math.inf, 0
-        else:
-            rms, n = rms_deviation_mm(self.reference_mm, np.asarray(live_mm, dtype=np.float64))
-        under = n >= MIN_GATE_MARKERS and rms <= self.cfg.tolerance_mm
+        m = gate_measures(self.reference_mm, live_mm)
+        rms, n = m.rms_mm, m.markers
+        problem = m.problem(self.cfg)
+        under = problem is None
         if under:
             if self._since_ns is None:
                 self._since_ns = t_ns
@@ -92,11 +145,8 @@ class BreathHoldGate:
         if not is_open and waited > self.cfg.timeout_s and not self._timed_out_reported:
             timed_out = True
             self._timed_out_reported = True
-        if n < MIN_GATE_MARKERS:
-            why = f"closed: only {n} reference markers seen (need {MIN_GATE_MARKERS})"
-        elif not under:
-            why = (f"closed: markers {rms:.2f} mm RMS from the reference state "
-                   f"(tolerance {self.cfg.tolerance_mm} mm)")
+        if problem is not None:
+            why = f"closed: {problem}"
         elif not is_open:
             why = f"settling: {rms:.2f} mm RMS for {dwell:.2f} s of {self.cfg.dwell_s} s"
         else:
@@ -104,4 +154,4 @@ class BreathHoldGate:
         if timed_out:
             why = (f"no breath-hold within {self.cfg.timeout_s} s ({why}); waiting again — "
                    f"ask the patient to hold breath")
-        return GateStatus(is_open, rms, n, dwell, timed_out, why)
+        return GateStatus(is_open, rms, n, dwell, timed_out, why, m.max_marker_mm, m.shape_mm)

@@ -3,8 +3,9 @@
 Input: the marker centres the locator triangulated (optical frame, mm, any order). Output, in the
 :class:`~hil.controller.estimate.Estimate`: the skin markers in CT-fiducial order (against the
 registered reference once there is one, else against the plan's fiducial layout) and the flange
-markers in layout order; NaN rows are markers not seen this pair. Once registered, the measured
-rigid change of the patient (optical frame) is computed and fed to the motion filter.
+markers in layout order; NaN rows are markers not seen this pair. Once registered, the patient's
+change (optical frame) is estimated by ``[procedure.compensation] estimator``
+(:mod:`hil.controller.change_estimate`) and fed to the motion filter.
 
 Tracking first (each predicted marker takes the nearest point within ``TRACK_TOLERANCE_MM``); a
 full identification against the layout when fewer than three markers are tracked. The skin and the
@@ -19,7 +20,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from hil.controller.compensation import rigid_change
+from hil.controller.change_estimate import estimate_change
 from hil.controller.estimate import Estimate, count_seen
 from hil.controller.registration import identify, track
 
@@ -65,8 +66,10 @@ class MarkerTracker:
             found = identify(pts, np.nan_to_num(ref), tol)
             live = found if found is not None else live
         est.live_mm = live
-        reg = rigid_change(ref, live)
-        est.T_change_meas = None if reg is None else reg.T_fixed_from_moving
+        c = est.comp_cfg
+        fit = estimate_change(ref, live, est.T_center.t, c.estimator, c.weight_sigma_mm)
+        est.change_fit = fit
+        est.T_change_meas = None if fit is None else fit.T_live_from_ref
         if reference_hook is not None:
             reference_hook()
         if est.T_change_meas is not None:

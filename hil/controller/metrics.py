@@ -76,6 +76,10 @@ class RunSummary:
     #: the measured rigid change's FRE (live skin markers against the registered reference) over
     #: the run after registration: p50 and p95, mm
     change_fre_mm: dict[str, float | None] = field(default_factory=lambda: {"p50": None, "p95": None})
+    #: simulation only: the share of COMPENSATE / LOCK ticks with the gate's checks passing during
+    #: which the true target was more than 2 mm from the guide axis line, and the open ticks counted
+    gate_false_open_rate: float | None = None
+    gate_open_ticks: int = 0
     comp_errors_mm: list[float] = field(default_factory=list, repr=False)
     comp_error_age_s: list[float] = field(default_factory=list, repr=False)
     lock_target_errors_mm: list[float] = field(default_factory=list, repr=False)
@@ -110,15 +114,20 @@ class RunMetrics:
     frames: int = 0
     frames_overwritten: int = 0   # prefetched pairs replaced before a tick took them (latest wins)
 
-    def on_frame(self, est: Estimate, state: State, gate_tolerance_mm: float) -> None:
-        """After perception: the gate-open fraction counts every registered pair outside REGISTER."""
+    def on_frame(self, est: Estimate, state: State) -> None:
+        """After perception: the gate-open fraction counts every registered pair outside REGISTER
+        (open: the body back in the registered state by every check of ``[procedure.gate]``)."""
         if est.patient_reg is not None and state is not State.REGISTER:
             self.gate_samples += 1
-            self.gate_open_samples += int(est.gate_deviation_mm() <= gate_tolerance_mm)
+            self.gate_open_samples += int(est.gate_problem() is None)
 
     @property
     def gate_open_fraction(self) -> float | None:
         return (self.gate_open_samples / self.gate_samples) if self.gate_samples else None
+
+
+#: a gate open while the true target is farther than this from the guide axis line is a false open
+FALSE_OPEN_MM = 2.0
 
 
 @dataclass(frozen=True)
@@ -163,6 +172,10 @@ class TruthMeter:
         self.lock_samples: list[TruthSample] = []
         self.rigid_residuals_mm = samples()
         self.change_fre_mm = samples()      # the measured rigid change's FRE, per registered pair
+        #: COMPENSATE / LOCK ticks with the gate's checks passing, and those of them with the true
+        #: target more than FALSE_OPEN_MM off the guide axis line (a needle inserted then would miss)
+        self.gate_open_ticks = 0
+        self.gate_false_open_ticks = 0
         self.__name__ = "truth_meter"   # how the observer is named in an observer_failed record
 
     def errors(self, snap: ControllerSnapshot) -> tuple[float, float] | None:
@@ -210,6 +223,9 @@ class TruthMeter:
         sample = self.sample(snap)
         if sample is None:
             return
+        if snap.gate_ok:
+            self.gate_open_ticks += 1
+            self.gate_false_open_ticks += int(sample.target_mm > FALSE_OPEN_MM)
         if state is State.COMPENSATE:
             entered_s = snap.timeline[-1].t_s if snap.timeline else 0.0
             self.comp_errors_mm.append(sample.position_mm)

@@ -408,6 +408,11 @@ class ControllerParts(abc.ABC):
         except DriverError:
             robot_now = None
         preg, rreg = est.patient_reg, est.robot_reg
+        fit = est.change_fit
+        gm = est.gate_measures() if preg is not None else None
+        deviations = None
+        if preg is not None and est.live_mm is not None:
+            deviations = np.linalg.norm(est.live_mm - preg.reference_optical_mm, axis=1)
         return ControllerSnapshot(
             t_ns=self.clock.now_ns(), t_s=self.t_s(), state=state.value, sub_state=self.sub_state,
             pending=None if p is None else p.goto.name, pending_reason="" if p is None else p.reason,
@@ -430,7 +435,13 @@ class ControllerParts(abc.ABC):
             commands_refused=self.safety.commands_refused,
             operator_commands_decided=self.operator_commands_decided, truth_error_mm=truth,
             located=self.pipeline.last_located, robot_now=robot_now,
-            standoff_mm=None if est.guide_plan is None else est.guide_plan.standoff_mm)
+            standoff_mm=None if est.guide_plan is None else est.guide_plan.standoff_mm,
+            change_estimator=None if fit is None else fit.estimator,
+            change_fre_mm=None if fit is None else fit.rigid_fre_mm,
+            marker_residuals_mm=frozen_array(None if fit is None else fit.residuals_mm),
+            marker_deviations_mm=frozen_array(deviations),
+            gate_shape_mm=None if gm is None else _finite(gm.shape_mm),
+            gate_ok=None if gm is None else gm.problem(self.cfg.gate) is None)
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> RunSummary:
@@ -478,4 +489,6 @@ def _body_truth(tm: TruthMeter) -> dict[str, Any]:
         "comp_target_error_p95_mm": percentile(tm.comp_target_errors_mm, 95),
         "change_fre_mm": {"p50": percentile(tm.change_fre_mm, 50), "p95": percentile(tm.change_fre_mm, 95)},
         "lock_target_errors_mm": targets,
+        "gate_false_open_rate": tm.gate_false_open_ticks / tm.gate_open_ticks if tm.gate_open_ticks else None,
+        "gate_open_ticks": tm.gate_open_ticks,
     }

@@ -97,6 +97,18 @@ class ControllerSnapshot:
     #: (``left_px``, ``right_px``; image px) and triangulated (``points_mm``; optical frame), with
     #: the pair's ``frame_seq``; None before the first pair or when locating it failed
     located: LocatedMarkers | None = None
+    #: the deformation monitor: the estimator that produced the change (``[procedure.compensation]
+    #: estimator``, or its fallback), the skin markers' rigid-fit residual (mm) and each marker's
+    #: residual (mm, reference order, NaN: not seen); None before a change was measured
+    change_estimator: str | None = None
+    change_fre_mm: float | None = None
+    marker_residuals_mm: FloatArray | None = None
+    #: per-marker distance from the registered reference state (mm, NaN: not seen), the shape
+    #: residual (the reference's rigid fit onto the live markers, mm) and whether every check of
+    #: ``[procedure.gate]`` passes now (the gate without its dwell); None before registration
+    marker_deviations_mm: FloatArray | None = None
+    gate_shape_mm: float | None = None
+    gate_ok: bool | None = None
 
 
 def guide_in_image(est: Estimate) -> RigidTransform | None:

@@ -47,6 +47,7 @@ from hil.config import SetupConfig, build_devices, default_setup_path, load_setu
 from hil.config.build import clock_for
 from hil.config.overrides import TRACE_FORMATS, with_trace
 from hil.config.simulation import RigErrorsConfig
+from hil.controller.change_estimate import CHANGE_ESTIMATORS
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import HilError
 from hil.log import configure_logging
@@ -56,6 +57,13 @@ from hil.rigcal.runner import run_rig_calibration
 
 def _rms(xs: list[float]) -> float | None:
     return float(np.sqrt(np.mean(np.square(xs)))) if xs else None
+
+
+def _false_open(runs: list[dict[str, Any]]) -> float | None:
+    """The gate's false-open rate over every run's open ticks (each run weighs by its ticks)."""
+    ticks = sum(int(r["gate_open_ticks"]) for r in runs)
+    false = sum(round(float(r["gate_false_open_rate"] or 0.0) * int(r["gate_open_ticks"])) for r in runs)
+    return false / ticks if ticks else None
 
 
 def _p95(xs: list[float]) -> float | None:
@@ -122,7 +130,8 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
                      "target_error_max_mm": s.target_error_max_mm,
                      "entry_axis_error_mm": s.entry_axis_error_mm,
                      "body_rigid_residual_mm_p95": s.body_rigid_residual_mm_p95,
-                     "change_fre_mm_p95": s.change_fre_mm["p95"]})
+                     "change_fre_mm_p95": s.change_fre_mm["p95"],
+                     "gate_false_open_rate": s.gate_false_open_rate, "gate_open_ticks": s.gate_open_ticks})
         if not args.json:
             print(f"{'calibrated' if calibrate else 'as given'} seed {seed}: {s.final_state}, "
                   f"lock {s.lock_error_mm}, dir {s.lock_direction_error_deg}", file=sys.stderr)
@@ -155,6 +164,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
         "entry_axis_err_mm_rms": _rms(entries),
         "body_rigid_residual_mm_p95": _p95(residuals),
         "change_fre_mm_p95": _p95(fres),
+        "gate_false_open_rate": _false_open(runs),
         "gate_open_fraction_mean": statistics.fmean(gates) if gates else None,
         "time_to_lock_s_median": statistics.median(ttl) if ttl else None,
         "per_run": runs,
@@ -185,6 +195,7 @@ def _print(cols: dict[str, dict[str, Any]]) -> None:
             ("axis to entry RMS", lambda o: f(o["entry_axis_err_mm_rms"], "mm")),
             ("body residual p95", lambda o: f(o["body_rigid_residual_mm_p95"], "mm")),
             ("change FRE p95", lambda o: f(o["change_fre_mm_p95"], "mm")),
+            ("gate false-open rate", lambda o: f(o["gate_false_open_rate"], "")),
             ("gate open fraction", lambda o: f(o["gate_open_fraction_mean"], "")),
             ("time to lock median", lambda o: f(o["time_to_lock_s_median"], "s"))]
     names = list(cols)
@@ -213,6 +224,8 @@ def main(argv: list[str] | None = None) -> int:
                          "becomes deformable)")
     ap.add_argument("--trace-format", default="auto", choices=TRACE_FORMATS,
                     help="the trace's format (default: told from the file)")
+    ap.add_argument("--estimator", choices=CHANGE_ESTIMATORS,
+                    help="override [procedure.compensation] estimator for this run (docs/compensation.md)")
     ap.add_argument("--json", action="store_true", help="one JSON object on stdout")
     args = ap.parse_args(argv)
     if args.runs < 1:
@@ -223,6 +236,10 @@ def main(argv: list[str] | None = None) -> int:
         base = load_setup(cfg_path)
         if args.trace:
             base = with_trace(base, args.trace, args.trace_format)
+        if args.estimator:
+            comp = base.procedure.compensation.model_copy(update={"estimator": args.estimator})
+            proc = base.procedure.model_copy(update={"compensation": comp})
+            base = base.model_copy(update={"procedure": proc})
     except HilError as exc:
         print(f"tools/bench accuracy: error: {exc}", file=sys.stderr)
         return 2
@@ -238,6 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     out["wall_s"] = round(time.perf_counter() - t0, 1)
     out["config"] = str(cfg_path)
     out["trace"] = args.trace
+    out["estimator"] = base.procedure.compensation.estimator
     if args.json:
         print(json.dumps(out))
     else:

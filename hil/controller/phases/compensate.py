@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 from hil.controller import events as ev
 from hil.controller.commands import Track
-from hil.controller.compensation import correction_out_of_bounds, interpolate_pose
+from hil.controller.compensation import change_out_of_bounds, interpolate_pose
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
 from hil.controller.phases.streaming import stream_until_next_pair
@@ -94,7 +94,7 @@ class CompensatePhase(Phase):
         if self.elapsed_s() > c.timeout_s or est.T_change_meas is None or not est.filter.initialised:
             return
         change = est.filter.estimate()  # about the entry point
-        if correction_out_of_bounds(change, c) is None:
+        if change_out_of_bounds(change, est.change_fit, c) is None:
             self.s.sent = self._send(inputs, change, flange)
 
     def step(self, inputs: TickInputs) -> PhaseResult:
@@ -109,7 +109,7 @@ class CompensatePhase(Phase):
                 s.sub = CompensateSub.WAITING
                 return out  # markers not seen this frame: hold the last command (watchdogs cover staleness)
             change = est.filter.estimate()
-            why = correction_out_of_bounds(change, c)
+            why = change_out_of_bounds(change, est.change_fit, c)
             if why is not None:
                 ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=why, T_change=change)
                 return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, why + "; operator decision needed")
@@ -118,12 +118,15 @@ class CompensatePhase(Phase):
             stream_until_next_pair(ctx, frame, sent.now_ns, sent.t_send_ns, ctx.step_servo)
         err = est.guide_error_optical_mm()
         dev = est.gate_deviation_mm()
+        fit = est.change_fit
         ctx.session.write(ev.COMPENSATION_STEP, exposure_t_ns=frame.left.t_ns,
                           latency_detect_ms=(sent.now_ns - frame.left.t_ns) * 1e-6,
                           latency_command_ms=(sent.t_cmd_ns - frame.left.t_ns) * 1e-6,
                           change_mm=sent.change.translation_norm(), predicted_s=sent.horizon_s,
-                          command_mm=sent.cmd.t, guide_error_mm=err, gate_deviation_mm=dev)
-        if err is not None and err <= ctx.cfg.lock.tolerance_mm and dev <= ctx.cfg.gate.tolerance_mm:
+                          command_mm=sent.cmd.t, guide_error_mm=err, gate_deviation_mm=dev,
+                          estimator=None if fit is None else fit.estimator,
+                          change_fre_mm=None if fit is None else fit.rigid_fre_mm)
+        if err is not None and err <= ctx.cfg.lock.tolerance_mm and est.gate_problem() is None:
             if not ctx.needle.ok_for_lock(est, frame, self.state):
                 s.settle_since_ns = None
                 s.sub = CompensateSub.TRACKING

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 from hil.controller import events as ev
 from hil.controller.commands import Stop
-from hil.controller.compensation import correction_out_of_bounds
+from hil.controller.compensation import change_out_of_bounds
 from hil.controller.fsm import Event, State
 from hil.controller.gate import BreathHoldGate
 from hil.controller.phases.base import Phase, PhaseResult
@@ -41,10 +41,11 @@ class GatePhase(Phase):
         assert est.gate is not None
         status = est.gate.update(est.live_mm, inputs.frame.left.t_ns)
         self.ctx.session.write(ev.GATE_MEASURED, deviation_rms_mm=status.deviation_rms_mm,
-                               markers=status.markers, dwell_s=status.dwell_s, open=status.open)
+                               markers=status.markers, dwell_s=status.dwell_s, open=status.open,
+                               max_marker_mm=status.max_marker_mm, shape_mm=status.shape_mm)
         if est.T_change_meas is not None:
             change = est.local(est.T_change_meas)
-            why = correction_out_of_bounds(change, self.ctx.cfg.compensation)
+            why = change_out_of_bounds(change, est.change_fit, self.ctx.cfg.compensation)
             if why is not None:
                 self.ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=why, T_change=change)
                 return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, why + "; operator decision needed")

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 from hil.controller import events as ev
 from hil.controller.commands import Hold
-from hil.controller.compensation import correction_out_of_bounds
+from hil.controller.compensation import change_out_of_bounds
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
 from hil.controller.phases.streaming import judge_then_stream
@@ -62,7 +62,7 @@ class LockPhase(Phase):
         ctx, lk, s, est = self.ctx, self.ctx.cfg.lock, self.s, self.ctx.est
         out = PhaseResult()
         if est.T_change_meas is not None:
-            why = correction_out_of_bounds(est.local(est.T_change_meas), ctx.cfg.compensation)
+            why = change_out_of_bounds(est.local(est.T_change_meas), est.change_fit, ctx.cfg.compensation)
             if why is not None:
                 return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, why + "; operator decision needed")
         err = est.guide_error_optical_mm()

@@ -1,0 +1,157 @@
+"""The patient's change since registration, from the skin markers, for a body that may deform.
+
+Every estimator returns a rigid ``T_live_from_ref`` (optical frame) that the control law applies
+to the planned path about the entry (:mod:`hil.controller.compensation`): its translation at the
+entry is the entry's estimated displacement, its rotation the direction's change. They differ in
+what they assume of the body (docs/compensation.md):
+
+- ``rigid`` — Horn's fit of all seen markers (seed 000 section 3, eqs 17-21): exact for a rigid
+  body; on a deforming one it averages the motion of markers near and far from the entry.
+- ``weighted`` — Horn's fit with each marker weighted by ``exp(-(d / weight_sigma_mm)^2)``, d
+  its distance from the entry at registration: the rigid motion of the skin around the entry.
+  Assumes the skin moves nearly rigidly within about ``weight_sigma_mm`` of the entry; with few
+  markers near the entry its rotation rests on the far ones.
+- ``local-tps`` — the weighted fit, then the markers' residual displacements interpolated at the
+  entry by a thin-plate spline over the markers' reference plane (Bookstein 1989): the entry's
+  own displacement, exact where a marker sits on it. Assumes the skin's displacement is smooth
+  between markers; needs 4 seen markers not on a line (else it falls back to ``weighted`` and
+  says so), and extrapolates affinely outside their hull.
+
+Whatever the estimator, the unweighted rigid fit's RMS residual (``rigid_fre_mm``) and per-marker
+residuals are reported: the deformation monitor (how far the body is from the rigid copy the
+registration assumed).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hil.errors import GeometryError
+from hil.geometry.registration import Registration, register_horn
+from hil.geometry.thin_plate import thin_plate_weights
+from hil.geometry.transform import RigidTransform
+
+FloatArray = NDArray[np.float64]
+ChangeEstimator = Literal["rigid", "weighted", "local-tps"]
+CHANGE_ESTIMATORS: tuple[str, ...] = ("rigid", "weighted", "local-tps")
+
+#: a marker whose weight is below this share of the largest counts as absent for ``weighted``
+_MIN_WEIGHT_SHARE = 1e-3
+#: ``local-tps`` needs this many seen markers
+TPS_MIN_MARKERS = 4
+
+
+@dataclass(frozen=True)
+class ChangeFit:
+    """One pair's estimated change.
+
+    Attributes:
+        T_live_from_ref: the change (optical frame) the control law follows.
+        estimator: the estimator that produced it (``weighted`` when ``local-tps`` fell back).
+        rigid_fre_mm: RMS residual of the unweighted rigid fit (the deformation monitor), mm.
+        residuals_mm: per marker (reference order; NaN where not seen) distance of the live marker
+            from the rigid fit's prediction, mm.
+        markers: markers used.
+        fallback: why the configured estimator was not used ("" when it was).
+    """
+
+    T_live_from_ref: RigidTransform
+    estimator: str
+    rigid_fre_mm: float
+    residuals_mm: FloatArray
+    markers: int
+    fallback: str = ""
+
+
+def _rigid(ref: FloatArray, live: FloatArray) -> Registration | None:
+    try:
+        return register_horn(live, ref)
+    except GeometryError:
+        return None
+
+
+def entry_weights(ref: FloatArray, entry_mm: FloatArray, sigma_mm: float) -> FloatArray:
+    """``exp(-(d / sigma)^2)`` of each reference marker's distance d from the entry."""
+    d2 = ((ref - entry_mm) ** 2).sum(axis=1)
+    out: FloatArray = np.exp(-d2 / (sigma_mm * sigma_mm))
+    return out
+
+
+def _weighted(ref: FloatArray, live: FloatArray, entry_mm: FloatArray,
+              sigma_mm: float) -> Registration | None:
+    w = entry_weights(ref, entry_mm, sigma_mm)
+    keep = w >= _MIN_WEIGHT_SHARE * float(w.max())
+    if int(keep.sum()) < 3:
+        return None
+    try:
+        return register_horn(live[keep], ref[keep], weights=w[keep])
+    except GeometryError:
+        return None
+
+
+def _plane_coordinates(ref: FloatArray, entry_mm: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The markers and the entry in 2-D coordinates of the markers' best-fit plane."""
+    centre = ref.mean(axis=0)
+    _, _, vt = np.linalg.svd(ref - centre, full_matrices=False)
+    basis = vt[:2].T                                   # (3, 2)
+    return (ref - centre) @ basis, ((entry_mm - centre) @ basis)[None, :]
+
+
+def _local_tps(ref: FloatArray, live: FloatArray, entry_mm: FloatArray,
+               base: RigidTransform) -> RigidTransform:
+    """``base`` moved so the entry lands where the thin-plate spline of the markers' residual
+    displacements (live minus ``base``'s prediction) puts it.
+
+    Raises:
+        ValueError: the markers' places cannot carry a spline (collinear, coincident)."""
+    xy, entry_xy = _plane_coordinates(ref, entry_mm)
+    W = thin_plate_weights(xy, entry_xy)               # (1, n)
+    residual = live - base.apply(ref)
+    delta = (W @ residual)[0]
+    return RigidTransform.from_translation(delta) @ base
+
+
+def estimate_change(reference_mm: FloatArray, live_mm: FloatArray, entry_mm: FloatArray,
+                    estimator: ChangeEstimator, weight_sigma_mm: float) -> ChangeFit | None:
+    """``T_live_from_ref`` from corresponding marker rows (NaN rows = not seen) by ``estimator``
+    (module doc), about the entry at registration ``entry_mm`` (optical frame, mm).
+
+    Returns None with fewer than 3 usable, non-degenerate markers (the change is then unknown:
+    the controller holds). Never raises for marker geometry: a degenerate layout is a None or a
+    fallback named in :attr:`ChangeFit.fallback`.
+    """
+    ok = np.isfinite(reference_mm).all(axis=1) & np.isfinite(live_mm).all(axis=1)
+    n = int(ok.sum())
+    if n < 3:
+        return None
+    ref, live = reference_mm[ok], live_mm[ok]
+    rigid = _rigid(ref, live)
+    if rigid is None:
+        return None
+    residuals = np.full(len(reference_mm), math.nan)
+    residuals[ok] = rigid.residuals_mm
+
+    def fit(T: RigidTransform, name: str, fallback: str = "") -> ChangeFit:
+        return ChangeFit(T, name, float(rigid.fre_rms_mm), residuals, n, fallback)
+
+    if estimator == "rigid":
+        return fit(rigid.T_fixed_from_moving, "rigid")
+    weighted = _weighted(ref, live, entry_mm, weight_sigma_mm)
+    if weighted is None:
+        return fit(rigid.T_fixed_from_moving, "rigid",
+                   "fewer than 3 markers near the entry: the rigid change of all")
+    if estimator == "weighted":
+        return fit(weighted.T_fixed_from_moving, "weighted")
+    if n < TPS_MIN_MARKERS:
+        return fit(weighted.T_fixed_from_moving, "weighted",
+                   f"{n} markers seen: the local spline needs {TPS_MIN_MARKERS}")
+    try:
+        T = _local_tps(ref, live, entry_mm, weighted.T_fixed_from_moving)
+    except ValueError as exc:
+        return fit(weighted.T_fixed_from_moving, "weighted", f"local spline: {exc}")
+    return fit(T, "local-tps")
