@@ -29,7 +29,7 @@ from hil.clock import Clock, MonotonicClock
 from hil.config import Devices, build_devices, load_setup
 from hil.config.faults import FAULT_DEVICE, FaultKind
 from hil.config.setup import SetupConfig
-from hil.controller.fsm import Event
+from hil.controller.fsm import Event, State
 from hil.controller.operator_input import OperatorView
 from hil.controller.plan_file import load_plan
 from hil.errors import HilError
@@ -44,7 +44,7 @@ from .emulators import (
     trackersim_command,
     ursim_command,
 )
-from .operator import CampaignOperator
+from .operator import HALTED, CampaignOperator
 from .pool import Progress, run_parallel
 from .recorder import Recording, RecordingRobot
 from .report import family_of, render_html, summarise, table
@@ -309,18 +309,27 @@ def write_gige_setup(sc: TransportScenario, out: Path, *, seed: int) -> Path:
 
 # ---------------------------------------------------------------------- the operator
 class TransportOperator(CampaignOperator):
+    #: recovery attempts before the fault is sent, and again for the fault
+    MAX_RECOVERIES = 2
+
     """The campaign operator plus a state trigger: ``delay_s`` after the controller first entered
     ``target``, it calls ``inject`` (sends the fault through the emulator) and records the onset on
     ``clock``; at the end of the window it calls ``clear``. Once the target state was entered it
     holds every pending confirmation (``compensate_to_lock``, ``lock_to_done``, ...) until the fault
     is over and the recovery time has come, so the procedure cannot leave the target state early.
+    A halt before the fault is sent (a fault on the way to the target state: the procedure never
+    gets there unless someone recovers it) is recovered as an operator would, once the robot had
+    :data:`RECOVER_SETTLE_S` to stop: resume, or reset and start again when there is no plan to
+    resume (at most ``max_recoveries`` times before the fault; the fault then gets as many again).
     Operator commands are recorded in seconds since ``t0_ns`` (the session log's start), the time
     base :func:`judge` uses."""
 
     def __init__(self, target: str, delay_s: float, duration_s: float, clock: Clock, t0_ns: int,
                  inject: Callable[[], object], clear: Callable[[], object] | None) -> None:
-        super().__init__(recover_after_s=math.inf, max_recoveries=2)
+        super().__init__(recover_after_s=math.inf, max_recoveries=self.MAX_RECOVERIES)
         self.target, self.delay_s, self.duration_s = target, delay_s, duration_s
+        #: controller time the procedure halted before the fault was sent (None: not halted)
+        self._halted_since_s: float | None = None
         self.clock, self.t0_ns = clock, t0_ns
         self._inject, self._clear = inject, clear
         self.entered_s: float | None = None
@@ -337,14 +346,26 @@ class TransportOperator(CampaignOperator):
         self.commands.append((round(self._since_t0(), 4), ev.value))
         return ev
 
+    def _before_the_fault(self, view: OperatorView) -> None:
+        """Before the fault is sent: recovery is due :data:`RECOVER_SETTLE_S` after the procedure
+        halted (never while it is under way)."""
+        if view.state in HALTED or (view.state is State.IDLE and self._started):
+            if self._halted_since_s is None:
+                self._halted_since_s = view.t_s
+            self.recover_after_s = self._halted_since_s + RECOVER_SETTLE_S
+        else:
+            self._halted_since_s, self.recover_after_s = None, math.inf
+
     def poll(self, view: OperatorView) -> Event | None:
         if self.fired_view_s is None:
+            self._before_the_fault(view)
             if self.entered_s is None and view.state.value == self.target:
                 self.entered_s = view.t_s
             if self.entered_s is not None and view.t_s >= self.entered_s + self.delay_s:
                 self.onset_s = self._since_t0()
                 self.fired_view_s = view.t_s
                 self.recover_after_s = view.t_s + self.duration_s + RECOVER_SETTLE_S
+                self.recoveries_left = self.MAX_RECOVERIES
                 try:
                     self._inject()
                 except EmulatorError as exc:

@@ -77,7 +77,8 @@ def add_parser(sub: Any) -> None:
 
 
 def _latency_bound(res: SoakResult) -> str:
-    """Frame -> command beside the bound the camera's own latency and the locate time imply."""
+    """Frame -> command beside the bound the camera's own latency, the locate time and the servo
+    period imply (hil.soak.soak.latency_bound)."""
     from hil.soak.soak import LATENCY_HANDOVER_MS, LATENCY_P99_MARGIN_MS  # imported lazily, as the soak
     cam, bound = res.camera_latency_ms, res.latency_bound_ms
     if not bound:
@@ -88,7 +89,8 @@ def _latency_bound(res: SoakResult) -> str:
         got, lim = f2c.get(k), bound.get(k)
         verdicts.append("n/a" if got is None or lim is None else ("within" if got <= lim else "OVER"))
     return (f"p50 {bound['p50']:.2f} ms (camera p50 {cam['p50']:.2f} + locate p50 "
-            f"{res.locate_ms['p50']:.2f} + {LATENCY_HANDOVER_MS:g}): {verdicts[0]}; "
+            f"{res.locate_ms['p50']:.2f} + period {1e3 / res.rate_hz:g} + {LATENCY_HANDOVER_MS:g}): "
+            f"{verdicts[0]}; "
             f"p99 {bound['p99']:.2f} ms (+ {LATENCY_P99_MARGIN_MS:g}): {verdicts[1]}; "
             f"camera p99 {cam['p99']:.2f} ms")
 

@@ -35,7 +35,7 @@ from hil.config.simulation import (
     TremorConfig,
 )
 from hil.config.types import TransformConfig
-from hil.controller.config import ProcedureConfig
+from hil.controller.config import LockConfig, NeedleCheckConfig, ProcedureConfig
 from hil.log import configure_logging
 from hil.rigcal.config import RigCalibrationConfig, TemporalConfig
 from plugins.registry import DriverRegistry
@@ -120,6 +120,8 @@ def config_reference_markdown(registry: DriverRegistry) -> str:
     parts.append(model_table("[procedure]", ProcedureConfig))
     for name, sub in _nested(ProcedureConfig):
         parts.append(model_table(f"[procedure.{name}]", sub))
+        if sub is LockConfig:  # optional (absent = off), so not found by _nested
+            parts.append(model_table("[procedure.lock.needle_check]", NeedleCheckConfig))
     parts.append(model_table("[rig_calibration]", RigCalibrationConfig))
     parts.append(model_table("[rig_calibration.temporal]", TemporalConfig))
     return "\n".join(parts)

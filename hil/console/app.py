@@ -15,9 +15,10 @@ from rich.text import Text
 from textual.app import App, ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical
-from textual.screen import ModalScreen
-from textual.widgets import Button, DataTable, Footer, Header, Label, Sparkline, Static
+from textual.widgets import Button, DataTable, Footer, Header, Sparkline, Static
 
+from hil.console.confirm import CONFIRM_TEXT, Answer, ConfirmScreen
+from hil.console.keys import COMMANDS, NOT_NOW_KEY, NOT_NOW_LABEL, QUIT_KEY
 from hil.console.panels import (
     banner_text,
     gate_text,
@@ -37,29 +38,7 @@ REFRESH_HZ = 10.0
 #: Operator messages kept on screen (the newest last).
 MESSAGES_SHOWN = 3
 
-#: key -> (operator event, button label). The console posts nothing else.
-COMMANDS: dict[str, tuple[Event, str]] = {
-    "s": (Event.START_REQUESTED, "Start"),
-    "c": (Event.CONFIRM_REQUESTED, "Confirm"),
-    "p": (Event.PAUSE_REQUESTED, "Pause"),
-    "r": (Event.RESUME_REQUESTED, "Resume"),
-    "t": (Event.RETRACT_REQUESTED, "Retract"),
-    "a": (Event.ABORT_REQUESTED, "Abort"),
-    "x": (Event.RESET_REQUESTED, "Reset"),
-}
-
-#: What confirming each transition does, for the prompt.
-CONFIRM_TEXT: dict[str, str] = {
-    "register_to_plan": "Accept the registration and plan the guide pose.",
-    "plan_to_approach": "The robot will MOVE to the stand-off pose above the entry.",
-    "approach_to_gate": "Start waiting for the hold-breath gate.",
-    "gate_to_compensate": "The robot will FOLLOW the patient to the corrected entry.",
-    "compensate_to_lock": "Stop and hold the guide at the corrected entry.",
-    "lock_to_done": "Finish the procedure (the robot stays stopped).",
-    # a recovery re-asking a confirmation that was pending (never given) when the procedure stopped
-    "recover": "The robot will RECOVER and MOVE to the stand-off pose above the entry.",
-    "resume": "The robot will MOVE to the stand-off pose above the entry.",
-}
+__all__ = ["COMMANDS", "CONFIRM_TEXT", "ConfirmScreen", "ConsoleApp", "gate_windows"]
 
 def gate_windows(samples: tuple[float, ...], tolerance_mm: float, width: int) -> Text:
     """A strip under the breathing sparkline: green where the deviation was within the gate
@@ -76,38 +55,6 @@ def gate_windows(samples: tuple[float, ...], tolerance_mm: float, width: int) ->
         ok = max(chunk) <= tolerance_mm
         out.append("▀", style="green" if ok else "red")
     return out
-
-
-class ConfirmScreen(ModalScreen[bool]):
-    """Asks the operator to confirm a pending transition (y / n, or the buttons)."""
-
-    BINDINGS: ClassVar[list[BindingType]] = [Binding("y", "answer(True)", "Yes"),
-                                             Binding("n", "answer(False)", "No")]
-    DEFAULT_CSS = """
-    ConfirmScreen { align: center middle; }
-    #confirm-box { width: 72; height: auto; border: thick $warning; background: $surface; padding: 1 2; }
-    #confirm-box Label { width: 100%; margin-bottom: 1; }
-    #confirm-box Horizontal { height: auto; align: center middle; }
-    """
-
-    def __init__(self, transition: str, reason: str) -> None:
-        super().__init__()
-        self.transition_name = transition
-        self.hint_text = CONFIRM_TEXT.get(transition, "") + (f" ({reason})" if reason else "")
-
-    def compose(self) -> ComposeResult:
-        with Vertical(id="confirm-box"):
-            yield Label(Text(f"Confirm {self.transition_name}?", style="bold"))
-            yield Label(Text(self.hint_text))
-            with Horizontal():
-                yield Button("Yes (y)", id="yes", variant="success")
-                yield Button("No (n)", id="no", variant="error")
-
-    def action_answer(self, yes: bool) -> None:
-        self.dismiss(yes)
-
-    def on_button_pressed(self, event: Button.Pressed) -> None:
-        self.dismiss(event.button.id == "yes")
 
 
 class ConsoleApp(App[dict[str, Any]]):
@@ -132,10 +79,10 @@ class ConsoleApp(App[dict[str, Any]]):
     """
     BINDINGS: ClassVar[list[BindingType]] = [
         *[Binding(k, f"command('{k}')", label) for k, (_e, label) in COMMANDS.items()],
-        # y / n outside a prompt: answer the confirmation shown, or be told there is none
-        Binding("y", "answer(True)", "Yes", show=False),
-        Binding("n", "answer(False)", "No", show=False),
-        Binding("q", "quit_console", "Quit"),
+        # n outside a prompt (after "not now"): decline the confirmation shown again; in the
+        # footer only while a confirmation is on the workflow line
+        Binding(NOT_NOW_KEY, "not_now", NOT_NOW_LABEL),
+        Binding(QUIT_KEY, "quit_console", "Quit"),
     ]
 
     def __init__(self, session: ConsoleSession) -> None:
@@ -171,7 +118,7 @@ class ConsoleApp(App[dict[str, Any]]):
         with Horizontal(id="buttons"):
             for key, (_e, label) in COMMANDS.items():
                 yield Button(f"{label} ({key})", id=f"cmd-{key}")
-            yield Button("Quit (q)", id="cmd-q", variant="error")
+            yield Button(f"Quit ({QUIT_KEY})", id=f"cmd-{QUIT_KEY}", variant="error")
         yield Footer()
 
     def on_mount(self) -> None:
@@ -199,11 +146,18 @@ class ConsoleApp(App[dict[str, Any]]):
         confirms = self._shown_pending() if event is Event.CONFIRM_REQUESTED else None
         self._post(event, origin or f"key {key}", confirms=confirms)
 
-    def action_answer(self, yes: bool) -> None:
-        """y / n with no prompt on screen (pressed before it opened, or after it closed): answer
-        the confirmation shown on the workflow line, if any; the controller decides."""
-        self._post(Event.CONFIRM_REQUESTED, "key y" if yes else "key n", confirms=self._shown_pending(),
-                   decline=not yes)
+    def action_not_now(self) -> None:
+        """n with no prompt on screen (the prompt was answered "not now", or is not open yet):
+        decline the confirmation shown on the workflow line, if any; the controller decides."""
+        self._post(Event.CONFIRM_REQUESTED, f"key {NOT_NOW_KEY}", confirms=self._shown_pending(),
+                   decline=True)
+
+    def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
+        """Textual's binding filter: "not now" is offered (in the footer) only while a
+        confirmation is on the workflow line; every other action always."""
+        if action == "not_now":
+            return bool(self._shown_pending())
+        return True
 
     def _post(self, event: Event, origin: str, *, confirms: str | None = None,
               decline: bool = False) -> None:
@@ -220,18 +174,24 @@ class ConsoleApp(App[dict[str, Any]]):
 
     def on_button_pressed(self, event: Button.Pressed) -> None:
         bid = event.button.id or ""
-        if bid == "cmd-q":
+        if bid == f"cmd-{QUIT_KEY}":
             self.action_quit_console()
         elif bid.startswith("cmd-"):
             self.action_command(bid[4:], origin=f"button {bid[4:]}")
 
-    def _on_confirm(self, transition: str, yes: bool | None) -> None:
-        """The prompt for ``transition`` closed: y / n post the answer naming it; None (closed by
-        the console because the confirmation is no longer pending) posts nothing."""
+    def _on_confirm(self, transition: str, answer: Answer | None) -> None:
+        """The prompt for ``transition`` closed: confirm / not now post the answer naming it,
+        abort posts an abort, quit ends the session; None (closed by the console because the
+        confirmation is no longer pending) posts nothing."""
         self._hil_confirm = None
-        if yes is not None:
-            self._post(Event.CONFIRM_REQUESTED, "prompt yes" if yes else "prompt no",
+        if answer is Answer.CONFIRM or answer is Answer.NOT_NOW:
+            yes = answer is Answer.CONFIRM
+            self._post(Event.CONFIRM_REQUESTED, "prompt confirm" if yes else "prompt not now",
                        confirms=transition, decline=not yes)
+        elif answer is Answer.ABORT:
+            self._post(Event.ABORT_REQUESTED, "prompt abort")
+        elif answer is Answer.QUIT:
+            self.action_quit_console()
 
     def _show_results(self) -> None:
         """Show every verdict that came back (refusals as warnings; accepted ones are visible
@@ -258,7 +218,7 @@ class ConsoleApp(App[dict[str, Any]]):
     @property
     def shown_view(self) -> ConsoleView | None:
         """The controller snapshot on screen now (None before the first): what the operator
-        reads and what y / n / c answer. It lags the runner's latest by up to one refresh."""
+        reads and what c / n answer. It lags the runner's latest by up to one refresh."""
         return self._hil_shown
 
     def refresh_view(self) -> None:
@@ -271,7 +231,10 @@ class ConsoleApp(App[dict[str, Any]]):
         self._show_results()
         self._render_messages()
         if v is not None and v is not self._hil_shown:
+            before = self._hil_shown
             self._hil_shown = v
+            if before is None or before.pending != v.pending:
+                self.refresh_bindings()  # "not now" is offered only while a confirmation waits
             self._render_view(v)
             self._handle_prompt(v)
         if runner.ended and self.summary is None:

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from hil.console.keys import CONFIRM_KEYS_TEXT
 from hil.controller.fsm import State
 
 if TYPE_CHECKING:
@@ -86,7 +87,7 @@ class ConsoleView:
 def hint_for(state: State, pending: str | None, gate_tol_mm: float, gate_dwell_s: float) -> str:
     """What the next step needs, in plain words (with the key that does it)."""
     if pending is not None:
-        return f"waiting for your confirmation of {pending}: press c (confirm) or a (abort)"
+        return f"waiting for your confirmation of {pending}: {CONFIRM_KEYS_TEXT}"
     return {
         State.IDLE: "press s to start: registration needs a still breath-hold with the markers visible",
         State.REGISTER: "registering: keep the patient still (breath-hold requested), markers visible",

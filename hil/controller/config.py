@@ -185,6 +185,10 @@ class NeedleCheckConfig(BaseModel):
     max_offset_mm: float = Field(2.0, gt=0, description="largest accepted axis offset at entry and target")
     required_before_lock: bool = Field(True, description="no LOCK without a passing check")
     alarm_while_locked: bool = Field(True, description="out-of-bounds while locked: alarm + lock.on_drift")
+    alarm_window_readings: int = Field(
+        3, ge=1, le=50, description="the alarm while locked judges the last this many needle-axis "
+                                    "readings: it fires when more than half are out of bounds "
+                                    "(1: on a single reading)")
     method: Literal["cylinder", "collinear"] = Field(
         "cylinder", description="cylinder: contour lines (§III); collinear: bead markers on the tube (§II-A)")
     bead_count: int = Field(3, ge=3, le=10, description="collinear: number of beads on the tube")

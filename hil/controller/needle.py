@@ -7,6 +7,7 @@ Records ``needle_axis_measured`` / ``needle_axis_unavailable`` per measurement a
 
 from __future__ import annotations
 
+import collections
 from collections.abc import Callable
 from typing import Protocol
 
@@ -39,6 +40,39 @@ class NeedleAxisMeasurement(Protocol):
 #: (VisionError, DegenerateConfigurationError) when the needle cannot be measured.
 NeedleAxisChecker = Callable[[StereoFrame, FloatArray, FloatArray, FloatArray, FloatArray],
                              NeedleAxisMeasurement]
+
+
+class NeedleAlarmWindow:
+    """The needle alarm's judgement while locked: over the last ``readings`` needle-axis readings
+    (measured ones only: a frame where the needle is not measured neither counts nor resets), the
+    axis is out of bounds when more than half of them are (a majority vote).
+
+    So a single outlier reading is never an alarm (``readings`` >= 3), and a deviation that stays
+    is one at its :attr:`needed`-th consecutive reading (``readings // 2 + 1``; with readings at
+    the camera's rate f, that many frame periods after the deviation is first read). The window
+    starts empty at each LOCK.
+    """
+
+    def __init__(self, readings: int) -> None:
+        if readings < 1:
+            raise ValueError(f"an alarm window needs at least one reading, got {readings}")
+        self.readings = readings
+        self._out: collections.deque[bool] = collections.deque(maxlen=readings)
+
+    @property
+    def needed(self) -> int:
+        """Out-of-bounds readings in the window that raise the alarm."""
+        return self.readings // 2 + 1
+
+    @property
+    def out_of_bounds(self) -> int:
+        """Out-of-bounds readings among the last :attr:`readings`."""
+        return sum(self._out)
+
+    def add(self, out_of_bounds: bool) -> bool:
+        """Take one reading; True when the window now judges the axis out of bounds."""
+        self._out.append(out_of_bounds)
+        return self.out_of_bounds >= self.needed
 
 
 class NeedleCheck:

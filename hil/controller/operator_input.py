@@ -43,7 +43,7 @@ class OperatorCommand:
     Attributes:
         event: an ``*_REQUESTED`` event (``CONFIRM_REQUESTED`` also for a declined prompt).
         seq: the operator's own sequence number (0 for operators that do not number them).
-        origin: where it came from, for the log (``"key y"``, ``"button"``, ``"auto"``...).
+        origin: where it came from, for the log (``"key c"``, ``"button"``, ``"auto"``...).
         confirms: for ``CONFIRM_REQUESTED``: the transition the operator saw awaiting
             confirmation (``""``: none shown); None: confirm whatever is pending (scripts).
         decline: the operator answered *no* to the prompt for ``confirms``: nothing changes,

@@ -15,6 +15,7 @@ Documented bounds of the short soak (docs/benchmarks.md), counts only, no timing
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -88,16 +89,43 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     assert res.rss_mb_by_minute == [100.0]      # the samples span 40 s: only minute 0
 
 
-def test_the_latency_bound_is_the_cameras_and_the_locators_p50_plus_the_hand_over() -> None:
-    assert latency_bound({"p50": 30.5, "p99": 41.0}, {"p50": 1.5, "p95": 3.0}) == {"p50": 34.0, "p99": 44.0}
-    assert latency_bound({}, {"p50": 1.5}) == {}
-    assert latency_bound({"p50": None, "p99": None}, {"p50": 1.5}) == {}
-    res = SoakResult(500.0, 1.0, frame_to_command_ms={"p50": 33.9, "p99": 45.0, "max": 60.0},
+def test_the_latency_bound_is_camera_plus_locate_plus_one_servo_period_plus_the_hand_over() -> None:
+    """Issue 45: camera p50 + locate p50 + one servo period + 2 ms (p99: + 10 ms): at 500 Hz the
+    period is 2 ms, at 125 Hz 8 ms (the room the robot's own period needs)."""
+    cam, loc = {"p50": 30.5, "p99": 41.0}, {"p50": 1.5, "p95": 3.0}
+    assert latency_bound(cam, loc, 2.0) == {"p50": 36.0, "p99": 46.0}
+    assert latency_bound(cam, loc, 8.0) == {"p50": 42.0, "p99": 52.0}
+    assert latency_bound({}, {"p50": 1.5}, 2.0) == {}
+    assert latency_bound({"p50": None, "p99": None}, {"p50": 1.5}, 2.0) == {}
+    res = SoakResult(500.0, 1.0, frame_to_command_ms={"p50": 35.9, "p99": 47.0, "max": 60.0},
                      camera_latency_ms={"p50": 30.5, "p99": 41.0}, locate_ms={"p50": 1.5, "p95": 3.0},
-                     latency_bound_ms={"p50": 34.0, "p99": 44.0})
-    assert _latency_bound(res) == ("p50 34.00 ms (camera p50 30.50 + locate p50 1.50 + 2): within; "
-                                   "p99 44.00 ms (+ 10): OVER; camera p99 41.00 ms")
+                     latency_bound_ms={"p50": 36.0, "p99": 46.0})
+    assert _latency_bound(res) == ("p50 36.00 ms (camera p50 30.50 + locate p50 1.50 + period 2 + 2): "
+                                   "within; p99 46.00 ms (+ 10): OVER; camera p99 41.00 ms")
+    res = SoakResult(125.0, 1.0, frame_to_command_ms={"p50": 36.25, "p99": 40.55, "max": 60.0},
+                     camera_latency_ms={"p50": 28.0, "p99": 41.0}, locate_ms={"p50": 1.43, "p95": 3.0},
+                     latency_bound_ms={"p50": 39.43, "p99": 49.43})
+    assert _latency_bound(res) == ("p50 39.43 ms (camera p50 28.00 + locate p50 1.43 + period 8 + 2): "
+                                   "within; p99 49.43 ms (+ 10): within; camera p99 41.00 ms")
     assert _latency_bound(SoakResult(500.0, 1.0)).startswith("n/a (the camera's latency is measured in")
+
+
+def test_bench_loop_reports_the_bound_beside_frame_to_command() -> None:
+    """tools/bench loop's JSON carries the soak's bound and what it is made of."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools" / "benchmarks"))
+    try:
+        from bench_loop import figures
+    finally:
+        sys.path.pop(0)
+    res = SoakResult(125.0, 1.0, frame_to_command_ms={"p50": 36.25, "p99": 40.55, "max": 60.0},
+                     camera_latency_ms={"p50": 28.0, "p99": 41.0}, locate_ms={"p50": 1.43, "p95": 3.0},
+                     latency_bound_ms=latency_bound({"p50": 28.0, "p99": 41.0}, {"p50": 1.43}, 8.0))
+    out = figures(res, 60.0)
+    assert out["period_ms"] == 8.0
+    assert out["latency_bound_ms"] == {"p50": 39.43, "p99": 49.43}
+    assert out["camera_latency_ms"] == {"p50": 28.0, "p99": 41.0}
+    assert out["locate_ms"] == {"p50": 1.43, "p95": 3.0}
+    assert out["frame_to_command_ms"] == {"p50": 36.25, "p99": 40.55, "max": 60.0}
 
 
 def test_rss_by_minute_takes_the_first_sample_of_each_whole_minute() -> None:

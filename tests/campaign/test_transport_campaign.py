@@ -200,6 +200,50 @@ def test_operator_aimed_at_lock_confirms_until_lock_then_holds_lock_to_done() ->
     assert op.poll(_view(State.LOCK, 7.0, pending="lock_to_done")) is Event.CONFIRM_REQUESTED  # tolerated
 
 
+def test_operator_recovers_a_fault_before_its_target_state_as_an_operator_would() -> None:
+    """Issue 45 item 3: a fault on the way to the target state (here in APPROACH, aimed at
+    COMPENSATE) is recovered once the robot had the settling time to stop, so the procedure gets
+    to the target state and the fault is still sent there, with its own recovery attempts
+    (before: held until the fault that never came)."""
+    clock = ManualClock(10_000_000_000)
+    sent: list[str] = []
+    op = TransportOperator("compensate", 1.5, 0.5, clock, 9_000_000_000,
+                           inject=lambda: sent.append("fault"), clear=lambda: sent.append("clear"))
+    assert op.poll(_view(State.IDLE, 0.0)) is Event.START_REQUESTED
+    assert op.poll(_view(State.PLAN, 1.0, pending="plan_to_approach")) is Event.CONFIRM_REQUESTED
+    assert op.poll(_view(State.APPROACH, 2.0)) is None
+    assert op.poll(_view(State.FAULT, 3.0)) is None                       # the robot stops first
+    assert op.poll(_view(State.FAULT, 3.4)) is None
+    assert op.poll(_view(State.FAULT, 3.5)) is Event.RESUME_REQUESTED     # then recovered
+    assert op.poll(_view(State.APPROACH, 3.6)) is None
+    assert op.poll(_view(State.COMPENSATE, 5.0)) is None
+    assert op.poll(_view(State.COMPENSATE, 6.4, pending="compensate_to_lock")) is None  # held
+    op.poll(_view(State.COMPENSATE, 6.5, pending="compensate_to_lock"))
+    assert sent == ["fault"]
+    assert op.recoveries_left == TransportOperator.MAX_RECOVERIES          # the fault's own attempts
+    assert op.poll(_view(State.FAULT, 6.9)) is None
+    assert op.poll(_view(State.FAULT, 7.5)) is Event.RESUME_REQUESTED
+    assert [c for _, c in op.commands] == ["start_requested", "resume_requested", "resume_requested"]
+
+
+def test_operator_restarts_a_fault_before_the_plan_and_gives_up_after_its_attempts() -> None:
+    """A fault in REGISTER (no plan to resume): resume is refused, so reset and start again, as
+    the campaign operator does; after MAX_RECOVERIES attempts before the fault the run ends."""
+    clock = ManualClock(10_000_000_000)
+    op = TransportOperator("gate", 0.2, 0.5, clock, 9_000_000_000, inject=lambda: None, clear=None)
+    assert op.poll(_view(State.IDLE, 0.0)) is Event.START_REQUESTED
+    assert op.poll(_view(State.FAULT, 1.0)) is None
+    assert op.poll(_view(State.FAULT, 1.5)) is Event.RESUME_REQUESTED
+    assert op.poll(_view(State.FAULT, 1.6)) is Event.RESET_REQUESTED      # resume refused: no plan
+    assert op.poll(_view(State.IDLE, 1.7)) is Event.START_REQUESTED
+    assert op.poll(_view(State.REGISTER, 1.8)) is None
+    assert not op.finished(_view(State.REGISTER, 1.8))
+    assert op.poll(_view(State.FAULT, 2.0)) is None
+    assert not op.finished(_view(State.FAULT, 2.2))                       # settling
+    assert op.poll(_view(State.FAULT, 2.5)) is None                       # no attempt left
+    assert op.finished(_view(State.FAULT, 2.5))
+
+
 def _link_back_case(tmp_path: Path, first_speed_mm_s: float, kind: str = "robot_disconnect",
                     stop_retry_s: float | None = None) -> RunResult:
     t0 = 5_000_000_000

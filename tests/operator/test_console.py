@@ -116,7 +116,7 @@ async def _full_procedure_by_key_presses(tmp_path: Path, open_session: SessionOp
                     assert "OPEN" in _text(app, "#gate")
                     app.save_screenshot(filename="console_lock.svg", path=str(tmp_path))
                     _check_igtl_stream(client, session)
-                await pilot.press("y")
+                await pilot.press("c")
                 await wait_view(pilot, app, lambda v, e=expected: v.pending != e, f"{expected} confirmed")
             v = await wait_view(pilot, app, lambda v: v.state == "done", "done")
             assert v.faults == ()
@@ -209,7 +209,7 @@ async def _fault_shown_and_recovered(tmp_path: Path, open_session: SessionOpener
         await wait_view(pilot, app, lambda v: v.state == "idle", "idle")
         await pilot.press("s")
         await wait_prompt(pilot, app, "plan_to_approach")
-        await pilot.press("y")
+        await pilot.press("c")
         v = await wait_view(pilot, app, lambda v: v.state == "fault", "fault")
         await pilot.pause()
         banner = _text(app, "#banner")
@@ -261,7 +261,7 @@ async def _abort_and_rejected_command(tmp_path: Path, open_session: SessionOpene
         await wait_message(pilot, app, lambda m: m.startswith("pause: rejected"), "pause rejected")
         await pilot.press("s")
         await wait_prompt(pilot, app, "plan_to_approach")
-        await pilot.press("y")
+        await pilot.press("c")
         await wait_view(pilot, app, lambda v: v.state == "approach" and (v.robot_speed_mm_s or 0) > 1.0,
                         "robot moving")
         await pilot.press("a")
@@ -370,9 +370,10 @@ def test_early_repeated_and_declined_confirmations(tmp_path: Path, open_session:
 
 
 async def _early_repeated_and_declined_confirmations(tmp_path: Path, open_session: SessionOpener) -> None:
-    """y pressed before the prompt is on screen is refused and said (it never confirms a motion
-    the operator did not see); n declines and keeps the confirmation pending; y on the prompt
-    confirms; y pressed again confirms nothing more. Each verdict is on screen and in the log."""
+    """c pressed before the prompt is on screen is refused and said (it never confirms a motion
+    the operator did not see); n on the prompt ("not now") declines and keeps the confirmation
+    pending; c then confirms; c pressed again confirms nothing more. Each verdict is on screen
+    and in the log."""
     session = open_session(write_setup(tmp_path), plan=SIM_PLAN, session_dir=tmp_path / "s")
     app = ConsoleApp(session)
     async with app.run_test(size=SIZE) as pilot:
@@ -381,10 +382,10 @@ async def _early_repeated_and_declined_confirmations(tmp_path: Path, open_sessio
         await pilot.press("s")
         await wait_controller(pilot, app, lambda v: v.pending == "plan_to_approach", "plan pending")
         assert not isinstance(app.screen, ConfirmScreen)
-        await pilot.press("y")  # early: the operator has not seen the prompt
-        await wait_controller(pilot, app, lambda v: v.operator_commands_decided == 2, "early y decided")
+        await pilot.press("c")  # early: the operator has not seen the prompt
+        await wait_controller(pilot, app, lambda v: v.operator_commands_decided == 2, "early c decided")
         app.refresh_timer.resume()
-        early = await wait_message(pilot, app, lambda m: m.startswith("confirm: rejected"), "early y")
+        early = await wait_message(pilot, app, lambda m: m.startswith("confirm: rejected"), "early c")
         assert "no prompt was shown when this was pressed" in early
         assert early in _text(app, "#messages")
         await wait_prompt(pilot, app, "plan_to_approach")  # still pending: nothing was confirmed
@@ -394,19 +395,19 @@ async def _early_repeated_and_declined_confirmations(tmp_path: Path, open_sessio
         assert v.state == "plan"
         assert v.pending == "plan_to_approach"
         assert not isinstance(app.screen, ConfirmScreen)  # the prompt was answered
-        await pilot.press("y")  # the confirmation shown on the workflow line
-        await pilot.press("y")  # repeated
-        v = await wait_view(pilot, app, lambda v: v.operator_commands_decided == 5, "both y decided")
+        await pilot.press("c")  # the confirmation shown on the workflow line
+        await pilot.press("c")  # repeated
+        v = await wait_view(pilot, app, lambda v: v.operator_commands_decided == 5, "both c decided")
         assert v.state not in ("idle", "register", "plan", "fault")
-        # the second y named plan_to_approach if the screen had not refreshed yet, else nothing
+        # the second c named plan_to_approach if the screen had not refreshed yet, else nothing
         again = await wait_message(pilot, app, lambda m: m.startswith("confirm: rejected — nothing"),
-                                   "repeated y")
+                                   "repeated c")
         assert again in ("confirm: rejected — nothing awaits confirmation",
                          "confirm: rejected — nothing awaits confirmation "
                          "(plan_to_approach was already decided)")
         summary = await quit_app(pilot, app)
     log = Path(str(summary["session_log"]))
     results = [(r["origin"], r["outcome"]) for r in _events(log) if r["event"] == "operator_command_result"]
-    assert results[:5] == [("key s", "executed"), ("key y", "rejected"), ("prompt no", "declined"),
-                           ("key y", "executed"), ("key y", "rejected")]
+    assert results[:5] == [("key s", "executed"), ("key c", "rejected"), ("prompt not now", "declined"),
+                           ("key c", "executed"), ("key c", "rejected")]
     assert _transitions(log)[:3] == ["start", "register_to_plan", "plan_to_approach"]

@@ -10,7 +10,7 @@ pairs, as COMPENSATE does."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 from typing import TYPE_CHECKING
 
@@ -18,6 +18,7 @@ from hil.controller import events as ev
 from hil.controller.commands import Hold
 from hil.controller.compensation import change_out_of_bounds
 from hil.controller.fsm import Event, State
+from hil.controller.needle import NeedleAlarmWindow
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
 from hil.controller.phases.streaming import judge_then_stream
 from hil.log import get_logger
@@ -38,6 +39,8 @@ class LockSub(Enum):
 class _Scratch:
     alarmed: bool = False
     needle_alarmed: bool = False
+    #: the needle alarm's window over this LOCK's readings (lock.needle_check.alarm_window_readings)
+    needle_window: NeedleAlarmWindow = field(default_factory=lambda: NeedleAlarmWindow(1))
 
 
 class LockPhase(Phase):
@@ -52,7 +55,8 @@ class LockPhase(Phase):
         return LockSub.DRIFT_ALARM if (self.s.alarmed or self.s.needle_alarmed) else LockSub.HOLDING
 
     def on_enter(self, transition: str) -> PhaseResult:
-        self.s = _Scratch()
+        nc = self.ctx.cfg.lock.needle_check
+        self.s = _Scratch(needle_window=NeedleAlarmWindow(1 if nc is None else nc.alarm_window_readings))
         return PhaseResult().command(Hold("lock"))
 
     def step(self, inputs: TickInputs) -> PhaseResult:
@@ -85,25 +89,30 @@ class LockPhase(Phase):
         return out
 
     def _needle_alarm(self, frame: StereoFrame, out: PhaseResult) -> bool:
-        """Measure the needle axis; when it is out of bounds and ``alarm_while_locked``, log
-        ``needle_axis_alarm`` (once per LOCK) and apply ``lock.on_drift``. True when an event
-        was added to ``out``."""
+        """Measure the needle axis; when ``alarm_while_locked`` and the alarm window
+        (:class:`~hil.controller.needle.NeedleAlarmWindow`: more than half of the last
+        ``alarm_window_readings`` readings out of bounds) judges it out, log ``needle_axis_alarm``
+        (once per LOCK) and apply ``lock.on_drift``. True when an event was added to ``out``."""
         ctx, lk, s = self.ctx, self.ctx.cfg.lock, self.s
         nc = lk.needle_check
         m = ctx.needle.measure(ctx.est, frame, self.state)
         if nc is None or m is None or not nc.alarm_while_locked:
             return False
         pe = m.path_error
-        if pe.within(nc.max_direction_deg, nc.max_offset_mm):
+        win = s.needle_window
+        if not win.add(not pe.within(nc.max_direction_deg, nc.max_offset_mm)):
             return False
         why = (f"needle axis {pe.direction_error_deg:.2f} deg / entry {pe.entry_offset_mm:.2f} mm / "
-               f"target {pe.target_offset_mm:.2f} mm off the plan while locked")
+               f"target {pe.target_offset_mm:.2f} mm off the plan while locked "
+               f"({win.out_of_bounds} of the last {win.readings} readings out of bounds)")
         if not s.needle_alarmed:
             s.needle_alarmed = True
             ctx.session.write(ev.NEEDLE_AXIS_ALARM, reason=why, direction_error_deg=pe.direction_error_deg,
                               entry_offset_mm=pe.entry_offset_mm, target_offset_mm=pe.target_offset_mm,
-                              limit_deg=nc.max_direction_deg, limit_mm=nc.max_offset_mm, policy=lk.on_drift)
-            _log.warning(ev.NEEDLE_AXIS_ALARM, direction_error_deg=pe.direction_error_deg, policy=lk.on_drift)
+                              limit_deg=nc.max_direction_deg, limit_mm=nc.max_offset_mm, policy=lk.on_drift,
+                              out_of_bounds_readings=win.out_of_bounds, window_readings=win.readings)
+            _log.warning(ev.NEEDLE_AXIS_ALARM, direction_error_deg=pe.direction_error_deg, policy=lk.on_drift,
+                         out_of_bounds_readings=win.out_of_bounds, window_readings=win.readings)
         if lk.on_drift == "retract":
             out.fire(Event.DRIFT_DETECTED, why)
             return True
