@@ -79,6 +79,10 @@ def chain_status(chain: VerifyReport) -> str:
     return f"broken at line {chain.first_bad_line}: {chain.reason}"
 
 
+def _p95(values: list[float]) -> float | None:
+    return float(np.percentile(values, 95)) if values else None
+
+
 def compute_numbers(data: SessionData) -> tuple[Number, ...]:
     """The numbers table (values in mm, s, or fractions)."""
     comp = np.asarray(data.comp_error_mm.y, dtype=np.float64)
@@ -92,6 +96,14 @@ def compute_numbers(data: SessionData) -> tuple[Number, ...]:
         Number("lock_error_mm", "Guide error at lock (optical)", data.lock_error_mm(), "mm"),
         Number("lock_truth_error_mm", "Guide error at lock (truth, last)", lock_truth, "mm"),
         Number("lock_truth_direction_deg", "Guide direction error at lock (truth, last)", lock_deg, "deg"),
+        Number("target_error_mm", "Guide axis to the true target at lock (truth)",
+               data.lock_target_mm.y[0] if len(data.lock_target_mm) else None, "mm"),
+        Number("target_error_max_mm", "Guide axis to the true target, max over the hold (truth)",
+               max(data.lock_target_mm.y) if len(data.lock_target_mm) else None, "mm"),
+        Number("body_rigid_residual_mm_p95", "True skin's rigid-fit residual, 95th percentile (truth)",
+               _p95(data.body_residual_mm.y), "mm"),
+        Number("change_fre_mm_p95", "Measured change's rigid-fit residual, 95th percentile",
+               _p95(data.change_fre_mm.y), "mm"),
         Number("comp_error_rms_mm", "Compensation error RMS (truth)",
                float(np.sqrt(np.mean(comp * comp))) if comp.size else None, "mm"),
         Number("comp_error_p95_mm", "Compensation error 95th percentile (truth)",

@@ -84,6 +84,12 @@ class SessionData:
     comp_error_mm: Series = field(default_factory=Series)
     lock_truth_mm: Series = field(default_factory=Series)
     lock_truth_deg: Series = field(default_factory=Series)
+    #: the guide axis line's distance to the true target while locked, and the true skin's
+    #: rigid-fit residual (simulation: ``truth_error``); the measured change's FRE
+    #: (``compensation_step``)
+    lock_target_mm: Series = field(default_factory=Series)
+    body_residual_mm: Series = field(default_factory=Series)
+    change_fre_mm: Series = field(default_factory=Series)
     lock_guide_error_mm: Series = field(default_factory=Series)
     marker_residuals_mm: dict[int, Series] = field(default_factory=dict)
     registration_residuals_mm: list[float] = field(default_factory=list)
@@ -355,12 +361,16 @@ def _read_procedure_event(data: SessionData, ln: _Line, event: str, t: float, st
     elif event in ("compensation_step", "lock_measured"):
         data.guide_error_mm.add(t, ln.num("guide_error_mm"))
         data.breathing_mm.add(t, ln.num("gate_deviation_mm"))
+        data.change_fre_mm.add(t, ln.num("change_fre_mm"))
         if event == "lock_measured":
             data.lock_guide_error_mm.add(t, ln.num("guide_error_mm"))
     elif event == "approach_measured":
         data.guide_error_mm.add(t, ln.num("guide_error_mm"))
     elif event == "truth_error":
         st = ln.text("state") or state
+        data.body_residual_mm.add(t, ln.num("body_rigid_residual_mm"))
+        if st == "lock":
+            data.lock_target_mm.add(t, ln.num("target_mm"))
         if st == "compensate":
             data.comp_error_mm.add(t, ln.num("position_mm"))
         elif st == "lock":
