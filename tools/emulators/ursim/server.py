@@ -34,7 +34,9 @@ CONTROL_PORT = 30200
 _MAX_WRITE_BUFFER = 1 << 20
 #: A state stream (30001-30003) client that has this much unsent is not sent the next message (the
 #: stream skips, the connection stays: ur-rtde's script client never reads its 30003 socket).
-_MAX_STREAM_BACKLOG = 1 << 16
+_MAX_STREAM_BACKLOG = 1 << 14
+#: Kernel send buffer of a stream connection (bytes; Linux doubles it): about 50 realtime packets.
+_STREAM_SNDBUF = 1 << 15
 _READ_TIMEOUT_S = 3600.0
 #: Recipe ids are one byte on the wire; id 0 means "setup failed".
 MAX_RECIPE_ID = 255
@@ -338,6 +340,7 @@ class Emulator:
     async def _on_realtime(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """Realtime interface (30003): a realtime packet every tick; scripts are accepted."""
         _nodelay(writer)
+        _small_send_buffer(writer)
         self.realtime_writers.add(writer)
         try:
             await self._on_script(reader, writer)
@@ -509,6 +512,17 @@ def _on_off(args: list[str], default: bool) -> bool:
     if word in ("off", "0", "false"):
         return False
     raise ValueError(f"expected on|off, got {args[0]!r}")
+
+
+def _small_send_buffer(writer: asyncio.StreamWriter) -> None:
+    """Cap the kernel's send buffer of a stream connection (no autotuning to megabytes): a client
+    that never reads (ur-rtde's script client on 30003) then holds little, and is soon skipped."""
+    import socket
+
+    sock = writer.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _STREAM_SNDBUF)
 
 
 def _nodelay(writer: asyncio.StreamWriter) -> None:
