@@ -192,7 +192,16 @@ def test_primary_and_secondary_send_the_version_then_robot_state_at_10_hz(
     assert joints["joint_mode"] == (253,) * 6
     assert cart["tcp"] == pytest.approx(status["tcp_pose"], abs=1e-9)
     dt_us = states[1][0]["timestamp"] - states[0][0]["timestamp"]
-    assert 90_000 <= dt_us <= 100_000  # 10 Hz: every 12 periods at 125 Hz, 50 at 500 Hz
+    assert 95_000 <= dt_us <= 100_001  # 10 Hz: every 12 periods at 125 Hz (96 ms), 50 at 500 Hz
+
+
+def test_a_realtime_client_that_sends_a_program_is_no_longer_streamed_to(ursim: Ursim) -> None:
+    """Our deviation (docs/ursim.md): a 30003 client that sends a program is a script client."""
+    with socket.create_connection((ursim.host, 30003), timeout=5.0) as s:
+        assert read_realtime(s)[0] == 1220
+        assert ursim.control.status()["realtime_clients"] == 1
+        s.sendall(b"write_output_integer_register(46, 0)\n")
+        wait_for(lambda: ursim.control.status()["realtime_clients"] == 0, what="stream stopped")
 
 
 def test_a_script_line_sent_on_the_primary_interface_runs(ursim: Ursim) -> None:

@@ -338,7 +338,8 @@ class Emulator:
 
     # ------------------------------------------------------------------ client interfaces 30001-30003
     async def _on_realtime(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        """Realtime interface (30003): a realtime packet every tick; scripts are accepted."""
+        """Realtime interface (30003): a realtime packet every tick until the client sends a program
+        (then it is a script client: no more packets); scripts are accepted."""
         _nodelay(writer)
         _small_send_buffer(writer)
         self.realtime_writers.add(writer)
@@ -367,6 +368,10 @@ class Emulator:
                 data = await reader.read(65536)
                 if not data:
                     break
+                # A 30003 client that sends a program is a script client (ur-rtde's never reads its
+                # socket): no more realtime packets for it. A real controller keeps streaming; here
+                # that stream made the procedure's servo loop fault (docs/ursim.md).
+                self.realtime_writers.discard(writer)
                 buf += data.decode("utf-8", errors="replace")
                 buf = self._consume_script(buf)
         except ConnectionError:
@@ -462,6 +467,8 @@ class Emulator:
             elif cmd == "status":
                 st = ctl.status()
                 st["rtde_connections"] = len(self.rtde_conns)
+                st["realtime_clients"] = len(self.realtime_writers)
+                st["state_clients"] = len(self.state_writers)
                 st["stream_muted"] = ctl.timestamp_s < self.muted_until_s
                 st["outage"] = self.outage_until_s > 0
                 return "ok " + json.dumps(st, separators=(",", ":"))
