@@ -318,3 +318,17 @@ def test_the_speed_slider_moves_only_with_mask_1(mask: int, fraction: float) -> 
     expected = max(0.0, min(1.0, fraction)) if mask == 1 else 1.0
     assert c.output("target_speed_fraction", "DOUBLE") == expected
 
+
+def test_the_program_interpreter_does_not_import_the_controller() -> None:
+    """script.py reaches the controller only through its ScriptHost protocol (issue 45 item 4)."""
+    import ast
+    from pathlib import Path
+
+    import emulators.ursim.script as script
+
+    tree = ast.parse(Path(script.__file__).read_text())
+    imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    assert "emulators.ursim.controller" not in imported
+    host: script.ScriptHost = make()  # the controller is a ScriptHost (mypy checks the members)
+    assert isinstance(host, UrController)
