@@ -46,7 +46,7 @@ ENV_EMULATORS_DIR = "HIL_EMULATORS_DIR"
 #: The setups and plans the campaign writes its runs from (the ``configs`` package data).
 CONFIGS_DIR = Path(configs.__file__).resolve().parent
 START_TIMEOUT_S = 20.0
-URSIM_PORTS = (30004, 30003, 29999, 30200)
+URSIM_PORTS = (30004, 30003, 30002, 30001, 29999, 30200)
 URSIM_CONTROL_PORT = 30200
 
 

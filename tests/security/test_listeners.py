@@ -2,8 +2,9 @@
 command that moves the robot unless the setup enables it.
 
 Listeners: the OpenIGTLink server (hil.igtl), the UR controller emulator (tools/ursim: RTDE,
-script, dashboard and fault-control ports), the fake GigE Vision camera (tools/fakegv) and the
-tracker emulator's control socket (tools/trackersim: a Unix socket, no network at all).
+primary, secondary, realtime/script, dashboard and fault-control ports), the fake GigE Vision
+camera (tools/fakegv) and the tracker emulator's control socket (tools/trackersim: a Unix socket,
+no network at all).
 """
 
 from __future__ import annotations
@@ -100,7 +101,8 @@ def test_ursim_sockets_are_bound_to_the_given_loopback_address() -> None:
     from emulators.ursim.server import Emulator, Ports
 
     async def run() -> list[tuple[str, int]]:
-        emu = Emulator(UrController(ControllerVersion.parse("3.15")), "127.0.0.1", Ports(0, 0, 0, 0))
+        emu = Emulator(UrController(ControllerVersion.parse("3.15")), "127.0.0.1",
+                   Ports(rtde=0, script=0, dashboard=0, control=0, primary=0, secondary=0))
         await emu.start()
         servers = [*emu._servers, emu._control_server]
         addrs = [s.getsockname()[:2] for srv in servers if srv is not None for s in srv.sockets]
@@ -111,7 +113,7 @@ def test_ursim_sockets_are_bound_to_the_given_loopback_address() -> None:
         return addrs
 
     addrs = asyncio.run(run())
-    assert len(addrs) == 4
+    assert len(addrs) == 6
     assert all(_is_loopback(h) for h, _ in addrs), addrs
 
 

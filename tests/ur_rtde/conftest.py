@@ -34,7 +34,7 @@ if str(TOOLS) not in sys.path:  # the emulator's model is unit-tested in-process
     sys.path.insert(0, str(TOOLS))
 
 START_TIMEOUT_S = 20.0
-PORTS = (30004, 30003, 29999, 30200)
+PORTS = (30004, 30003, 30002, 30001, 29999, 30200)
 
 
 @dataclass

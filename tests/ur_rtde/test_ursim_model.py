@@ -292,3 +292,43 @@ def test_any_registers_never_break_the_tick(cmd: int, dbl: list[float]) -> None:
     c.tick()
     assert np.all(np.isfinite(c.q))
     assert np.all(np.isfinite(c.tcp))
+
+
+# ------------------------------------------------------------------ RTDE inputs (registers.py)
+@given(old=st.integers(0, (1 << 18) - 1), mask=st.integers(0, 255), value=st.integers(0, 255),
+       which=st.sampled_from([("standard_digital_output", 0, 8), ("configurable_digital_output", 8, 8),
+                              ("tool_digital_output", 16, 2)]))
+def test_a_digital_output_package_changes_exactly_the_bits_in_its_mask(
+        old: int, mask: int, value: int, which: tuple[str, int, int]) -> None:
+    from emulators.ursim.registers import Registers
+
+    name, shift, width = which
+    regs = Registers(digital_out_bits=old)
+    regs.apply({f"{name}_mask": mask, name: value})
+    window = ((1 << width) - 1) << shift
+    changed = (mask << shift) & window
+    assert regs.digital_out_bits == (old & ~changed) | ((value << shift) & changed)
+
+
+@given(mask=st.integers(0, 2**32 - 1), fraction=st.floats(-1.0, 2.0))
+def test_the_speed_slider_moves_only_with_mask_1(mask: int, fraction: float) -> None:
+    c = make()
+    c.set_inputs({"speed_slider_mask": mask, "speed_slider_fraction": fraction})
+    c.tick()  # the outputs of the next period
+    expected = max(0.0, min(1.0, fraction)) if mask == 1 else 1.0
+    assert c.output("target_speed_fraction", "DOUBLE") == expected
+
+
+def test_the_program_interpreter_does_not_import_the_controller() -> None:
+    """script.py reaches the controller only through its ScriptHost protocol (issue 45 item 4)."""
+    import ast
+    from pathlib import Path
+
+    import emulators.ursim.script as script
+
+    tree = ast.parse(Path(script.__file__).read_text())
+    imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    assert "emulators.ursim.controller" not in imported
+    host: script.ScriptHost = make()  # the controller is a ScriptHost (mypy checks the members)
+    assert isinstance(host, UrController)

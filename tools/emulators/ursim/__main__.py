@@ -50,6 +50,7 @@ async def _main(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, sim.request_stop)
     print(f"ursim ready host={args.host} rtde={ports.rtde} script={ports.script} "
+          f"primary={ports.primary} secondary={ports.secondary} "
           f"dashboard={ports.dashboard} control={ports.control} version={version} model={model} "
           f"rate_hz={ctl.frequency_hz:g}", flush=True)
     await sim.run_until_stopped()

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from emulators.ursim.motion import Motion, MotionError, SpeedJ
 from emulators.ursim.pose import fast_rotvec, matrix_to_pose
+from emulators.ursim.registers import Registers
 from emulators.ursim.script import ControlScript, Program, parse_program
 from hil.geometry.transform import RigidTransform
 from hil.kinematics.ur import ur_inverse, ur_joint_frames
@@ -117,10 +118,11 @@ class UrController:
         self.q_target = self.q.copy()
         self.tcp = self.fk(self.q)
         self.tcp_twist = np.zeros(6)
-        self.in_int = [0] * 48
-        self.in_dbl = [0.0] * 48
-        self.out_int = [0] * 48
-        self.out_dbl = [0.0] * 48
+        self.registers = Registers()
+        self.in_int = self.registers.in_int      # the same lists: the script reads and writes them
+        self.in_dbl = self.registers.in_dbl
+        self.out_int = self.registers.out_int
+        self.out_dbl = self.registers.out_dbl
         self.runtime_state = RuntimeState.STOPPED
         self.robot_mode = RobotMode.RUNNING
         self.safety_mode = SafetyMode.NORMAL
@@ -166,17 +168,16 @@ class UrController:
         self.events.append(f"{self.timestamp_s:.3f} {event}")
 
     def set_inputs(self, values: dict[str, Any]) -> None:
-        """Apply one input data package (any connection; registers are controller-wide)."""
-        for name, value in values.items():
-            if name.startswith("input_int_register_"):
-                idx = int(name.rsplit("_", 1)[1])
-                self.in_int[idx] = int(value)
-                if self.program is not None and idx == self.program.reg_offset:
-                    self.last_kick_s = self.timestamp_s
-            elif name.startswith("input_double_register_"):
-                self.in_dbl[int(name.rsplit("_", 1)[1])] = float(value)
-            elif name == "speed_slider_fraction":
-                self.speed_scaling = max(0.0, min(1.0, float(value)))
+        """Apply one input data package (any connection; registers are controller-wide).
+
+        The speed slider moves only when the package has ``speed_slider_mask`` = 1 (RTDE guide);
+        writing the program's command register kicks the RTDE input watchdog.
+        """
+        fraction = self.registers.apply(values)
+        if fraction is not None:
+            self.speed_scaling = fraction
+        if self.program is not None and f"input_int_register_{self.program.reg_offset}" in values:
+            self.last_kick_s = self.timestamp_s
 
     def load_program(self, text: str) -> None:
         """A program arrived on the script port (30003): it replaces the running one."""
@@ -395,10 +396,9 @@ class UrController:
         """The current value of an output variable (zeros for ones the model does not simulate)."""
         if name in self._outputs:
             return self._outputs[name]
-        if name.startswith("output_int_register_"):
-            return self.out_int[int(name.rsplit("_", 1)[1])]
-        if name.startswith("output_double_register_"):
-            return self.out_dbl[int(name.rsplit("_", 1)[1])]
+        register = self.registers.output(name)
+        if register is not None:
+            return register
         if rtde_type == "VECTOR6D":
             return (0.0,) * 6
         if rtde_type == "VECTOR3D":

@@ -60,6 +60,12 @@ OUTPUT_TYPES: dict[str, str] = {
     "output_bit_registers0_to_31": "UINT32", "output_bit_registers32_to_63": "UINT32",
     **{f"output_int_register_{i}": "INT32" for i in range(48)},
     **{f"output_double_register_{i}": "DOUBLE" for i in range(48)},
+    # The RTDE guide lists the general purpose input registers among the outputs too: a client reads
+    # back what any client (or a program) wrote to them.
+    "input_bit_registers0_to_31": "UINT32", "input_bit_registers32_to_63": "UINT32",
+    **{f"input_bit_register_{i}": "BOOL" for i in range(64, 128)},
+    **{f"input_int_register_{i}": "INT32" for i in range(48)},
+    **{f"input_double_register_{i}": "DOUBLE" for i in range(48)},
 }
 
 # Inputs a client may set up: name -> RTDE type.
@@ -76,6 +82,13 @@ INPUT_TYPES: dict[str, str] = {
     "standard_analog_output_mask": "UINT8", "standard_analog_output_type": "UINT8",
     "standard_analog_output_0": "DOUBLE", "standard_analog_output_1": "DOUBLE",
 }
+
+
+#: The type an input setup reply names for a variable another connection already writes (RTDE guide:
+#: the recipe id is then 0 and the set-up failed).
+IN_USE = "IN_USE"
+#: The type a setup reply names for a variable the controller does not know.
+NOT_FOUND = "NOT_FOUND"
 
 
 class ProtocolViolationError(Exception):

@@ -17,15 +17,16 @@ Two kinds of program arrive on the script port (30003):
   stops, ``sleep``, output register writes); a statement waits for the previous motion to end.
 
 :class:`ControlScript` keeps only the interpreter's own bookkeeping. It reads and writes the arm,
-the registers and the handshake flags of the :class:`~emulators.ursim.controller.UrController` it
-belongs to, and leaves the program's lifecycle (``runtime_state``: start, stop, fault) to it.
+the registers and the handshake flags of the controller it belongs to, through :class:`ScriptHost`
+(what it needs, and all it knows, of the controller: this module imports no controller), and leaves
+the program's lifecycle (``runtime_state``: start, stop, fault) to it.
 """
 
 from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,9 +44,6 @@ from emulators.ursim.motion import (
 from emulators.ursim.pose import matrix_to_pose, pose_to_matrix
 from emulators.ursim.urscript import ScriptSyntaxError, Statement, parse_program_body
 from hil.errors import GeometryError
-
-if TYPE_CHECKING:
-    from emulators.ursim.controller import UrController
 
 FloatArray = NDArray[np.float64]
 
@@ -104,17 +102,65 @@ def parse_program(text: str) -> Program:
     return Program(name, text, is_ctl, offset, moves, statements, error)
 
 
+class ScriptHost(Protocol):
+    """What the program interpreter reads and writes of the controller that runs it (units: m, rad,
+    s). :class:`~emulators.ursim.controller.UrController` is one."""
+
+    program: Program | None
+    motion: Motion | None
+    q: FloatArray
+    qd: FloatArray
+    q_target: FloatArray
+    tcp: FloatArray                # 4x4 T_base_from_tool (m)
+    timestamp_s: float
+    in_int: list[int]
+    in_dbl: list[float]
+    out_int: list[int]
+    out_dbl: list[float]
+    blocking: bool                 # the script's main loop waits for the current motion
+    async_running: bool            # a move_thread / stop_thread is active
+    executing_cmd: bool            # the command in the register ran (cleared when it is 0 again)
+    stalled: bool
+    slow_responses_s: float
+    watchdog_hz: float | None
+    last_kick_s: float
+
+    def fk(self, q: FloatArray) -> FloatArray:
+        """4x4 T_base_from_tool (m) of joint angles ``q`` (rad)."""
+        ...
+
+    def ik(self, T: FloatArray, q_near: FloatArray) -> FloatArray | None:
+        """Joint solution nearest ``q_near`` for a 4x4 pose (m), or None (unreachable)."""
+        ...
+
+    def log(self, event: str) -> None:
+        """Record an event (the status's ``events``)."""
+        ...
+
+    def end_program(self, why: str, decel: float = ...) -> None:
+        """Stop the program; the arm decelerates at ``decel`` (rad/s^2)."""
+        ...
+
+    def fault(self, message: str) -> None:
+        """The program faults (a runtime error) and stops."""
+        ...
+
+    def protective_stop(self, why: str = ...) -> None:
+        """A protective stop (the script's ``protective_stop`` command)."""
+        ...
+
+
 class ControlScript:
     """Runs the controller's program, one tick at a time. Not thread-safe (as the controller).
 
     Args:
-        ctl: the controller that owns this interpreter. The interpreter sets its ``motion`` and
-            ``q_target``, its output registers and its handshake state (``blocking``,
+        ctl: the controller that owns this interpreter (a :class:`ScriptHost`). The interpreter
+            sets its ``motion`` and ``q_target``, its output registers and its handshake state (``blocking``,
             ``async_running``, ``executing_cmd``, ``watchdog_hz``, ``last_kick_s``), and calls its
             ``end_program``, ``fault`` and ``protective_stop``.
     """
 
-    def __init__(self, ctl: UrController) -> None:
+    def __init__(self, ctl: ScriptHost) -> None:
         self._ctl = ctl
         self._cmd_seen: tuple[int, float] | None = None  # (command, when first seen): slow responses
         self._async_wr_count = 0   # async progress register: writes so far (mod 128)

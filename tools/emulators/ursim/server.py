@@ -1,7 +1,10 @@
-"""The emulator's sockets: RTDE (30004), script (30003), dashboard (29999), fault control (30200).
+"""The emulator's sockets: RTDE (30004), the primary (30001), secondary (30002) and realtime (30003)
+client interfaces, the dashboard (29999) and the fault control channel (30200).
 
-One asyncio loop runs everything: a tick task advances the controller at its rate and streams data
-packages to every started RTDE connection; the servers feed requests into the controller.
+One asyncio loop runs everything: a tick task advances the controller at its rate, streams data
+packages to every started RTDE connection, a realtime packet to every 30003 client each tick and a
+robot state message to every 30001/30002 client at 10 Hz; the servers feed requests (scripts on
+30001-30003, dashboard lines, RTDE input packages) into the controller.
 """
 
 from __future__ import annotations
@@ -12,18 +15,28 @@ import json
 import re
 import struct
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
+from emulators.ursim import client_interfaces as ci
 from emulators.ursim import protocol as proto
-from emulators.ursim.controller import RuntimeState, SafetyMode, UrController
+from emulators.ursim.controller import UrController
+from emulators.ursim.dashboard import dashboard_reply
 
 RTDE_PORT = 30004
-SCRIPT_PORT = 30003
+PRIMARY_PORT = 30001
+SECONDARY_PORT = 30002
+SCRIPT_PORT = 30003   # the realtime interface: takes scripts, streams realtime packets
 DASHBOARD_PORT = 29999
 CONTROL_PORT = 30200
 _MAX_WRITE_BUFFER = 1 << 20
+#: A state stream (30001-30003) client that has this much unsent is not sent the next message (the
+#: stream skips, the connection stays: ur-rtde's script client never reads its 30003 socket).
+_MAX_STREAM_BACKLOG = 1 << 14
+#: Kernel send buffer of a stream connection (bytes; Linux doubles it): about 50 realtime packets.
+_STREAM_SNDBUF = 1 << 15
 _READ_TIMEOUT_S = 3600.0
 #: Recipe ids are one byte on the wire; id 0 means "setup failed".
 MAX_RECIPE_ID = 255
@@ -38,6 +51,8 @@ class Ports:
     script: int = SCRIPT_PORT
     dashboard: int = DASHBOARD_PORT
     control: int = CONTROL_PORT
+    primary: int = PRIMARY_PORT
+    secondary: int = SECONDARY_PORT
 
 
 class RtdeConnection:
@@ -91,6 +106,7 @@ class RtdeConnection:
             self.sim.warn(f"rtde_protocol_violation {exc}")
         finally:
             self.sim.rtde_conns.discard(self)
+            self.sim.release_inputs(self)
             self.writer.close()
 
     async def _slow(self) -> None:
@@ -121,7 +137,7 @@ class RtdeConnection:
             names = proto.split_names(body[8:])
             recipe = proto.Recipe.build(1, names, proto.OUTPUT_TYPES)
             if recipe is None:
-                types = [proto.OUTPUT_TYPES.get(n, "NOT_FOUND") for n in names]
+                types = [proto.OUTPUT_TYPES.get(n, proto.NOT_FOUND) for n in names]
                 self.send(proto.CONTROL_PACKAGE_SETUP_OUTPUTS, b"\x00" + ",".join(types).encode())
                 self.sim.warn(f"rtde_outputs_not_found {[n for n in names if n not in proto.OUTPUT_TYPES]}")
                 return
@@ -136,10 +152,16 @@ class RtdeConnection:
             if rid > MAX_RECIPE_ID:
                 raise proto.ProtocolViolationError(f"more than {MAX_RECIPE_ID} input recipes")
             in_recipe = proto.Recipe.build(rid, names, proto.INPUT_TYPES)
-            if in_recipe is None:
-                types = [proto.INPUT_TYPES.get(n, "NOT_FOUND") for n in names]
+            in_use = self.sim.inputs_in_use(self, names)
+            if in_recipe is None or in_use:
+                # RTDE guide: recipe id 0 (set-up failed), NOT_FOUND / IN_USE in place of the type
+                types = [proto.IN_USE if n in in_use else proto.INPUT_TYPES.get(n, proto.NOT_FOUND)
+                         for n in names]
                 self.send(proto.CONTROL_PACKAGE_SETUP_INPUTS, b"\x00" + ",".join(types).encode())
+                if in_use:
+                    self.sim.warn(f"rtde_inputs_in_use {sorted(in_use)}")
                 return
+            self.sim.claim_inputs(self, names)
             self.inputs[rid] = in_recipe
             self.send(proto.CONTROL_PACKAGE_SETUP_INPUTS, bytes([rid]) + ",".join(in_recipe.types).encode())
         elif msg_type == proto.CONTROL_PACKAGE_START:
@@ -167,7 +189,11 @@ class Emulator:
         self.ports = ports
         self.verbose = verbose
         self.rtde_conns: set[RtdeConnection] = set()
+        #: input variable -> the RTDE connection whose input recipe names it (one writer per variable)
+        self.input_owners: dict[str, RtdeConnection] = {}
         self.other_writers: set[asyncio.StreamWriter] = set()
+        self.realtime_writers: set[asyncio.StreamWriter] = set()  # 30003 clients
+        self.state_writers: set[asyncio.StreamWriter] = set()     # 30001 / 30002 clients
         self.muted_until_s = 0.0
         self._servers: list[asyncio.Server] = []
         self._control_server: asyncio.Server | None = None
@@ -187,7 +213,9 @@ class Emulator:
     async def _listen_robot_ports(self) -> None:
         specs = [
             (self.ports.rtde, self._on_rtde),
-            (self.ports.script, self._on_script),
+            (self.ports.script, self._on_realtime),
+            (self.ports.primary, self._on_primary),
+            (self.ports.secondary, self._on_primary),
             (self.ports.dashboard, self._on_dashboard),
         ]
         for port, cb in specs:
@@ -247,6 +275,7 @@ class Emulator:
     async def _tick_loop(self) -> None:
         loop = asyncio.get_running_loop()
         period = self.ctl.dt_s
+        state_every = max(1, round(self.ctl.frequency_hz / ci.STATE_RATE_HZ))
         next_t = loop.time()
         tick = 0
         while True:
@@ -256,6 +285,11 @@ class Emulator:
             if self.ctl.timestamp_s >= self.muted_until_s:
                 for conn in tuple(self.rtde_conns):
                     conn.on_tick(tick)
+                if self.realtime_writers:
+                    _broadcast(self.realtime_writers, lambda: ci.realtime_packet(self.ctl))
+                if self.state_writers and tick % state_every == 0:
+                    _broadcast(self.state_writers,
+                               lambda: ci.robot_state_message(self.ctl, not self.ctl.version.is_cb3))
             if self.verbose:
                 while self.ctl.events:
                     self.warn(self.ctl.events.popleft())
@@ -265,6 +299,20 @@ class Emulator:
                 delay = 0.0
             await asyncio.sleep(max(0.0, delay))
 
+    # ------------------------------------------------------------------ RTDE input ownership
+    def inputs_in_use(self, conn: RtdeConnection, names: list[str]) -> set[str]:
+        """The input variables among ``names`` that another live connection's recipe already names."""
+        return {n for n in names if self.input_owners.get(n, conn) is not conn}
+
+    def claim_inputs(self, conn: RtdeConnection, names: list[str]) -> None:
+        for n in names:
+            self.input_owners[n] = conn
+
+    def release_inputs(self, conn: RtdeConnection) -> None:
+        """A connection ended: the variables it wrote are free for other clients."""
+        for n in [n for n, owner in self.input_owners.items() if owner is conn]:
+            del self.input_owners[n]
+
     def drop_connections(self) -> int:
         """Abort every client connection (RTDE, script, dashboard) like a pulled cable."""
         n = 0
@@ -272,10 +320,13 @@ class Emulator:
             conn.writer.transport.abort()
             n += 1
         self.rtde_conns.clear()
+        self.input_owners.clear()
         for w in tuple(self.other_writers):
             w.transport.abort()
             n += 1
         self.other_writers.clear()
+        self.realtime_writers.clear()
+        self.state_writers.clear()
         return n
 
     # ------------------------------------------------------------------ RTDE
@@ -285,8 +336,31 @@ class Emulator:
         self.rtde_conns.add(conn)
         await conn.run()
 
-    # ------------------------------------------------------------------ script port
+    # ------------------------------------------------------------------ client interfaces 30001-30003
+    async def _on_realtime(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """Realtime interface (30003): a realtime packet every tick until the client sends a program
+        (then it is a script client: no more packets); scripts are accepted."""
+        _nodelay(writer)
+        _small_send_buffer(writer)
+        self.realtime_writers.add(writer)
+        try:
+            await self._on_script(reader, writer)
+        finally:
+            self.realtime_writers.discard(writer)
+
+    async def _on_primary(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """Primary / secondary interface (30001 / 30002): the version message at once, then robot
+        state messages at 10 Hz; scripts are accepted."""
+        v = self.ctl.version
+        writer.write(ci.version_message(v.major, v.minor, v.bugfix, v.build, self.ctl.timestamp_s))
+        self.state_writers.add(writer)
+        try:
+            await self._on_script(reader, writer)
+        finally:
+            self.state_writers.discard(writer)
+
     async def _on_script(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """Read URScript from a client interface connection until it closes."""
         self.other_writers.add(writer)
         buf = ""
         try:
@@ -294,6 +368,10 @@ class Emulator:
                 data = await reader.read(65536)
                 if not data:
                     break
+                # A 30003 client that sends a program is a script client (ur-rtde's never reads its
+                # socket): no more realtime packets for it. A real controller keeps streaming; here
+                # that stream made the procedure's servo loop fault (docs/ursim.md).
+                self.realtime_writers.discard(writer)
                 buf += data.decode("utf-8", errors="replace")
                 buf = self._consume_script(buf)
         except ConnectionError:
@@ -331,7 +409,7 @@ class Emulator:
                     break
                 if self.ctl.slow_responses_s > 0:
                     await asyncio.sleep(self.ctl.slow_responses_s)
-                reply, close = self._dashboard(raw.decode("utf-8", errors="replace").strip())
+                reply, close = dashboard_reply(self.ctl, raw.decode("utf-8", errors="replace").strip())
                 writer.write(reply.encode() + b"\n")
                 if close:
                     break
@@ -340,78 +418,6 @@ class Emulator:
         finally:
             self.other_writers.discard(writer)
             writer.close()
-
-    def _dashboard(self, line: str) -> tuple[str, bool]:
-        ctl = self.ctl
-        cmd = line.lower()
-        v = ctl.version
-        prog = ctl.program.name + ".urp" if ctl.program else "<unnamed>"
-        if cmd == "polyscopeversion":
-            return f"URSoftware {v} (Nov 21 2026)", False
-        if cmd == "get serial number":
-            return "20265500001", False
-        if cmd == "get robot model":
-            return "UR3", False
-        if cmd == "is in remote control":
-            return "true", False
-        if cmd == "stop":
-            ctl.dashboard_stop()
-            return "Stopped", False
-        if cmd == "play":
-            return ("Starting program", False) if ctl.dashboard_play() else ("Failed to execute: play", False)
-        if cmd == "pause":
-            ctl.dashboard_pause()
-            return "Pausing program", False
-        if cmd == "unlock protective stop":
-            if ctl.unlock_protective_stop():
-                return "Protective stop releasing", False
-            return "Cannot unlock protective stop: the robot is in emergency stop", False
-        if cmd == "close safety popup":
-            return "closing safety popup", False
-        if cmd == "power on":
-            return ("Powering on", False) if ctl.power_on() else ("Failed to execute: power on", False)
-        if cmd == "power off":
-            ctl.power_off()
-            return "Powering off", False
-        if cmd == "brake release":
-            return ("Brake releasing", False) if ctl.brake_release() else ("Failed to execute: brake release",
-                                                                            False)
-        if cmd == "robotmode":
-            return f"Robotmode: {ctl.robot_mode.name}", False
-        if cmd == "safetymode":
-            return f"Safetymode: {ctl.safety_mode.name}", False
-        if cmd == "safetystatus":
-            return f"Safetystatus: {ctl.safety_mode.name}", False
-        if cmd == "programstate":
-            state = "PLAYING" if ctl.runtime_state is RuntimeState.PLAYING else (
-                "PAUSED" if ctl.runtime_state is RuntimeState.PAUSED else "STOPPED")
-            return f"{state} {prog}", False
-        if cmd == "running":
-            return f"Program running: {str(ctl.runtime_state is RuntimeState.PLAYING).lower()}", False
-        if cmd == "get loaded program":
-            return f"Loaded program: /programs/{prog}", False
-        if cmd == "isprogramsaved":
-            return f"true {prog}", False
-        if cmd == "restart safety":
-            if ctl.safety_mode is SafetyMode.PROTECTIVE_STOP:
-                ctl.unlock_protective_stop()
-            ctl.power_off()
-            return "Restarting safety", False
-        if cmd.startswith("addtolog"):
-            return "Added log message", False
-        if cmd.startswith("popup"):
-            return "showing popup", False
-        if cmd == "close popup":
-            return "closing popup", False
-        if cmd.startswith("setuserrole"):
-            return "Setting user role: " + line.split(" ", 1)[-1], False
-        if cmd.startswith("load "):
-            return f"File not found: {line[5:]}", False
-        if cmd == "quit":
-            return "Disconnected", True
-        if cmd == "shutdown":
-            return "Shutting down", False
-        return f"could not understand: '{line}'", False
 
     # ------------------------------------------------------------------ fault control channel
     async def _on_control(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -461,6 +467,8 @@ class Emulator:
             elif cmd == "status":
                 st = ctl.status()
                 st["rtde_connections"] = len(self.rtde_conns)
+                st["realtime_clients"] = len(self.realtime_writers)
+                st["state_clients"] = len(self.state_writers)
                 st["stream_muted"] = ctl.timestamp_s < self.muted_until_s
                 st["outage"] = self.outage_until_s > 0
                 return "ok " + json.dumps(st, separators=(",", ":"))
@@ -474,6 +482,7 @@ class Emulator:
                 ctl.brake_release()
                 ctl.stalled = False
                 ctl.slow_responses_s = 0.0
+                ctl.speed_scaling = 1.0   # the speed slider back at 100 %
                 self.muted_until_s = 0.0
             elif cmd == "home":
                 if args and len(args) != 6:
@@ -489,6 +498,18 @@ class Emulator:
         return "ok"
 
 
+def _broadcast(writers: set[asyncio.StreamWriter], encode: Callable[[], bytes]) -> None:
+    """Send a state message to every stream client that keeps up (a full one skips this message);
+    the message is encoded once, and only when one of them takes it."""
+    message: bytes | None = None
+    for w in tuple(writers):
+        if w.transport.is_closing():
+            writers.discard(w)
+        elif w.transport.get_write_buffer_size() <= _MAX_STREAM_BACKLOG:
+            message = encode() if message is None else message
+            w.write(message)
+
+
 def _on_off(args: list[str], default: bool) -> bool:
     if not args:
         return default
@@ -498,6 +519,17 @@ def _on_off(args: list[str], default: bool) -> bool:
     if word in ("off", "0", "false"):
         return False
     raise ValueError(f"expected on|off, got {args[0]!r}")
+
+
+def _small_send_buffer(writer: asyncio.StreamWriter) -> None:
+    """Cap the kernel's send buffer of a stream connection (no autotuning to megabytes): a client
+    that never reads (ur-rtde's script client on 30003) then holds little, and is soon skipped."""
+    import socket
+
+    sock = writer.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _STREAM_SNDBUF)
 
 
 def _nodelay(writer: asyncio.StreamWriter) -> None:
