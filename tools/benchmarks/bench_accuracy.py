@@ -219,6 +219,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="per seed, also follow free breathing for this long (0: skip)")
     ap.add_argument("--no-rig-calibration", action="store_true",
                     help="with [simulation.rig_errors] set: skip the calibrated-rig column")
+    ap.add_argument("--calibrated-only", action="store_true",
+                    help="with [simulation.rig_errors] set: only the calibrated-rig column (at top level)")
     ap.add_argument("--trace", metavar="FILE",
                     help="drive the simulated patient by this recorded trace (docs/traces.md; the body "
                          "becomes deformable)")
@@ -248,9 +250,10 @@ def main(argv: list[str] | None = None) -> int:
     plan = load_plan(plan_path)
     side_by_side = base.simulation.rig_errors != RigErrorsConfig() and not args.no_rig_calibration
     t0 = time.perf_counter()
+    only_calibrated = side_by_side and args.calibrated_only
     with tempfile.TemporaryDirectory(prefix="bench_accuracy_") as tmp:
-        out = _bench(cfg_path, base, plan, args, Path(tmp), calibrate=False)
-        if side_by_side:
+        out = _bench(cfg_path, base, plan, args, Path(tmp), calibrate=only_calibrated)
+        if side_by_side and not only_calibrated:
             out["calibrated"] = _bench(cfg_path, base, plan, args, Path(tmp), calibrate=True)
     out["wall_s"] = round(time.perf_counter() - t0, 1)
     out["config"] = str(cfg_path)
@@ -259,8 +262,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(out))
     else:
-        cols = {"as configured (CAD)" if side_by_side else "as configured": out}
-        if side_by_side:
+        name = ("calibrated rig" if only_calibrated else "as configured (CAD)" if side_by_side
+                else "as configured")
+        cols = {name: out}
+        if side_by_side and not only_calibrated:
             cols["calibrated rig"] = out["calibrated"]
         _print(cols)
     return 0
