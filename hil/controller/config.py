@@ -123,7 +123,7 @@ class GateConfig(BaseModel):
 
     tolerance_mm: float = Field(1.5, gt=0, description="RMS deviation of live markers from the reference")
     marker_tolerance_mm: float | None = Field(
-        3.0, gt=0, description="and no marker farther than this from its reference (None: not checked)")
+        None, gt=0, description="and no marker farther than this from its reference (None: 2 x tolerance_mm)")
     shape_tolerance_mm: float | None = Field(
         1.0, gt=0, description="and the shape back: the rigid-fit residual of the live markers against the "
                                "reference at most this (None: not checked)")

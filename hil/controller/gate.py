@@ -58,9 +58,9 @@ class GateMeasures:
         if self.rms_mm > cfg.tolerance_mm:
             return (f"markers {self.rms_mm:.2f} mm RMS from the reference state "
                     f"(tolerance {cfg.tolerance_mm} mm)")
-        if cfg.marker_tolerance_mm is not None and self.max_marker_mm > cfg.marker_tolerance_mm:
-            return (f"a marker {self.max_marker_mm:.2f} mm from its reference "
-                    f"(tolerance {cfg.marker_tolerance_mm} mm)")
+        marker_tol = 2.0 * cfg.tolerance_mm if cfg.marker_tolerance_mm is None else cfg.marker_tolerance_mm
+        if self.max_marker_mm > marker_tol:
+            return f"a marker {self.max_marker_mm:.2f} mm from its reference (tolerance {marker_tol} mm)"
         if cfg.shape_tolerance_mm is not None and self.shape_mm > cfg.shape_tolerance_mm:
             return (f"the body's shape {self.shape_mm:.2f} mm from the reference after removing a rigid "
                     f"motion (tolerance {cfg.shape_tolerance_mm} mm)")

@@ -120,5 +120,7 @@ def test_the_gate_wants_the_shape_back_not_only_the_average() -> None:
     assert m.problem(GateConfig(tolerance_mm=1.5, marker_tolerance_mm=2.0, shape_tolerance_mm=None)) == (
         "a marker 2.60 mm from its reference (tolerance 2.0 mm)")
     assert m.problem(GateConfig(tolerance_mm=1.5, marker_tolerance_mm=None, shape_tolerance_mm=None)) is None
+    assert m.problem(GateConfig(tolerance_mm=1.2, marker_tolerance_mm=None, shape_tolerance_mm=None)) == (
+        "a marker 2.60 mm from its reference (tolerance 2.4 mm)")   # None: twice tolerance_mm
     few = gate_measures(REF, np.where(np.arange(6)[:, None] < 2, REF, np.nan))
     assert few.problem(cfg) == "only 2 reference markers seen (need 3)"

@@ -77,7 +77,8 @@ def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Pa
     the first 2 s (the catch-up from the stand-off onto the moving path)."""
     p = setup.procedure
     proc = p.model_copy(update={
-        "gate": p.gate.model_copy(update={"tolerance_mm": 30.0, "hold_request_s": 0.1}),
+        "gate": p.gate.model_copy(update={"tolerance_mm": 30.0, "hold_request_s": 0.1,
+                                          "shape_tolerance_mm": None}),
         "compensation": p.compensation.model_copy(update={"settle_s": follow_s + 60.0}),
         "lock": p.lock.model_copy(update={"drift_alarm_mm": 30.0}),
     })
