@@ -14,7 +14,8 @@ Errors are 3-D norms pooled over every sample of every trace (warm-up included: 
 is not warm answers the last sample): RMS, p95, max and the RMS's ratio to no prediction.
 ``default`` is the predictor with the lowest RMS at the condition.
 
-Without ``--trace``: the shared corpus ``<repo>/../shared/data/respiration`` (every 6-DoF trace and
+Without ``--trace``: the shared corpus ``<repo>/../shared/data/respiration`` (``$HIL_SHARED_DATA``
+overrides ``<repo>/../shared/data``; every 6-DoF trace and
 the tumour trace of every paired directory). Without ``--rate``/``--horizon-ms`` the text report is
 the whole table (15, 30, 60 Hz x 33, 60, 100, 150 ms); ``--json`` reports one condition (default
 15 Hz, 60 ms).
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -40,7 +42,10 @@ from hil.prediction import PREDICTOR_NAMES, SafetyLimits, make_predictor
 
 FloatArray = NDArray[np.float64]
 REPO = Path(__file__).resolve().parents[2]
-CORPUS = REPO.parent / "shared" / "data" / "respiration"
+#: The shared data (data/README.md there): ``<repo>/../shared/data``, or ``$HIL_SHARED_DATA`` when
+#: set (a git worktree that does not sit beside ``shared/``).
+SHARED_DATA = Path(os.environ.get("HIL_SHARED_DATA") or REPO.parent / "shared" / "data")
+CORPUS = SHARED_DATA / "respiration"
 RATES_HZ = (15.0, 30.0, 60.0)
 HORIZONS_MS = (33.0, 60.0, 100.0, 150.0)
 DEFAULT_RATE_HZ = 15.0
@@ -65,7 +70,7 @@ def _load_text(path: Path) -> Trace:
     try:
         a = np.loadtxt(path, ndmin=2)
     except (OSError, ValueError) as exc:
-        raise InputFileError(str(path), f"not a numeric trace ({exc})") from exc
+        raise InputFileError(str(path), f"cannot be read as a numeric trace ({exc})") from exc
     if a.shape[1] < 4 or a.shape[0] < 2:
         raise InputFileError(str(path), f"need rows of time and 3 translations (got shape {a.shape})")
     t, x = a[:, 0], a[:, 1:4]
