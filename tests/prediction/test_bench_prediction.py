@@ -17,7 +17,7 @@ SCRIPT = REPO / "tools" / "benchmarks" / "bench_prediction.py"
 SHARED_DATA = Path(os.environ.get("HIL_SHARED_DATA") or REPO.parent / "shared" / "data")
 TRACE = (SHARED_DATA / "respiration" / "interact" / "paired"
     / "LIGHT_SABR_Lung_High_Motion" / "2.High_Motion SI.txt")
-NAMES = {"none", "alpha-beta", "wlms", "ar-ls", "kalman-osc"}
+NAMES = {"none", "alpha-beta", "wlms", "ar-ls", "kalman-osc", "fast-lane"}
 
 
 def _run(*args: str) -> subprocess.CompletedProcess[str]:

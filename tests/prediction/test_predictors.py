@@ -15,6 +15,7 @@ RATE_HZ = 15.0
 DT_S = 1.0 / RATE_HZ
 H_S = 0.06
 LEARNING = ("wlms", "ar-ls", "kalman-osc")
+ALL_LEARNING = (*LEARNING, "fast-lane")
 
 
 def feed(p: GuardedPredictor, t: np.ndarray, x: np.ndarray) -> None:
@@ -58,7 +59,7 @@ def test_sinusoid_learning_predictors_converge() -> None:
     ab = _sinusoid_rms("alpha-beta")
     assert 0.6 < none < 0.8
     assert 0.05 < ab < 0.15
-    for name in LEARNING:
+    for name in ALL_LEARNING:
         rms = _sinusoid_rms(name)
         assert rms < 0.02, name
         assert rms < 0.2 * ab, name
@@ -198,3 +199,20 @@ def test_horizon_is_clamped_to_the_limit() -> None:
     p = make_predictor("alpha-beta", RATE_HZ, SafetyLimits(max_horizon_s=0.1))
     feed(p, np.arange(5) * DT_S, np.outer(np.arange(5) * DT_S, [10.0, 0.0, 0.0]))
     np.testing.assert_array_equal(p.predict(5.0), p.predict(0.1))
+
+
+def test_fast_lane_answers_with_its_best_lane() -> None:
+    """On a pure sinusoid a learning lane beats alpha-beta's one-sample error and answers; before
+    the learning lanes are warm, alpha-beta (ready at once) answers."""
+    from hil.prediction.fastlane import FastLaneModel
+
+    p = make_predictor("fast-lane", RATE_HZ)
+    assert isinstance(p.model, FastLaneModel)
+    names = [lane.name for lane in p.model.lanes]
+    assert names == ["alpha-beta", "wlms", "ar-ls", "kalman-osc"]
+    t = np.arange(0.0, 2.0, DT_S)
+    feed(p, t, sinusoid(t))
+    assert p.model.best == 0
+    t = np.arange(2.0, 60.0, DT_S)
+    feed(p, t, sinusoid(t))
+    assert names[p.model.best] != "alpha-beta"
