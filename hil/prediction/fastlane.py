@@ -33,7 +33,7 @@ class FastLaneModel:
 
     name = "fast-lane"
 
-    def __init__(self, lanes: list[Model], rate_hz: float, memory_s: float = 3.0) -> None:
+    def __init__(self, lanes: list[Model], rate_hz: float, memory_s: float = 1.0) -> None:
         if not lanes or not (rate_hz > 0 and memory_s > 0):
             raise ValueError("fast-lane: at least one lane, rate and memory > 0")
         self.lanes = lanes
