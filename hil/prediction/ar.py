@@ -1,13 +1,13 @@
 """Sliding-window least-squares autoregressive prediction ("linear prediction" in Sharp, Jiang,
 Shimizu and Shirato, "Prediction of respiratory tumour motion for real-time image-guided
-radiotherapy", Phys. Med. Biol. 49 (2004) 425-440, section 2.2: the next sample as a linear
+radiotherapy", Phys. Med. Biol. 49 (2004) 425-440, their linear predictor: the next sample as a linear
 combination of the last p samples, the coefficients the least-squares fit over the recent
 history; Ernst et al., Phys. Med. Biol. 58 (2013) 3911, compare it as the plain autoregressive
 baseline).
 
 Here on the increments ``d(n) = y(n) - y(n-1)`` (so a baseline drift needs no coefficient):
 ``d(n+1) = sum_{i=1..p} a_i d(n+1-i)``, ``a`` the ridge-regularised least-squares solution over
-the last N increments, ``(Phi^T Phi + lambda I) a = Phi^T d`` (Sharp 2004 eq 2 with a ridge term
+the last N increments, ``(Phi^T Phi + lambda I) a = Phi^T d`` (ordinary least squares with a ridge term
 lambda against an ill-conditioned window, e.g. a breath hold). The normal equations are kept as
 running sums (the newest row added, the one leaving the window subtracted), so one sample costs
 O(p^2) plus one p x p solve. A k-step forecast iterates the one-step model (feeding each forecast

@@ -2,13 +2,13 @@
 baseline, a harmonic oscillator per axis and one shared breathing frequency (after Ramrath,
 Schlaefer, Ernst, Dieterich and Schweikard, "Prediction of respiratory motion with a
 multi-frequency based extended Kalman filter", Proc. CARS 2007, 56-58; the "EKF" of Ernst et al.,
-Phys. Med. Biol. 58 (2013) 3911, section 2.5; here one frequency, the base of that multi-frequency
+Phys. Med. Biol. 58 (2013) 3911; here one frequency, the base of that multi-frequency
 model).
 
 State ``s = (c_xyz, a_xyz, b_xyz, omega)``: per axis the measured position is
 ``y = c + a`` (measurement model H), and over ``dt`` the oscillator turns,
 ``(a, b) <- R(omega dt) (a, b)``, ``c`` and ``omega`` are random walks (process noise ``q_*``).
-The EKF (Ramrath 2007 eqs 3-6; Jacobian of the turn with respect to omega:
+The standard EKF predict/update equations (Jacobian of the turn with respect to omega:
 ``d a'/d omega = -dt b'``, ``d b'/d omega = dt a'``) updates the state on each sample; the
 forecast ``h`` ahead turns the oscillator by ``omega h``: ``y(t + h) = c + a cos(omega h) - b sin(omega h)``.
 omega is kept in ``[2 pi / 15, 2 pi / 1.5]`` rad/s (breathing periods 1.5-15 s).

@@ -4,9 +4,10 @@
 :class:`hil.controller.compensation.MotionFilter` on the translation (position gain alpha,
 velocity gain beta; the first sample sets the position with zero velocity) with the servo loop's
 straight-line extrapolation along the filtered velocity, ``x + v * h`` (Kalata, "The tracking
-index", IEEE Trans. AES 20(2), 1984, eqs 1-4 with the constant-velocity prediction; the project's
-defaults are ``[procedure.compensation] filter_alpha/filter_beta``). Here the velocity is kept per
-sample period; tests/prediction/test_linear.py checks that the two agree.
+index", IEEE Trans. AES 20(2), 1984: the alpha-beta update with the constant-velocity
+prediction; the project's defaults are ``[procedure.compensation] filter_alpha/filter_beta``).
+Here the velocity is kept per sample period; tests/prediction/test_predictors.py checks that the
+two agree.
 """
 
 from __future__ import annotations

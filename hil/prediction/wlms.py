@@ -1,15 +1,16 @@
 """wLMS: wavelet-based multiscale least-mean-squares prediction (Ernst, Schlaefer and Schweikard,
 "Prediction of respiratory motion with wavelet-based multiscale autoregression", MICCAI 2007,
 LNCS 4792, 668-675; evaluated in Ernst et al., "Evaluating and comparing algorithms for
-respiratory motion prediction", Phys. Med. Biol. 58 (2013) 3911-3929, section 2.3).
+respiratory motion prediction", Phys. Med. Biol. 58 (2013) 3911-3929; equation numbers are not
+cited, the papers were not at hand here: the equations are written out below).
 
-The signal is split by the a-trous Haar transform (Ernst 2007 eq 1): ``c_0 = y``,
+The signal is split by the a-trous Haar transform (Ernst 2007): ``c_0 = y``,
 ``c_j(n) = (c_{j-1}(n) + c_{j-1}(n - 2^(j-1))) / 2``, detail bands ``W_j = c_{j-1} - c_j``
 (j = 1..J), so ``y = W_1 + ... + W_J + c_J``. The prediction ``delta`` samples ahead is a linear
-combination of M taps per band spaced ``2^j`` apart (eq 2),
+combination of M taps per band spaced ``2^j`` apart,
 ``y(n + delta) - y(n) = sum_j sum_i w_(j,i) W_j(n - 2^j i) + sum_i w_(J+1,i) (c_J(n) - c_J(n - 2^J (i+1)))``,
-and the weights are trained online by normalised LMS on the samples as they arrive (eq 3 with
-the step normalised by the regressor's energy). Two departures, said here: the target and the
+and the weights are trained online by normalised LMS on the samples as they arrive (the
+step normalised by the regressor's energy). Two departures, said here: the target and the
 approximation band are increments (so a slow baseline drift needs no weight), and one weight
 vector is kept per axis and per whole step ``delta = 1..K`` (K covers the longest horizon); a
 fractional horizon interpolates linearly between the two neighbouring steps.
