@@ -42,6 +42,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "hil.cli.cmd_console",
     "hil.cli.cmd_probe",
     "hil.cli.cmd_stereotaxy",
+    "hil.cli.cmd_traces",
 )
 
 class TerminatedError(KeyboardInterrupt):
