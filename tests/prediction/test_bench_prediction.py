@@ -70,3 +70,18 @@ def test_bad_input_is_one_line_and_exit_2(args: list[str], says: str) -> None:
     assert len(lines) == 1
     assert lines[0].startswith("tools/bench prediction: error: ")
     assert says in lines[0]
+
+
+def test_a_surrogate_alone_is_refused() -> None:
+    resp = TRACE.parent / "2.High_Motion_resp.txt"
+    assert resp.is_file(), f"shared data missing: {resp}"
+    proc = _run("--trace", str(resp), "--json")
+    assert proc.returncode == 2
+    assert "holds no 3-D position" in proc.stderr
+
+
+def test_a_paired_directory_is_a_trace() -> None:
+    assert TRACE.is_file(), f"shared data missing: {TRACE}"
+    proc = _run("--trace", str(TRACE.parent), "--json")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["traces"] == 1

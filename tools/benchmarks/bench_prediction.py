@@ -4,8 +4,9 @@ no prediction and today's COMPENSATE filter, at the system's camera rates and la
 Run: ``tools/bench prediction [--trace FILE ...] [--rate HZ] [--horizon-ms MS] [--noise-mm MM]
 [--seed N] [--json]``
 
-Method (docs/prediction.md): each trace's target position (mm; the three translations of a 6-DoF
-trace, the tumour trace of a paired one) is resampled linearly to the camera rate, Gaussian noise
+Method (docs/prediction.md): each trace (any file or paired directory the project's trace reader
+takes, hil/io/traces.py) gives a target position (mm; the tumour translations, else the first
+recorded skin point), which is resampled linearly to the camera rate, Gaussian noise
 like the stereo pipeline's is added (``--noise-mm``, the 3-D RMS, default 0.05 mm: the vision
 bench's 3-D marker error, docs/benchmarks.md; per axis ``noise / sqrt(3)``, fixed seed), the
 samples are fed one by one to a fresh predictor per trace, and after each one the prediction
@@ -15,8 +16,8 @@ is not warm answers the last sample): RMS, p95, max and the RMS's ratio to no pr
 ``default`` is the predictor with the lowest RMS at the condition.
 
 Without ``--trace``: the shared corpus ``<repo>/../shared/data/respiration`` (``$HIL_SHARED_DATA``
-overrides ``<repo>/../shared/data``; every 6-DoF trace and
-the tumour trace of every paired directory). Without ``--rate``/``--horizon-ms`` the text report is
+overrides ``<repo>/../shared/data``; every 6-DoF trace file and
+every paired directory, its tumour part). Without ``--rate``/``--horizon-ms`` the text report is
 the whole table (15, 30, 60 Hz x 33, 60, 100, 150 ms); ``--json`` reports one condition (default
 15 Hz, 60 ms).
 """
@@ -38,6 +39,7 @@ from numpy.typing import NDArray
 
 from hil.controller.config import CompensationConfig
 from hil.errors import InputFileError
+from hil.io.traces import TraceError, read_trace
 from hil.prediction import PREDICTOR_NAMES, SafetyLimits, make_predictor
 
 FloatArray = NDArray[np.float64]
@@ -59,30 +61,27 @@ TARGET_RATIO_FILTER = 0.8
 @dataclass
 class Trace:
     name: str
-    time_s: FloatArray
-    target_mm: FloatArray  # (N, 3)
+    time_s: FloatArray  # (N,) s from the first sample
+    target_mm: FloatArray  # (N, 3) mm
 
 
-def _load_text(path: Path) -> Trace:
-    """A 6-DoF / tumour trace: whitespace-separated rows ``t x y z rx ry rz`` (s, mm, deg); the
-    three translations are the target. Private loader until hil/io/traces.py lands (say so in
-    the report)."""
-    try:
-        a = np.loadtxt(path, ndmin=2)
-    except (OSError, ValueError) as exc:
-        raise InputFileError(str(path), f"cannot be read as a numeric trace ({exc})") from exc
-    if a.shape[1] < 4 or a.shape[0] < 2:
-        raise InputFileError(str(path), f"need rows of time and 3 translations (got shape {a.shape})")
-    t, x = a[:, 0], a[:, 1:4]
-    if not (np.isfinite(t).all() and np.isfinite(x).all()):
-        raise InputFileError(str(path), "holds NaN or infinite values")
-    if not (np.diff(t) > 0).all():
-        raise InputFileError(str(path), "time does not increase")
-    return Trace(path.name, t - t[0], x)
+def load(path: Path) -> Trace:
+    """A trace's target position through the project's reader (hil/io/traces.py: 6-DoF files,
+    paired directories, points CSV): the tumour translations (mm), else the first recorded point.
+
+    Raises:
+        TraceError: the reader's refusal, or a trace with no 3-D position (a surrogate alone).
+    """
+    tr = read_trace(path)
+    x = tr.target_mm if tr.target_mm is not None else next(iter(tr.points_mm.values()), None)
+    if x is None:
+        raise TraceError(str(path), "holds no 3-D position (a surrogate alone cannot be predicted in mm)")
+    t = np.asarray(tr.time_s, dtype=np.float64)
+    return Trace(path.name, t - t[0], np.asarray(x, dtype=np.float64))
 
 
 def corpus_files(root: Path = CORPUS) -> list[Path]:
-    """Every 6-DoF trace and every paired directory's tumour trace under ``root``.
+    """Every 6-DoF trace file and every paired directory under ``root``.
 
     Raises:
         InputFileError: ``root`` absent or holding no trace.
@@ -91,7 +90,7 @@ def corpus_files(root: Path = CORPUS) -> list[Path]:
         raise InputFileError(str(root), "the shared respiration corpus is missing (expected beside the "
                              "repository: ../shared/data/respiration)")
     files = sorted(root.glob("interact/6dof/*/*.txt"))
-    files += sorted(p for p in root.glob("interact/paired/*/*.txt") if "_resp" not in p.name)
+    files += sorted(p for p in root.glob("interact/paired/*") if p.is_dir())
     if not files:
         raise InputFileError(str(root), "no trace files found")
     return files
@@ -188,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.horizon_ms is not None and args.horizon_ms > 200:
             raise ValueError(f"--horizon-ms at most 200 ms (the predictors' bound; got {args.horizon_ms})")
         files = [Path(f) for f in args.trace] or corpus_files()
-        traces = [_load_text(f) for f in files]
+        traces = [load(f) for f in files]
     except (ValueError, InputFileError) as exc:
         print(f"tools/bench prediction: error: {exc}", file=sys.stderr)
         return 2
