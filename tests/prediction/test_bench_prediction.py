@@ -61,6 +61,7 @@ def test_bench_other_condition() -> None:
     (["--trace", "/nonexistent/trace.txt"], "/nonexistent/trace.txt"),
     (["--rate", "0"], "--rate must be a number > 0"),
     (["--horizon-ms", "500"], "at most 200 ms"),
+    (["--max-minutes", "-1"], "--max-minutes must be a number > 0"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args: list[str], says: str) -> None:
     proc = _run(*args, "--json")
@@ -85,3 +86,12 @@ def test_a_paired_directory_is_a_trace() -> None:
     proc = _run("--trace", str(TRACE.parent), "--json")
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["traces"] == 1
+
+
+def test_max_minutes_cuts_each_trace() -> None:
+    assert TRACE.is_file(), f"shared data missing: {TRACE}"
+    proc = _run("--trace", str(TRACE), "--max-minutes", "1", "--json")
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["max_minutes"] == 1.0
+    assert out["samples"] == 60 * 15 + 1

@@ -2,7 +2,7 @@
 no prediction and today's COMPENSATE filter, at the system's camera rates and latencies.
 
 Run: ``tools/bench prediction [--trace FILE ...] [--rate HZ] [--horizon-ms MS] [--noise-mm MM]
-[--seed N] [--json]``
+[--seed N] [--max-minutes M] [--json]``
 
 Method (docs/prediction.md): each trace (any file or paired directory the project's trace reader
 takes, hil/io/traces.py) gives a target position (mm; the tumour translations, else the first
@@ -78,6 +78,14 @@ def load(path: Path) -> Trace:
         raise TraceError(str(path), "holds no 3-D position (a surrogate alone cannot be predicted in mm)")
     t = np.asarray(tr.time_s, dtype=np.float64)
     return Trace(path.name, t - t[0], np.asarray(x, dtype=np.float64))
+
+
+def truncate(tr: Trace, max_minutes: float | None) -> Trace:
+    """The trace's first ``max_minutes`` (all of it for None)."""
+    if max_minutes is None:
+        return tr
+    keep = tr.time_s <= 60.0 * max_minutes
+    return Trace(tr.name, tr.time_s[keep], tr.target_mm[keep])
 
 
 def corpus_files(root: Path = CORPUS) -> list[Path]:
@@ -176,6 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise-mm", type=float, default=NOISE_MM,
                     help="measurement noise, 3-D RMS, mm (default 0.05)")
     ap.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    ap.add_argument("--max-minutes", type=float,
+                    help="replay only each trace's first M minutes (default: whole traces)")
     ap.add_argument("--json", action="store_true", help="print one JSON object (one condition)")
     args = ap.parse_args(argv)
     try:
@@ -184,10 +194,12 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"{what} must be a number > 0 (got {v})")
         if not (math.isfinite(args.noise_mm) and args.noise_mm >= 0):
             raise ValueError(f"--noise-mm must be a number >= 0 (got {args.noise_mm})")
+        if args.max_minutes is not None and not (math.isfinite(args.max_minutes) and args.max_minutes > 0):
+            raise ValueError(f"--max-minutes must be a number > 0 (got {args.max_minutes})")
         if args.horizon_ms is not None and args.horizon_ms > 200:
             raise ValueError(f"--horizon-ms at most 200 ms (the predictors' bound; got {args.horizon_ms})")
         files = [Path(f) for f in args.trace] or corpus_files()
-        traces = [load(f) for f in files]
+        traces = [truncate(load(f), args.max_minutes) for f in files]
     except (ValueError, InputFileError) as exc:
         print(f"tools/bench prediction: error: {exc}", file=sys.stderr)
         return 2
@@ -200,6 +212,7 @@ def main(argv: list[str] | None = None) -> int:
         best = _best(figs)
         print(json.dumps({
             "rate_hz": rate, "horizon_ms": h_ms, "noise_mm": args.noise_mm, "seed": args.seed,
+            "max_minutes": args.max_minutes,
             "traces": len(traces), "samples": res["none"].samples, "predictors": figs, "default": best,
             "ratio_to_filter": round(figs[best]["rmse_mm"] / ab, 4) if ab else None,
             "targets": {"ratio_to_none": TARGET_RATIO_NONE, "ratio_to_filter": TARGET_RATIO_FILTER},
@@ -208,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rates = [args.rate] if args.rate else list(RATES_HZ)
     hs = [args.horizon_ms] if args.horizon_ms else list(HORIZONS_MS)
-    print(f"{len(traces)} traces, noise {args.noise_mm:g} mm 3-D RMS (seed {args.seed}); "
+    cut = f" (first {args.max_minutes:g} min of each)" if args.max_minutes else ""
+    print(f"{len(traces)} traces{cut}, noise {args.noise_mm:g} mm 3-D RMS (seed {args.seed}); "
           "RMS / p95 / max error, mm, and RMS ratio to no prediction")
     print(f"{'rate':>6} {'horizon':>8}  {'predictor':<11} {'rms':>7} {'p95':>7} {'max':>7} {'/none':>6} "
           f"{'fallbacks':>9} {'us/sample':>9}")
