@@ -212,6 +212,22 @@ FIGURES: list[Figure] = [
         _const(SEEDS_ACCURACY_MM),
         "seeds' ~2 mm",
     ),
+    Figure(
+        "prediction",
+        "best predictor RMS, 15 Hz, 60 ms (recorded breathing)",
+        "mm",
+        lambda d: _get("predictors", str(d.get("default")), "rmse_mm")(d),
+        _get("predictors", "alpha-beta", "rmse_mm"),
+        "today's alpha-beta filter",
+    ),
+    Figure(
+        "prediction",
+        "best predictor RMS, 15 Hz, 60 ms (recorded breathing)",
+        "mm",
+        lambda d: _get("predictors", str(d.get("default")), "rmse_mm")(d),
+        _get("predictors", "none", "rmse_mm"),
+        "no prediction",
+    ),
 ]
 
 
