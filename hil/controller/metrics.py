@@ -71,8 +71,9 @@ class RunSummary:
     #: the true skin markers' rigid-fit residual over the run: p95 and max, mm
     body_rigid_residual_mm_p95: float | None = None
     body_rigid_residual_mm_max: float | None = None
-    #: the guide axis line to the true target while compensating, p95 mm
+    #: the guide axis line to the true target, and to the true entry, while compensating: p95, mm
     comp_target_error_p95_mm: float | None = None
+    comp_entry_error_p95_mm: float | None = None
     #: the measured rigid change's FRE (live skin markers against the registered reference) over
     #: the run after registration: p50 and p95, mm
     change_fre_mm: dict[str, float | None] = field(default_factory=lambda: {"p50": None, "p95": None})
@@ -83,11 +84,12 @@ class RunSummary:
     comp_errors_mm: list[float] = field(default_factory=list, repr=False)
     comp_error_age_s: list[float] = field(default_factory=list, repr=False)
     lock_target_errors_mm: list[float] = field(default_factory=list, repr=False)
+    comp_entry_errors_mm: list[float] = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON summary (docs/run.md); the per-tick error series are left out."""
         d = dict(self.__dict__)
-        for series in ("comp_errors_mm", "comp_error_age_s", "lock_target_errors_mm"):
+        for series in ("comp_errors_mm", "comp_error_age_s", "lock_target_errors_mm", "comp_entry_errors_mm"):
             d.pop(series)
         return d
 
@@ -168,6 +170,7 @@ class TruthMeter:
         self.comp_errors_mm = samples()
         self.comp_error_age_s = samples()   # time since COMPENSATE was entered, per sample
         self.comp_target_errors_mm = samples()
+        self.comp_entry_errors_mm = samples()   # the guide axis line to the true entry, per sample
         self.lock_errors: list[tuple[float, float]] = []
         self.lock_samples: list[TruthSample] = []
         self.rigid_residuals_mm = samples()
@@ -231,6 +234,7 @@ class TruthMeter:
             self.comp_errors_mm.append(sample.position_mm)
             self.comp_error_age_s.append(snap.t_s - entered_s)
             self.comp_target_errors_mm.append(sample.target_mm)
+            self.comp_entry_errors_mm.append(sample.entry_mm)
         else:
             self.lock_errors.append((sample.position_mm, sample.direction_deg))
             self.lock_samples.append(sample)

@@ -487,6 +487,8 @@ def _body_truth(tm: TruthMeter) -> dict[str, Any]:
         "body_rigid_residual_mm_p95": percentile(res, 95),
         "body_rigid_residual_mm_max": max(res) if res else None,
         "comp_target_error_p95_mm": percentile(tm.comp_target_errors_mm, 95),
+        "comp_entry_error_p95_mm": percentile(tm.comp_entry_errors_mm, 95),
+        "comp_entry_errors_mm": list(tm.comp_entry_errors_mm),
         "change_fre_mm": {"p50": percentile(tm.change_fre_mm, 50), "p95": percentile(tm.change_fre_mm, 95)},
         "lock_target_errors_mm": targets,
         "gate_false_open_rate": tm.gate_false_open_ticks / tm.gate_open_ticks if tm.gate_open_ticks else None,
