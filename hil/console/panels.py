@@ -90,6 +90,10 @@ def gate_text(v: ConsoleView) -> Text:
     gate.append("\n" + ("within tolerance" if within else "over tolerance" if dev is not None
                         else "no reference yet (register first)"),
                 style="green" if within else "yellow")
+    if v.gate_shape_mm is not None or v.gate_worst_marker_mm is not None:
+        gate.append(f"\nshape {mm(v.gate_shape_mm)}, farthest marker {mm(v.gate_worst_marker_mm)}")
+    if v.change_fre_mm is not None:
+        gate.append(f"\nnon-rigid {mm(v.change_fre_mm)} ({v.change_estimator} estimate)")
     return gate
 
 

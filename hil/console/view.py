@@ -78,6 +78,13 @@ class ConsoleView:
     session_log: str
     igtl: str
     ended: bool = False
+    #: the body's state against the registered one: the shape residual, the farthest marker's
+    #: deviation (mm), and the deformation monitor (the change estimator and the skin markers'
+    #: rigid-fit residual, mm); None before registration / a measured change
+    gate_shape_mm: float | None = None
+    gate_worst_marker_mm: float | None = None
+    change_estimator: str | None = None
+    change_fre_mm: float | None = None
     error: str = ""
     #: markers located in the latest pair: (left image, right image, triangulated); None before
     #: a pair, or a camera's count None when the locator does not say
@@ -148,6 +155,14 @@ def _markers(snap: ControllerSnapshot, vs: ViewSetup) -> tuple[MarkerRow, ...]:
     return tuple(rows)
 
 
+def _worst(deviations_mm: np.ndarray | None) -> float | None:
+    """The largest finite per-marker deviation (mm), or None."""
+    if deviations_mm is None:
+        return None
+    finite = deviations_mm[np.isfinite(deviations_mm)]
+    return float(finite.max()) if finite.size else None
+
+
 def build_view(snap: ControllerSnapshot, vs: ViewSetup, *, breathing_mm: Sequence[float],
                session_log: str, igtl: str, ended: bool = False, error: str = "") -> ConsoleView:
     """The console's view of one controller snapshot (pure; any thread)."""
@@ -183,5 +198,7 @@ def build_view(snap: ControllerSnapshot, vs: ViewSetup, *, breathing_mm: Sequenc
         commands_refused=snap.commands_refused,
         operator_commands_decided=snap.operator_commands_decided,
         session_log=session_log, igtl=igtl, ended=ended, error=error,
+        gate_shape_mm=snap.gate_shape_mm, gate_worst_marker_mm=_worst(snap.marker_deviations_mm),
+        change_estimator=snap.change_estimator, change_fre_mm=snap.change_fre_mm,
         located_counts=None if snap.located is None else snap.located.counts,
     )
