@@ -15,8 +15,8 @@ What a trace drives, by what it holds (:class:`hil.io.traces.Trace`):
   exact at the recorded points, affine far from them; ``s`` is their mean normalised motion
   along each point's first principal axis, signed anterior (+z).
 
-The trace's time runs from ``start_s`` (default: seeded, within the trace) with world time and
-wraps at the trace's end. During a breath-hold ``s`` eases to the hold's level and a recorded
+The trace's time runs from ``start_s`` (default: a seeded end-exhale of the trace) with world
+time and wraps at the trace's end. During a breath-hold ``s`` eases to the hold's level and a recorded
 target to its position at that level, plus the hold's reproducibility offset
 (:class:`drivers.sim.body.TargetMotion`). The model's coughs and baseline wander are not added:
 the recording has its own.
@@ -41,6 +41,8 @@ FloatArray = NDArray[np.float64]
 MIN_TRACE_S = 20.0
 #: default start: seeded within the trace, leaving this much after it
 START_MARGIN_S = 120.0
+#: default start: at an end-exhale, a local minimum of the normalised signal below this
+EXHALE_LEVEL = 0.1
 
 
 def normalise(series: FloatArray) -> tuple[FloatArray, float, float]:
@@ -157,11 +159,21 @@ class TracePointsDrive:
         return out
 
 
-def _start_s(cfg: BodyTraceConfig, duration_s: float, seed: int) -> float:
+def _start_s(cfg: BodyTraceConfig, t_s: FloatArray, s: FloatArray, seed: int) -> float:
+    """Where in the trace world time 0 falls: ``start_s`` when given, else a seeded end-exhale of
+    the trace (a local minimum of ``s`` below :data:`EXHALE_LEVEL`) at least
+    :data:`START_MARGIN_S` before its end — a procedure starts with the patient registered at
+    end-exhale, as the CT was taken — or, without one, a seeded time in that span."""
     if cfg.start_s is not None:
         return cfg.start_s
-    span = max(duration_s - START_MARGIN_S, 0.0)
-    return float(stream_rng(seed, "trace_start").uniform(0.0, span)) if span > 0.0 else 0.0
+    span = max(float(t_s[-1] - t_s[0]) - START_MARGIN_S, 0.0)
+    rng = stream_rng(seed, "trace_start")
+    inner = s[1:-1]
+    minima = np.flatnonzero((inner <= s[:-2]) & (inner <= s[2:]) & (inner <= EXHALE_LEVEL)) + 1
+    minima = minima[(t_s[minima] - t_s[0]) <= span]
+    if len(minima):
+        return float(t_s[int(rng.choice(minima))] - t_s[0])
+    return float(rng.uniform(0.0, span)) if span > 0.0 else 0.0
 
 
 def _period_s(t_s: FloatArray, s: FloatArray, default_s: float) -> float:
@@ -187,7 +199,7 @@ def trace_body(sim: SimulationConfig, phantom: BodyPhantom, motion: PatientMotio
         s, target, points = _signals(tr, cfg)
     except ValueError as exc:
         raise InputFileError(trace.path, str(exc)) from None
-    signal = TraceSignal(tr.time_s, s, _start_s(cfg, tr.duration_s, sim.seed), motion,
+    signal = TraceSignal(tr.time_s, s, _start_s(cfg, tr.time_s, s, sim.seed), motion,
                          _period_s(tr.time_s, s, sim.breathing.period_s))
     body = DeformableBody(sim.body, sim.seed, phantom.markers_mm, phantom.entry_mm, phantom.target_mm,
                           sim.patient.torso_radius_mm, signal)

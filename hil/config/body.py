@@ -134,7 +134,7 @@ class BodyTraceConfig(BaseModel):
     format: Literal["auto", "points-csv", "surrogate", "6dof", "paired"] = Field(
         "auto", description="the trace's format (auto: told from the file)")
     start_s: float | None = Field(
-        None, ge=0, description="trace time at world time 0, s (default: seeded, within the trace)")
+        None, ge=0, description="trace time at world time 0, s (default: a seeded end-exhale of the trace)")
     rate_hz: float = Field(
         50.0, gt=0, le=1000, description="the trace is resampled (linear) to this rate before use")
     points: dict[str, tuple[float, float]] = Field(
