@@ -10,7 +10,7 @@ PY="${PYTHON:-python3}"
 
 # Extras every set-up installs: dev tools, the report/console/OpenIGTLink features, and the Dask
 # executor of the fault campaigns.
-HIL_DEFAULT_EXTRAS="dev,report,console,igtl,campaign-dask"
+HIL_DEFAULT_EXTRAS="dev,report,console,igtl,campaign-dask,viewer"
 
 log() { printf '[setup] %s\n' "$*" >&2; }
 
