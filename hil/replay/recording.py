@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from hil.errors import HilError
 from hil.replay.rerun_env import import_rerun
 from hil.replay.scene import Scene, SceneItem, build_scene
@@ -122,7 +124,7 @@ def load_verified(path: Path, allow_unverified: bool) -> tuple[list[dict[str, An
 
 def _log_item(rr: Any, rec: Any, item: SceneItem) -> None:
     rec.set_time(TIMELINE_RECORD, sequence=item.seq)
-    rec.set_time(TIMELINE_TIME, duration=item.t_s)
+    rec.set_time(TIMELINE_TIME, duration=np.timedelta64(item.t_ns, "ns"))
     if item.kind == "scalar":
         rec.log(item.entity, rr.Scalars(item.value))
     elif item.kind == "points":
@@ -169,7 +171,7 @@ def _write(scene: Scene, out: Path, name: str, problem: str) -> list[str]:
         entities.append("session/verification")
         if problem:
             rec.set_time(TIMELINE_RECORD, sequence=0)
-            rec.set_time(TIMELINE_TIME, duration=0.0)
+            rec.set_time(TIMELINE_TIME, duration=np.timedelta64(0, "ns"))
             rec.log("events/verification", rr.TextLog(status, level="WARN"))
             entities.append("events/verification")
         rec.log("world", rr.ViewCoordinates.RDF, static=True)  # the optical frame: x right, y down

@@ -15,8 +15,8 @@ Entities (the session log's fields, docs/run.md; absent fields are skipped):
 - ``world/robot/tcp``: ``frame_measured.robot_tcp_mm``; ``world/robot/guide``: the guide axis
   (z of ``frame_measured.T_robot_from_guide``, an arrow of :data:`GUIDE_ARROW_MM`);
 - ``world/robot/plan/{entry,target,path}``: ``plan_accepted`` entry, target and the line between;
-- ``world/robot/commanded``: TCP positions commanded (``command_sent.target``,
-  ``compensation_step.command_mm``);
+- ``world/robot/commanded``: TCP positions commanded (``command_sent``: a move's ``target`` pose or
+  a tracking command's ``target_mm``);
 - ``events/transitions`` (every ``transition_applied``: ``source -> target (transition: reason)``),
   ``events/faults`` (``fault_detected``), ``events/operator`` (``operator_command_result``);
 - the scalar series of :data:`SCALAR_SERIES` under ``series/``.
@@ -72,15 +72,15 @@ ItemKind = Literal["points", "arrows", "strips", "scalar", "text"]
 
 @dataclass(frozen=True)
 class SceneItem:
-    """One entity's value at one record. ``seq``: the record's sequence number; ``t_s``: seconds
-    since the first record (the ``session_time`` timeline). ``points``: N x 3 (points; arrow
+    """One entity's value at one record. ``seq``: the record's sequence number; ``t_ns``: ns since
+    the first record's ``t_ns`` (the ``session_time`` timeline). ``points``: N x 3 (points; arrow
     origins; a strip's vertices), ``vectors``: N x 3 (arrows); ``value``: the scalar;
     ``text``/``level``: a text annotation."""
 
     entity: str
     kind: ItemKind
     seq: int
-    t_s: float
+    t_ns: int
     points: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
     vectors: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
     value: float = math.nan
@@ -150,50 +150,47 @@ def _scalar_table() -> dict[str, list[tuple[str, str]]]:
 _SCALARS = _scalar_table()
 
 
-def _record_items(rec: Mapping[str, Any], seq: int, t_s: float) -> Iterator[SceneItem]:
+def _record_items(rec: Mapping[str, Any], seq: int, t_ns: int) -> Iterator[SceneItem]:
     """The items of one record (module doc)."""
     event = rec.get("event")
     for name, entity in _SCALARS.get(str(event), ()):
         x = _number(rec.get(name))
         if x is not None:
-            yield SceneItem(entity, "scalar", seq, t_s, value=x)
+            yield SceneItem(entity, "scalar", seq, t_ns, value=x)
     if event == "frame_measured":
         for name, entity in (("live_mm", "world/skin/seen"), ("flange_mm", "world/flange/seen")):
             pts = _rows(rec.get(name))
             if pts is not None:
-                yield SceneItem(entity, "points", seq, t_s, points=pts)
+                yield SceneItem(entity, "points", seq, t_ns, points=pts)
         tcp = _vec3(rec.get("robot_tcp_mm"))
         if tcp is not None:
-            yield SceneItem("world/robot/tcp", "points", seq, t_s, points=tcp.reshape(1, 3))
+            yield SceneItem("world/robot/tcp", "points", seq, t_ns, points=tcp.reshape(1, 3))
         guide = _transform(rec.get("T_robot_from_guide"))
         if guide is not None:
-            yield SceneItem("world/robot/guide", "arrows", seq, t_s, points=guide.t.reshape(1, 3),
+            yield SceneItem("world/robot/guide", "arrows", seq, t_ns, points=guide.t.reshape(1, 3),
                             vectors=(guide.R[:, 2] * GUIDE_ARROW_MM).reshape(1, 3))
     elif event == "registration_done":
         ref = _rows(rec.get("reference_optical_mm"))
         if ref is not None:
-            yield SceneItem("world/skin/registered", "points", seq, t_s, points=ref)
+            yield SceneItem("world/skin/registered", "points", seq, t_ns, points=ref)
     elif event == "plan_accepted":
         entry, target = _vec3(rec.get("entry_robot_mm")), _vec3(rec.get("target_robot_mm"))
         if entry is not None and target is not None:
-            yield SceneItem("world/robot/plan/entry", "points", seq, t_s, points=entry.reshape(1, 3))
-            yield SceneItem("world/robot/plan/target", "points", seq, t_s, points=target.reshape(1, 3))
-            yield SceneItem("world/robot/plan/path", "strips", seq, t_s, points=np.vstack([entry, target]))
+            yield SceneItem("world/robot/plan/entry", "points", seq, t_ns, points=entry.reshape(1, 3))
+            yield SceneItem("world/robot/plan/target", "points", seq, t_ns, points=target.reshape(1, 3))
+            yield SceneItem("world/robot/plan/path", "strips", seq, t_ns, points=np.vstack([entry, target]))
     elif event == "command_sent":
         tgt = _transform(rec.get("target"))
-        if tgt is not None:
-            yield SceneItem("world/robot/commanded", "points", seq, t_s, points=tgt.t.reshape(1, 3))
-    elif event == "compensation_step":
-        cmd = _vec3(rec.get("command_mm"))
+        cmd = tgt.t if tgt is not None else _vec3(rec.get("target_mm"))
         if cmd is not None:
-            yield SceneItem("world/robot/commanded", "points", seq, t_s, points=cmd.reshape(1, 3))
+            yield SceneItem("world/robot/commanded", "points", seq, t_ns, points=cmd.reshape(1, 3))
     elif event == "transition_applied":
-        yield SceneItem("events/transitions", "text", seq, t_s, text=transition_text(rec))
+        yield SceneItem("events/transitions", "text", seq, t_ns, text=transition_text(rec))
     elif event == "fault_detected":
-        yield SceneItem("events/faults", "text", seq, t_s, level="ERROR",
+        yield SceneItem("events/faults", "text", seq, t_ns, level="ERROR",
                         text=str(rec.get("reason", "fault")))
     elif event == "operator_command_result":
-        yield SceneItem("events/operator", "text", seq, t_s,
+        yield SceneItem("events/operator", "text", seq, t_ns,
                         text=f"{rec.get('input')}: {rec.get('outcome')} ({rec.get('reason')})")
 
 
@@ -214,14 +211,14 @@ def build_scene(records: Iterable[Mapping[str, Any]]) -> Scene:
         t0 = t_ns if t0 is None else t0
         seq_raw = rec.get("seq")
         seq = seq_raw if isinstance(seq_raw, int) and not isinstance(seq_raw, bool) else scene.records
-        t_s = (t_ns - t0) / 1e9
+        dt_ns = t_ns - t0
         scene.records += 1
-        scene.duration_s = max(scene.duration_s, t_s)
+        scene.duration_s = max(scene.duration_s, dt_ns / 1e9)
         if rec.get("event") == "session_started" and isinstance(rec.get("session_id"), str):
             scene.session_id = str(rec["session_id"])
         if rec.get("event") == "registration_done":
             T = _transform(rec.get("T_robot_from_optical"))
             if T is not None:
                 scene.T_optical_from_robot = T.inverse()
-        scene.items.extend(_record_items(rec, seq, t_s))
+        scene.items.extend(_record_items(rec, seq, dt_ns))
     return scene
