@@ -216,16 +216,9 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
 
 
 def open_viewer_stream(target: str) -> LiveViewerPlugin:
-    """The live Rerun stream of ``--viewer`` (a ``.rrd`` path or a viewer address).
+    """The live Rerun stream of ``--viewer`` (:func:`hil.replay.live.open_live_viewer`)."""
+    from hil.replay.live import open_live_viewer
 
-    Raises:
-        InputFileError: the file's directory does not exist.
-        ViewerUnavailableError: rerun-sdk is missing.
-    """
-    from hil.replay.live import is_address, open_live_viewer
-
-    if not is_address(target) and not Path(target).resolve().parent.is_dir():
-        raise InputFileError(target, "--viewer: the recording's directory does not exist")
     return open_live_viewer(target)
 
 
@@ -233,12 +226,10 @@ def close_viewer_stream(live: LiveViewerPlugin | None, target: str | None, err: 
     """Close the live stream (on every path) and say on ``err`` what it did."""
     if live is None:
         return
-    from hil.replay.live import hook_cost_us
+    from hil.replay.live import stream_line
 
-    c = live.close()
-    cost = hook_cost_us(live)
-    err.write(f"hil run: viewer stream {target}: {c['written']} of {c['offered']} snapshots written, "
-              f"{c['dropped']} dropped; hook p99 {cost['p99']:.1f} us\n")
+    live.close()
+    err.write(f"hil run: {stream_line(live, str(target))}\n")
 
 
 def build_session_report(session_log: str, err: TextIO) -> str | None:

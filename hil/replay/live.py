@@ -27,10 +27,12 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from hil.errors import InputFileError
 from hil.log import get_logger
 from hil.replay.recording import APPLICATION_ID, TIMELINE_TIME, blueprint
 from hil.replay.rerun_env import import_rerun
@@ -221,13 +223,24 @@ class LiveViewerPlugin:
 def open_live_viewer(target: str, recording_id: str | None = None,
                      writer_factory: Callable[[str, str | None], SnapshotWriter] | None = None,
                      ) -> LiveViewerPlugin:
-    """The live plugin streaming to ``target`` (a ``.rrd`` path or a viewer address).
+    """The live plugin streaming to ``target`` (a ``.rrd`` path or a viewer address); its worker
+    thread runs: close it on every path.
 
     Raises:
+        InputFileError: ``target`` is a file whose directory does not exist.
         ViewerUnavailableError: rerun-sdk is missing.
     """
+    if not is_address(target) and not Path(target).resolve().parent.is_dir():
+        raise InputFileError(target, "--viewer: the recording's directory does not exist")
     make: Callable[[str, str | None], Any] = writer_factory or RerunSnapshotWriter
     return LiveViewerPlugin(make(target, recording_id))
+
+
+def stream_line(plugin: LiveViewerPlugin, target: str) -> str:
+    """One line saying what the stream did (counts and the hook's p99), for stderr."""
+    c, cost = plugin.counts(), hook_cost_us(plugin)
+    return (f"viewer stream {target}: {c['written']} of {c['offered']} snapshots written, "
+            f"{c['dropped']} dropped; hook p99 {cost['p99']:.1f} us")
 
 
 def hook_cost_us(plugin: LiveViewerPlugin) -> dict[str, float]:
