@@ -101,3 +101,13 @@ ensure_device_support() {
         return 1
     fi
 }
+
+ensure_browser() {
+    # Debian's chromium for the replay's browser test (tests/replay/test_browser.py: headless,
+    # against the Rerun web viewer served on loopback). In CI a failure here is an error.
+    if ! apt_install_missing chromium && [ "${CI:-}" = "true" ]; then
+        log "CI: the chromium Debian package could not be installed"
+        return 1
+    fi
+    return 0
+}
