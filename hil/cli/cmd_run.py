@@ -145,7 +145,7 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
                   session_dir: Path, max_duration_s: float | None = None,
                   clock: Clock | None = None, operator: Operator | None = None,
                   robot_wrapper: RobotWrapper | None = None, viewer: str | None = None,
-                  err: TextIO = sys.stderr) -> RunSummary:
+                  err: TextIO | None = None) -> RunSummary:
     """Build the devices of ``setup``, run the procedure, close everything; return the summary.
 
     Simulated setups run on a :class:`ManualClock` (faster than real time) unless
@@ -153,8 +153,9 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
     auto / interactive operator chosen by ``auto``. ``robot_wrapper`` (see :data:`RobotWrapper`)
     puts a wrapper between the controller and the robot driver. ``viewer`` (a ``.rrd`` path or
     a Rerun viewer address) streams the run live (:mod:`hil.replay.live`); its counts and hook
-    cost go to ``err`` as one line when it closes.
+    cost go to ``err`` (default: the current ``sys.stderr``) as one line when it closes.
     """
+    err = sys.stderr if err is None else err
     if clock is None:
         from plugins.manager import default_registry
 
