@@ -15,6 +15,10 @@ import json
 import sys
 from typing import Any
 
+#: Said on stderr with --serve (docs/replay.md, "Known defect").
+WEB_VIEWER_WARNING = ("hil replay: note: Rerun's web viewer sends usage analytics from the browser "
+                      "(no opt-out) when it has Internet access; `rerun FILE.rrd` (native) does not")
+
 
 def port_number(text: str) -> int:
     """A TCP port 0..65535 (argparse type)."""
@@ -67,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
             if server is not None:
                 sys.stdout.write(f"serving   {server.url}  (Ctrl-C to stop)\n")
         sys.stdout.flush()
+        if server is not None:
+            print(WEB_VIEWER_WARNING, file=sys.stderr, flush=True)
         if server is not None:
             server.wait()
     finally:

@@ -1,8 +1,9 @@
 """Serve a recording in Rerun's web viewer on loopback (``hil replay --serve``).
 
-:class:`ViewerServer` runs the viewer that ships in the rerun-sdk wheel (``python -m rerun_cli
+:class:`ViewerServer` runs the viewer that ships in the rerun-sdk wheel (``rerun
 --serve-web``) as a child process bound to 127.0.0.1: an HTTP server for the web viewer on
-``web_port`` and a gRPC server holding the recording on ``grpc_port``. Nothing is fetched from
+``web_port`` and a gRPC server holding the recording on ``grpc_port`` (the wheel's ``rerun``
+binary, run directly so that terminating it ends it). Nothing is fetched from
 the network: the viewer's assets are in the wheel. Analytics are off in the child as in this
 process (:mod:`hil.replay.rerun_env`: the config file is shared; ``FORCE_RERUN_ANALYTICS`` is
 not passed on).
@@ -10,10 +11,10 @@ not passed on).
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 from types import TracebackType
@@ -36,6 +37,21 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((LOOPBACK, 0))
         return int(s.getsockname()[1])
+
+
+def rerun_binary() -> Path:
+    """The ``rerun`` executable shipped in the rerun-sdk wheel (package ``rerun_cli``). Run it
+    directly: ``python -m rerun_cli`` is a wrapper whose child would outlive a terminated wrapper.
+
+    Raises:
+        ViewerServeError: rerun-sdk (its ``rerun_cli`` package or binary) is not installed.
+    """
+    spec = importlib.util.find_spec("rerun_cli")
+    exe = None if spec is None or spec.origin is None else Path(spec.origin).parent / "rerun"
+    if exe is None or not exe.is_file():
+        raise ViewerServeError("the Rerun viewer binary is missing "
+                               "(pip install 'needle-guide-hil[viewer]')")
+    return exe
 
 
 def _accepts(port: int) -> bool:
@@ -61,6 +77,7 @@ class ViewerServer:
         self.web_port = web_port or free_port()
         self.grpc_port = grpc_port or free_port()
         self._proc: subprocess.Popen[bytes] | None = None
+        self.pid: int | None = None
 
     @property
     def grpc_url(self) -> str:
@@ -82,13 +99,14 @@ class ViewerServer:
                 raise ViewerServeError(f"{LOOPBACK}:{port} is already in use")
         disable_rerun_analytics()
         env = {k: v for k, v in os.environ.items() if k != FORCE_ANALYTICS_ENV}
-        cmd = [sys.executable, "-m", "rerun_cli", "--serve-web", "--bind", LOOPBACK,
+        cmd = [str(rerun_binary()), "--serve-web", "--bind", LOOPBACK,
                "--port", str(self.grpc_port), "--web-viewer-port", str(self.web_port), str(self.rrd)]
         try:
             self._proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                           stderr=subprocess.DEVNULL, env=env)
         except OSError as exc:
             raise ViewerServeError(f"cannot start the Rerun viewer: {exc.strerror or exc}") from None
+        self.pid = self._proc.pid
         deadline = time.monotonic() + timeout_s
         while not (_accepts(self.web_port) and _accepts(self.grpc_port)):
             code = self._proc.poll()

@@ -1,7 +1,7 @@
 """The served web viewer loads a replay in headless Chromium (Debian's package, network-quiet
-flags, DevTools protocol): no uncaught exception, no console error but the one the viewer's page
-makes offline (its Google Fonts stylesheet cannot be fetched: no network), and the canvas renders
-the recording (the viewer's Rerun entities are drawn: the canvas is not blank)."""
+flags, DevTools protocol): no uncaught exception, no console error but the viewer page's own
+Internet fetches failing offline (:data:`OFFLINE_FETCHES`), the canvas renders the viewer's
+layout (not a blank or loading screen), and the server is ended and reaped."""
 
 from __future__ import annotations
 
@@ -15,8 +15,15 @@ from hil.replay import write_replay
 from hil.replay.serve import ViewerServer
 from tests.replay.cdp import HeadlessChromium, chromium_path
 
-#: The only console error allowed: the page's web-font stylesheet, unreachable without network.
-OFFLINE_FONT = "https://fonts.googleapis.com/css2"
+#: The only console errors allowed: what the web viewer's page asks of the Internet, failing
+#: offline: its web-font stylesheet, the welcome screen's examples manifest (shown until the
+#: recording arrives), its check for a newer release (GitHub) and Rerun's web analytics
+#: (``tel.rerun.io``: the web viewer has no opt-out).
+#: A known defect, docs/replay.md; a new outbound request fails this test.
+OFFLINE_FETCHES = ("https://fonts.googleapis.com/css2",
+                   "https://app.rerun.io/version/0.41.0/examples_manifest.json",
+                   "https://api.github.com/repos/rerun-io/rerun/releases/latest",
+                   "https://tel.rerun.io/")
 #: More distinct colours than the loading screen has (it has a few dozen; the viewer with the
 #: recording's plots and points has hundreds).
 RENDERED_COLOURS = 300
@@ -54,8 +61,14 @@ def test_served_viewer_renders_the_replay(sim_session: Path, tmp_path: Path) -> 
             colours = _distinct_colours(png)
             if colours > RENDERED_COLOURS:
                 break
+    assert server.pid is not None
+    with pytest.raises(ProcessLookupError):  # the viewer server is ended and reaped, no orphan
+        os.kill(server.pid, 0)
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     assert colours > RENDERED_COLOURS, page.console[-20:]
     assert page.exceptions == []
     errors = [text for level, text in page.console if level == "error"]
-    assert all(OFFLINE_FONT in text for text in errors), errors
+    network = [t for t in errors if not t.startswith("TypeError: Failed to fetch")]
+    assert all("ERR_NAME_NOT_RESOLVED" in text and any(url in text for url in OFFLINE_FETCHES)
+               for text in network), errors
+    assert len(errors) - len(network) <= len(network)  # a failed fetch's own error, no other
