@@ -10,7 +10,7 @@ PY="${PYTHON:-python3}"
 
 # Extras every set-up installs: dev tools, the report/console/OpenIGTLink features, and the Dask
 # executor of the fault campaigns.
-HIL_DEFAULT_EXTRAS="dev,report,console,igtl,campaign-dask"
+HIL_DEFAULT_EXTRAS="dev,report,console,igtl,campaign-dask,viewer"
 
 log() { printf '[setup] %s\n' "$*" >&2; }
 
@@ -100,4 +100,14 @@ ensure_device_support() {
         log "CI: the Aravis/socat Debian packages could not be installed"
         return 1
     fi
+}
+
+ensure_browser() {
+    # Debian's chromium for the replay's browser test (tests/replay/test_browser.py: headless,
+    # against the Rerun web viewer served on loopback). In CI a failure here is an error.
+    if ! apt_install_missing chromium && [ "${CI:-}" = "true" ]; then
+        log "CI: the chromium Debian package could not be installed"
+        return 1
+    fi
+    return 0
 }

@@ -39,6 +39,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "hil.cli.cmd_calibrate",
     "hil.cli.cmd_locate",
     "hil.cli.cmd_report",
+    "hil.cli.cmd_replay",
     "hil.cli.cmd_console",
     "hil.cli.cmd_probe",
     "hil.cli.cmd_stereotaxy",

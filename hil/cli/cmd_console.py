@@ -31,6 +31,9 @@ def add_parser(sub: Any) -> None:
                    help="simulated clock: run as fast as possible instead of pacing to the wall clock")
     p.add_argument("--igtl-port", type=int, default=None,
                    help="stream OpenIGTLink on 127.0.0.1:PORT (or the setup's [igtl] host)")
+    p.add_argument("--viewer", metavar="FILE.rrd|ADDRESS", default=None,
+                   help="stream the run live to Rerun: a .rrd file, or a viewer address such as "
+                        "rerun+http://127.0.0.1:9876/proxy (docs/replay.md)")
     p.set_defaults(func=run)
 
 
@@ -52,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
         configure_logging(json=True, level=getattr(args, "log_level", "info"), stream=log_file)
         try:
             session = open_console_session(args.config, plan=args.plan, session_dir=args.session_dir,
-                                           seed=args.seed, fast=args.fast, igtl_port=args.igtl_port)
+                                           seed=args.seed, fast=args.fast, igtl_port=args.igtl_port,
+                                           viewer=args.viewer)
             try:
                 ConsoleApp(session).run()
             finally:

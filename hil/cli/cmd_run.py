@@ -13,7 +13,7 @@ import json
 import select
 import sys
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from hil.clock import Clock, ManualClock, MonotonicClock
 from hil.config import build_devices, default_setup_path, load_setup
@@ -40,6 +40,12 @@ from hil.errors import HilError, InputFileError
 from hil.perception.camera import PerceptionCamera
 from hil.session.log import SessionLog
 
+if TYPE_CHECKING:
+    from hil.replay.live import LiveViewerPlugin
+
+#: The live viewer's name in the run's plugin manager (hil.replay.live.PLUGIN_NAME).
+LIVE_PLUGIN_NAME = "rerun_viewer"
+
 
 def add_parser(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
@@ -61,6 +67,9 @@ def add_parser(sub: Any) -> None:
                         "deformable ([simulation.body.trace] path)")
     p.add_argument("--trace-format", default="auto", choices=TRACE_FORMATS,
                    help="the trace's format (default: told from the file)")
+    p.add_argument("--viewer", metavar="FILE.rrd|ADDRESS", default=None,
+                   help="stream the run live to Rerun: a .rrd file, or a viewer address such as "
+                        "rerun+http://127.0.0.1:9876/proxy (docs/replay.md)")
     p.set_defaults(func=run)
 
 
@@ -143,14 +152,18 @@ def _resolve(args: argparse.Namespace) -> tuple[Path, SetupConfig, ProcedurePlan
 def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *, auto: bool,
                   session_dir: Path, max_duration_s: float | None = None,
                   clock: Clock | None = None, operator: Operator | None = None,
-                  robot_wrapper: RobotWrapper | None = None) -> RunSummary:
+                  robot_wrapper: RobotWrapper | None = None, viewer: str | None = None,
+                  err: TextIO | None = None) -> RunSummary:
     """Build the devices of ``setup``, run the procedure, close everything; return the summary.
 
     Simulated setups run on a :class:`ManualClock` (faster than real time) unless
     ``[simulation] real_time``; other setups on the monotonic clock. ``operator`` overrides the
     auto / interactive operator chosen by ``auto``. ``robot_wrapper`` (see :data:`RobotWrapper`)
-    puts a wrapper between the controller and the robot driver.
+    puts a wrapper between the controller and the robot driver. ``viewer`` (a ``.rrd`` path or
+    a Rerun viewer address) streams the run live (:mod:`hil.replay.live`); its counts and hook
+    cost go to ``err`` (default: the current ``sys.stderr``) as one line when it closes.
     """
+    err = sys.stderr if err is None else err
     if clock is None:
         from plugins.manager import default_registry
 
@@ -169,20 +182,26 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
     header = {**session_header(config_path, setup, plan, devices, clock), "auto": auto}
     igtl = start_igtl(setup, clock)  # first: a busy port is a usage error, nothing else started
+    live: LiveViewerPlugin | None = None
     try:
+        live = None if viewer is None else open_viewer_stream(viewer)
         session = SessionLog(session_dir / f"session_{stamp}.jsonl", clock, header)
         devices.open_all()
     except BaseException:
         if igtl is not None:
             igtl.close()
+        close_viewer_stream(live, viewer, err)
         raise
     ctl: Controller | None = None
     try:
         try:
+            hooks = runtime_plugins(igtl, plan)
+            if live is not None:
+                hooks.register(live, LIVE_PLUGIN_NAME)
             ctl = build_controller(
                 setup, plan, devices, clock=clock, session=session,
                 operator=operator or (AutoOperator() if auto else InteractiveOperator()),
-                hooks=runtime_plugins(igtl, plan),
+                hooks=hooks,
             )
             summary = ctl.run(max_duration_s)
             if isinstance(devices.camera, PerceptionCamera):   # located in the perception process
@@ -193,6 +212,7 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
             devices.close_all()
             if igtl is not None:
                 igtl.close()
+            close_viewer_stream(live, viewer, err)
     except BaseException as exc:
         # Ctrl-C, SIGTERM, an error building the controller: the devices are closed (the arm
         # stopped); the log still ends with session_closed, saying how and in which state
@@ -202,6 +222,23 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
     session.close(final_state=summary.final_state, states=summary.states)
     summary.session_log_sha256 = session.head_sha256  # the chain head, published outside the file
     return summary
+
+
+def open_viewer_stream(target: str) -> LiveViewerPlugin:
+    """The live Rerun stream of ``--viewer`` (:func:`hil.replay.live.open_live_viewer`)."""
+    from hil.replay.live import open_live_viewer
+
+    return open_live_viewer(target)
+
+
+def close_viewer_stream(live: LiveViewerPlugin | None, target: str | None, err: TextIO) -> None:
+    """Close the live stream (on every path) and say on ``err`` what it did."""
+    if live is None:
+        return
+    from hil.replay.live import stream_line
+
+    live.close()
+    err.write(f"hil run: {stream_line(live, str(target))}\n")
 
 
 def build_session_report(session_log: str, err: TextIO) -> str | None:
@@ -261,7 +298,7 @@ def print_text(s: RunSummary, out: TextIO) -> None:
 def run(args: argparse.Namespace) -> int:
     config_path, setup, plan, auto = _resolve(args)
     summary = run_procedure(config_path, setup, plan, auto=auto, session_dir=Path(args.session_dir),
-                            max_duration_s=args.max_duration)
+                            max_duration_s=args.max_duration, viewer=args.viewer)
     if not args.no_report:
         summary.report = build_session_report(summary.session_log, sys.stderr)
     if args.json:

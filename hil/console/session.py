@@ -46,6 +46,7 @@ class ConsoleSession:
     igtl: Any  # IgtlServer | None (pyigtl is optional)
     clock: Clock
     closed: bool = False
+    viewer: Any = None  # LiveViewerPlugin | None (rerun-sdk is optional)
 
     def close(self) -> dict[str, Any]:
         """Stop the loop (aborting a procedure under way), close the devices, the OpenIGTLink
@@ -59,8 +60,11 @@ class ConsoleSession:
             finally:
                 if self.igtl is not None:
                     self.igtl.close()
+                if self.viewer is not None:
+                    self.viewer.close()
                 self.session.close(final_state=self.ctl.state.value, origin="console")
-        return {"final_state": self.ctl.state.value, "session_log": str(self.session.path),
+        out: dict[str, Any] = {"viewer": None if self.viewer is None else self.viewer.counts()}
+        return {**out, "final_state": self.ctl.state.value, "session_log": str(self.session.path),
                 "session_log_sha256": self.session.head_sha256,  # the chain head (also <log>.head)
                 "faults": list(self.ctl.faults), "frames": self.ctl.frames,
                 "error": self.runner.error or None}
@@ -92,11 +96,13 @@ def igtl_config_for(setup: SetupConfig, port: int | None) -> IgtlConfig:
 def open_console_session(config: str | Path | None, *, plan: str | Path | None = None,
                          session_dir: str | Path = "sessions", seed: int | None = None,
                          fast: bool = False, igtl_port: int | None = None,
-                         clock: Clock | None = None) -> ConsoleSession:
+                         clock: Clock | None = None, viewer: str | None = None) -> ConsoleSession:
     """Load the setup and plan, build and open the devices, create the session log and the
     controller, start the OpenIGTLink server when enabled, start the controller thread.
 
     ``fast``: on a simulated clock, do not pace to the wall clock (faster than real time).
+    ``viewer``: stream the run live to Rerun (a ``.rrd`` path or a viewer address;
+    :mod:`hil.replay.live`); the summary's ``viewer`` holds its counts.
 
     Raises:
         ConfigError, InputFileError: bad setup or plan (names file and key).
@@ -118,7 +124,19 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
 
         igtl = IgtlServer(igtl_cfg, clk)
         igtl.start()
-    devices = build_devices(setup, clk)
+    live: Any = None
+    try:
+        if viewer is not None:
+            from hil.replay.live import open_live_viewer
+
+            live = open_live_viewer(viewer)
+        devices = build_devices(setup, clk)
+    except BaseException:
+        if igtl is not None:
+            igtl.close()
+        if live is not None:
+            live.close()
+        raise
     try:
         stereo_calibration(setup, devices.camera)  # none anywhere: refused before any device opens
         devices = with_servo_process(setup, devices, clk)  # [servo] process: on the wall clock
@@ -126,6 +144,8 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
     except BaseException:
         if igtl is not None:
             igtl.close()
+        if live is not None:
+            live.close()
         raise
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
     header: dict[str, Any] = {**session_header(config_path, setup, the_plan, devices, clk),
@@ -137,19 +157,29 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
         session.close(final_state="idle", error="devices could not be opened")
         if igtl is not None:
             igtl.close()
+        if live is not None:
+            live.close()
         raise
     operator = ConsoleOperator()
     # The very controller `hil run` builds (locator, rig, limits, watchdogs, needle check, tracker use).
     try:
+        hooks = runtime_plugins(igtl, the_plan)
+        if live is not None:
+            from hil.replay.live import PLUGIN_NAME as LIVE_PLUGIN
+
+            hooks.register(live, LIVE_PLUGIN)
         ctl = build_controller(setup, the_plan, devices, clock=clk, session=session, operator=operator,
-                               hooks=runtime_plugins(igtl, the_plan))
+                               hooks=hooks)
     except BaseException:   # the servo process and every opened device are closed, the log says why
         devices.close_all()
         session.close(final_state="idle", error="the controller could not be built")
         if igtl is not None:
             igtl.close()
+        if live is not None:
+            live.close()
         raise
     runner = ControllerRunner(ctl, operator, pace=isinstance(clk, ManualClock) and not fast, igtl=igtl,
                               session_log=str(session.path))
     runner.start()
-    return ConsoleSession(config_path, setup, the_plan, devices, session, ctl, operator, runner, igtl, clk)
+    return ConsoleSession(config_path, setup, the_plan, devices, session, ctl, operator, runner, igtl, clk,
+                          viewer=live)

@@ -236,6 +236,8 @@ class ControllerParts(abc.ABC):
                            skin_markers=count_seen(est.live_mm), flange_markers=count_seen(est.flange_mm),
                            gate_deviation_mm=est.gate_deviation_mm(), robot_tcp_mm=st.T_robot_from_tcp.t,
                            tcp_speed_mm_s=st.tcp_speed_mm_s, live_mm=est.live_mm,
+                           flange_mm=est.flange_mm,
+                           T_robot_from_guide=st.T_robot_from_tcp @ est.rig.T_tcp_from_guide,
                            camera_discrepancy_mm=None if cc is None else round(cc[0], 4))
 
     def _notify_observers(self) -> None:

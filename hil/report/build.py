@@ -134,6 +134,24 @@ def _esc(x: object) -> str:
     return html.escape(str(x), quote=True)
 
 
+def replay_section(log: Path) -> list[str]:
+    """How to open the session in the 3D viewer (``hil replay``, docs/replay.md), and the
+    recording's path when one has been written beside the log (``<log>.rrd``)."""
+    from hil.replay.recording import default_out_path
+
+    rrd = default_out_path(log)
+    out = ["<h2>3D replay</h2>",
+           '<p id="replay">Scrub through this session in 3D (markers, arm, guide axis, plan, '
+           "transitions, following error, latency, gate deviation) in the Rerun viewer: "
+           f"<code>hil replay {_esc(log)}</code> writes <code>{_esc(rrd)}</code>; open it with "
+           f"<code>rerun {_esc(rrd)}</code>, or serve it to a browser on this machine with "
+           f"<code>hil replay {_esc(log)} --serve</code>.</p>"]
+    if rrd.is_file():
+        out.append(f'<p id="replay-file">Recording written: <code>{_esc(rrd)}</code> '
+                   f"({rrd.stat().st_size} bytes).</p>")
+    return out
+
+
 def render_html(data: SessionData, chain: VerifyReport, numbers: tuple[Number, ...],
                 plots: tuple[Plot, ...], log_sha256: str) -> str:
     """The whole page as one string (no external resources)."""
@@ -191,6 +209,7 @@ def render_html(data: SessionData, chain: VerifyReport, numbers: tuple[Number, .
     else:
         out.append('<p id="faults">No faults.</p>')
 
+    out.extend(replay_section(data.path))
     out.append("<h2>Transitions</h2>")
     out.append('<table id="transitions">'
                "<tr><th>time (s)</th><th>transition</th><th>from</th><th>to</th></tr>")

@@ -1,0 +1,251 @@
+"""The live 3D view: a runtime plugin on the snapshot hooks that streams a run to Rerun
+(``hil run --viewer FILE.rrd|ADDRESS``, ``hil console --viewer ...``), like the OpenIGTLink stream.
+
+Contract: the hooks (called in the controller's thread) only append the frozen snapshot to a
+bounded queue (a deque: no lock, no wake-up): they never block and never do I/O. A snapshot the
+queue cannot take is dropped and counted (:attr:`LiveViewerPlugin.dropped`). One worker thread
+(daemon, named ``hil-viewer``) wakes every ``poll_s`` (20 ms), takes the queued snapshots and
+writes them through a :class:`SnapshotWriter` — by default
+:class:`RerunSnapshotWriter` — so a slow viewer or disk only costs drops, never tick time.
+:meth:`LiveViewerPlugin.close` (idempotent) stops the worker after it has written what is queued
+(at most ``close_timeout_s``; the rest is abandoned and counted ``lost_on_close``), joins it and
+closes the writer; call it on every path.
+
+Entities (same paths as a replay, :mod:`hil.replay.scene`; the optical frame is ``world``):
+``world/skin/seen``, ``world/flange/seen``, ``world/robot/tcp``, ``world/robot/guide`` is not
+streamed (the snapshot carries the TCP, the rig's guide offset is not in it), ``world/robot``
+(``T_robot_from_optical`` inverse, once known), ``series/gate/frame_deviation_mm``,
+``series/following/guide_error_mm``, ``series/truth/position_error_mm`` (simulator), and
+``events/transitions`` (every applied transition). Timelines: ``session_time`` (the snapshot's
+``t_ns`` since the first one) and ``tick`` (snapshots written).
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+
+from hil.errors import InputFileError
+from hil.log import get_logger
+from hil.replay.recording import APPLICATION_ID, TIMELINE_TIME, blueprint
+from hil.replay.rerun_env import import_rerun
+from plugins.hookspecs import hookimpl
+
+if TYPE_CHECKING:
+    from hil.controller.fsm import FireResult
+    from hil.controller.snapshot import ControllerSnapshot
+
+_log = get_logger(__name__)
+
+#: The plugin's name in the run's plugin manager.
+PLUGIN_NAME = "rerun_viewer"
+#: Timeline of the live stream counting snapshots written.
+TIMELINE_TICK = "tick"
+#: Log event when the stream is closed (with its counts).
+EV_VIEWER_CLOSED = "viewer_stream_closed"
+#: Default queue length (snapshots): 1 s of ticks at 500 Hz.
+DEFAULT_QUEUE = 500
+
+
+class SnapshotWriter(Protocol):
+    """Writes snapshots somewhere (called in the worker thread only)."""
+
+    def write_tick(self, snap: ControllerSnapshot) -> None: ...
+
+    def write_transition(self, text: str, snap: ControllerSnapshot) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def is_address(target: str) -> bool:
+    """A viewer address (``rerun://``, ``rerun+http://``, ``rerun+https://``) rather than a file."""
+    return target.startswith(("rerun://", "rerun+http://", "rerun+https://"))
+
+
+class RerunSnapshotWriter:
+    """Streams snapshots into a Rerun recording: a ``.rrd`` file, or a viewer at an address.
+
+    Raises:
+        ViewerUnavailableError: rerun-sdk is missing.
+    """
+
+    def __init__(self, target: str, recording_id: str | None = None) -> None:
+        self.rr = import_rerun()
+        self.rec = self.rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+        if is_address(target):
+            self.rec.connect_grpc(target, default_blueprint=blueprint())
+        else:
+            self.rec.save(target, default_blueprint=blueprint())
+        self.rec.set_log_time_enabled(False)
+        self._t0: int | None = None
+        self._tick = 0
+        self._robot_placed = False
+
+    def _time(self, snap: ControllerSnapshot) -> None:
+        self._t0 = snap.t_ns if self._t0 is None else self._t0
+        self.rec.set_time(TIMELINE_TICK, sequence=self._tick)
+        self.rec.set_time(TIMELINE_TIME, duration=np.timedelta64(snap.t_ns - self._t0, "ns"))
+
+    def write_tick(self, snap: ControllerSnapshot) -> None:
+        rr, rec = self.rr, self.rec
+        self._tick += 1
+        self._time(snap)
+        if not self._robot_placed and snap.T_robot_from_optical is not None:
+            T = snap.T_robot_from_optical.inverse()
+            rec.log("world/robot", rr.Transform3D(translation=T.t, mat3x3=T.R), static=True)
+            self._robot_placed = True
+        for entity, pts in (("world/skin/seen", snap.live_mm), ("world/flange/seen", snap.flange_mm)):
+            if pts is not None:
+                seen = pts[np.all(np.isfinite(pts), axis=1)]
+                if len(seen):
+                    rec.log(entity, rr.Points3D(seen, radii=rr.Radius.ui_points(4.0)))
+        robot = snap.robot_now or snap.robot
+        if robot is not None:
+            rec.log("world/robot/tcp", rr.Points3D(robot.T_robot_from_tcp.t.reshape(1, 3),
+                                                   radii=rr.Radius.ui_points(4.0)))
+        for entity, x in (("series/gate/frame_deviation_mm", snap.gate_deviation_mm),
+                          ("series/following/guide_error_mm", snap.guide_error_mm),
+                          ("series/truth/position_error_mm", snap.truth_error_mm)):
+            if x is not None and np.isfinite(x):
+                rec.log(entity, rr.Scalars(float(x)))
+
+    def write_transition(self, text: str, snap: ControllerSnapshot) -> None:
+        self._time(snap)
+        self.rec.log("events/transitions", self.rr.TextLog(text, level="INFO"))
+
+    def close(self) -> None:
+        try:
+            self.rec.flush()
+        finally:
+            self.rec.disconnect()
+
+
+@dataclass
+class _Item:
+    snap: ControllerSnapshot
+    transition: str | None = None
+
+
+class LiveViewerPlugin:
+    """The live stream (module doc). ``writer``: where snapshots go (started here: the worker
+    thread starts in the constructor). ``hook_s``: the time each hook call took, for the cost
+    figure (bounded: the last ``keep_timings`` calls)."""
+
+    def __init__(self, writer: SnapshotWriter, queue_size: int = DEFAULT_QUEUE,
+                 close_timeout_s: float = 5.0, keep_timings: int = 100_000,
+                 poll_s: float = 0.02) -> None:
+        self.writer = writer
+        self.close_timeout_s = close_timeout_s
+        self._q: collections.deque[_Item] = collections.deque()
+        self._queue_size = queue_size
+        self.poll_s = poll_s
+        self._stop = threading.Event()
+        self._abandon = threading.Event()
+        self.offered = 0
+        self.dropped = 0
+        self.written = 0
+        self.write_errors = 0
+        self.hook_s: list[float] = []
+        self._keep = keep_timings
+        self._closed = False
+        self._thread = threading.Thread(target=self._work, name="hil-viewer", daemon=True)
+        self._thread.start()
+
+    # ---------------------------------------------------------------- controller thread
+    def _offer(self, item: _Item) -> None:
+        t = time.perf_counter()
+        self.offered += 1
+        if len(self._q) < self._queue_size:
+            self._q.append(item)  # atomic; no lock, no wake-up of the worker (it polls)
+        else:
+            self.dropped += 1
+        if len(self.hook_s) < self._keep:
+            self.hook_s.append(time.perf_counter() - t)
+
+    @hookimpl
+    def hil_on_tick(self, snapshot: ControllerSnapshot) -> None:
+        self._offer(_Item(snapshot))
+
+    @hookimpl
+    def hil_on_transition(self, transition: FireResult, snapshot: ControllerSnapshot) -> None:
+        text = (f"{transition.source.value} -> {transition.target.value} "
+                f"({transition.transition_name}: {transition.reason})")
+        self._offer(_Item(snapshot, text))
+
+    # ---------------------------------------------------------------- worker thread
+    def _work(self) -> None:
+        """Every ``poll_s``: write what is queued; after :meth:`close` asks, end once it is empty."""
+        while True:
+            stopping = self._stop.wait(self.poll_s)
+            while self._q and not self._abandon.is_set():
+                item = self._q.popleft()
+                try:
+                    if item.transition is None:
+                        self.writer.write_tick(item.snap)
+                    else:
+                        self.writer.write_transition(item.transition, item.snap)
+                    self.written += 1
+                except Exception as exc:  # noqa: BLE001 -- a viewer problem must not end the stream
+                    self.write_errors += 1
+                    if self.write_errors == 1:
+                        _log.warning("viewer_write_failed", error=repr(exc))
+            if stopping or self._abandon.is_set():
+                return
+
+    def counts(self) -> dict[str, int]:
+        """``offered``, ``written``, ``dropped`` (queue full), ``write_errors``, ``lost_on_close``."""
+        return {"offered": self.offered, "written": self.written, "dropped": self.dropped,
+                "write_errors": self.write_errors,
+                "lost_on_close": self.offered - self.dropped - self.written - self.write_errors}
+
+    def close(self) -> dict[str, int]:
+        """Write what is queued (at most ``close_timeout_s``), stop and join the worker, close
+        the writer; the counts. Idempotent."""
+        if not self._closed:
+            self._closed = True
+            self._stop.set()
+            self._thread.join(self.close_timeout_s)
+            if self._thread.is_alive():  # the writer is slow: abandon the rest of the queue
+                self._abandon.set()
+                self._thread.join()
+            self.writer.close()
+            _log.info(EV_VIEWER_CLOSED, **self.counts())
+        return self.counts()
+
+
+def open_live_viewer(target: str, recording_id: str | None = None,
+                     writer_factory: Callable[[str, str | None], SnapshotWriter] | None = None,
+                     ) -> LiveViewerPlugin:
+    """The live plugin streaming to ``target`` (a ``.rrd`` path or a viewer address); its worker
+    thread runs: close it on every path.
+
+    Raises:
+        InputFileError: ``target`` is a file whose directory does not exist.
+        ViewerUnavailableError: rerun-sdk is missing.
+    """
+    if not is_address(target) and not Path(target).resolve().parent.is_dir():
+        raise InputFileError(target, "--viewer: the recording's directory does not exist")
+    make: Callable[[str, str | None], Any] = writer_factory or RerunSnapshotWriter
+    return LiveViewerPlugin(make(target, recording_id))
+
+
+def stream_line(plugin: LiveViewerPlugin, target: str) -> str:
+    """One line saying what the stream did (counts and the hook's p99), for stderr."""
+    c, cost = plugin.counts(), hook_cost_us(plugin)
+    return (f"viewer stream {target}: {c['written']} of {c['offered']} snapshots written, "
+            f"{c['dropped']} dropped; hook p99 {cost['p99']:.1f} us")
+
+
+def hook_cost_us(plugin: LiveViewerPlugin) -> dict[str, float]:
+    """p50 / p99 / max of the hook's time per call, microseconds (0 when never called)."""
+    if not plugin.hook_s:
+        return {"p50": 0.0, "p99": 0.0, "max": 0.0}
+    a = np.asarray(plugin.hook_s) * 1e6
+    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "max": float(a.max())}

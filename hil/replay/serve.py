@@ -1,0 +1,143 @@
+"""Serve a recording in Rerun's web viewer on loopback (``hil replay --serve``).
+
+:class:`ViewerServer` runs the viewer that ships in the rerun-sdk wheel (``rerun
+--serve-web``) as a child process bound to 127.0.0.1: an HTTP server for the web viewer on
+``web_port`` and a gRPC server holding the recording on ``grpc_port`` (the wheel's ``rerun``
+binary, run directly so that terminating it ends it). Nothing is fetched from
+the network: the viewer's assets are in the wheel. Analytics are off in the child as in this
+process (:mod:`hil.replay.rerun_env`: the config file is shared; ``FORCE_RERUN_ANALYTICS`` is
+not passed on).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import socket
+import subprocess
+import time
+from pathlib import Path
+from types import TracebackType
+from urllib.parse import quote
+
+from hil.errors import HilError
+from hil.replay.rerun_env import FORCE_ANALYTICS_ENV, disable_rerun_analytics
+
+LOOPBACK = "127.0.0.1"
+DEFAULT_WEB_PORT = 9090
+DEFAULT_GRPC_PORT = 9876
+
+
+class ViewerServeError(HilError):
+    """The web viewer could not be started (port busy, viewer missing, it exited)."""
+
+
+def free_port() -> int:
+    """A TCP port free on loopback right now (for tests and ``--web-port 0``)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((LOOPBACK, 0))
+        return int(s.getsockname()[1])
+
+
+def rerun_binary() -> Path:
+    """The ``rerun`` executable shipped in the rerun-sdk wheel (package ``rerun_cli``). Run it
+    directly: ``python -m rerun_cli`` is a wrapper whose child would outlive a terminated wrapper.
+
+    Raises:
+        ViewerServeError: rerun-sdk (its ``rerun_cli`` package or binary) is not installed.
+    """
+    spec = importlib.util.find_spec("rerun_cli")
+    exe = None if spec is None or spec.origin is None else Path(spec.origin).parent / "rerun"
+    if exe is None or not exe.is_file():
+        raise ViewerServeError("the Rerun viewer binary is missing "
+                               "(pip install 'needle-guide-hil[viewer]')")
+    return exe
+
+
+def _accepts(port: int) -> bool:
+    try:
+        with socket.create_connection((LOOPBACK, port), timeout=0.2):
+            return True
+    except OSError:
+        return False
+
+
+class ViewerServer:
+    """The web viewer serving ``rrd`` on loopback. Start with :meth:`start` (or ``with``), stop
+    with :meth:`close` (idempotent; terminates, then kills after ``2 s``).
+
+    Args:
+        rrd: the recording to serve.
+        web_port / grpc_port: loopback ports (0: pick a free one).
+    """
+
+    def __init__(self, rrd: str | Path, web_port: int = DEFAULT_WEB_PORT,
+                 grpc_port: int = DEFAULT_GRPC_PORT) -> None:
+        self.rrd = Path(rrd)
+        self.web_port = web_port or free_port()
+        self.grpc_port = grpc_port or free_port()
+        self._proc: subprocess.Popen[bytes] | None = None
+        self.pid: int | None = None
+
+    @property
+    def grpc_url(self) -> str:
+        return f"rerun+http://{LOOPBACK}:{self.grpc_port}/proxy"
+
+    @property
+    def url(self) -> str:
+        """The address to open in a browser: the web viewer connected to the recording."""
+        return f"http://{LOOPBACK}:{self.web_port}/?url={quote(self.grpc_url, safe='')}"
+
+    def start(self, timeout_s: float = 30.0) -> ViewerServer:
+        """Start the viewer and wait (up to ``timeout_s``) until both ports accept connections.
+
+        Raises:
+            ViewerServeError: a port is busy, the viewer exited, or it did not come up in time.
+        """
+        for port in (self.web_port, self.grpc_port):
+            if _accepts(port):
+                raise ViewerServeError(f"{LOOPBACK}:{port} is already in use")
+        disable_rerun_analytics()
+        env = {k: v for k, v in os.environ.items() if k != FORCE_ANALYTICS_ENV}
+        cmd = [str(rerun_binary()), "--serve-web", "--bind", LOOPBACK,
+               "--port", str(self.grpc_port), "--web-viewer-port", str(self.web_port), str(self.rrd)]
+        try:
+            self._proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.DEVNULL, env=env)
+        except OSError as exc:
+            raise ViewerServeError(f"cannot start the Rerun viewer: {exc.strerror or exc}") from None
+        self.pid = self._proc.pid
+        deadline = time.monotonic() + timeout_s
+        while not (_accepts(self.web_port) and _accepts(self.grpc_port)):
+            code = self._proc.poll()
+            if code is not None or time.monotonic() > deadline:
+                self.close()
+                why = f"exited with code {code}" if code is not None else f"not up after {timeout_s:g} s"
+                raise ViewerServeError(f"the Rerun web viewer {why} (is rerun-sdk installed?)")
+            time.sleep(0.05)  # polling a port's readiness, not a synchronisation by sleeping
+        return self
+
+    def wait(self) -> int:
+        """Block until the viewer exits (Ctrl-C raises KeyboardInterrupt here); its exit code."""
+        if self._proc is None:
+            return 0
+        return self._proc.wait()
+
+    def close(self) -> None:
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(timeout=2.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+    def __enter__(self) -> ViewerServer:
+        return self.start()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()

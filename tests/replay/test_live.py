@@ -1,0 +1,127 @@
+"""The live viewer plugin: never blocks the supervisor (a slow consumer only costs counted
+drops), its worker thread is closed on every path, and ``hil run --viewer FILE.rrd`` writes a
+recording that Rerun reads back with the run's transitions."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from hil.cli import main
+from hil.replay.live import LiveViewerPlugin, hook_cost_us
+from tests.replay.conftest import read_records
+
+
+class SlowWriter:
+    """Blocks in its first write until released (a viewer that stopped reading)."""
+
+    def __init__(self) -> None:
+        self.entered = threading.Event()
+        self.release = threading.Event()
+        self.ticks: list[Any] = []
+        self.transitions: list[str] = []
+        self.closed = False
+
+    def write_tick(self, snap: Any) -> None:
+        self.entered.set()
+        assert self.release.wait(30.0)
+        self.ticks.append(snap)
+
+    def write_transition(self, text: str, snap: Any) -> None:
+        self.transitions.append(text)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def _viewer_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name == "hil-viewer"]
+
+
+def test_slow_consumer_drops_are_counted_and_the_hook_stays_cheap() -> None:
+    writer = SlowWriter()
+    plugin = LiveViewerPlugin(writer, queue_size=100, poll_s=0.001)
+    try:
+        plugin.hil_on_tick(snapshot=0)  # type: ignore[arg-type]
+        assert writer.entered.wait(30.0)  # the worker holds snapshot 0 and is stuck writing it
+        for i in range(1, 1001):
+            plugin.hil_on_tick(snapshot=i)  # type: ignore[arg-type]
+        assert plugin.dropped == 900
+        assert plugin.offered == 1001
+        cost = hook_cost_us(plugin)
+        assert cost["p99"] < 1000.0  # a list append: microseconds even on a loaded machine
+        writer.release.set()
+    finally:
+        writer.release.set()
+        counts = plugin.close()
+    assert counts == {"offered": 1001, "written": 101, "dropped": 900, "write_errors": 0,
+                      "lost_on_close": 0}
+    assert writer.ticks == [0, *range(1, 101)]  # the first 100 queued, in order
+    assert writer.closed
+    assert not _viewer_threads()
+
+
+class FailingWriter(SlowWriter):
+    def write_tick(self, snap: Any) -> None:
+        raise RuntimeError("viewer gone")
+
+
+def test_write_errors_are_counted_and_the_stream_goes_on() -> None:
+    writer = FailingWriter()
+    plugin = LiveViewerPlugin(writer, queue_size=10, poll_s=0.001)
+    try:
+        for i in range(5):
+            plugin.hil_on_tick(snapshot=i)  # type: ignore[arg-type]
+    finally:
+        counts = plugin.close()
+    assert counts["write_errors"] == 5
+    assert counts["written"] == 0
+    assert writer.closed
+    assert plugin.close() == counts  # idempotent
+    assert not _viewer_threads()
+
+
+def test_hil_run_viewer_writes_a_live_recording(tmp_path: Path) -> None:
+    from rerun.chunk import RrdReader
+
+    rrd = tmp_path / "live.rrd"
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(["run", "--json", "--no-report", "--session-dir", str(tmp_path), "--viewer", str(rrd)])
+    assert code == 0
+    summary = json.loads(out.getvalue())
+    (line,) = [ln for ln in err.getvalue().splitlines() if "viewer stream" in ln]
+    assert f"hil run: viewer stream {rrd}: " in line
+    assert " 0 dropped;" in line
+    recs = read_records(Path(summary["session_log"]))
+    want = [f"{r['source']} -> {r['target']} ({r['transition']}: {r['reason']})"
+            for r in recs if r["event"] == "transition_applied"]
+    entities: dict[str, int] = {}
+    texts: list[tuple[int, str]] = []
+    for chunk in RrdReader(rrd).stream():
+        entities[chunk.entity_path] = entities.get(chunk.entity_path, 0) + chunk.num_rows
+        if chunk.entity_path == "/events/transitions":
+            b = chunk.to_record_batch()
+            texts += list(zip(b.column("tick").to_pylist(),
+                              [v[0] for v in b.column("TextLog:text").to_pylist()], strict=True))
+    assert [t for _, t in sorted(texts)] == want
+    frames = [r for r in recs if r["event"] == "frame_measured"]
+    assert {"/world/skin/seen", "/world/flange/seen", "/world/robot/tcp", "/world/robot",
+            "/series/following/guide_error_mm"} <= set(entities)
+    assert 0 < entities["/world/skin/seen"] <= entities["/world/robot/tcp"]
+    assert len(frames) > 0
+    assert not _viewer_threads()
+
+
+def test_a_missing_directory_is_a_usage_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    target = tmp_path / "no" / "live.rrd"
+    assert main(["run", "--no-report", "--session-dir", str(tmp_path), "--viewer", str(target)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"hil run: error: {target}: --viewer: the recording's directory does not exist"]
+    assert not list(tmp_path.glob("session_*.jsonl"))
