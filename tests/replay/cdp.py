@@ -32,7 +32,7 @@ FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-
          # connection not to loopback goes to a dead local proxy (the served page still *tries* its
          # outbound fetches, which the test sees as failed requests)
          "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1, EXCLUDE localhost",
-         "--proxy-server=127.0.0.1:9", "--proxy-bypass-list=127.0.0.1;localhost;<-loopback>")
+         "--proxy-server=127.0.0.1:9", "--proxy-bypass-list=127.0.0.1;localhost")
 
 
 def chromium_path() -> str | None:

@@ -20,9 +20,9 @@ the body becomes deformable), e.g. on ``configs/sim_patient.toml``.
 Two compensation figures: the normal procedure compensates during the requested breath-hold
 (micro-motion only); a second run per seed (``--follow-s``, default 12 s) opens the gate at once
 and follows free breathing, and its errors after a 2 s catch-up give ``comp_err_mm_p95`` (the
-hold-only figure when ``--follow-s 0``). On a deformable patient the true path turns with the target's own motion,
-which no skin marker shows; ``comp_entry_err_mm_p95_following`` is the part the markers can tell
-(the guide axis line to the true entry while following).
+hold-only figure when ``--follow-s 0``). On a deformable patient the true path turns with the
+target's own motion, which no skin marker shows; ``comp_entry_err_mm_p95_following`` is the part
+the markers can tell (the guide axis line to the true entry while following).
 
 With a config whose simulated rig has errors (``[simulation.rig_errors]``, e.g.
 ``configs/sim_realistic.toml``) every seed is run twice, side by side: with the setup as given
