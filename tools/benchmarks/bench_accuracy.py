@@ -50,6 +50,7 @@ from hil.config.build import clock_for
 from hil.config.overrides import TRACE_FORMATS, with_trace
 from hil.config.simulation import RigErrorsConfig
 from hil.controller.change_estimate import CHANGE_ESTIMATORS
+from hil.controller.metrics import RunSummary
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import HilError
 from hil.log import configure_logging
@@ -59,6 +60,19 @@ from hil.rigcal.runner import run_rig_calibration
 
 def _rms(xs: list[float]) -> float | None:
     return float(np.sqrt(np.mean(np.square(xs)))) if xs else None
+
+
+def _run_record(seed: int, s: RunSummary) -> dict[str, Any]:
+    """One seed's row of ``per_run``."""
+    return {"seed": seed, "final_state": s.final_state, "lock_error_mm": s.lock_error_mm,
+            "lock_direction_error_deg": s.lock_direction_error_deg,
+            "comp_error_p95_mm": s.comp_error_p95_mm, "gate_open_fraction": s.gate_open_fraction,
+            "time_to_lock_s": s.time_to_lock_s, "fre_mm": s.fre_mm,
+            "latency_ms_p95": s.latency_ms["p95"], "target_error_mm": s.target_error_mm,
+            "target_error_max_mm": s.target_error_max_mm, "entry_axis_error_mm": s.entry_axis_error_mm,
+            "body_rigid_residual_mm_p95": s.body_rigid_residual_mm_p95,
+            "change_fre_mm_p95": s.change_fre_mm["p95"],
+            "gate_false_open_rate": s.gate_false_open_rate, "gate_open_ticks": s.gate_open_ticks}
 
 
 def _false_open(runs: list[dict[str, Any]]) -> float | None:
@@ -131,16 +145,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
             path_errors, entry_errors = _follow_run(cfg_path, setup, plan, tmp, args.follow_s)
             follow_all += path_errors
             follow_entry += entry_errors
-        runs.append({"seed": seed, "final_state": s.final_state, "lock_error_mm": s.lock_error_mm,
-                     "lock_direction_error_deg": s.lock_direction_error_deg,
-                     "comp_error_p95_mm": s.comp_error_p95_mm, "gate_open_fraction": s.gate_open_fraction,
-                     "time_to_lock_s": s.time_to_lock_s, "fre_mm": s.fre_mm,
-                     "latency_ms_p95": s.latency_ms["p95"], "target_error_mm": s.target_error_mm,
-                     "target_error_max_mm": s.target_error_max_mm,
-                     "entry_axis_error_mm": s.entry_axis_error_mm,
-                     "body_rigid_residual_mm_p95": s.body_rigid_residual_mm_p95,
-                     "change_fre_mm_p95": s.change_fre_mm["p95"],
-                     "gate_false_open_rate": s.gate_false_open_rate, "gate_open_ticks": s.gate_open_ticks})
+        runs.append(_run_record(seed, s))
         if not args.json:
             print(f"{'calibrated' if calibrate else 'as given'} seed {seed}: {s.final_state}, "
                   f"lock {s.lock_error_mm}, dir {s.lock_direction_error_deg}", file=sys.stderr)
