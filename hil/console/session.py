@@ -93,6 +93,24 @@ def igtl_config_for(setup: SetupConfig, port: int | None) -> IgtlConfig:
     return base
 
 
+def _close_outputs(igtl: Any, live: Any) -> None:
+    """Close the OpenIGTLink server and the live viewer stream, those that were started."""
+    if igtl is not None:
+        igtl.close()
+    if live is not None:
+        live.close()
+
+
+def _load_setup(config_path: Path, seed: int | None) -> SetupConfig:
+    """The setup, with ``[simulation] seed`` overridden when ``seed`` is given (>= 0)."""
+    setup = load_setup(config_path)
+    if seed is None:
+        return setup
+    if seed < 0:
+        raise InputFileError("--seed", f"must be >= 0, got {seed}")
+    return setup.model_copy(update={"simulation": setup.simulation.model_copy(update={"seed": seed})})
+
+
 def open_console_session(config: str | Path | None, *, plan: str | Path | None = None,
                          session_dir: str | Path = "sessions", seed: int | None = None,
                          fast: bool = False, igtl_port: int | None = None,
@@ -110,11 +128,7 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
         DriverError: a device cannot be opened.
     """
     config_path = Path(config) if config is not None else default_setup_path()
-    setup = load_setup(config_path)
-    if seed is not None:
-        if seed < 0:
-            raise InputFileError("--seed", f"must be >= 0, got {seed}")
-        setup = setup.model_copy(update={"simulation": setup.simulation.model_copy(update={"seed": seed})})
+    setup = _load_setup(config_path, seed)
     the_plan = load_plan(resolve_plan_path(config_path, plan))
     igtl_cfg = igtl_config_for(setup, igtl_port)
     clk = clock if clock is not None else clock_for(setup)
@@ -132,20 +146,14 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
             live = open_live_viewer(viewer)
         devices = build_devices(setup, clk)
     except BaseException:
-        if igtl is not None:
-            igtl.close()
-        if live is not None:
-            live.close()
+        _close_outputs(igtl, live)
         raise
     try:
         stereo_calibration(setup, devices.camera)  # none anywhere: refused before any device opens
         devices = with_servo_process(setup, devices, clk)  # [servo] process: on the wall clock
         devices = with_perception_process(setup, devices, clk)  # [perception] process: likewise
     except BaseException:
-        if igtl is not None:
-            igtl.close()
-        if live is not None:
-            live.close()
+        _close_outputs(igtl, live)
         raise
     stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%S%fZ")
     header: dict[str, Any] = {**session_header(config_path, setup, the_plan, devices, clk),
@@ -155,10 +163,7 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
         devices.open_all()
     except BaseException:
         session.close(final_state="idle", error="devices could not be opened")
-        if igtl is not None:
-            igtl.close()
-        if live is not None:
-            live.close()
+        _close_outputs(igtl, live)
         raise
     operator = ConsoleOperator()
     # The very controller `hil run` builds (locator, rig, limits, watchdogs, needle check, tracker use).
@@ -173,10 +178,7 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
     except BaseException:   # the servo process and every opened device are closed, the log says why
         devices.close_all()
         session.close(final_state="idle", error="the controller could not be built")
-        if igtl is not None:
-            igtl.close()
-        if live is not None:
-            live.close()
+        _close_outputs(igtl, live)
         raise
     runner = ControllerRunner(ctl, operator, pace=isinstance(clk, ManualClock) and not fast, igtl=igtl,
                               session_log=str(session.path))
