@@ -124,7 +124,7 @@ class ConsoleApp(App[dict[str, Any]]):
     def on_mount(self) -> None:
         table = self.query_one("#markers", DataTable)
         table.border_title = "Markers (optical frame)"
-        table.add_columns("marker", "x mm", "y mm", "z mm", "residual", "seen")
+        table.add_columns("marker", "x mm", "y mm", "z mm", "residual", "from ref", "seen")
         for pid, title in (("registration", "Registration"), ("robot", "Robot"), ("plan", "Plan"),
                            ("gate", "Hold-breath gate"), ("timeline", "Timeline")):
             self.query_one(f"#{pid}", Static).border_title = title
@@ -281,9 +281,10 @@ class ConsoleApp(App[dict[str, Any]]):
         for m in v.markers:
             name = f"{m.kind} {m.index}"
             if m.position_mm is None:
-                table.add_row(name, "—", "—", "—", "—", Text("missing", style="bold red"))
+                table.add_row(name, "—", "—", "—", "—", "—", Text("missing", style="bold red"))
             else:
                 x, y, z = m.position_mm
                 table.add_row(name, f"{x:.2f}", f"{y:.2f}", f"{z:.2f}",
                               "—" if m.residual_mm is None else f"{m.residual_mm:.3f}",
+                              "—" if m.deviation_mm is None else f"{m.deviation_mm:.2f}",
                               Text("visible", style="green"))

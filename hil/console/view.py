@@ -27,12 +27,14 @@ _ROBOT_FRESH_S = 1.0
 class MarkerRow:
     """One marker: ``kind`` skin (CT fiducial order) or flange (layout order); position in the
     optical frame (mm, None: not seen); residual to the registered set moved by the live rigid
-    change (mm, None before registration or when not seen)."""
+    change (mm, None before registration or when not seen); a skin marker's deviation from its
+    reference position, what the gate judges (mm, None before registration or when not seen)."""
 
     kind: str
     index: int
     position_mm: tuple[float, float, float] | None
     residual_mm: float | None
+    deviation_mm: float | None = None
 
     @property
     def visible(self) -> bool:
@@ -138,14 +140,18 @@ def _markers(snap: ControllerSnapshot, vs: ViewSetup) -> tuple[MarkerRow, ...]:
     if ref is not None and T_change is not None:
         moved = T_change.apply(np.nan_to_num(ref))
         ref_ok = np.all(np.isfinite(ref), axis=1)
+    dev = snap.marker_deviations_mm
     for i in range(n_skin):
         pos = None
         res = None
+        deviation = None
         if live is not None and i < live.shape[0] and bool(np.all(np.isfinite(live[i]))):
             pos = _tuple3(live[i])
             if moved is not None and ref_ok is not None and bool(ref_ok[i]):
                 res = float(np.linalg.norm(moved[i] - live[i]))
-        rows.append(MarkerRow("skin", i, pos, res))
+            if dev is not None and i < dev.shape[0] and bool(np.isfinite(dev[i])):
+                deviation = float(dev[i])
+        rows.append(MarkerRow("skin", i, pos, res, deviation))
     fl = snap.flange_mm
     for i in range(vs.flange_markers):
         pos = None

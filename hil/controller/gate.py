@@ -44,12 +44,15 @@ def rms_deviation_mm(reference_mm: FloatArray, live_mm: FloatArray) -> tuple[flo
 class GateMeasures:
     """How far the live markers are from the reference state: ``rms_mm`` (inf without markers),
     ``markers`` used, the largest single-marker distance ``max_marker_mm``, and the ``shape_mm``
-    (RMS residual of the rigid fit reference -> live; inf with fewer than 3 markers), mm."""
+    (RMS residual of the rigid fit reference -> live; inf with fewer than 3 markers), mm.
+    ``deviations_mm`` holds each reference marker's distance from its reference position, in
+    reference order (NaN where the marker is not seen; empty without live markers)."""
 
     rms_mm: float
     markers: int
     max_marker_mm: float
     shape_mm: float
+    deviations_mm: tuple[float, ...] = ()
 
     def problem(self, cfg: GateConfig) -> str | None:
         """Why the body is not back in the reference state by ``cfg``'s tolerances (None: it is)."""
@@ -75,22 +78,25 @@ def gate_measures(reference_mm: FloatArray, live_mm: FloatArray | None) -> GateM
     live = np.asarray(live_mm, dtype=np.float64)
     ok = np.all(np.isfinite(reference_mm), axis=1) & np.all(np.isfinite(live), axis=1)
     n = int(ok.sum())
+    every = np.full(len(ok), math.nan)
     if n == 0:
-        return GateMeasures(math.inf, 0, math.inf, math.inf)
+        return GateMeasures(math.inf, 0, math.inf, math.inf, tuple(every.tolist()))
     d = np.linalg.norm(live[ok] - reference_mm[ok], axis=1)
+    every[ok] = d
     shape = math.inf
     if n >= MIN_GATE_MARKERS:
         try:
             shape = float(register_horn(live[ok], reference_mm[ok]).fre_rms_mm)
         except GeometryError:
             shape = math.inf
-    return GateMeasures(float(np.sqrt(np.mean(d * d))), n, float(d.max()), shape)
+    return GateMeasures(float(np.sqrt(np.mean(d * d))), n, float(d.max()), shape, tuple(every.tolist()))
 
 
 @dataclass(frozen=True)
 class GateStatus:
     """One gate update: ``open``; the current ``deviation_rms_mm`` (inf without markers);
-    ``dwell_s`` under tolerance so far; ``timed_out`` (only reported once per wait)."""
+    ``dwell_s`` under tolerance so far; ``timed_out`` (only reported once per wait); the largest
+    single-marker distance, the shape residual and each marker's distance (:class:`GateMeasures`)."""
 
     open: bool
     deviation_rms_mm: float
@@ -100,6 +106,7 @@ class GateStatus:
     justification: str
     max_marker_mm: float = math.inf
     shape_mm: float = math.inf
+    deviations_mm: tuple[float, ...] = ()
 
 
 class BreathHoldGate:
@@ -154,4 +161,5 @@ class BreathHoldGate:
         if timed_out:
             why = (f"no breath-hold within {self.cfg.timeout_s} s ({why}); waiting again — "
                    f"ask the patient to hold breath")
-        return GateStatus(is_open, rms, n, dwell, timed_out, why, m.max_marker_mm, m.shape_mm)
+        return GateStatus(is_open, rms, n, dwell, timed_out, why, m.max_marker_mm, m.shape_mm,
+                          m.deviations_mm)

@@ -412,9 +412,7 @@ class ControllerParts(abc.ABC):
         preg, rreg = est.patient_reg, est.robot_reg
         fit = est.change_fit
         gm = est.gate_measures() if preg is not None else None
-        deviations = None
-        if preg is not None and est.live_mm is not None:
-            deviations = np.linalg.norm(est.live_mm - preg.reference_optical_mm, axis=1)
+        deviations = None if gm is None or not gm.deviations_mm else np.array(gm.deviations_mm)
         return ControllerSnapshot(
             t_ns=self.clock.now_ns(), t_s=self.t_s(), state=state.value, sub_state=self.sub_state,
             pending=None if p is None else p.goto.name, pending_reason="" if p is None else p.reason,

@@ -209,6 +209,8 @@ class IgtlServer:
         if force or self._due(self._last_status_ns, now, self.cfg.status_rate_hz):
             self._last_status_ns = now
             msgs.append(ig.StringMessage(snap.status, device_name="Status"))
+            if snap.deformation:
+                msgs.append(ig.StringMessage(snap.deformation, device_name="Deformation"))
             if snap.points:
                 msgs.append(ig.PointMessage(positions=[p.tolist() for p in snap.points.values()],
                                             names=list(snap.points), device_name="Plan"))

@@ -13,8 +13,11 @@ Slicer scene built with "OpenIGTLinkIF" shows them with no extra code:
 - ``PatientToOptical``: the live patient (``T_change @ T_optical_from_image``).
 - ``<Sensor>ToTracker``: each magnetic-tracker sensor that has a pose (``T_tracker_from_sensor``).
 
-Plus a ``Status`` STRING (state, pending confirmation, last reason) and a ``Plan`` POINT list
-(entry and target, image frame). Units: millimetres.
+Plus a ``Status`` STRING (state, pending confirmation, last reason), a ``Deformation`` STRING
+(the body against its registered state, issue 41: the change estimator, the change fit's
+rigid residual, the gate's shape residual, each marker's deviation from its reference and its
+residual to the rigid fit; :func:`deformation_text`) and a ``Plan`` POINT list (entry and
+target, image frame). Units: millimetres.
 """
 
 from __future__ import annotations
@@ -42,11 +45,35 @@ class IgtlSnapshot:
     transforms: dict[str, FloatArray] = field(default_factory=dict)
     status: str = ""
     points: dict[str, FloatArray] = field(default_factory=dict)
+    deformation: str = ""
 
 
 def _sensor_device_name(sensor: str) -> str:
     clean = "".join(ch for ch in sensor.title() if ch.isalnum()) or "Sensor"
     return f"{clean}ToTracker"
+
+
+def _mm_list(values: FloatArray | None) -> str:
+    """Comma-separated millimetres to 2 decimals; ``-`` for an unseen marker (NaN)."""
+    if values is None:
+        return "-"
+    return ",".join(f"{v:.2f}" if np.isfinite(v) else "-" for v in np.asarray(values, dtype=np.float64))
+
+
+def _mm(value: float | None) -> str:
+    return "-" if value is None or not np.isfinite(value) else f"{value:.2f}"
+
+
+def deformation_text(snap: ControllerSnapshot) -> str:
+    """The ``Deformation`` STRING: ``estimator=<name> change_fre_mm=<x> shape_mm=<x>
+    deviations_mm=<m0>,<m1>,... residuals_mm=<m0>,...`` — per-marker lists in the registration's
+    marker order, ``-`` where a value is unknown (before registration, an unseen marker). Empty
+    before the patient is registered."""
+    if snap.T_optical_from_image is None:
+        return ""
+    return (f"estimator={snap.change_estimator or '-'} change_fre_mm={_mm(snap.change_fre_mm)} "
+            f"shape_mm={_mm(snap.gate_shape_mm)} deviations_mm={_mm_list(snap.marker_deviations_mm)} "
+            f"residuals_mm={_mm_list(snap.marker_residuals_mm)}")
 
 
 def igtl_snapshot(snap: ControllerSnapshot, plan: ProcedurePlan) -> IgtlSnapshot:
@@ -68,4 +95,4 @@ def igtl_snapshot(snap: ControllerSnapshot, plan: ProcedurePlan) -> IgtlSnapshot
         status += f" reason={snap.last_reason}"
     points = {"entry": np.asarray(plan.entry_mm, dtype=np.float64).reshape(3),
               "target": np.asarray(plan.target_mm, dtype=np.float64).reshape(3)}
-    return IgtlSnapshot(tf, status, points)
+    return IgtlSnapshot(tf, status, points, deformation_text(snap))

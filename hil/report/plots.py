@@ -175,6 +175,34 @@ def plot_marker_residuals(data: SessionData) -> Plot:
     return Plot(key, title, _png(fig), False)
 
 
+def plot_body_state(data: SessionData) -> Plot:
+    """The body against its registered state (the gate's and lock's judgement, issue 41): each
+    skin marker's distance from its reference position, the shape residual after removing a
+    rigid motion, and the measured change's rigid-fit residual per pair (mm)."""
+    fig, ax = _figure()
+    key, title = "body", "Body state: per-marker deviations and shape"
+    deviations = {i: s for i, s in data.marker_deviations_mm.items() if len(s)}
+    if not deviations and not len(data.shape_mm) and not len(data.change_fre_mm):
+        _no_data(ax, "the log has no per-marker deviations or shape residuals")
+        ax.set_title(title)
+        return Plot(key, title, _png(fig), False)
+    for i, s in sorted(deviations.items()):
+        t, y = s.arrays()
+        ax.plot(t, y, "-", linewidth=0.6, alpha=0.7, label=f"marker {i} deviation")
+    if len(data.shape_mm):
+        t, y = data.shape_mm.arrays()
+        ax.plot(t, y, ".", color="#000000", markersize=2.5, label="shape residual (rigid removed)")
+    if len(data.change_fre_mm):
+        t, y = data.change_fre_mm.arrays()
+        ax.plot(t, y, "--", color="#756bb1", linewidth=1.0, label="change fit residual (per pair)")
+    _time_axis(ax, data)
+    _mark_faults(ax, data)
+    ax.set_ylabel("mm")
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=6, ncol=3)
+    return Plot(key, title, _png(fig), True)
+
+
 def plot_robot_speed(data: SessionData) -> Plot:
     fig, ax = _figure()
     key, title = "speed", "Robot speed"
@@ -199,5 +227,6 @@ PLOTS: tuple[tuple[str, Callable[[SessionData], Plot]], ...] = (
     ("breathing", plot_breathing),
     ("errors", plot_errors),
     ("residuals", plot_marker_residuals),
+    ("body", plot_body_state),
     ("speed", plot_robot_speed),
 )

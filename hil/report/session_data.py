@@ -11,8 +11,9 @@ Time axis: seconds since the first record's ``t_ns`` (the controller's monotonic
 Events read (names as the controller writes them, :mod:`hil.controller.events`):
 ``state_entered`` (state), ``fault_detected`` (reason), ``registration_done`` (fre_mm,
 tre_expected_mm, robot_fre_mm, markers, reference_optical_mm, optional residuals_mm),
-``gate_measured`` (deviation_rms_mm, open), ``compensation_step`` and ``lock_measured``
-(guide_error_mm, gate_deviation_mm), ``approach_measured`` (guide_error_mm), ``truth_error``
+``gate_measured`` (deviation_rms_mm, open, shape_mm, marker_deviations_mm), ``compensation_step``
+and ``lock_measured`` (guide_error_mm, gate_deviation_mm; change_fre_mm; lock: shape_mm,
+marker_deviations_mm), ``approach_measured`` (guide_error_mm), ``truth_error``
 (state, position_mm, direction_deg; simulator only), ``command_sent`` (speed_mm_s),
 ``session_started`` (header; gate and lock tolerances from ``procedure.gate.tolerance_mm`` /
 ``procedure.lock.tolerance_mm`` as ``hil run`` writes them, or top-level ``gate_tolerance_mm`` /
@@ -91,6 +92,11 @@ class SessionData:
     body_residual_mm: Series = field(default_factory=Series)
     change_fre_mm: Series = field(default_factory=Series)
     lock_guide_error_mm: Series = field(default_factory=Series)
+    #: the body's state against the registered one (``gate_measured``, ``lock_measured``): the
+    #: shape residual after removing a rigid motion, and each marker's distance from its
+    #: reference position (mm)
+    shape_mm: Series = field(default_factory=Series)
+    marker_deviations_mm: dict[int, Series] = field(default_factory=dict)
     marker_residuals_mm: dict[int, Series] = field(default_factory=dict)
     registration_residuals_mm: list[float] = field(default_factory=list)
     robot_speed_mm_s: Series = field(default_factory=Series)
@@ -358,12 +364,14 @@ def _read_procedure_event(data: SessionData, ln: _Line, event: str, t: float, st
         o = ln.flag("open")
         if o is not None:
             data.gate_samples.append((t, o))
+        _read_body_state(data, ln, t)
     elif event in ("compensation_step", "lock_measured"):
         data.guide_error_mm.add(t, ln.num("guide_error_mm"))
         data.breathing_mm.add(t, ln.num("gate_deviation_mm"))
         data.change_fre_mm.add(t, ln.num("change_fre_mm"))
         if event == "lock_measured":
             data.lock_guide_error_mm.add(t, ln.num("guide_error_mm"))
+            _read_body_state(data, ln, t)
     elif event == "approach_measured":
         data.guide_error_mm.add(t, ln.num("guide_error_mm"))
     elif event == "truth_error":
@@ -376,6 +384,14 @@ def _read_procedure_event(data: SessionData, ln: _Line, event: str, t: float, st
         elif st == "lock":
             data.lock_truth_mm.add(t, ln.num("position_mm"))
             data.lock_truth_deg.add(t, ln.num("direction_deg"))
+
+
+def _read_body_state(data: SessionData, ln: _Line, t: float) -> None:
+    """The shape residual and the per-marker deviations (mm) of a ``gate_measured`` or
+    ``lock_measured`` record (absent in logs older than the fields: nothing is added)."""
+    data.shape_mm.add(t, ln.num("shape_mm"))
+    for i, d in enumerate(ln.numbers("marker_deviations_mm") or []):
+        data.marker_deviations_mm.setdefault(i, Series()).add(t, d)
 
 
 def _read_marker_residuals(data: SessionData, ln: _Line, t: float, reference: FloatArray | None) -> None:

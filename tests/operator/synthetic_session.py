@@ -65,7 +65,8 @@ def write_full_session(path: Path) -> Path:
         w.tick()
         dev = 3.0 * abs(math.cos(2 * math.pi * k / 30)) + 0.2
         is_open = k >= 24
-        log.write("gate_measured", deviation_rms_mm=dev, markers=5, dwell_s=0.0, open=is_open)
+        log.write("gate_measured", deviation_rms_mm=dev, markers=5, dwell_s=0.0, open=is_open,
+                  shape_mm=0.1 * k, marker_deviations_mm=[dev, dev, None, dev, dev + 0.2])
         live = REFERENCE_MM + np.array([0.0, 0.0, dev])
         live[4] += [0.0, 0.2, 0.0]
         log.write("markers_measured", live_mm=live)
@@ -76,12 +77,13 @@ def write_full_session(path: Path) -> Path:
         w.tick()
         log.write("compensation_step", exposure_t_ns=clock.now_ns(), latency_detect_ms=30.0,
                   latency_command_ms=35.0, change_mm=1.0, predicted_s=0.05, command_mm=[0.0, 0.0, 0.0],
-                  guide_error_mm=2.0 / (k + 1), gate_deviation_mm=0.4)
+                  guide_error_mm=2.0 / (k + 1), gate_deviation_mm=0.4, change_fre_mm=0.05 * k)
         log.write("command_sent", command="servo", target_mm=[0.0, 0.0, 0.0], period_s=DT_S, speed_mm_s=5.0)
         log.write("truth_error", state="compensate", position_mm=1.0 + 0.1 * k, direction_deg=0.5)
     w.enter("compensate", "lock", "compensate_to_lock")
     w.tick()
-    log.write("lock_measured", guide_error_mm=LOCK_ERROR_MM, gate_deviation_mm=0.3)
+    log.write("lock_measured", guide_error_mm=LOCK_ERROR_MM, gate_deviation_mm=0.3, shape_mm=0.25,
+              marker_deviations_mm=[0.3, 0.3, 0.3, 0.3, 0.5])
     log.write("truth_error", state="lock", position_mm=0.61, direction_deg=0.7)
     w.tick()
     log.write("fault_detected", reason=FAULT_REASON, state="lock")

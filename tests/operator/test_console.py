@@ -122,6 +122,11 @@ async def _full_procedure_by_key_presses(tmp_path: Path, open_session: SessionOp
             assert v.faults == ()
             assert v.fre_mm is not None
             assert len(v.breathing_mm) > 10
+            # every seen skin marker shows its deviation from the registered state (the gate's
+            # per-marker check), and it is what the snapshot holds
+            skin = [m for m in v.markers if m.kind == "skin" and m.visible]
+            assert skin
+            assert all(m.deviation_mm is not None and 0.0 <= m.deviation_mm < 5.0 for m in skin)
             summary = await quit_app(pilot, app)
     finally:
         client.stop()
@@ -151,7 +156,7 @@ async def _full_procedure_by_key_presses(tmp_path: Path, open_session: SessionOp
     assert nums["final_state"] == "done"
     # residuals: frame_measured carries live_mm and registration_done residuals_mm
     assert {p.key: p.has_data for p in rep.plots} == {"states": True, "breathing": True, "errors": True,
-                                                      "residuals": True, "speed": True}
+                                                      "residuals": True, "body": True, "speed": True}
 
 
 def test_fault_shown_and_recovered(tmp_path: Path, open_session: SessionOpener) -> None:

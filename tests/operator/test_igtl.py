@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Iterator
 from types import SimpleNamespace
@@ -173,6 +174,32 @@ def test_guide_in_image_follows_the_moving_patient() -> None:
     np.testing.assert_allclose(snap.transforms["ReferenceToTracker"], ref.as_matrix())
     assert snap.status == "state=compensate reason=gate open"
     np.testing.assert_array_equal(snap.points["target"], [1.0, 2.0, -70.0])
+
+
+def test_deformation_string_per_marker() -> None:
+    """The Deformation STRING carries the estimator, the fits' residuals and every marker's
+    deviation and residual, in marker order, '-' for an unseen marker; nothing before registration."""
+    T_oi = RigidTransform.from_rotvec([0.0, 0.0, 0.0], [0.0, 0.0, 1000.0])
+    base = _snapshot(None, T_oi, None, {})
+    snap = dataclasses.replace(base, change_estimator="local-tps", change_fre_mm=0.4321, gate_shape_mm=0.2,
+                               marker_deviations_mm=np.array([1.0, np.nan, 2.345]),
+                               marker_residuals_mm=np.array([0.1, np.nan, 0.3]))
+    text = igtl_snapshot(snap, PLAN).deformation  # type: ignore[arg-type]
+    assert text == ("estimator=local-tps change_fre_mm=0.43 shape_mm=0.20 deviations_mm=1.00,-,2.35 "
+                    "residuals_mm=0.10,-,0.30")
+    assert igtl_snapshot(base, PLAN).deformation == ("estimator=- change_fre_mm=- shape_mm=- "  # type: ignore[arg-type]
+                                                     "deviations_mm=- residuals_mm=-")
+    assert igtl_snapshot(dataclasses.replace(base, T_optical_from_image=None), PLAN).deformation == ""  # type: ignore[arg-type]
+
+
+def test_deformation_string_on_the_wire(server: IgtlServer, client: pyigtl.OpenIGTLinkClient) -> None:
+    snap = IgtlSnapshot({}, "state=gate", {}, "estimator=rigid change_fre_mm=0.50 shape_mm=0.30 "
+                        "deviations_mm=1.00,2.00 residuals_mm=0.10,0.20")
+    assert server.publish(snap, force=True) == 2          # status + deformation
+    msg = client.wait_for_message("Deformation", timeout=DEADLINE_S)
+    assert msg is not None
+    assert msg.string == snap.deformation
+    assert server.publish(IgtlSnapshot({}, "state=idle", {}), force=True) == 1   # none before registration
 
 
 def test_nothing_before_registration() -> None:

@@ -25,7 +25,7 @@ from tests.operator.synthetic_session import (
     write_full_session,
 )
 
-PLOT_KEYS = ["states", "breathing", "errors", "residuals", "speed"]
+PLOT_KEYS = ["states", "breathing", "errors", "residuals", "body", "speed"]
 
 
 def _figures(page: str) -> dict[str, tuple[bool, bytes]]:
@@ -101,6 +101,13 @@ def test_session_data_series(tmp_path: Path) -> None:
     assert open_spans[0][0] == pytest.approx(5.7, abs=1e-6)  # the open gate sample
     closed = data.gate_closed_intervals()
     assert closed == [(pytest.approx(3.2, abs=1e-6), pytest.approx(5.7, abs=1e-6))]
+    # the body's state: 25 gate samples and the first lock's (the second lock logged none)
+    assert data.shape_mm.y == pytest.approx([0.1 * k for k in range(25)] + [0.25], abs=1e-12)
+    assert sorted(data.marker_deviations_mm) == [0, 1, 2, 3, 4]
+    assert len(data.marker_deviations_mm[2]) == 1            # unseen in the gate (null), seen at lock
+    assert len(data.marker_deviations_mm[4]) == 26
+    assert data.marker_deviations_mm[4].y[-1] == 0.5
+    assert data.change_fre_mm.y == pytest.approx([0.05 * k for k in range(20)], abs=1e-12)
 
 
 def test_empty_session_plots_say_no_data(tmp_path: Path) -> None:
@@ -109,7 +116,8 @@ def test_empty_session_plots_say_no_data(tmp_path: Path) -> None:
     figs = _figures(page)
     assert list(figs) == PLOT_KEYS
     assert {k: v[0] for k, v in figs.items()} == {"states": True, "breathing": False, "errors": False,
-                                                  "residuals": False, "speed": False}
+                                                  "residuals": False, "body": False,
+                                                  "speed": False}
     assert all(len(png) > 1000 for _, png in figs.values())
     assert _number(page, "fre_mm") == "n/a"
     assert res.chain.ok
@@ -145,7 +153,7 @@ def test_cli_valid_log_json_and_progress(tmp_path: Path, capsys: pytest.CaptureF
     assert out["chain"]["head"] == "matched"  # the writer published the chain head on close
     assert out["numbers"]["fre_mm"] == FRE_MM
     assert out["plots"] == dict.fromkeys(PLOT_KEYS, "ok")
-    assert "hil report: plot 5/5: speed" in cap.err
+    assert "hil report: plot 6/6: speed" in cap.err
 
 
 @pytest.mark.parametrize(("content", "line", "what"), [

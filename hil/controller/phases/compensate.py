@@ -125,7 +125,8 @@ class CompensatePhase(Phase):
                           change_mm=sent.change.translation_norm(), predicted_s=sent.horizon_s,
                           command_mm=sent.cmd.t, guide_error_mm=err, gate_deviation_mm=dev,
                           estimator=None if fit is None else fit.estimator,
-                          change_fre_mm=None if fit is None else fit.rigid_fre_mm)
+                          change_fre_mm=None if fit is None else fit.rigid_fre_mm,
+                          marker_residuals_mm=None if fit is None else fit.residuals_mm)
         if err is not None and err <= ctx.cfg.lock.tolerance_mm and est.gate_problem() is None:
             if not ctx.needle.ok_for_lock(est, frame, self.state):
                 s.settle_since_ns = None

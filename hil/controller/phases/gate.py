@@ -42,7 +42,8 @@ class GatePhase(Phase):
         status = est.gate.update(est.live_mm, inputs.frame.left.t_ns)
         self.ctx.session.write(ev.GATE_MEASURED, deviation_rms_mm=status.deviation_rms_mm,
                                markers=status.markers, dwell_s=status.dwell_s, open=status.open,
-                               max_marker_mm=status.max_marker_mm, shape_mm=status.shape_mm)
+                               max_marker_mm=status.max_marker_mm, shape_mm=status.shape_mm,
+                               marker_deviations_mm=list(status.deviations_mm))
         if est.T_change_meas is not None:
             change = est.local(est.T_change_meas)
             why = change_out_of_bounds(change, est.change_fit, self.ctx.cfg.compensation)

@@ -70,7 +70,9 @@ class LockPhase(Phase):
             if why is not None:
                 return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, why + "; operator decision needed")
         err = est.guide_error_optical_mm()
-        ctx.session.write(ev.LOCK_MEASURED, guide_error_mm=err, gate_deviation_mm=est.gate_deviation_mm())
+        gm = est.gate_measures()
+        ctx.session.write(ev.LOCK_MEASURED, guide_error_mm=err, gate_deviation_mm=est.gate_deviation_mm(),
+                          shape_mm=gm.shape_mm, marker_deviations_mm=list(gm.deviations_mm))
         ctx.roles.track_needle(est)
         if err is not None and err > lk.drift_alarm_mm:
             if not s.alarmed:
