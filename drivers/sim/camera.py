@@ -204,9 +204,10 @@ class SimStereoCamera(StereoCamera):
         """The ring markers the rig sees at ``t_ns`` (optical frame): skin, then flange."""
         w = self.world
         centres, normals = w.patient_markers_optical(t_ns)
+        lost = w.lost_markers(t_ns)
         out = [RingMarker3D(center_mm=c, normal=n, outer_diameter_mm=w.phantom.outer_diameter_mm,
                             inner_diameter_mm=w.phantom.inner_diameter_mm, marker_id=i)
-               for i, (c, n) in enumerate(zip(centres, normals, strict=True))]
+               for i, (c, n) in enumerate(zip(centres, normals, strict=True)) if i not in lost]
         fc, fn = w.flange_markers_optical(t_ns)
         out += [RingMarker3D(center_mm=c, normal=n, outer_diameter_mm=self.cfg.flange_marker_diameter_mm,
                              inner_diameter_mm=self.cfg.flange_marker_inner_diameter_mm,

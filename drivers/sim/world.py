@@ -11,7 +11,7 @@ import bisect
 import math
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -23,8 +23,10 @@ from drivers.interfaces.lifecycle import DeviceState
 from drivers.interfaces.robot import Robot
 from drivers.sim.body import BodyState, DeformableBody, body_from_config, skin_point
 from drivers.sim.motion import MotionSample, PatientMotion, stream_rng
+from drivers.sim.patient_faults import PatientFaults
 from drivers.sim.rig_errors import true_flange_markers
 from hil.clock import Clock
+from hil.config.faults import FaultSpec
 from hil.config.setup import FramesConfig, SetupConfig
 from hil.config.simulation import BreathHoldConfig, PatientConfig, SimulationConfig
 from hil.errors import ConfigError
@@ -171,9 +173,12 @@ class SimWorld:
         sim: the ``[simulation]`` section.
         frames: the ``[frames]`` section (flange marker layout).
         clock: the controller's clock; world time 0 = ``clock.now_ns()`` at construction.
+        faults: the setup's ``[[faults]]``; the world plays the patient ones (a cough, a shift, a
+            skin marker lost or moved: :mod:`drivers.sim.patient_faults`).
     """
 
-    def __init__(self, sim: SimulationConfig, frames: FramesConfig, clock: Clock) -> None:
+    def __init__(self, sim: SimulationConfig, frames: FramesConfig, clock: Clock,
+                 faults: Sequence[FaultSpec] = ()) -> None:
         self.sim = sim
         self.frames = frames
         self.clock = clock
@@ -183,6 +188,7 @@ class SimWorld:
         self.motion = PatientMotion(sim)
         #: the deformable body (``[simulation.body] model = "deformable"``); None: the rigid body
         self.body: DeformableBody | None = body_from_config(sim, self.phantom, self.motion)
+        self.patient_faults = PatientFaults(faults, self.phantom.entry_mm)
         self.T_optical_from_image0 = sim.patient.T_optical_from_image.as_transform()
         self.T_optical_from_robot = sim.T_optical_from_robot.as_transform()
         self.T_optical_from_tracker = sim.T_optical_from_tracker.as_transform()
@@ -282,10 +288,13 @@ class SimWorld:
             if self.body is None:
                 T = self.T_optical_from_image0 @ self.motion.sample(t_s).T_image0_from_image
                 ph = self.phantom
-                return BodyState(markers_mm=T.apply(ph.markers_mm), normals=T.apply_vector(ph.normals),
-                                 entry_mm=T.apply(ph.entry_mm), target_mm=T.apply(ph.target_mm))
-            T = self.T_optical_from_image0 @ self.motion.T_rigid(t_s)
-            b = self.body.state(t_s)
+                b = BodyState(markers_mm=ph.markers_mm, normals=ph.normals, entry_mm=ph.entry_mm,
+                              target_mm=ph.target_mm)
+            else:
+                T = self.T_optical_from_image0 @ self.motion.T_rigid(t_s)
+                b = self.body.state(t_s)
+        if self.patient_faults:
+            b = self.patient_faults.apply(t_s, b)
         return BodyState(markers_mm=T.apply(b.markers_mm), normals=T.apply_vector(b.normals),
                          entry_mm=T.apply(b.entry_mm), target_mm=T.apply(b.target_mm))
 
@@ -293,6 +302,10 @@ class SimWorld:
         """Skin marker centres (N,3) and unit normals (N,3) in the optical frame at ``t_ns``."""
         b = self.body_state(t_ns)
         return b.markers_mm, b.normals
+
+    def lost_markers(self, t_ns: int) -> frozenset[int]:
+        """Skin marker indices the camera cannot see at ``t_ns`` (a ``marker_lost`` patient fault)."""
+        return self.patient_faults.lost(self.t_s(t_ns))
 
     def target_optical(self, t_ns: int) -> FloatArray:
         return self.body_state(t_ns).target_mm
@@ -303,8 +316,8 @@ class SimWorld:
     def body_rigid_residual_mm(self, t_ns: int) -> float:
         """How far the true skin markers are from a rigid copy of the CT's at ``t_ns``: the RMS
         residual of Horn's fit (seed 000 eqs 17-21) of the CT markers onto them, mm (0 for the
-        rigid body, not computed)."""
-        if self.body is None:
+        rigid body without patient faults, not computed)."""
+        if self.body is None and not self.patient_faults:
             return 0.0
         markers, _ = self.patient_markers_optical(t_ns)
         return float(register_horn(markers, self.phantom.markers_mm).fre_rms_mm)
@@ -327,4 +340,4 @@ class SimWorld:
 
 def world_from_setup(setup: SetupConfig, clock: Clock) -> SimWorld:
     """The world factory registered by the built-in plugin."""
-    return SimWorld(setup.simulation, setup.frames, clock)
+    return SimWorld(setup.simulation, setup.frames, clock, setup.faults)

@@ -2,6 +2,9 @@
 
 Two families of scenarios (docs/campaign.md, "Compound faults"):
 
+Both pair the 14 device kinds (:data:`~hil.campaign.scenarios.DEVICE_KINDS`); the patient kinds
+(a cough, a shift, a marker lost or moved) are single-fault scenarios only.
+
 * **Overlapping** ``A+B@S``: for every unordered pair of different fault kinds {A, B} (A before B
   in :class:`~hil.config.faults.FaultKind` order) and every target state S: A is placed as a single
   fault aimed at S (:func:`~hil.campaign.scenarios.place_fault` on the baseline's window) and B
@@ -28,7 +31,7 @@ from dataclasses import dataclass
 
 from hil.config.faults import FAULT_DEVICE, FaultKind
 
-from .scenarios import PROFILES, TARGET_STATES, KindProfile, ScenarioSelectionError, place_fault
+from .scenarios import DEVICE_KINDS, PROFILES, TARGET_STATES, KindProfile, ScenarioSelectionError, place_fault
 
 #: Overlapping pairs: the second fault starts this long after the first (s): less than one frame
 #: period of the simulated camera (15 Hz, 66.7 ms), so both start before the controller's next
@@ -51,7 +54,7 @@ def recovery_first_kinds() -> list[FaultKind]:
     ``motion_rejected`` (detect ``on_command``) is not among them: the servo loop absorbs rejected
     servo commands (``servo_command_failed``) and the procedure goes on once motion is accepted
     again, so it is tolerated in every state and leaves no recovery to place a second fault in."""
-    return [k for k in FaultKind if PROFILES[k].detect == "watchdog"]
+    return [k for k in DEVICE_KINDS if PROFILES[k].detect == "watchdog"]
 
 
 @dataclass(frozen=True)
@@ -87,15 +90,15 @@ class PairScenario:
 
 
 def overlap_scenarios() -> list[PairScenario]:
-    """Every unordered pair of different kinds x every target state (pair-major order)."""
-    return [PairScenario(a, b, s) for a, b in itertools.combinations(FaultKind, 2) for s in TARGET_STATES]
+    """Every unordered pair of different device kinds x every target state (pair-major order)."""
+    return [PairScenario(a, b, s) for a, b in itertools.combinations(DEVICE_KINDS, 2) for s in TARGET_STATES]
 
 
 def recovery_scenarios() -> list[PairScenario]:
     """Every first kind of :func:`recovery_first_kinds` x every second kind (the same kind again
     included) x :data:`RECOVERY_STATES`."""
     return [PairScenario(a, b, s, recovery=True)
-            for a in recovery_first_kinds() for b in FaultKind for s in RECOVERY_STATES]
+            for a in recovery_first_kinds() for b in DEVICE_KINDS for s in RECOVERY_STATES]
 
 
 def all_pairs() -> list[PairScenario]:
@@ -147,7 +150,7 @@ def select_pairs(patterns: list[str]) -> list[PairScenario]:
     for pat in patterns:
         hit = [s for s in every if _matches(s, pat)]
         if not hit:
-            kinds = ", ".join(k.value for k in FaultKind)
+            kinds = ", ".join(k.value for k in DEVICE_KINDS)
             firsts = ", ".join(k.value for k in recovery_first_kinds())
             raise ScenarioSelectionError(
                 f"pair scenario {pat!r} matches nothing (A+B@STATE or A+B@STATE+recovery, A, B kinds: "

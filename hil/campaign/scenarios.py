@@ -49,6 +49,11 @@ PROFILES: dict[FaultKind, KindProfile] = {
     FaultKind.PROTECTIVE_STOP: KindProfile(0.6, "watchdog"),
     FaultKind.MOTION_REJECTED: KindProfile(0.6, "on_command"),
     FaultKind.MOTION_LAG: KindProfile(1.5, "content"),
+    # the patient (issue 41): the body, not a device; they show only in the markers
+    FaultKind.COUGH: KindProfile(0.8, "content"),
+    FaultKind.PATIENT_SHIFT: KindProfile(0.5, "content"),
+    FaultKind.MARKER_LOST: KindProfile(1.5, "content"),
+    FaultKind.MARKER_MOVED: KindProfile(1.5, "content"),
 }
 
 
@@ -68,6 +73,12 @@ class Scenario:
     @property
     def profile(self) -> KindProfile:
         return PROFILES[self.kind]
+
+
+#: The kinds that hit a device (camera, tracker, robot), and those that happen to the patient
+#: (the simulated body). The compound-fault matrix (:mod:`hil.campaign.pairs`) pairs device kinds.
+DEVICE_KINDS: tuple[FaultKind, ...] = tuple(k for k in FaultKind if FAULT_DEVICE[k] != "patient")
+PATIENT_KINDS: tuple[FaultKind, ...] = tuple(k for k in FaultKind if FAULT_DEVICE[k] == "patient")
 
 
 def all_scenarios() -> list[Scenario]:

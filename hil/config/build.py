@@ -91,7 +91,8 @@ def build_devices(
 
     Raises:
         ConfigError: a driver is unknown/unavailable, a factory returned the wrong kind of device,
-            or faults target a real robot without permission.
+            faults target a real robot without permission, or patient faults a
+            setup with no simulated device.
     """
     if registry is None:
         from plugins.manager import default_registry
@@ -104,6 +105,10 @@ def build_devices(
         if registry.world_factory is None:
             raise ConfigError("setup", ["simulation: no plugin provides the simulated world"])
         world = registry.world_factory(setup, clock)
+    patient = sorted({f.kind.value for f in setup.faults if f.device == "patient"})
+    if patient and world is None:
+        raise ConfigError("setup", [f"faults: {', '.join(patient)} happen to the patient, which only the "
+                                    "simulated world can play; this setup has no simulated device"])
     cal = setup.calibration.stereo
     built: dict[str, Any] = {}
     for role, cfg in sections.items():

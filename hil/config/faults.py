@@ -4,6 +4,11 @@
 Each fault has a kind (which fixes the device it applies to), a time window on the controller's
 clock measured from the moment the device was opened, and the few parameters its kind uses.
 
+Patient faults (``device`` ``"patient"``: a cough, the patient shifting on the table, a skin
+marker lost or moved) happen to the body, not to a device: the simulated world plays them
+(``drivers.sim.patient_faults``; its window counts from the world's start, when the devices are
+built), so a setup without a simulated device refuses them.
+
 Robot faults with ``transport`` set are not simulated in the wrapper: at their scheduled time
 they are sent to the fault-control channel of the UR controller emulator (``tools/ursim``) named by
 the setup's ``[fault_channel]`` (:class:`FaultChannelConfig`), so they reach the real driver over
@@ -16,6 +21,7 @@ refuses transport faults.
 from __future__ import annotations
 
 import ipaddress
+import math
 from enum import StrEnum
 from typing import Literal
 
@@ -42,9 +48,17 @@ class FaultKind(StrEnum):
     PROTECTIVE_STOP = "protective_stop"    # the arm stops; safety = protective_stop until recover()
     MOTION_REJECTED = "motion_rejected"    # move/servo raise DeviceFaultError
     MOTION_LAG = "motion_lag"              # commands reach the arm lag_ms late
+    # patient (the simulated body; issue 41)
+    COUGH = "cough"                        # a non-rigid jolt of the body peaking at offset_mm
+    PATIENT_SHIFT = "patient_shift"        # the body moves offset_mm over the window and stays
+    MARKER_LOST = "marker_lost"            # skin markers `markers` not seen (come off, covered)
+    MARKER_MOVED = "marker_moved"          # skin markers `markers` displaced offset_mm (re-stuck)
+
+#: The devices a fault can apply to ("patient": the simulated body, module doc).
+FaultDevice = Literal["camera", "tracker", "robot", "patient"]
 
 
-FAULT_DEVICE: dict[FaultKind, Literal["camera", "tracker", "robot"]] = {
+FAULT_DEVICE: dict[FaultKind, FaultDevice] = {
     FaultKind.FRAME_DROP: "camera", FaultKind.FROZEN_FRAME: "camera",
     FaultKind.STALE_TIMESTAMP: "camera", FaultKind.LR_DESYNC: "camera",
     FaultKind.OCCLUSION: "camera", FaultKind.GLARE: "camera",
@@ -52,6 +66,15 @@ FAULT_DEVICE: dict[FaultKind, Literal["camera", "tracker", "robot"]] = {
     FaultKind.BAD_QUALITY: "tracker", FaultKind.SENSOR_MISSING: "tracker",
     FaultKind.ROBOT_DISCONNECT: "robot", FaultKind.PROTECTIVE_STOP: "robot",
     FaultKind.MOTION_REJECTED: "robot", FaultKind.MOTION_LAG: "robot",
+    FaultKind.COUGH: "patient", FaultKind.PATIENT_SHIFT: "patient",
+    FaultKind.MARKER_LOST: "patient", FaultKind.MARKER_MOVED: "patient",
+}
+
+#: Each patient kind's default ``offset_mm`` (image frame: x lateral, y superior, z anterior, mm).
+PATIENT_DEFAULT_OFFSET_MM: dict[FaultKind, tuple[float, float, float]] = {
+    FaultKind.COUGH: (0.0, 4.0, 6.0),
+    FaultKind.PATIENT_SHIFT: (5.0, 3.0, 0.0),
+    FaultKind.MARKER_MOVED: (12.0, 0.0, 0.0),
 }
 
 #: An emulator fault-channel command (docs/ursim.md) a robot fault can be sent as.
@@ -116,6 +139,10 @@ _PARAMS: dict[FaultKind, frozenset[str]] = {
     FaultKind.PROTECTIVE_STOP: frozenset({"transport"}),
     FaultKind.MOTION_REJECTED: frozenset({"transport"}),
     FaultKind.MOTION_LAG: frozenset({"lag_ms", "transport"}),
+    FaultKind.COUGH: frozenset({"offset_mm"}),
+    FaultKind.PATIENT_SHIFT: frozenset({"offset_mm"}),
+    FaultKind.MARKER_LOST: frozenset({"markers"}),
+    FaultKind.MARKER_MOVED: frozenset({"markers", "offset_mm"}),
 }
 _BASE = frozenset({"kind", "start_s", "duration_s"})
 
@@ -140,6 +167,11 @@ class FaultSpec(BaseModel):
     sensors: tuple[str, ...] = Field(
         (), description="bad_quality/sensor_missing: sensors hit (all when empty)")
     lag_ms: float = Field(200.0, gt=0, description="motion_lag: command delay, ms")
+    offset_mm: tuple[float, float, float] | None = Field(
+        None, description="cough: the jolt's peak; patient_shift: the body's final offset; marker_moved: "
+                          "the markers' displacement (image frame, mm; None: the kind's default)")
+    markers: tuple[int, ...] = Field(
+        (0,), min_length=1, description="marker_lost/marker_moved: skin marker indices (CT fiducial order)")
     transport: bool | TransportCommand = Field(
         False, description="robot faults: send to the UR emulator's fault channel as this command "
                            "(true: the kind's default) instead of simulating in the wrapper")
@@ -153,14 +185,27 @@ class FaultSpec(BaseModel):
         if isinstance(self.transport, str) and self.transport not in TRANSPORT_COMMANDS[self.kind]:
             raise ValueError(f"transport = {self.transport!r} does not cause a {self.kind.value} "
                              f"(it takes {list(TRANSPORT_COMMANDS[self.kind])} or true)")
+        if any(i < 0 for i in self.markers):
+            raise ValueError(f"markers {list(self.markers)}: indices are >= 0 (CT fiducial order)")
+        off = self.offset_mm
+        if off is not None and not all(math.isfinite(v) and abs(v) <= 100.0 for v in off):
+            raise ValueError(f"offset_mm {self.offset_mm}: finite and within 100 mm per axis")
         x0, y0, x1, y1 = self.region_px
         if x1 <= x0 or y1 <= y0:
             raise ValueError(f"region_px {self.region_px} must be x0 < x1, y0 < y1")
         return self
 
     @property
-    def device(self) -> Literal["camera", "tracker", "robot"]:
+    def device(self) -> FaultDevice:
         return FAULT_DEVICE[self.kind]
+
+    @property
+    def patient_offset_mm(self) -> tuple[float, float, float]:
+        """A patient fault's offset (mm, image frame): the configured one or the kind's default
+        (zero for kinds without one)."""
+        if self.offset_mm is not None:
+            return self.offset_mm
+        return PATIENT_DEFAULT_OFFSET_MM.get(self.kind, (0.0, 0.0, 0.0))
 
     @property
     def transport_command(self) -> TransportCommand | None:

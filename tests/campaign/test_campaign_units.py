@@ -24,7 +24,9 @@ from hil.geometry.transform import RigidTransform
 
 def test_matrix_is_every_kind_times_every_target_state() -> None:
     names = [s.name for s in all_scenarios()]
-    assert len(names) == len(FaultKind) * len(TARGET_STATES) == 70
+    assert len(names) == len(FaultKind) * len(TARGET_STATES) == 90
+    patient = {"cough@compensate", "marker_lost@gate", "patient_shift@lock", "marker_moved@register"}
+    assert patient <= set(names)
     assert {"frame_drop@compensate", "motion_lag@lock"} <= set(names)
 
 

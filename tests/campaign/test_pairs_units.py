@@ -27,13 +27,13 @@ from hil.campaign.pairs_campaign import pair_spec, pairs_matrix_ids, single_runs
 from hil.campaign.recorder import Recording, StateSample
 from hil.campaign.report import pair_row_of, row_order, table
 from hil.campaign.runner import RunResult, RunSpec, judge_second
-from hil.campaign.scenarios import TARGET_STATES, ScenarioSelectionError
+from hil.campaign.scenarios import DEVICE_KINDS, PATIENT_KINDS, TARGET_STATES, ScenarioSelectionError
 from hil.cli import main
 from hil.config.faults import FAULT_DEVICE, FaultKind
 from hil.controller.fsm import Event, State
 from hil.controller.operator_input import OperatorView
 
-KIND_NAMES = [k.value for k in FaultKind]
+KIND_NAMES = [k.value for k in DEVICE_KINDS]
 
 
 def test_overlap_matrix_counts() -> None:
@@ -102,7 +102,7 @@ def test_select_recovery_is_ordered_and_bounded_first() -> None:
         select_pairs(["frame_drop+frame_drop@lock"])  # overlapping pairs are of two different kinds
 
 
-@given(a=st.sampled_from(list(FaultKind)), b=st.sampled_from(list(FaultKind)),
+@given(a=st.sampled_from(DEVICE_KINDS), b=st.sampled_from(DEVICE_KINDS),
        state=st.sampled_from(TARGET_STATES))
 def test_any_two_kinds_select_their_overlapping_scenario_in_either_order(a: FaultKind, b: FaultKind,
                                                                          state: str) -> None:
@@ -219,7 +219,17 @@ def test_pairs_table_rows() -> None:
 def test_every_pair_is_in_the_matrix_once() -> None:
     got = {(s.first, s.second) for s in overlap_scenarios()}
     assert got == {tuple(sorted(p, key=lambda k: KIND_NAMES.index(k.value)))
-                   for p in itertools.combinations(FaultKind, 2)}
+                   for p in itertools.combinations(DEVICE_KINDS, 2)}
+
+
+def test_patient_kinds_are_single_fault_scenarios_only() -> None:
+    """The pairs matrix pairs the device kinds; a patient kind in a pair pattern is refused."""
+    assert [k.value for k in PATIENT_KINDS] == ["cough", "patient_shift", "marker_lost", "marker_moved"]
+    assert len(DEVICE_KINDS) == 14
+    assert all(FAULT_DEVICE[k] == "patient" for k in PATIENT_KINDS)
+    assert not any(s.first in PATIENT_KINDS or s.second in PATIENT_KINDS for s in all_pairs())
+    with pytest.raises(ScenarioSelectionError, match="matches nothing"):
+        select_pairs(["frame_drop+cough@lock"])
 
 
 # ---------------------------------------------------------------------- judging the second fault
