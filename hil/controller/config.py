@@ -131,6 +131,12 @@ class GateConfig(BaseModel):
                                                   "(longer than the natural end-exhale pause)")
     timeout_s: float = Field(30.0, gt=0, description="give up waiting (back to waiting, with a message)")
     hold_request_s: float = Field(8.0, gt=0, description="breath-hold asked for on entering the gate")
+    min_hold_left_s: float | None = Field(
+        4.0, ge=0, description="open only while the requested breath-hold has at least this long left "
+                               "(compensate's alignment and lock.hold_s must fit in it; None: not checked)")
+    hold_rest_s: float = Field(
+        5.0, ge=0, description="after a breath-hold that could not be used ends, let the patient breathe "
+                               "this long, then ask for the next")
 
 
 class CompensationConfig(BaseModel):

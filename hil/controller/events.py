@@ -40,6 +40,8 @@ PLAN_ACCEPTED: Final = "plan_accepted"
 APPROACH_MEASURED: Final = "approach_measured"
 GATE_MEASURED: Final = "gate_measured"
 GATE_TIMED_OUT: Final = "gate_timed_out"
+#: the gate's checks held but too little of the requested breath-hold was left (once per hold)
+GATE_HOLD_TOO_SHORT: Final = "gate_hold_too_short"
 CORRECTION_OUT_OF_BOUNDS: Final = "correction_out_of_bounds"
 COMPENSATION_STEP: Final = "compensation_step"
 SERVO_DEADLINE_MISSED: Final = "servo_deadline_missed"

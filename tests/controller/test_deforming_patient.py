@@ -56,3 +56,38 @@ def test_a_body_beyond_the_deformation_bound_pauses_and_says_why(tmp_path: Path)
     paused_at = moves.index("paused")
     resumed_at = paused_at + moves[paused_at:].index("register")
     assert "compensation_step" not in moves[paused_at:resumed_at]
+
+
+def _gate_setup(seed: int, min_hold_left_s: float | None) -> SetupConfig:
+    s = load_setup(CONFIG)
+    g = s.procedure.gate.model_copy(update={"min_hold_left_s": min_hold_left_s})
+    return s.model_copy(update={"procedure": s.procedure.model_copy(update={"gate": g}),
+                                "simulation": s.simulation.model_copy(update={"seed": seed})})
+
+
+@pytest.mark.slow
+def test_the_gate_opens_only_with_enough_breath_hold_left(tmp_path: Path) -> None:
+    """Seed 1: the body comes back within tolerance only near the end of the first requested
+    hold. Without the hold budget the gate opens with 0.4 s of it left, the patient breathes
+    again while locked, and the drift alarm retracts the arm; with it the gate lets that hold
+    go, asks for the next one after the rest, and opens inside it with the budget left."""
+    without = run_procedure(CONFIG, _gate_setup(1, None), PLAN, auto=True, session_dir=tmp_path / "off",
+                            max_duration_s=60.0)
+    assert without.states[-3:] == ["lock", "retract", "safe_stop"]
+    s = run_procedure(CONFIG, _gate_setup(1, 4.0), PLAN, auto=True, session_dir=tmp_path / "on",
+                      max_duration_s=60.0)
+    assert s.final_state == "done"
+    records = list(read_session_log(s.session_log))
+    short = [r for r in records if r["event"] == "gate_hold_too_short"]
+    assert len(short) == 1
+    assert short[0]["hold_left_s"] < 4.0
+    assert short[0]["need_s"] == 4.0
+    holds = [r["t_ns"] for r in records if r["event"] == "breath_hold_requested" and r["purpose"] == "gate"]
+    assert len(holds) == 2
+    # the second request comes hold_rest_s (5 s) after the first hold's requested end (8 s)
+    assert (holds[1] - holds[0]) * 1e-9 >= 8.0 + 5.0
+    opened = next(r["t_ns"] for r in records if r["event"] == "transition_applied"
+                  and r["transition"] == "gate_to_compensate")
+    assert opened > holds[1]
+    assert (opened - holds[1]) * 1e-9 <= 8.0 - 4.0     # at least 4 s of the hold left
+    assert short[0]["t_ns"] < holds[1]

@@ -4,7 +4,14 @@ within tolerance of the reference for the dwell time, seed 002).
 A patient who moved beyond the correction bounds (``[procedure.compensation] max_correction_mm`` /
 ``max_correction_deg``, the rigid change of the skin markers about the planned entry) will not
 bring the markers back by holding the breath: GATE pauses for an operator decision (re-register,
-or resume), as COMPENSATE and LOCK do, instead of asking for breath-holds until it times out."""
+or resume), as COMPENSATE and LOCK do, instead of asking for breath-holds until it times out.
+
+The hold budget (``[procedure.gate] min_hold_left_s``): the needle goes in during the breath-hold
+the gate asked for, so the gate opens only while that hold has at least ``min_hold_left_s`` left
+on the controller's clock (counted from the request: the patient's reaction only makes the hold
+end later, so this errs on the safe side). A hold that comes too late to use is logged once
+(``gate_hold_too_short``); when it has ended and the patient has breathed for ``hold_rest_s``,
+the gate asks for the next one (``breath_hold_requested``) and waits again."""
 
 from __future__ import annotations
 
@@ -22,6 +29,12 @@ if TYPE_CHECKING:
 
 
 class GatePhase(Phase):
+    """GATE (module doc). Scratch: the current hold request's end (controller clock, ns) and
+    whether its being too short was logged."""
+
+    _hold_end_ns: int = 0
+    _too_short_logged: bool = False
+
     state = State.GATE
 
     def on_enter(self, transition: str) -> PhaseResult:
@@ -33,8 +46,37 @@ class GatePhase(Phase):
         # the arm holds before the patient is asked to (the log shows stop_sent first); a stop
         # that fails raises here, the entry faults, and no breath-hold is requested
         self.ctx.execute(Stop("gate: hold position while waiting for the breath-hold"))
-        self.request_hold("gate", cfg.gate.hold_request_s)
+        self._ask_for_hold()
         return PhaseResult()
+
+    def _ask_for_hold(self) -> None:
+        """Request a breath-hold of ``hold_request_s`` and note when it is due to end."""
+        hold_s = self.ctx.cfg.gate.hold_request_s
+        self.request_hold("gate", hold_s)
+        self._hold_end_ns = self.ctx.clock.now_ns() + round(hold_s * 1e9)
+        self._too_short_logged = False
+
+    def _hold_problem(self, gate_open: bool) -> str | None:
+        """Why the current hold cannot take the needle (None: it can, or the budget is off); asks
+        for the next hold once this one has ended and the rest has passed. With ``gate_open`` (the
+        body's checks hold) a hold too short to use is logged, once per hold."""
+        g = self.ctx.cfg.gate
+        if g.min_hold_left_s is None:
+            return None
+        now = self.ctx.clock.now_ns()
+        left_s = (self._hold_end_ns - now) * 1e-9
+        if left_s >= g.min_hold_left_s:
+            return None
+        if left_s <= -g.hold_rest_s:
+            self._ask_for_hold()
+            return "asking for the next breath-hold"
+        why = (f"the breath-hold has {max(left_s, 0.0):.1f} s left, compensate and lock need "
+               f"{g.min_hold_left_s} s: waiting for the next")
+        if gate_open and not self._too_short_logged:
+            self._too_short_logged = True
+            self.ctx.session.write(ev.GATE_HOLD_TOO_SHORT, hold_left_s=left_s, need_s=g.min_hold_left_s,
+                                   next_request_in_s=left_s + g.hold_rest_s)
+        return why
 
     def step(self, inputs: TickInputs) -> PhaseResult:
         est, out = self.ctx.est, PhaseResult()
@@ -50,7 +92,8 @@ class GatePhase(Phase):
             if why is not None:
                 self.ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=why, T_change=change)
                 return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, why + "; operator decision needed")
-        if status.open:
+        hold_problem = self._hold_problem(status.open)
+        if status.open and hold_problem is None:
             return out.fire(Event.GATE_OPENED, status.justification)
         if status.timed_out:
             self.ctx.session.write(ev.GATE_TIMED_OUT, message=status.justification)
