@@ -24,6 +24,7 @@ registration assumed).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -102,6 +103,22 @@ def _plane_coordinates(ref: FloatArray, entry_mm: FloatArray) -> tuple[FloatArra
     return (ref - centre) @ basis, ((entry_mm - centre) @ basis)[None, :]
 
 
+@functools.lru_cache(maxsize=64)
+def _tps_row(ref_bytes: bytes, entry_bytes: bytes) -> FloatArray:
+    """The spline's interpolation row at the entry for these reference markers (float64 bytes of
+    (n, 3) and (3,)), read-only. It depends only on which markers are seen, so a procedure
+    computes it once per visible subset (a pair then costs a product, not a solve).
+
+    Raises:
+        ValueError: the markers' places cannot carry a spline (not cached: raised every time)."""
+    ref = np.frombuffer(ref_bytes, dtype=np.float64).reshape(-1, 3)
+    entry = np.frombuffer(entry_bytes, dtype=np.float64)
+    xy, entry_xy = _plane_coordinates(ref, entry)
+    W = thin_plate_weights(xy, entry_xy)
+    W.setflags(write=False)
+    return W
+
+
 def _local_tps(ref: FloatArray, live: FloatArray, entry_mm: FloatArray,
                base: RigidTransform) -> RigidTransform:
     """``base`` moved so the entry lands where the thin-plate spline of the markers' residual
@@ -109,8 +126,8 @@ def _local_tps(ref: FloatArray, live: FloatArray, entry_mm: FloatArray,
 
     Raises:
         ValueError: the markers' places cannot carry a spline (collinear, coincident)."""
-    xy, entry_xy = _plane_coordinates(ref, entry_mm)
-    W = thin_plate_weights(xy, entry_xy)               # (1, n)
+    W = _tps_row(np.ascontiguousarray(ref, dtype=np.float64).tobytes(),
+                 np.ascontiguousarray(entry_mm, dtype=np.float64).tobytes())   # (1, n)
     residual = live - base.apply(ref)
     delta = (W @ residual)[0]
     return RigidTransform.from_translation(delta) @ base
