@@ -13,8 +13,11 @@ anterior, mm), on the rigid phantom and the deformable body alike, over the faul
 - ``patient_shift``: the whole body translates by ``offset_mm``, ramped smoothly (raised
   cosine) over the window and kept after it (the patient moved and stays moved).
 - ``marker_lost``: the skin markers ``markers`` are not rendered during the window.
-- ``marker_moved``: the skin markers ``markers`` sit ``offset_mm`` from where the skin carries
-  them during the window (come off and stuck back elsewhere, or two swapped places).
+- ``marker_moved``: the skin markers ``markers`` slide ``offset_mm`` over the skin during the window
+  (raised-cosine ramp) and stay there: tape peeling, a marker pressed back elsewhere. A slide the
+  tracker can follow from frame to frame is the dangerous case (a marker that jumps further
+  than the tracking tolerance is simply lost to the controller): the registered layout no longer
+  matches the skin.
 
 Marker indices beyond the phantom's markers are ignored (the config cannot know the count).
 """
@@ -97,10 +100,11 @@ class PatientFaults:
                 markers += r * off
                 entry += r * off
                 target += r * off
-            elif f.kind is FaultKind.MARKER_MOVED and f.active(t_s):
+            elif f.kind is FaultKind.MARKER_MOVED:
+                r = ramp(t_s, f.start_s, f.duration_s)
                 for i in f.markers:
                     if i < len(markers):
-                        markers[i] += off
+                        markers[i] += r * off
         return replace(state, markers_mm=markers, entry_mm=entry, target_mm=target)
 
     def lost(self, t_s: float) -> frozenset[int]:

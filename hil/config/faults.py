@@ -52,7 +52,7 @@ class FaultKind(StrEnum):
     COUGH = "cough"                        # a non-rigid jolt of the body peaking at offset_mm
     PATIENT_SHIFT = "patient_shift"        # the body moves offset_mm over the window and stays
     MARKER_LOST = "marker_lost"            # skin markers `markers` not seen (come off, covered)
-    MARKER_MOVED = "marker_moved"          # skin markers `markers` displaced offset_mm (re-stuck)
+    MARKER_MOVED = "marker_moved"          # skin markers `markers` slide offset_mm and stay (peeling)
 
 #: The devices a fault can apply to ("patient": the simulated body, module doc).
 FaultDevice = Literal["camera", "tracker", "robot", "patient"]
@@ -169,7 +169,7 @@ class FaultSpec(BaseModel):
     lag_ms: float = Field(200.0, gt=0, description="motion_lag: command delay, ms")
     offset_mm: tuple[float, float, float] | None = Field(
         None, description="cough: the jolt's peak; patient_shift: the body's final offset; marker_moved: "
-                          "the markers' displacement (image frame, mm; None: the kind's default)")
+                          "the markers' final displacement (image frame, mm; None: the kind's default)")
     markers: tuple[int, ...] = Field(
         (0,), min_length=1, description="marker_lost/marker_moved: skin marker indices (CT fiducial order)")
     transport: bool | TransportCommand = Field(
