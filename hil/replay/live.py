@@ -282,10 +282,15 @@ def open_live_viewer(target: str, recording_id: str | None = None,
         InputFileError: ``target`` is a file whose directory does not exist.
         ViewerUnavailableError: rerun-sdk is missing.
     """
-    if not is_address(target) and not Path(target).resolve().parent.is_dir():
-        raise InputFileError(target, "--viewer: the recording's directory does not exist")
+    check_target(target)
     make: Callable[[str, str | None], Any] = writer_factory or RerunSnapshotWriter
     return LiveViewerPlugin(make(target, recording_id))
+
+
+def check_target(target: str) -> None:
+    """Raises InputFileError when ``target`` is a file whose directory does not exist."""
+    if not is_address(target) and not Path(target).resolve().parent.is_dir():
+        raise InputFileError(target, "--viewer: the recording's directory does not exist")
 
 
 def stream_line(plugin: LiveViewerPlugin, target: str) -> str:
