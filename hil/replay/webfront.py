@@ -104,6 +104,9 @@ FETCH_GUARD_JS = """
     return new RealWebSocket(url, protocols);
   };
   window.WebSocket.prototype = RealWebSocket.prototype;
+  ["CONNECTING", "OPEN", "CLOSING", "CLOSED"].forEach(function (k) {
+    window.WebSocket[k] = RealWebSocket[k];
+  });
 })();
 """
 
@@ -202,10 +205,10 @@ class _FrontHandler(BaseHTTPRequestHandler):
             return
         try:
             if path in INDEX_PATHS:
-                self._send_index(upstream.read().decode("utf-8"), with_body)
+                self._send_index(upstream, with_body)
             else:
                 self._relay(upstream, with_body)
-        except (OSError, WebFrontError):  # the browser went away, or a page we will not serve
+        except OSError:  # the browser or the upstream went away mid-response
             self.close_connection = True
         finally:
             upstream.close()
@@ -220,8 +223,14 @@ class _FrontHandler(BaseHTTPRequestHandler):
         self.send_header("Cache-Control", "no-store")
         self.end_headers()
 
-    def _send_index(self, html: str, with_body: bool) -> None:
-        page = guard_index_html(html).encode("utf-8")
+    def _send_index(self, upstream: http.client.HTTPResponse, with_body: bool) -> None:
+        """The guarded page, or 502 when the upstream's is not one we can guard (nothing of it
+        is sent)."""
+        try:
+            page = guard_index_html(upstream.read().decode("utf-8")).encode("utf-8")
+        except (WebFrontError, UnicodeDecodeError) as exc:
+            self.send_error(502, f"the web viewer's page cannot be served safely: {exc}")
+            return
         csp = content_security_policy(self.server.grpc_port, inline_script_hashes(page.decode()))
         self._start(200, {"Content-Type": "text/html; charset=utf-8",
                           "Content-Length": str(len(page))}, csp)

@@ -38,7 +38,8 @@ class _Upstream(BaseHTTPRequestHandler):
         """Quiet."""
 
     def do_GET(self) -> None:
-        files = {"/": (PAGE.encode(), "text/html"), "/re_viewer_bg.wasm": (WASM, "application/wasm")}
+        files = {"/": (PAGE.encode(), "text/html"), "/re_viewer_bg.wasm": (WASM, "application/wasm"),
+                 "/index.html": (b"<html>no script here</html>", "text/html")}
         if self.path not in files:
             self.send_error(404)
             return
@@ -133,6 +134,12 @@ def test_assets_are_relayed_byte_for_byte_with_their_headers(front: LoopbackFron
 def test_other_requests_are_refused(front: LoopbackFront, method: str, path: str, host: str | None,
                                     code: int) -> None:
     assert _get(front.port, path, method=method, host=host)[0] == code
+
+
+def test_a_page_that_cannot_be_guarded_is_not_served(front: LoopbackFront) -> None:
+    status, _, body = _get(front.port, "/index.html")
+    assert status == 502
+    assert b"no script here" not in body
 
 
 def test_upstream_gone_is_a_bad_gateway_and_close_joins_every_thread() -> None:
