@@ -15,9 +15,10 @@ import json
 import sys
 from typing import Any
 
-#: Said on stderr with --serve (docs/replay.md, "Known defect").
-WEB_VIEWER_WARNING = ("hil replay: note: Rerun's web viewer sends usage analytics from the browser "
-                      "(no opt-out) when it has Internet access; `rerun FILE.rrd` (native) does not")
+#: Said on stderr with --serve (docs/replay.md, "The served web viewer reaches only loopback").
+WEB_VIEWER_NOTE = ("hil replay: note: the page may reach only 127.0.0.1 (a Content-Security-Policy and "
+                   "a guard refuse the web viewer's analytics, web font, release check and examples "
+                   "in the browser); open only the address above")
 
 
 def port_number(text: str) -> int:
@@ -72,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
                 sys.stdout.write(f"serving   {server.url}  (Ctrl-C to stop)\n")
         sys.stdout.flush()
         if server is not None:
-            print(WEB_VIEWER_WARNING, file=sys.stderr, flush=True)
+            print(WEB_VIEWER_NOTE, file=sys.stderr, flush=True)
         if server is not None:
             server.wait()
     finally:

@@ -18,6 +18,9 @@ injected fault it detected; 1 otherwise (late periods over their bound are print
 failure: the host's steal can cause them). ``--probe-host S`` (default 10) runs S seconds of fixed
 work with the servo's real-time set-up before and after the soak (hil/soak/probe.py) and prints
 its late periods beside the soak's (JSON ``host_probe``): what the machine alone does.
+``--viewer FILE.rrd|ADDRESS`` streams the soak live through the viewer plugin (docs/replay.md) and
+reports what it adds to a supervisor tick (JSON ``viewer``: counts and ``hook_ms`` p50/p99/max);
+compare the servo figures with a soak without it.
 """
 
 from __future__ import annotations
@@ -69,6 +72,9 @@ def add_parser(sub: Any) -> None:
                         "camera's crystal is (default: the setup's [simulation.rig_errors] "
                         "camera_clock_rate_error_ppm, else 50; 0: on the host's clock, so every pair keeps "
                         "one phase of the servo periods for the whole soak)")
+    p.add_argument("--viewer", metavar="FILE.rrd|ADDRESS", default=None,
+                   help="stream the soak live to a Rerun recording file or viewer address (the live "
+                        "viewer plugin, docs/replay.md) and report its cost per supervisor tick")
     p.add_argument("--config", help="simulated setup TOML (default: the embedded configs/sim.toml)")
     p.add_argument("--plan", help="plan JSON (default: plans/<config name>_plan.json next to the config)")
     p.add_argument("--session-dir", default="sessions", help="where the session log goes (default sessions/)")
@@ -175,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
         perception_process=args.perception_process,
         camera_clock_ppm=args.camera_clock_ppm,
         faults_every_s=args.faults_every,
+        viewer=args.viewer,
         progress=lambda m: print(f"hil soak: {m}", file=sys.stderr, flush=True),
     )
     if args.probe_host > 0:
@@ -241,6 +248,11 @@ def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
               "the driver)\n")
     out.write(f"following error      peak {res.following_peak_mm:.3f} mm, "
               f"{res.following_faults} fault(s)\n")
+    if res.viewer:
+        v = res.viewer
+        out.write(f"live viewer          hook {_fmt(v['hook_ms'])} ms per call (p50/p99/max, "
+                  f"{v['hook_calls']} calls); {v['written']} of {v['offered']} snapshots written, "
+                  f"{v['dropped']} dropped\n")
     for f in res.transient_faults:
         back = f["back_in_compensation_s"]
         again = "" if back is None else f"; compensating again after {back:.1f} s"

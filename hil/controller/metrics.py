@@ -8,7 +8,7 @@ import math
 from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Final, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -130,6 +130,18 @@ class RunMetrics:
 
 #: a gate open while the true target is farther than this from the guide axis line is a false open
 FALSE_OPEN_MM = 2.0
+#: Session-log event: where the simulator's truth put the skin markers, the entry and the target
+#: (optical frame, mm), once per new stereo pair (:meth:`TruthMeter.positions`; docs/run.md).
+TRUTH_POSITIONS: Final = "truth_positions"
+
+
+@runtime_checkable
+class SkinMarkerTruth(Protocol):
+    """A ground truth that also knows where the skin markers truly are (the simulated world)."""
+
+    def patient_markers_optical(self, t_ns: int) -> tuple[FloatArray, FloatArray]:
+        """True skin marker centres (N,3, mm) and unit normals (N,3), optical frame, at ``t_ns``."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -180,6 +192,10 @@ class TruthMeter:
         self.gate_open_ticks = 0
         self.gate_false_open_ticks = 0
         self.__name__ = "truth_meter"   # how the observer is named in an observer_failed record
+        self._positions_frame = -1   # the snapshot frame count of the last truth_positions record
+        #: the latest ``truth_positions`` fields (a new dict each time, never mutated): what a live
+        #: view reads from another thread (hil.replay.live); None before the first
+        self.last_positions: dict[str, Any] | None = None
 
     def errors(self, snap: ControllerSnapshot) -> tuple[float, float] | None:
         """(position error mm, direction error deg) of the guide, or None without a plan or a
@@ -210,10 +226,32 @@ class TruthMeter:
                            target_mm=line_distance_mm(T_guide.t, axis, target),
                            entry_mm=line_distance_mm(T_guide.t, axis, entry))
 
+    def positions(self, t_ns: int) -> dict[str, Any]:
+        """The true positions at ``t_ns`` (optical frame, mm), as the ``truth_positions`` record's
+        fields: ``truth_t_ns``, ``entry_optical_mm`` and ``target_optical_mm`` (3), and
+        ``markers_optical_mm`` (N,3, the phantom's marker order) when the truth knows the skin
+        markers (:class:`SkinMarkerTruth`). Empty without a truth."""
+        if self.truth is None:
+            return {}
+        truth = self.truth
+        out: dict[str, Any] = {
+            "truth_t_ns": t_ns,
+            "entry_optical_mm": np.asarray(truth.entry_optical(t_ns), dtype=np.float64),
+            "target_optical_mm": np.asarray(truth.target_optical(t_ns), dtype=np.float64)}
+        if isinstance(truth, SkinMarkerTruth):
+            markers, _normals = truth.patient_markers_optical(t_ns)
+            out["markers_optical_mm"] = np.asarray(markers, dtype=np.float64)
+        return out
+
     def __call__(self, snap: ControllerSnapshot) -> None:
         """Observe one snapshot (the controller's thread, after the tick)."""
         if self.truth is None:
             return
+        if snap.frames != self._positions_frame:
+            self._positions_frame = snap.frames
+            positions = self.positions(snap.t_ns)
+            self.session.write(TRUTH_POSITIONS, **positions, frame=snap.frames)
+            self.last_positions = positions
         residual = float(self.truth.body_rigid_residual_mm(snap.t_ns))
         self.rigid_residuals_mm.append(residual)
         if snap.reference_optical_mm is not None and snap.live_mm is not None:

@@ -15,9 +15,14 @@ Entities (same paths as a replay, :mod:`hil.replay.scene`; the optical frame is 
 ``world/skin/seen``, ``world/flange/seen``, ``world/robot/tcp``, ``world/robot/guide`` is not
 streamed (the snapshot carries the TCP, the rig's guide offset is not in it), ``world/robot``
 (``T_robot_from_optical`` inverse, once known), ``series/gate/frame_deviation_mm``,
-``series/following/guide_error_mm``, ``series/truth/position_error_mm`` (simulator), and
-``events/transitions`` (every applied transition). Timelines: ``session_time`` (the snapshot's
-``t_ns`` since the first one) and ``tick`` (snapshots written).
+``series/following/guide_error_mm``, ``series/truth/position_error_mm`` (simulator),
+``events/transitions`` (every applied transition), and in simulation, once
+:meth:`LiveViewerPlugin.follow_truth` is given the truth meter's latest positions
+(``hil.controller.metrics.TruthMeter.last_positions``), ``world/truth/skin``, ``world/truth/entry``,
+``world/truth/target`` and ``world/truth/path`` as in a replay: the hook takes the latest positions
+with the snapshot (one attribute read), the worker writes each new one once, at its own time.
+Timelines: ``session_time`` (the snapshot's ``t_ns`` since the first one) and ``tick``
+(snapshots written).
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from __future__ import annotations
 import collections
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -36,6 +41,7 @@ from hil.errors import InputFileError
 from hil.log import get_logger
 from hil.replay.recording import APPLICATION_ID, TIMELINE_TIME, blueprint
 from hil.replay.rerun_env import import_rerun
+from hil.replay.scene import SceneItem, truth_items
 from plugins.hookspecs import hookimpl
 
 if TYPE_CHECKING:
@@ -61,7 +67,15 @@ class SnapshotWriter(Protocol):
 
     def write_transition(self, text: str, snap: ControllerSnapshot) -> None: ...
 
+    def write_truth(self, positions: Mapping[str, Any]) -> None:
+        """The simulator's true positions (a ``truth_positions`` record's fields)."""
+        ...
+
     def close(self) -> None: ...
+
+
+#: Where the latest true positions are read (the truth meter's ``last_positions``), or None.
+TruthSource = Callable[[], Mapping[str, Any] | None]
 
 
 def is_address(target: str) -> bool:
@@ -120,6 +134,24 @@ class RerunSnapshotWriter:
         self._time(snap)
         self.rec.log("events/transitions", self.rr.TextLog(text, level="INFO"))
 
+    def write_truth(self, positions: Mapping[str, Any]) -> None:
+        """``world/truth/*`` at the positions' own time (``truth_t_ns``); nothing before the
+        first snapshot (no time origin yet)."""
+        t_ns = positions.get("truth_t_ns")
+        if self._t0 is None or not isinstance(t_ns, int):
+            return
+        self.rec.set_time(TIMELINE_TICK, sequence=self._tick)
+        self.rec.set_time(TIMELINE_TIME, duration=np.timedelta64(t_ns - self._t0, "ns"))
+        for item in truth_items(positions, self._tick, t_ns - self._t0):
+            self._log_item(item)
+
+    def _log_item(self, item: SceneItem) -> None:
+        rr = self.rr
+        if item.kind == "points":
+            self.rec.log(item.entity, rr.Points3D(item.points, radii=rr.Radius.ui_points(4.0)))
+        elif item.kind == "strips":
+            self.rec.log(item.entity, rr.LineStrips3D([item.points]))
+
     def close(self) -> None:
         try:
             self.rec.flush()
@@ -131,6 +163,7 @@ class RerunSnapshotWriter:
 class _Item:
     snap: ControllerSnapshot
     transition: str | None = None
+    truth: Mapping[str, Any] | None = None
 
 
 class LiveViewerPlugin:
@@ -154,9 +187,18 @@ class LiveViewerPlugin:
         self.write_errors = 0
         self.hook_s: list[float] = []
         self._keep = keep_timings
+        self._truth: TruthSource | None = None
+        self._truth_t_ns: object = None   # the worker's: the last positions written
+        self.truth_written = 0
         self._closed = False
         self._thread = threading.Thread(target=self._work, name="hil-viewer", daemon=True)
         self._thread.start()
+
+    def follow_truth(self, source: TruthSource | None) -> None:
+        """Stream the simulator's true positions: ``source`` returns the latest (a mapping with
+        ``truth_t_ns``, never mutated after it is returned) or None; called in the hook, so it
+        must be an attribute read, e.g. ``lambda: meter.last_positions``. None: stop."""
+        self._truth = source
 
     # ---------------------------------------------------------------- controller thread
     def _offer(self, item: _Item) -> None:
@@ -171,7 +213,8 @@ class LiveViewerPlugin:
 
     @hookimpl
     def hil_on_tick(self, snapshot: ControllerSnapshot) -> None:
-        self._offer(_Item(snapshot))
+        source = self._truth
+        self._offer(_Item(snapshot, truth=None if source is None else source()))
 
     @hookimpl
     def hil_on_transition(self, transition: FireResult, snapshot: ControllerSnapshot) -> None:
@@ -189,6 +232,7 @@ class LiveViewerPlugin:
                 try:
                     if item.transition is None:
                         self.writer.write_tick(item.snap)
+                        self._write_truth(item.truth)
                     else:
                         self.writer.write_transition(item.transition, item.snap)
                     self.written += 1
@@ -198,6 +242,14 @@ class LiveViewerPlugin:
                         _log.warning("viewer_write_failed", error=repr(exc))
             if stopping or self._abandon.is_set():
                 return
+
+    def _write_truth(self, truth: Mapping[str, Any] | None) -> None:
+        """Each new set of true positions once (the worker thread)."""
+        if truth is None or truth.get("truth_t_ns") == self._truth_t_ns:
+            return
+        self._truth_t_ns = truth.get("truth_t_ns")
+        self.writer.write_truth(truth)
+        self.truth_written += 1
 
     def counts(self) -> dict[str, int]:
         """``offered``, ``written``, ``dropped`` (queue full), ``write_errors``, ``lost_on_close``."""
@@ -230,10 +282,15 @@ def open_live_viewer(target: str, recording_id: str | None = None,
         InputFileError: ``target`` is a file whose directory does not exist.
         ViewerUnavailableError: rerun-sdk is missing.
     """
-    if not is_address(target) and not Path(target).resolve().parent.is_dir():
-        raise InputFileError(target, "--viewer: the recording's directory does not exist")
+    check_target(target)
     make: Callable[[str, str | None], Any] = writer_factory or RerunSnapshotWriter
     return LiveViewerPlugin(make(target, recording_id))
+
+
+def check_target(target: str) -> None:
+    """Raises InputFileError when ``target`` is a file whose directory does not exist."""
+    if not is_address(target) and not Path(target).resolve().parent.is_dir():
+        raise InputFileError(target, "--viewer: the recording's directory does not exist")
 
 
 def stream_line(plugin: LiveViewerPlugin, target: str) -> str:

@@ -17,12 +17,16 @@ Entities (the session log's fields, docs/run.md; absent fields are skipped):
 - ``world/robot/plan/{entry,target,path}``: ``plan_accepted`` entry, target and the line between;
 - ``world/robot/commanded``: TCP positions commanded (``command_sent``: a move's ``target`` pose or
   a tracking command's ``target_mm``);
+- ``world/truth/skin``, ``world/truth/entry``, ``world/truth/target``, ``world/truth/path``
+  (simulation only): where the simulator's truth put the skin markers, the entry and the target
+  (``truth_positions``, optical frame, one per stereo pair; the line from entry to target);
 - ``events/transitions`` (every ``transition_applied``: ``source -> target (transition: reason)``),
   ``events/faults`` (``fault_detected``), ``events/operator`` (``operator_command_result``);
 - the scalar series of :data:`SCALAR_SERIES` under ``series/``.
 
-The simulator's ground truth enters the log only as errors (``truth_error``: position and
-direction of the guide against the true target), so truth is a pair of series, not points.
+The simulator's ground truth enters the log as positions (``truth_positions``, above) and as
+errors (``truth_error``: position and direction of the guide against the true moving path, two
+series).
 """
 
 from __future__ import annotations
@@ -38,6 +42,13 @@ from numpy.typing import NDArray
 from hil.geometry.transform import RigidTransform
 
 FloatArray = NDArray[np.float64]
+
+#: The truth meter's positions record (``hil.controller.metrics.TRUTH_POSITIONS``).
+TRUTH_POSITIONS_EVENT = "truth_positions"
+#: (record field, entity) of the truth's points; the path joins entry and target.
+TRUTH_POINTS: tuple[tuple[str, str], ...] = (("markers_optical_mm", "world/truth/skin"),
+                                             ("entry_optical_mm", "world/truth/entry"),
+                                             ("target_optical_mm", "world/truth/target"))
 
 #: Length of the guide-axis arrow, mm.
 GUIDE_ARROW_MM = 40.0
@@ -184,6 +195,8 @@ def _record_items(rec: Mapping[str, Any], seq: int, t_ns: int) -> Iterator[Scene
         cmd = tgt.t if tgt is not None else _vec3(rec.get("target_mm"))
         if cmd is not None:
             yield SceneItem("world/robot/commanded", "points", seq, t_ns, points=cmd.reshape(1, 3))
+    elif event == TRUTH_POSITIONS_EVENT:
+        yield from truth_items(rec, seq, t_ns)
     elif event == "transition_applied":
         yield SceneItem("events/transitions", "text", seq, t_ns, text=transition_text(rec))
     elif event == "fault_detected":
@@ -192,6 +205,22 @@ def _record_items(rec: Mapping[str, Any], seq: int, t_ns: int) -> Iterator[Scene
     elif event == "operator_command_result":
         yield SceneItem("events/operator", "text", seq, t_ns,
                         text=f"{rec.get('input')}: {rec.get('outcome')} ({rec.get('reason')})")
+
+
+def truth_items(rec: Mapping[str, Any], seq: int, t_ns: int) -> Iterator[SceneItem]:
+    """The truth's points of one ``truth_positions`` record (or the truth meter's
+    ``last_positions``) and the entry-to-target line (the live stream draws them the same way)."""
+    found: dict[str, FloatArray] = {}
+    for name, entity in TRUTH_POINTS:
+        value = rec.get(name)
+        value = value.tolist() if isinstance(value, np.ndarray) else value   # live: the meter's arrays
+        pts = _rows(value if name == "markers_optical_mm" else [value])
+        if pts is not None:
+            found[name] = pts
+            yield SceneItem(entity, "points", seq, t_ns, points=pts)
+    if "entry_optical_mm" in found and "target_optical_mm" in found:
+        yield SceneItem("world/truth/path", "strips", seq, t_ns,
+                        points=np.vstack([found["entry_optical_mm"], found["target_optical_mm"]]))
 
 
 def transition_text(rec: Mapping[str, Any]) -> str:

@@ -1,12 +1,15 @@
 """Serve a recording in Rerun's web viewer on loopback (``hil replay --serve``).
 
 :class:`ViewerServer` runs the viewer that ships in the rerun-sdk wheel (``rerun
---serve-web``) as a child process bound to 127.0.0.1: an HTTP server for the web viewer on
-``web_port`` and a gRPC server holding the recording on ``grpc_port`` (the wheel's ``rerun``
-binary, run directly so that terminating it ends it). Nothing is fetched from
-the network: the viewer's assets are in the wheel. Analytics are off in the child as in this
-process (:mod:`hil.replay.rerun_env`: the config file is shared; ``FORCE_RERUN_ANALYTICS`` is
-not passed on).
+--serve-web``) as a child process bound to 127.0.0.1: a gRPC server holding the recording on
+``grpc_port`` and Rerun's HTTP server for the web viewer's assets on a private loopback port
+(the wheel's ``rerun`` binary, run directly so that terminating it ends it). The browser is
+pointed at ``web_port``, where :class:`~hil.replay.webfront.LoopbackFront` (a thread of this
+process) relays those assets with a guarded page and a Content-Security-Policy, so that the page
+can reach no host but 127.0.0.1 (its analytics, web font, release check and examples manifest
+are refused inside the browser; docs/replay.md). The viewer's assets are in the wheel. Analytics
+are off in the child as in this process (:mod:`hil.replay.rerun_env`: the config file is shared;
+``FORCE_RERUN_ANALYTICS`` is not passed on).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from urllib.parse import quote
 
 from hil.errors import HilError
 from hil.replay.rerun_env import FORCE_ANALYTICS_ENV, disable_rerun_analytics
+from hil.replay.webfront import LoopbackFront, WebFrontError
 
 LOOPBACK = "127.0.0.1"
 DEFAULT_WEB_PORT = 9090
@@ -64,11 +68,13 @@ def _accepts(port: int) -> bool:
 
 class ViewerServer:
     """The web viewer serving ``rrd`` on loopback. Start with :meth:`start` (or ``with``), stop
-    with :meth:`close` (idempotent; terminates, then kills after ``2 s``).
+    with :meth:`close` (idempotent; terminates the viewer, then kills it after ``2 s``; then stops
+    and joins the front's threads).
 
     Args:
         rrd: the recording to serve.
-        web_port / grpc_port: loopback ports (0: pick a free one).
+        web_port / grpc_port: loopback ports (0: pick a free one). Rerun's own web server runs on
+            a third, private port (:attr:`upstream_port`), behind the front on ``web_port``.
     """
 
     def __init__(self, rrd: str | Path, web_port: int = DEFAULT_WEB_PORT,
@@ -76,7 +82,9 @@ class ViewerServer:
         self.rrd = Path(rrd)
         self.web_port = web_port or free_port()
         self.grpc_port = grpc_port or free_port()
+        self.upstream_port = 0
         self._proc: subprocess.Popen[bytes] | None = None
+        self._front: LoopbackFront | None = None
         self.pid: int | None = None
 
     @property
@@ -89,7 +97,8 @@ class ViewerServer:
         return f"http://{LOOPBACK}:{self.web_port}/?url={quote(self.grpc_url, safe='')}"
 
     def start(self, timeout_s: float = 30.0) -> ViewerServer:
-        """Start the viewer and wait (up to ``timeout_s``) until both ports accept connections.
+        """Start the viewer, wait (up to ``timeout_s``) until its ports accept connections, then
+        start the front on ``web_port``.
 
         Raises:
             ViewerServeError: a port is busy, the viewer exited, or it did not come up in time.
@@ -97,10 +106,20 @@ class ViewerServer:
         for port in (self.web_port, self.grpc_port):
             if _accepts(port):
                 raise ViewerServeError(f"{LOOPBACK}:{port} is already in use")
+        self.upstream_port = free_port()
+        self._start_viewer(timeout_s)
+        try:
+            self._front = LoopbackFront(self.web_port, self.upstream_port, self.grpc_port).start()
+        except WebFrontError as exc:
+            self.close()
+            raise ViewerServeError(str(exc)) from None
+        return self
+
+    def _start_viewer(self, timeout_s: float) -> None:
         disable_rerun_analytics()
         env = {k: v for k, v in os.environ.items() if k != FORCE_ANALYTICS_ENV}
-        cmd = [str(rerun_binary()), "--serve-web", "--bind", LOOPBACK,
-               "--port", str(self.grpc_port), "--web-viewer-port", str(self.web_port), str(self.rrd)]
+        cmd = [str(rerun_binary()), "--serve-web", "--bind", LOOPBACK, "--port", str(self.grpc_port),
+               "--web-viewer-port", str(self.upstream_port), str(self.rrd)]
         try:
             self._proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                           stderr=subprocess.DEVNULL, env=env)
@@ -108,14 +127,13 @@ class ViewerServer:
             raise ViewerServeError(f"cannot start the Rerun viewer: {exc.strerror or exc}") from None
         self.pid = self._proc.pid
         deadline = time.monotonic() + timeout_s
-        while not (_accepts(self.web_port) and _accepts(self.grpc_port)):
+        while not (_accepts(self.upstream_port) and _accepts(self.grpc_port)):
             code = self._proc.poll()
             if code is not None or time.monotonic() > deadline:
                 self.close()
                 why = f"exited with code {code}" if code is not None else f"not up after {timeout_s:g} s"
                 raise ViewerServeError(f"the Rerun web viewer {why} (is rerun-sdk installed?)")
             time.sleep(0.05)  # polling a port's readiness, not a synchronisation by sleeping
-        return self
 
     def wait(self) -> int:
         """Block until the viewer exits (Ctrl-C raises KeyboardInterrupt here); its exit code."""
@@ -125,15 +143,13 @@ class ViewerServer:
 
     def close(self) -> None:
         proc, self._proc = self._proc, None
-        if proc is None:
-            return
-        if proc.poll() is None:
-            proc.terminate()
-            try:
-                proc.wait(timeout=2.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        front, self._front = self._front, None
+        try:
+            if proc is not None:
+                _end(proc)
+        finally:
+            if front is not None:  # after the viewer: a relay from it then ends at once
+                front.close()
 
     def __enter__(self) -> ViewerServer:
         return self.start()
@@ -141,3 +157,14 @@ class ViewerServer:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.close()
+
+
+def _end(proc: subprocess.Popen[bytes]) -> None:
+    """Terminate ``proc``, kill it after 2 s, reap it."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    proc.wait()

@@ -96,6 +96,7 @@ from hil.session.log import SessionLog
 from hil.soak.attribution import fault_outcomes, unexplained_faults
 from hil.soak.pendant import Pendant, RobotPendant
 from hil.soak.sampler import Sampler
+from hil.soak.viewer import check_viewer_target, close_soak_viewer, follow_truth, open_devices_and_viewer
 
 Progress = Callable[[str], None]
 
@@ -227,6 +228,9 @@ class SoakResult:
     #: (hil.soak.host.StealFreeFigures as a dict; empty where /proc/stat cannot be read): what
     #: the documented bound judges
     steal_free: dict[str, Any] = field(default_factory=dict)
+    #: the live viewer's figures with ``--viewer`` (hil.soak.viewer.close_soak_viewer: counts,
+    #: ``hook_ms`` p50 / p99 / max: the time the plugin adds to a supervisor tick); empty without
+    viewer: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -462,18 +466,23 @@ def run_soak(
     faults_every_s: float = 0.0,
     perception_process: bool = False,
     camera_clock_ppm: float | None = None,
+    viewer: str | None = None,
 ) -> SoakResult:
     """Run the soak (blocking, ``minutes`` of compensation plus the time to reach it). The servo
     process is started and stopped here (the arm is stopped on every path). ``faults_every_s`` >
     0: a transient fault that often (module doc). ``perception_process``: grab, render and locate
     in the perception process (unless the setup cannot: ``perception_in_process`` says why), else
-    in the supervisor. ``camera_clock_ppm``: :func:`soak_camera_clock_ppm`.
+    in the supervisor. ``camera_clock_ppm``: :func:`soak_camera_clock_ppm`. ``viewer`` (a ``.rrd``
+    path or a Rerun viewer address): the live viewer plugin streams the soak, its cost in
+    ``SoakResult.viewer`` (:mod:`hil.soak.viewer`); closed on every path.
 
     Raises:
-        InputFileError: a bad argument; ConfigError / InputFileError from the config and plan;
-        DriverError when the servo process cannot start.
+        InputFileError: a bad argument (or ``viewer`` in a missing directory); ConfigError /
+        InputFileError from the config and plan; DriverError when the servo process cannot start;
+        ViewerUnavailableError: ``viewer`` without rerun-sdk.
     """
     _check_arguments(minutes, rate_hz, faults_every_s)
+    check_viewer_target(viewer)
     say = progress or (lambda _m: None)
     base = load_setup(config)
     schedule = transient_schedule(minutes, faults_every_s)
@@ -494,41 +503,57 @@ def run_soak(
     feed = devices.camera.perception_feed if isinstance(devices.camera, PerceptionCamera) else None
     robot = devices.robot
     assert isinstance(robot, ServoRobot)
-    session = SessionLog(
-        session_dir / f"soak_{time.strftime('%Y%m%dT%H%M%S')}_{os.getpid()}.jsonl",
-        clock,
-        {"setup": str(config), "soak_minutes": minutes, "rate_hz": rate_hz, "realtime": realtime},
-    )
+    session = _soak_session(session_dir, clock, config, minutes, rate_hz, realtime)
     sampler = Sampler(robot, None if feed is None else lambda: feed.pid)
     operator = _soak_operator(minutes, sampler, say, robot)
-    devices.open_all()
+    live, hooks = open_devices_and_viewer(devices, viewer)
     try:
         say(f"soak: {minutes:g} min of compensation at {rate_hz:g} Hz (real time); servo process: "
             f"{robot.rt.summary() if robot.rt else 'n/a'}")
         ctl = build_controller(setup, procedure_plan, devices, clock=clock, session=session,
-                               operator=operator)
+                               operator=operator, hooks=hooks)
+        follow_truth(live, ctl)
         summary = ctl.run()
         end = sampler.finish()   # before the servo process ends
     except BaseException as exc:   # Ctrl-C, SIGTERM: the log still ends with session_closed
         devices.close_all()
+        close_soak_viewer(live)
         session.close(final_state="interrupted" if isinstance(exc, KeyboardInterrupt) else "error",
                       ended_by=type(exc).__name__)
         raise
     devices.close_all()
+    viewer_figures = close_soak_viewer(live)
     session.close(final_state=summary.final_state)
     figs = loop_figures(sampler.start or end.stats, end.stats, 1.0 / rate_hz)
     res = analyse(rate_hz, minutes, figs, ctl, operator, sampler.rss, summary.final_state, summary.states,
                   summary.faults, str(session.path))
     res.servo_cpu_percent, res.host_steal_percent, res.steal_free = end.cpu_percent, end.steal, end.steal_free
     res.following_peak_mm, res.following_faults = figs.following_peak_mm, figs.following_faults
+    _add_fault_outcomes(res, schedule, str(session.path), t_open_ns, feed)
+    _add_process_figures(res, robot, feed, ctl, sampler, operator, minutes)
+    res.camera_clock_ppm = setup.simulation.rig_errors.camera_clock_rate_error_ppm
+    res.viewer = viewer_figures
+    return res
+
+
+def _add_fault_outcomes(res: SoakResult, schedule: tuple[FaultSpec, ...], session_log: str, t_open_ns: int,
+                        feed: PerceptionProcess | None) -> None:
+    """What became of each injected fault, and the faults none explains (hil/soak/attribution.py)."""
     # the perception process opens its own camera, after the robot: its faults count from then
     info = None if feed is None else feed.ready_info
     opened = {} if info is None else {"camera": info.opened_ns}
-    res.transient_faults = fault_outcomes(schedule, str(session.path), t_open_ns, opened)
-    res.unexplained_faults = unexplained_faults(schedule, str(session.path), t_open_ns, opened)
-    _add_process_figures(res, robot, feed, ctl, sampler, operator, minutes)
-    res.camera_clock_ppm = setup.simulation.rig_errors.camera_clock_rate_error_ppm
-    return res
+    res.transient_faults = fault_outcomes(schedule, session_log, t_open_ns, opened)
+    res.unexplained_faults = unexplained_faults(schedule, session_log, t_open_ns, opened)
+
+
+def _soak_session(session_dir: Path, clock: MonotonicClock, config: Path, minutes: float, rate_hz: float,
+                  realtime: bool) -> SessionLog:
+    """The soak's session log (``soak_<time>_<pid>.jsonl`` in ``session_dir``)."""
+    return SessionLog(
+        session_dir / f"soak_{time.strftime('%Y%m%dT%H%M%S')}_{os.getpid()}.jsonl",
+        clock,
+        {"setup": str(config), "soak_minutes": minutes, "rate_hz": rate_hz, "realtime": realtime},
+    )
 
 
 def _soak_operator(minutes: float, sampler: Sampler, say: Callable[[str], None],

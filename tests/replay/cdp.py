@@ -3,7 +3,8 @@
 :class:`HeadlessChromium` starts Debian's ``chromium`` with the network-quiet flags (no
 background networking, no component updates, no sync, no QUIC, a new empty profile) and a
 DevTools port on loopback; :meth:`HeadlessChromium.open` loads a page and collects its console
-messages and exceptions; :meth:`Page.screenshot` returns a PNG. Every process and socket is
+messages, exceptions and every network request the page starts; :meth:`Page.screenshot`
+returns a PNG. Every process and socket is
 closed by :meth:`HeadlessChromium.close` (use ``with``).
 """
 
@@ -29,8 +30,8 @@ FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-
          "--disable-default-apps", "--disable-extensions", "--no-default-browser-check",
          "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--remote-allow-origins=*",
          # nothing leaves the machine: every host name but loopback resolves to nothing, and every
-         # connection not to loopback goes to a dead local proxy (the served page still *tries* its
-         # outbound fetches, which the test sees as failed requests)
+         # connection not to loopback goes to a dead local proxy (a second line of defence here: a
+         # request the page starts to any other host is seen in ``Page.requests`` and fails)
          "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1, EXCLUDE localhost",
          "--proxy-server=127.0.0.1:9", "--proxy-bypass-list=127.0.0.1;localhost")
 
@@ -40,14 +41,16 @@ def chromium_path() -> str | None:
 
 
 class Page:
-    """One tab: send DevTools commands, read console messages (``console``: (level, text)) and
-    uncaught exceptions (``exceptions``)."""
+    """One tab: send DevTools commands, read console messages (``console``: (level, text)),
+    uncaught exceptions (``exceptions``) and the URL of every request the page started
+    (``requests``: ``Network.requestWillBeSent``, whatever became of the request)."""
 
     def __init__(self, ws: ClientConnection) -> None:
         self.ws = ws
         self._id = 0
         self.console: list[tuple[str, str]] = []
         self.exceptions: list[str] = []
+        self.requests: list[str] = []
 
     def _event(self, msg: dict[str, Any]) -> None:
         method, params = msg.get("method"), msg.get("params", {})
@@ -58,6 +61,8 @@ class Page:
             e = params.get("entry", {})
             text = f"{e.get('source')}: {e.get('text')} {e.get('url', '')}"
             self.console.append((e.get("level", ""), text))
+        elif method == "Network.requestWillBeSent":
+            self.requests.append(str(params.get("request", {}).get("url", "")))
         elif method == "Runtime.exceptionThrown":
             d = params.get("exceptionDetails", {})
             self.exceptions.append(str(d.get("exception", {}).get("description") or d.get("text")))
@@ -137,7 +142,7 @@ class HeadlessChromium:
         self.ws = self._stack.enter_context(
             connect(target["webSocketDebuggerUrl"], max_size=64 << 20, open_timeout=30))
         page = Page(self.ws)
-        for domain in ("Runtime.enable", "Log.enable", "Page.enable"):
+        for domain in ("Runtime.enable", "Log.enable", "Page.enable", "Network.enable"):
             page.send(domain)
         page.send("Emulation.setDeviceMetricsOverride", width=self.size[0], height=self.size[1],
                   deviceScaleFactor=1, mobile=False)

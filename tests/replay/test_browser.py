@@ -1,13 +1,15 @@
 """The served web viewer loads a replay in headless Chromium (Debian's package, network-quiet
-flags, DevTools protocol): no uncaught exception, no console error but the viewer page's own
-Internet fetches failing offline (:data:`OFFLINE_FETCHES`), the canvas renders the viewer's
-layout (not a blank or loading screen), and the server is ended and reaped."""
+flags, DevTools protocol) and reaches no host but loopback: the page starts no request to any
+other host (DevTools ``Network.requestWillBeSent``), logs no console error and throws no uncaught
+exception; its guard refused the viewer's own Internet requests inside the page; the canvas
+renders the viewer's layout (not a blank or loading screen); the server is ended and reaped."""
 
 from __future__ import annotations
 
 import io
 import os
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import pytest
 
@@ -15,20 +17,11 @@ from hil.replay import write_replay
 from hil.replay.serve import ViewerServer
 from tests.replay.cdp import HeadlessChromium, chromium_path
 
-#: The only console errors allowed: what the web viewer's page asks of the Internet, refused
-#: on this machine (the browser resolves no host but loopback and proxies the rest to nowhere,
-#: tests/replay/cdp.py: no packet leaves it):
-#: its web-font stylesheet, the welcome screen's examples manifest (shown until the
-#: recording arrives), its check for a newer release (GitHub) and Rerun's web analytics
-#: (``tel.rerun.io``: the web viewer has no opt-out).
-#: A known defect, docs/replay.md; a new outbound request fails this test.
-OFFLINE_FETCHES = ("https://fonts.googleapis.com/css2",
-                   "https://app.rerun.io/version/0.41.0/examples_manifest.json",
-                   "https://api.github.com/repos/rerun-io/rerun/releases/latest",
-                   "https://tel.rerun.io/")
 #: More distinct colours than the loading screen has (it has a few dozen; the viewer with the
 #: recording's plots and points has hundreds).
 RENDERED_COLOURS = 300
+#: The only hosts the page may ask anything of.
+LOOPBACK_HOSTS = {"127.0.0.1"}
 
 
 def _need_chromium() -> None:
@@ -47,11 +40,12 @@ def _distinct_colours(png: bytes) -> int:
 
 
 @pytest.mark.timeout(400)
-def test_served_viewer_renders_the_replay(sim_session: Path, tmp_path: Path) -> None:
+def test_served_viewer_renders_the_replay_and_reaches_only_loopback(sim_session: Path,
+                                                                    tmp_path: Path) -> None:
     _need_chromium()
     rrd = write_replay(sim_session, tmp_path / "run.rrd").path
     with ViewerServer(rrd, web_port=0, grpc_port=0) as server, HeadlessChromium() as browser:
-        assert server.url.startswith("http://127.0.0.1:")
+        assert server.url.startswith(f"http://127.0.0.1:{server.web_port}/")
         page = browser.open(server.url)
         assert page.wait_for("document.querySelector('canvas') !== null", timeout_s=90)
         # the viewer (egui) draws everything, text included, on its canvas: wait until a
@@ -63,15 +57,21 @@ def test_served_viewer_renders_the_replay(sim_session: Path, tmp_path: Path) -> 
             colours = _distinct_colours(png)
             if colours > RENDERED_COLOURS:
                 break
+        page.pump(5.0)  # the viewer's later requests (analytics of the loaded recording) too
+        blocked = page.evaluate("window.__hilBlockedRequests")
     assert server.pid is not None
     with pytest.raises(ProcessLookupError):  # the viewer server is ended and reaped, no orphan
         os.kill(server.pid, 0)
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     assert colours > RENDERED_COLOURS, page.console[-20:]
     assert page.exceptions == []
-    errors = [text for level, text in page.console if level == "error"]
-    network = [t for t in errors if not t.startswith("TypeError: Failed to fetch")]
-    assert all(("ERR_NAME_NOT_RESOLVED" in text or "ERR_PROXY_CONNECTION_FAILED" in text)
-               and any(url in text for url in OFFLINE_FETCHES)
-               for text in network), errors
-    assert len(errors) - len(network) <= len(network)  # a failed fetch's own error, no other
+    assert [level_text for level_text in page.console if level_text[0] == "error"] == []
+    # every request the page started went to loopback: to the front (the page, its script and
+    # wasm) and to the recording's gRPC port, and to nothing else
+    assert page.requests, "the page started no request at all: the monitor saw nothing"
+    assert {urlsplit(u).hostname for u in page.requests} == LOOPBACK_HOSTS, page.requests
+    assert {urlsplit(u).port for u in page.requests} == {server.web_port, server.grpc_port}
+    # the viewer did try the Internet, and the page's guard refused it before any request
+    assert isinstance(blocked, list), blocked
+    assert blocked, "the viewer asked nothing of the Internet: the guard was not exercised"
+    assert all(urlsplit(u).hostname not in LOOPBACK_HOSTS | {"localhost"} for u in blocked), blocked

@@ -125,3 +125,72 @@ def test_a_missing_directory_is_a_usage_error(tmp_path: Path, capsys: pytest.Cap
     err = capsys.readouterr().err.splitlines()
     assert err == [f"hil run: error: {target}: --viewer: the recording's directory does not exist"]
     assert not list(tmp_path.glob("session_*.jsonl"))
+
+
+class TruthWriter(SlowWriter):
+    """Writes at once; keeps the true positions it was given."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.truths: list[Any] = []
+
+    def write_tick(self, snap: Any) -> None:
+        self.ticks.append(snap)
+
+    def write_truth(self, positions: Any) -> None:
+        self.truths.append(positions)
+
+
+def test_each_new_truth_is_taken_with_its_tick_and_written_once() -> None:
+    writer = TruthWriter()
+    plugin = LiveViewerPlugin(writer, queue_size=100, poll_s=0.001)
+    first, second = {"truth_t_ns": 10}, {"truth_t_ns": 20}
+    latest: dict[str, Any] = {"positions": None}
+    try:
+        plugin.hil_on_tick(snapshot=0)  # type: ignore[arg-type]  # no source yet
+        plugin.follow_truth(lambda: latest["positions"])
+        for i, positions in enumerate((None, first, first, second, second), start=1):
+            latest["positions"] = positions
+            plugin.hil_on_tick(snapshot=i)  # type: ignore[arg-type]
+    finally:
+        counts = plugin.close()
+    assert counts["written"] == 6
+    assert writer.ticks == [0, 1, 2, 3, 4, 5]
+    assert writer.truths == [first, second]
+    assert writer.truths[0] is first
+    assert plugin.truth_written == 2
+    assert not _viewer_threads()
+
+
+def test_rerun_writer_draws_the_truth_at_its_own_time(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    import numpy as np
+    from rerun.chunk import RrdReader
+
+    from hil.replay.live import RerunSnapshotWriter
+
+    rrd = tmp_path / "truth.rrd"
+    markers = np.arange(18.0).reshape(6, 3) + 0.25
+    writer = RerunSnapshotWriter(str(rrd))
+    try:
+        snap = SimpleNamespace(t_ns=1_000, T_robot_from_optical=None, live_mm=None, flange_mm=None,
+                               robot_now=None, robot=None, gate_deviation_mm=None, guide_error_mm=None,
+                               truth_error_mm=None)
+        writer.write_truth({"truth_t_ns": 500, "entry_optical_mm": np.zeros(3)})  # no time origin yet
+        writer.write_tick(snap)  # type: ignore[arg-type]
+        writer.write_truth({"truth_t_ns": 1_500, "entry_optical_mm": np.array([1.0, 2.0, 3.0]),
+                            "target_optical_mm": np.array([4.0, 5.0, 6.5]), "markers_optical_mm": markers})
+    finally:
+        writer.close()
+    got: dict[str, list[tuple[int, Any]]] = {}
+    for chunk in RrdReader(rrd).stream():
+        if chunk.entity_path.startswith("/world/truth/"):
+            b = chunk.to_record_batch()
+            col = "LineStrips3D:strips" if chunk.entity_path.endswith("path") else "Points3D:positions"
+            got[chunk.entity_path] = list(zip(b.column("session_time").cast("int64").to_pylist(),
+                                              b.column(col).to_pylist(), strict=True))
+    assert got == {"/world/truth/skin": [(500, markers.tolist())],
+                   "/world/truth/entry": [(500, [[1.0, 2.0, 3.0]])],
+                   "/world/truth/target": [(500, [[4.0, 5.0, 6.5]])],
+                   "/world/truth/path": [(500, [[[1.0, 2.0, 3.0], [4.0, 5.0, 6.5]]])]}

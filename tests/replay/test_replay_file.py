@@ -128,6 +128,34 @@ def test_points_and_axes_match_the_log(sim_session: Path, replay: tuple[Path, di
     assert robot["Transform3D:translation"] is not None
 
 
+def test_truth_positions_match_the_log_exactly(sim_session: Path,
+                                               replay: tuple[Path, dict[str, Any]]) -> None:
+    """The simulator's truth (``truth_positions``, one per stereo pair) as points and a path,
+    every record's values, record numbers and times."""
+    from hil.controller.metrics import TRUTH_POSITIONS
+    from hil.replay.scene import TRUTH_POSITIONS_EVENT
+
+    assert TRUTH_POSITIONS_EVENT == TRUTH_POSITIONS
+    recs = read_records(sim_session)
+    t0 = recs[0]["t_ns"]
+    truth = [r for r in recs if r["event"] == TRUTH_POSITIONS]
+    frames = [r for r in recs if r["event"] == "frame_measured"]
+    assert len(truth) == len(frames)  # one per new stereo pair
+    assert [r["frame"] for r in truth] == list(range(1, len(frames) + 1))
+    rows = _rows(replay[0])
+    for field, entity in (("markers_optical_mm", "world/truth/skin"),
+                          ("entry_optical_mm", "world/truth/entry"),
+                          ("target_optical_mm", "world/truth/target")):
+        want = [(r["seq"], r["t_ns"] - t0,
+                 _f32(r[field] if field == "markers_optical_mm" else [r[field]])) for r in truth]
+        got = [(g["record"], g["session_time"], _f32(g["Points3D:positions"])) for g in rows[entity]]
+        assert got == want, entity
+    assert all(len(r["markers_optical_mm"]) == 6 for r in truth)  # the phantom's six skin markers
+    paths = rows["world/truth/path"]
+    assert [(g["record"], _f32(g["LineStrips3D:strips"][0])) for g in paths] == \
+        [(r["seq"], _f32([r["entry_optical_mm"], r["target_optical_mm"]])) for r in truth]
+
+
 def test_transitions_are_annotated_in_order(sim_session: Path, replay: tuple[Path, dict[str, Any]]) -> None:
     recs = read_records(sim_session)
     t0 = recs[0]["t_ns"]
