@@ -203,6 +203,9 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
                 operator=operator or (AutoOperator() if auto else InteractiveOperator()),
                 hooks=hooks,
             )
+            if live is not None:   # the simulator's true positions too (one attribute read a tick)
+                meter = ctl.truth_meter
+                live.follow_truth(lambda: meter.last_positions)
             summary = ctl.run(max_duration_s)
             if isinstance(devices.camera, PerceptionCamera):   # located in the perception process
                 summary.locate_ms = devices.camera.perception_feed.locate_figures()

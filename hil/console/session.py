@@ -175,6 +175,9 @@ def open_console_session(config: str | Path | None, *, plan: str | Path | None =
             hooks.register(live, LIVE_PLUGIN)
         ctl = build_controller(setup, the_plan, devices, clock=clk, session=session, operator=operator,
                                hooks=hooks)
+        if live is not None:   # the simulator's true positions too (one attribute read a tick)
+            meter = ctl.truth_meter
+            live.follow_truth(lambda: meter.last_positions)
     except BaseException:   # the servo process and every opened device are closed, the log says why
         devices.close_all()
         session.close(final_state="idle", error="the controller could not be built")

@@ -116,6 +116,9 @@ def test_hil_run_viewer_writes_a_live_recording(tmp_path: Path) -> None:
             "/series/following/guide_error_mm"} <= set(entities)
     assert 0 < entities["/world/skin/seen"] <= entities["/world/robot/tcp"]
     assert len(frames) > 0
+    # the simulator's truth streams live too, never more sets than the truth meter wrote
+    truth = [r for r in recs if r["event"] == "truth_positions"]
+    assert 0 < entities["/world/truth/skin"] <= len(truth)
     assert not _viewer_threads()
 
 
