@@ -9,6 +9,7 @@ import pytest
 
 from hil.cli.cmd_run import run_procedure
 from hil.config import load_setup
+from hil.config.faults import FaultKind, FaultSpec
 from hil.config.setup import SetupConfig
 from hil.controller.metrics import RunSummary
 from hil.controller.plan_file import load_plan
@@ -91,3 +92,24 @@ def test_the_gate_opens_only_with_enough_breath_hold_left(tmp_path: Path) -> Non
     assert opened > holds[1]
     assert (opened - holds[1]) * 1e-9 <= 8.0 - 4.0     # at least 4 s of the hold left
     assert short[0]["t_ns"] < holds[1]
+
+
+@pytest.mark.slow
+def test_a_patient_who_shifted_in_the_gate_is_sent_back_to_registration(tmp_path: Path) -> None:
+    """A 5.8 mm shift on the table just after GATE is entered: no breath-hold can bring the
+    markers back, so at a timeout with the deviation never within tolerance and the shape back
+    the gate pauses for the operator, who re-registers; the procedure then locks. Before this the
+    gate asked for breath-holds until the procedure's time ran out."""
+    s = load_setup(CONFIG)
+    shift = FaultSpec(kind=FaultKind.PATIENT_SHIFT, start_s=6.9, duration_s=0.5)
+    seed_1 = s.simulation.model_copy(update={"seed": 1})
+    setup = s.model_copy(update={"faults": (shift,), "simulation": seed_1})
+    summary = run_procedure(CONFIG, setup, PLAN, auto=True, session_dir=tmp_path, max_duration_s=120.0)
+    assert summary.final_state == "done"
+    assert summary.states[:6] == ["idle", "register", "plan", "approach", "gate", "paused"]
+    records = list(read_session_log(summary.session_log))
+    (why,) = [r["reason"] for r in records if r["event"] == "correction_out_of_bounds"]
+    assert "the patient has moved since registration (re-register)" in why
+    assert "with their shape back" in why
+    timed_out = [r for r in records if r["event"] == "gate_timed_out"]
+    assert len(timed_out) == 1        # the first wait saw the body before the shift
