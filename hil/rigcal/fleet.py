@@ -69,6 +69,8 @@ EV_RIG_DONE = "rig_done"
 EV_RIG_REFUSED = "rig_refused"
 #: Wall-time bound of one rig (calibration and two procedures), s.
 DEFAULT_RIG_TIMEOUT_S = 900.0
+#: Exit code of a rig process whose worker died.
+EXIT_ORPHANED = 70
 #: Simulated-time bound of one procedure run, s (a run that neither locks nor gives up).
 MAX_PROCEDURE_S = 120.0
 
@@ -212,7 +214,7 @@ def _run_child(task: RunTask, tmp: Path) -> TaskOutcome:
             proc.wait(timeout=task.timeout_s)
         except subprocess.TimeoutExpired:
             _kill_group(proc)
-            rec = _record(task, "hang", [f"rig did not finish within {task.timeout_s:.0f} s (hang)"],
+            rec = _record(task, "hang", [f"rig did not finish within {task.timeout_s:g} s (hang)"],
                           wall_s=round(time.monotonic() - t0, 3))
             return TaskOutcome(rec, retryable=True)
         finally:
@@ -285,10 +287,22 @@ def open_rig_executor(kind: str, *, workers: int, scheduler: str | None = None) 
     raise ExecutorError(f"--executor {kind!r}: choose local or dask")
 
 
+def _exit_when_orphaned(parent: int) -> None:
+    """Exit this rig process when the worker that started it is gone (its parent changed)."""
+    def watch() -> None:
+        while not threading.Event().wait(1.0):
+            if os.getppid() != parent:
+                os._exit(EXIT_ORPHANED)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
 def _child_main(argv: list[str]) -> int:
-    """``python -m hil.rigcal.fleet TASK_JSON RESULT_JSON``: run one rig, write its record."""
+    """``python -m hil.rigcal.fleet TASK_JSON RESULT_JSON``: run one rig, write its record (a
+    crash of the rig is written as a ``crashed`` record with its traceback)."""
     from hil.log import configure_logging
 
+    _exit_when_orphaned(os.getppid())
     configure_logging(level="error")
     task_path, result_path = argv
     payload = json.loads(Path(task_path).read_text())
