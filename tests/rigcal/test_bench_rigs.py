@@ -182,3 +182,14 @@ def test_bad_input_is_one_line(args: list[str], message: str, tmp_path: Path,
     assert err.startswith(message)
     assert err.count("\n") == 1
 
+
+
+def test_rigs_run_on_a_dask_local_cluster(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # the rig's bound is too short for a rig: the Dask worker runs the task, kills the rig's process,
+    # the executor retries it once; what comes back is the record, as on the local executor
+    args = ["--rigs", "1", "--executor", "dask", "--workers", "1", "--rig-timeout-s", "0.5", "--json"]
+    code, out, err = _run(["--config", str(_config(tmp_path)), "--plan", str(PLAN), *args], capsys)
+    assert code == 0, err
+    assert out is not None
+    assert out["executor"] == {"kind": "dask", "scheduler": "LocalCluster", "workers": 1}
+    assert out["crashed_reasons"] == {"after 2 attempts: rig did not finish within 0.5 s (hang)": 1}

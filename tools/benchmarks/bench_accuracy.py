@@ -1,6 +1,7 @@
 """Accuracy of the whole simulated procedure over many seeds.
 
-Run: ``tools/bench accuracy [--json] [--runs N] [--first-seed S] [--follow-s S] [--config FILE]
+Run: ``tools/bench accuracy [--json] [--runs N | --rigs N [--tolerances FILE] [--executor local|dask]
+[--workers W] [--scheduler ADDRESS] [--rig-timeout-s S]] [--first-seed S] [--follow-s S] [--config FILE]
 [--no-rig-calibration] [--trace FILE [--trace-format F]]``
 
 Each run is ``hil run`` on the simulator (configs/sim.toml by default) with seed-001-like camera
