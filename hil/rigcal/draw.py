@@ -77,7 +77,8 @@ class RigTolerances(BaseModel):
     camera_timestamp: Literal["exposure", "reception"] = Field(
         "reception", description="what the camera stamps frames with (not drawn: a camera's design)")
     camera_reception_offset_ms: Band = Field(
-        (20.0, 80.0), description="mean frame stamp minus exposure, ms (reception stamps)")
+        (20.0, 50.0), description="mean frame stamp minus exposure, ms (reception stamps; keep it plus "
+                                  "3 jitter sigmas under the sim camera's latency_ms, which caps it)")
     camera_timestamp_jitter_ms: Band = Field(
         (0.0, 2.0), description="sigma of the per-frame stamp jitter, ms (reception stamps)")
     robot_state_latency_ms: Band = Field(

@@ -396,6 +396,9 @@ def _main_rigs(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     except HilError as exc:
         print(f"tools/bench accuracy: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("tools/bench accuracy: interrupted (the running rigs were stopped)", file=sys.stderr)
+        return 130
     out["wall_s"] = round(time.perf_counter() - t0, 1)
     out["config"] = str(cfg_path)
     if args.json:
