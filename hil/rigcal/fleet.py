@@ -41,6 +41,7 @@ from hil.campaign.task import RunTask, TaskOutcome, finish_record
 from hil.campaign.version import code_version, config_digest
 from hil.clock import ManualClock
 from hil.config import build_devices, load_setup
+from hil.config.build import clock_for
 from hil.config.setup import SetupConfig
 from hil.config.simulation import BreathingConfig
 from hil.controller.assembly import (
@@ -52,7 +53,7 @@ from hil.controller.assembly import (
 )
 from hil.controller.operator_input import AutoOperator
 from hil.controller.plan_file import ProcedurePlan, load_plan
-from hil.errors import HilError
+from hil.errors import ConfigError, HilError
 from hil.log import get_logger
 from hil.rigcal.collect import auto_confirm
 from hil.rigcal.draw import RigDraw, RigTolerances, apply_draw, draw_rig
@@ -76,6 +77,18 @@ MAX_PROCEDURE_S = 120.0
 
 _live: set[subprocess.Popen[bytes]] = set()  # rig processes this process started, still running
 _live_lock = threading.Lock()
+
+
+def check_simulated(setup: SetupConfig, config_path: Path) -> None:
+    """Refuse a setup that is not wholly simulated on a manual clock: drawn rigs are simulated
+    ones, and nothing here may move a real arm.
+
+    Raises:
+        ConfigError: a device is not simulated, or ``[simulation] real_time`` is set.
+    """
+    if not isinstance(clock_for(setup), ManualClock):
+        raise ConfigError(str(config_path), ["drawn rigs run on a simulated setup only (every device's "
+                                             "driver simulated, [simulation] real_time = false)"])
 
 
 def rig_setup(base: SetupConfig, draw: RigDraw) -> SetupConfig:
@@ -117,9 +130,11 @@ def run_rig(config_path: Path, plan_path: Path, tolerances: RigTolerances, seed:
     the simulator's truth.
 
     Raises:
-        HilError: the config or plan cannot be read (a calibration refusal is not raised).
+        HilError: the config or plan cannot be read, the setup is not simulated (a calibration
+            refusal is not raised).
     """
     base = load_setup(config_path)
+    check_simulated(base, config_path)
     if breathing:
         b = BreathingConfig.model_validate({**base.simulation.breathing.model_dump(), **breathing})
         base = base.model_copy(update={"simulation": base.simulation.model_copy(update={"breathing": b})})
@@ -130,7 +145,7 @@ def run_rig(config_path: Path, plan_path: Path, tolerances: RigTolerances, seed:
                            "refused": None, "calibration": None}
     out["cad"] = _procedure(config_path, setup, plan, work_dir / f"rig_{seed}_cad.jsonl")
     rig_path = work_dir / f"rig_{seed}.json"
-    clock = ManualClock(1_000_000_000)
+    clock = clock_for(setup)   # as hil rig-calibrate
     try:
         cal = run_rig_calibration(setup, config_path, build_devices(setup, clock), clock, auto_confirm,
                                   out_path=rig_path).summary

@@ -168,6 +168,15 @@ def test_bad_arguments_exit_2(args: list[str], message: str, capsys: pytest.Capt
     assert message in capsys.readouterr().err
 
 
+def test_a_setup_with_real_devices_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = CONFIGS / "sim_ursim.toml"   # the UR driver (against tools/ursim): not a drawn rig's
+    code = _bench().main(["--config", str(cfg), "--plan", str(PLAN), "--rigs", "1"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err == (f"tools/bench accuracy: error: {cfg}: drawn rigs run on a simulated setup only (every "
+                   "device's driver simulated, [simulation] real_time = false)\n")
+
+
 @pytest.mark.parametrize(("args", "message"), [
     (["--tolerances", "/nonexistent/tol.toml"],
      "tools/bench accuracy: error: /nonexistent/tol.toml: cannot read"),

@@ -68,7 +68,7 @@ from hil.errors import HilError
 from hil.log import configure_logging
 from hil.rigcal.collect import auto_confirm
 from hil.rigcal.draw import RigTolerances, load_tolerances
-from hil.rigcal.fleet import DEFAULT_RIG_TIMEOUT_S, open_rig_executor, rig_task, summarize
+from hil.rigcal.fleet import DEFAULT_RIG_TIMEOUT_S, check_simulated, open_rig_executor, rig_task, summarize
 from hil.rigcal.runner import run_rig_calibration
 
 #: The bench's breathing (every mode): 10 mm amplitude, 4 s period.
@@ -390,7 +390,7 @@ def _main_rigs(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     try:
         load_plan(plan_path)
-        load_setup(cfg_path)
+        check_simulated(load_setup(cfg_path), cfg_path)
         tolerances = load_tolerances(Path(args.tolerances)) if args.tolerances else RigTolerances()
         out = bench_rigs(cfg_path, plan_path, tolerances, args)
     except HilError as exc:
