@@ -351,7 +351,7 @@ def summarize(records: list[dict[str, Any]], rerun: dict[int, str]) -> dict[str,
     """The distribution over rigs from the tasks' records (``rerun``: seed -> the command that
     reruns that rig alone). Lock-error percentiles are over the rigs whose run locked; ``refused``
     counts calibrations refused, ``crashed`` rigs that gave no figures (crash, hang, wrong
-    worker), each with its reasons counted."""
+    worker), each with its reasons counted; ``done_*`` the runs that ended in ``done``."""
     cal = {int(r["seed"]): x for r in records if (x := _lock(r, "calibrated")) is not None}
     cad = {int(r["seed"]): x for r in records if (x := _lock(r, "cad")) is not None}
     refused = [r for r in records if r.get("outcome") == OUTCOME_REFUSED]
@@ -363,6 +363,8 @@ def summarize(records: list[dict[str, Any]], rerun: dict[int, str]) -> dict[str,
             out[f"lock_err_mm_p{q}_{name}"] = _pct(xs, q)
         out[f"lock_err_mm_max_{name}"] = max(xs) if xs else None
         out[f"locked_{name}"] = len(xs)
+    for name in ("cad", "calibrated"):   # locked, then retracted (e.g. the drift alarm) counts here
+        out[f"done_{name}"] = sum(1 for r in ran if (r["rig"].get(name) or {}).get("final_state") == "done")
     out["not_locked_cad"] = sum(1 for r in ran if _lock(r, "cad") is None)
     out["not_locked_calibrated"] = sum(1 for r in ran
                                        if r["rig"].get("calibrated") and _lock(r, "calibrated") is None)

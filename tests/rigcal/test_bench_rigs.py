@@ -148,6 +148,7 @@ def test_summary_arithmetic() -> None:
     assert out["lock_err_mm_p99_calibrated"] == pytest.approx(0.398)
     assert out["lock_err_mm_p95_cad"] == pytest.approx(2.9)
     assert (out["locked_cad"], out["locked_calibrated"], out["not_locked_cad"]) == (3, 3, 1)
+    assert (out["done_cad"], out["done_calibrated"]) == (3, 3)
     assert out["refused"] == 1
     assert out["refused_reasons"] == {"RigCalibrationError: too few poses": 1}
     assert out["crashed"] == 1

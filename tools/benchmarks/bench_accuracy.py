@@ -248,10 +248,10 @@ def _print_rigs(out: dict[str, Any]) -> None:
     def f(x: float | None) -> str:
         return "n/a" if x is None else f"{x:.3f} mm"
     print(f"rigs: {out['rigs']} ({out['executor']['kind']}, {out['executor']['workers']} workers)")
-    print(f"{'lock error over rigs':24}{'p50':>12}{'p95':>12}{'p99':>12}{'max':>12}{'locked':>8}")
+    print(f"{'lock error over rigs':24}{'p50':>12}{'p95':>12}{'p99':>12}{'max':>12}{'locked':>8}{'done':>6}")
     for col in ("cad", "calibrated"):
         cells = "".join(f"{f(out[f'lock_err_mm_{q}_{col}']):>12}" for q in ("p50", "p95", "p99", "max"))
-        print(f"{col:24}{cells}{out[f'locked_{col}']:>8}")
+        print(f"{col:24}{cells}{out[f'locked_{col}']:>8}{out[f'done_{col}']:>6}")
     print(f"refused calibrations: {out['refused']}"
           + "".join(f"\n  {n} x {why}" for why, n in out["refused_reasons"].items()))
     print(f"rigs without figures (crash, hang): {out['crashed']}"
