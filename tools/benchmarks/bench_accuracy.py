@@ -1,6 +1,7 @@
 """Accuracy of the whole simulated procedure over many seeds.
 
-Run: ``tools/bench accuracy [--json] [--runs N] [--first-seed S] [--follow-s S] [--config FILE]
+Run: ``tools/bench accuracy [--json] [--runs N | --rigs N [--tolerances FILE] [--executor local|dask]
+[--workers W] [--scheduler ADDRESS] [--rig-timeout-s S]] [--first-seed S] [--follow-s S] [--config FILE]
 [--no-rig-calibration] [--trace FILE [--trace-format F]]``
 
 Each run is ``hil run`` on the simulator (configs/sim.toml by default) with seed-001-like camera
@@ -29,6 +30,17 @@ With a config whose simulated rig has errors (``[simulation.rig_errors]``, e.g.
 (the CAD flange-marker layout, no time offsets) and after ``hil rig-calibrate --auto`` of that
 seed's rig (``[calibration] rig`` pointing at the file); the JSON's ``calibrated`` object holds
 the second column and how far each calibration was from the simulator's truth.
+
+``--rigs N`` (issue 43, accuracy over many rigs): N rigs drawn at random within declared tolerances
+(hil/rigcal/draw.py; the defaults, or ``--tolerances FILE``; docs/bringup.md "Rig tolerances"), rig
+seeds ``--first-seed`` .. ``--first-seed + N - 1``. Each rig runs the procedure with the CAD values,
+is calibrated by ``hil rig-calibrate --auto``'s path, and runs again calibrated (no following run).
+Prints the lock error's p50/p95/p99 across rigs, CAD and calibrated, the refused calibrations with
+their reasons, and the worst rig with its draw and the command that reruns it alone
+(``--rigs 1 --first-seed K``). The rigs run on the campaign executors: ``--executor local`` (this
+machine, ``--workers`` rig processes at a time, default 2) or ``--executor dask`` (``--scheduler
+tcp://HOST:PORT``, or a LocalCluster of ``--workers`` workers on loopback); progress on stderr.
+Targets (``--rigs 50``, sim_realistic): calibrated lock error p95 <= 0.5 mm, p99 <= 0.8 mm.
 """
 
 from __future__ import annotations
@@ -55,7 +67,12 @@ from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import HilError
 from hil.log import configure_logging
 from hil.rigcal.collect import auto_confirm
+from hil.rigcal.draw import RigTolerances, load_tolerances
+from hil.rigcal.fleet import DEFAULT_RIG_TIMEOUT_S, check_simulated, open_rig_executor, rig_task, summarize
 from hil.rigcal.runner import run_rig_calibration
+
+#: The bench's breathing (every mode): 10 mm amplitude, 4 s period.
+BENCH_BREATHING: dict[str, Any] = {"enabled": True, "amplitude_mm": 10.0, "period_s": 4.0}
 
 
 def _rms(xs: list[float]) -> float | None:
@@ -119,8 +136,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
            calibrate: bool) -> dict[str, Any]:
     """One column of the table: every seed with the setup as given (CAD layout, no time offsets)
     or, with ``calibrate``, after ``hil rig-calibrate`` of that seed's rig (``[calibration] rig``)."""
-    breathing = base.simulation.breathing.model_copy(update={"enabled": True, "amplitude_mm": 10.0,
-                                                            "period_s": 4.0})
+    breathing = base.simulation.breathing.model_copy(update=BENCH_BREATHING)
     runs: list[dict[str, Any]] = []
     comp_all: list[float] = []
     follow_all: list[float] = []
@@ -193,6 +209,60 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
     return out
 
 
+def rerun_command(cfg_path: Path, plan: str | None, tolerances: str | None, seed: int) -> str:
+    """The command that reruns rig ``seed`` alone (``plan``, ``tolerances``: as given, or None)."""
+    return (f"tools/bench accuracy --config {cfg_path}" + (f" --plan {plan}" if plan else "")
+            + f" --rigs 1 --first-seed {seed}" + (f" --tolerances {tolerances}" if tolerances else "")
+            + " --json")
+
+
+def bench_rigs(cfg_path: Path, plan_path: Path, tolerances: RigTolerances,
+               args: argparse.Namespace) -> dict[str, Any]:
+    """``--rigs N``: the rigs on the chosen executor; the summary over rigs (hil/rigcal/fleet.py).
+    Progress on stderr, one line per finished rig. Blocking.
+
+    Raises:
+        ExecutorError: the executor cannot be used (one line).
+    """
+    seeds = [args.first_seed + k for k in range(args.rigs)]
+    rerun = {k: rerun_command(cfg_path, args.plan, args.tolerances, k) for k in seeds}
+    tasks = [rig_task(cfg_path, plan_path, tolerances, k, replay=rerun[k], timeout_s=args.rig_timeout_s,
+                      breathing=BENCH_BREATHING) for k in seeds]
+    t0, done = time.perf_counter(), [0]
+
+    def progress(line: str) -> None:
+        done[0] += "running it once more" not in line
+        print(f"[{done[0]}/{len(tasks)} {time.perf_counter() - t0:.0f} s] {line}", file=sys.stderr,
+              flush=True)
+
+    with open_rig_executor(args.executor, workers=args.workers, scheduler=args.scheduler) as ex:
+        records = ex.run(tasks, progress=progress)
+        where = ex.description
+    out = summarize(records, rerun)
+    out["executor"] = where
+    out["tolerances"] = tolerances.model_dump(mode="json")
+    return out
+
+
+def _print_rigs(out: dict[str, Any]) -> None:
+    def f(x: float | None) -> str:
+        return "n/a" if x is None else f"{x:.3f} mm"
+    print(f"rigs: {out['rigs']} ({out['executor']['kind']}, {out['executor']['workers']} workers)")
+    print(f"{'lock error over rigs':24}{'p50':>12}{'p95':>12}{'p99':>12}{'max':>12}{'locked':>8}{'done':>6}")
+    for col in ("cad", "calibrated"):
+        cells = "".join(f"{f(out[f'lock_err_mm_{q}_{col}']):>12}" for q in ("p50", "p95", "p99", "max"))
+        print(f"{col:24}{cells}{out[f'locked_{col}']:>8}{out[f'done_{col}']:>6}")
+    print(f"refused calibrations: {out['refused']}"
+          + "".join(f"\n  {n} x {why}" for why, n in out["refused_reasons"].items()))
+    print(f"rigs without figures (crash, hang): {out['crashed']}"
+          + "".join(f"\n  {n} x {why}" for why, n in out["crashed_reasons"].items()))
+    w = out["worst"]
+    if w is not None:
+        print(f"worst rig: seed {w['seed']}, lock error calibrated {f(w['lock_err_mm_calibrated'])}, "
+              f"CAD {f(w['lock_err_mm_cad'])}\n  draw: {json.dumps(w['draw'])}\n  rerun: {w['rerun']}")
+    print("targets (--rigs 50): calibrated lock error p95 <= 0.5 mm, p99 <= 0.8 mm")
+
+
 def _print(cols: dict[str, dict[str, Any]]) -> None:
     def f(x: float | None, u: str) -> str:
         return "n/a" if x is None else f"{x:.3f} {u}"
@@ -244,10 +314,25 @@ def main(argv: list[str] | None = None) -> int:
                     help="the trace's format (default: told from the file)")
     ap.add_argument("--estimator", choices=CHANGE_ESTIMATORS,
                     help="override [procedure.compensation] estimator for this run (docs/compensation.md)")
+    ap.add_argument("--rigs", type=int, metavar="N",
+                    help="N rigs drawn within tolerances, each CAD and calibrated (seeds --first-seed ..)")
+    ap.add_argument("--tolerances", metavar="FILE",
+                    help="with --rigs: the rig tolerances (TOML; default: hil/rigcal/draw.py's; "
+                         "docs/bringup.md)")
+    ap.add_argument("--executor", choices=["local", "dask"], default="local",
+                    help="with --rigs: where the rigs run (default: local processes)")
+    ap.add_argument("--workers", type=int, default=2,
+                    help="with --rigs: rigs at a time (local), or LocalCluster workers (dask); default 2")
+    ap.add_argument("--scheduler", metavar="ADDRESS",
+                    help="with --executor dask: the Dask scheduler (tcp://host:8786); default a LocalCluster")
+    ap.add_argument("--rig-timeout-s", type=float, default=DEFAULT_RIG_TIMEOUT_S,
+                    help=f"with --rigs: wall-time bound of one rig (default {DEFAULT_RIG_TIMEOUT_S:g} s)")
     ap.add_argument("--json", action="store_true", help="one JSON object on stdout")
     args = ap.parse_args(argv)
     if args.runs < 1:
         ap.error("--runs must be >= 1")
+    if args.rigs is not None:
+        return _main_rigs(ap, args)
     configure_logging(level="error")
     cfg_path = Path(args.config) if args.config else default_setup_path()
     try:
@@ -284,6 +369,42 @@ def main(argv: list[str] | None = None) -> int:
         if side_by_side and not only_calibrated:
             cols["calibrated rig"] = out["calibrated"]
         _print(cols)
+    return 0
+
+
+def _main_rigs(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """``--rigs N``: the many-rigs bench (module doc)."""
+    if args.rigs < 1:
+        ap.error("--rigs must be >= 1")
+    if args.workers < 1:
+        ap.error("--workers must be >= 1")
+    if args.first_seed < 0:
+        ap.error("--first-seed must be >= 0 with --rigs")
+    if args.trace or args.estimator or args.calibrated_only or args.no_rig_calibration:
+        ap.error("--rigs runs every rig CAD and calibrated on the config as given: no --trace, --estimator, "
+                 "--calibrated-only, --no-rig-calibration")
+    configure_logging(level="error")
+    cfg_path = Path(args.config) if args.config else default_setup_path()
+    bundled = cfg_path.resolve().parent / "plans" / f"{cfg_path.stem}_plan.json"
+    plan_path = Path(args.plan) if args.plan else bundled
+    t0 = time.perf_counter()
+    try:
+        load_plan(plan_path)
+        check_simulated(load_setup(cfg_path), cfg_path)
+        tolerances = load_tolerances(Path(args.tolerances)) if args.tolerances else RigTolerances()
+        out = bench_rigs(cfg_path, plan_path, tolerances, args)
+    except HilError as exc:
+        print(f"tools/bench accuracy: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("tools/bench accuracy: interrupted (the running rigs were stopped)", file=sys.stderr)
+        return 130
+    out["wall_s"] = round(time.perf_counter() - t0, 1)
+    out["config"] = str(cfg_path)
+    if args.json:
+        print(json.dumps(out))
+    else:
+        _print_rigs(out)
     return 0
 
 
