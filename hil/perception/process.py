@@ -281,7 +281,8 @@ class PerceptionProcess:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise DeviceTimeoutError(self.camera_name, f"no stereo pair within {timeout_s} s")
-            self._wait_notified(min(remaining, WAKE_POLL_S if wake is not None else ALIVE_CHECK_S))
+            step_s = WAKE_POLL_S if wake is not None else ALIVE_CHECK_S
+            self._wait_notified(min(remaining, ALIVE_CHECK_S, step_s))
 
     def stop(self, timeout_s: float | None = None) -> None:
         """Nothing to stop: the process runs until :meth:`close` (the prefetcher's contract)."""
