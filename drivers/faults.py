@@ -23,12 +23,12 @@ import threading
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
 
-from drivers.interfaces.camera import Frame, StereoCamera, StereoFrame
+from drivers.interfaces.camera import Frame, PairFeed, StereoCamera, StereoFrame
 from drivers.interfaces.errors import (
     DeviceFaultError,
     DeviceTimeoutError,
@@ -103,6 +103,8 @@ class FaultyStereoCamera(_Delegating, StereoCamera):
     """A stereo camera with scheduled frame drops, frozen frames, stale timestamps, left/right
     desynchronisation, occlusions and glare blobs."""
 
+    inner: StereoCamera
+
     def __init__(self, inner: StereoCamera, faults: Sequence[FaultSpec], clock: Clock) -> None:
         super().__init__(inner.name)
         self.inner = inner
@@ -129,6 +131,11 @@ class FaultyStereoCamera(_Delegating, StereoCamera):
     @property
     def image_size(self) -> tuple[int, int]:
         return self.inner.image_size
+
+    @property
+    def perception_feed(self) -> PairFeed[Any] | None:
+        """The inner camera's (None for a camera the controller grabs), never one of its own."""
+        return self.inner.perception_feed
 
     @property
     def calibration(self) -> StereoCalibration | None:

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from abc import abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -62,14 +63,61 @@ class StereoFrame:
         return (self.left.t_ns + self.right.t_ns) // 2
 
 
+#: What a :class:`PairFeed` hands over (the core's located pair; this interface does not know it).
+PairT_co = TypeVar("PairT_co", covariant=True)
+
+
+class PairFeed(Protocol[PairT_co]):
+    """Stereo pairs already located elsewhere (a perception process running the camera): what the
+    controller takes instead of grabbing the camera, with the consumer contract of its frame
+    prefetcher (:class:`hil.controller.prefetch.FramePrefetcher`). ``PairT_co`` is the located
+    pair (:class:`hil.controller.prefetch.Prefetched`; the driver interfaces import no core
+    module, so they leave it open).
+
+    Attributes:
+        produced: pairs taken or skipped so far.
+        overwritten: pairs replaced by a newer one before they were taken (the latest wins).
+    """
+
+    produced: int
+    overwritten: int
+
+    def ready(self) -> bool:
+        """Whether :meth:`take` would return at once. Never blocks."""
+        ...
+
+    def take(self, timeout_s: float, wake: Callable[[], bool] | None = None) -> PairT_co | None:
+        """The newest pair not taken yet, waiting up to ``timeout_s`` (blocking); None once
+        ``wake`` returns True while waiting. Raises the camera's DriverError (DeviceTimeoutError
+        when none came in time, DisconnectedError when the producer is gone)."""
+        ...
+
+    def stop(self, timeout_s: float | None = None) -> None:
+        """Stop producing (up to ``timeout_s``; None: as long as it takes)."""
+        ...
+
+
 class StereoCamera(Device):
     """A calibrated stereo source. A sensor: it has no command that moves anything.
 
     Every driver says whether it knows its stereo calibration (:attr:`calibration`); one that
-    does not needs the setup's ``[calibration] stereo`` file.
+    does not needs the setup's ``[calibration] stereo`` file. A camera whose pairs are located
+    elsewhere says so with :attr:`perception_feed`.
     """
 
     kind = "camera"
+
+    #: The camera this one wraps (a fault-injection or time-alignment wrapper sets it; None for
+    #: a device itself). :attr:`perception_feed` follows it unless a class says otherwise.
+    inner: StereoCamera | None = None
+
+    @property
+    def perception_feed(self) -> PairFeed[Any] | None:
+        """Where this camera's pairs come from already located (the perception process that runs
+        the camera: the controller takes from it and never grabs), or None for a camera the
+        controller grabs (every device driver). A wrapper returns its :attr:`inner` camera's (the
+        default here). Never blocks, never raises, available in every lifecycle state."""
+        return self.inner.perception_feed if self.inner is not None else None
 
     @property
     @abstractmethod

@@ -37,7 +37,7 @@ from hil.controller.operator_input import AutoOperator, Operator, OperatorView
 from hil.controller.perception import StereoMarkerLocator
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import HilError, InputFileError
-from hil.perception.camera import PerceptionCamera
+from hil.perception.process import PerceptionProcess
 from hil.session.log import SessionLog
 
 if TYPE_CHECKING:
@@ -207,8 +207,8 @@ def run_procedure(config_path: Path, setup: SetupConfig, plan: ProcedurePlan, *,
                 meter = ctl.truth_meter
                 live.follow_truth(lambda: meter.last_positions)
             summary = ctl.run(max_duration_s)
-            if isinstance(devices.camera, PerceptionCamera):   # located in the perception process
-                summary.locate_ms = devices.camera.perception_feed.locate_figures()
+            if isinstance(feed := devices.camera.perception_feed, PerceptionProcess):   # located there
+                summary.locate_ms = feed.locate_figures()
             elif isinstance(ctl.locate, StereoMarkerLocator):
                 summary.locate_ms = ctl.locate.locate_ms()
         finally:

@@ -1,10 +1,10 @@
 """The camera side of a tick: priming the pipeline, the real-time prefetcher, and reading the
 devices (the stereo pair, the robot state, the tracker's latest samples) into the estimate.
 
-Where pairs come from: a camera with a ``perception_feed`` (the perception process's camera,
-:class:`hil.perception.camera.PerceptionCamera`) is never grabbed here: its feed has the pairs,
-already located, and stands in for the prefetcher; otherwise the camera itself, through the
-prefetcher thread on the wall clock.
+Where pairs come from: a camera whose :attr:`~drivers.interfaces.camera.StereoCamera.perception_feed`
+is set (the perception process's camera, :class:`hil.perception.camera.PerceptionCamera`, or a
+wrapper of it) is never grabbed here: its feed has the pairs, already located, and stands in for
+the prefetcher; otherwise the camera itself, through the prefetcher thread on the wall clock.
 
 Blocking: the supervisor ticks on its own clock. :meth:`DevicePipeline.read` waits for the next pair
 at most one *supervisor period* (``[procedure] supervisor_period_ms``; default 1.25 frame periods,
@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Iterator
-from typing import Protocol, runtime_checkable
+from typing import TypeAlias
 
 import numpy as np
 
+from drivers.interfaces.camera import PairFeed as CameraPairFeed
 from drivers.interfaces.camera import StereoCamera, StereoFrame
 from drivers.interfaces.errors import DeviceTimeoutError, DriverError
 from drivers.interfaces.robot import Robot, RobotState
@@ -52,24 +53,9 @@ MarkerLocator = Callable[[StereoFrame], FloatArray]
 SUPERVISOR_PERIOD_FRAMES = 1.25
 
 
-@runtime_checkable
-class PairFeed(Protocol):
-    """Located pairs from elsewhere (the perception process): the prefetcher's consumer contract."""
-
-    produced: int
-    overwritten: int
-
-    def ready(self) -> bool: ...
-
-    def take(self, timeout_s: float, wake: Callable[[], bool] | None = None) -> Prefetched | None: ...
-
-    def stop(self, timeout_s: float | None = None) -> None: ...
-
-
-def perception_feed(camera: StereoCamera) -> PairFeed | None:
-    """The camera's ``perception_feed`` when it has one (a wrapper passes it through), else None."""
-    feed = getattr(camera, "perception_feed", None)
-    return feed if isinstance(feed, PairFeed) else None
+#: Located pairs from elsewhere (the perception process), as the camera interface declares them
+#: (:attr:`~drivers.interfaces.camera.StereoCamera.perception_feed`): the prefetcher's contract.
+PairFeed: TypeAlias = CameraPairFeed[Prefetched]
 
 
 def camera_silence_s(frame_period_s: float, configured_s: float | None = None) -> float:
@@ -105,7 +91,7 @@ class DevicePipeline:
         #: grab timeout counts from there, as it counted from one blocking grab before
         self._waiting_since_ns: int | None = None
         self.primed = False   # the camera pipeline's first (late) pair has been consumed
-        self.feed = perception_feed(camera)   # the perception process's pairs (module doc)
+        self.feed: PairFeed | None = camera.perception_feed   # the perception process's pairs (module doc)
         self.prefetch: FramePrefetcher | PairFeed | None = None
         self.prefetched: Prefetched | None = None   # the result the current tick perceives
         #: the markers located in the latest pair perceived (None before one, or when locating it

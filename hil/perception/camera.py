@@ -43,21 +43,29 @@ class PerceptionCamera(StereoCamera):
     :mod:`hil.perception.process`). ``open`` starts the process (the camera it builds is opened
     there; ``inner``, the one built here, is never opened), ``close`` ends it.
 
-    :attr:`perception_feed` is the consumer the controller's pipeline takes marker sets from;
-    :meth:`grab` takes the next one too and returns its stand-in pair (no images, timestamps as
-    published: the rig's time offsets are applied in the perception process).
+    :attr:`perception_feed` (the process) is the consumer the controller's pipeline takes marker
+    sets from; :meth:`grab` takes the next one too and returns its stand-in pair (no images,
+    timestamps as published: the rig's time offsets are applied in the perception process).
     """
+
+    inner: StereoCamera
 
     def __init__(self, inner: StereoCamera, process: PerceptionProcess) -> None:
         super().__init__(inner.name)
         self.inner = inner
-        self.perception_feed = process
+        self.process = process
+
+    @property
+    def perception_feed(self) -> PerceptionProcess:
+        """The perception process: its located pairs are this camera's (never the inner
+        camera's, which is never opened here)."""
+        return self.process
 
     def _open(self) -> None:
-        self.perception_feed.start()
+        self.process.start()
 
     def _close(self) -> None:
-        self.perception_feed.close()
+        self.process.close()
 
     @property
     def calibration(self) -> StereoCalibration | None:
@@ -78,7 +86,7 @@ class PerceptionCamera(StereoCamera):
     def grab(self, timeout_s: float) -> StereoFrame:
         """The next published pair (see the class doc). Raises as :meth:`PerceptionProcess.take`."""
         self.require_active("grab")
-        got = self.perception_feed.take(timeout_s)
+        got = self.process.take(timeout_s)
         assert got is not None   # no wake: a pair or an error
         return got.frame
 

@@ -5,18 +5,16 @@ NOTIFY_FD the write end of the notification pipe)."""
 from __future__ import annotations
 
 import sys
-from multiprocessing.connection import Connection
 
+from hil.childproc import run_child
 from hil.perception.worker import perception_main
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) != 3:
-        sys.stderr.write("usage: python -m hil.perception.child FD NOTIFY_FD PARENT_PID (started by hil, "
-                         "not by hand)\n")
-        return 2
-    perception_main(Connection(int(argv[0])), int(argv[1]), int(argv[2]))
-    return 0
+    """Run the perception process on the channel FD and the pipe NOTIFY_FD for the parent
+    PARENT_PID (``argv``); 2 with a usage line on other arguments
+    (:func:`hil.childproc.run_child`)."""
+    return run_child(argv, "hil.perception.child", ("NOTIFY_FD",), perception_main)
 
 
 if __name__ == "__main__":

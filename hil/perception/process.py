@@ -3,8 +3,10 @@
 Parent side: :class:`PerceptionProcess`. It creates the shared ring (:mod:`hil.perception.ring`),
 a notification pipe and a channel (socket pair), starts the child (``python -m
 hil.perception.child``: a fresh interpreter, as the servo process), sends it the spec and waits
-for its ready report. It is also the consumer the controller's pipeline reads pairs from, with the
-shape of :class:`~hil.controller.prefetch.FramePrefetcher`: :meth:`~PerceptionProcess.ready`,
+for its ready report. Spawning, the ready handshake, liveness and ending the child are
+:class:`hil.childproc.ChildProcess`'s, shared with the servo process. It is also the consumer
+the controller's pipeline reads pairs from, with the shape of
+:class:`~hil.controller.prefetch.FramePrefetcher`: :meth:`~PerceptionProcess.ready`,
 :meth:`~PerceptionProcess.take` and :meth:`~PerceptionProcess.stop`.
 
 Child side: :func:`hil.perception.worker.perception_main` builds the setup's camera through the
@@ -38,21 +40,18 @@ from __future__ import annotations
 import contextlib
 import os
 import select
-import socket
-import subprocess
-import sys
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
 
 from drivers.interfaces.camera import Frame, FrameTime, StereoFrame
 from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError
+from hil import childproc
+from hil.childproc import ChildProcess
 from hil.config.setup import SetupConfig
 from hil.controller.located import LocatedMarkers
 from hil.controller.prefetch import WAKE_POLL_S, Prefetched
@@ -63,7 +62,7 @@ from hil.servo.wire import error_from_wire
 
 #: How long the child may take to start (a fresh interpreter importing numpy, the driver, the
 #: locator).
-START_TIMEOUT_S = 60.0
+START_TIMEOUT_S = childproc.START_TIMEOUT_S
 #: Locate times kept for the figures (the newest).
 LOCATE_SAMPLES = 4096
 #: The longest a waiting ``take`` goes without checking that the child still runs, s.
@@ -145,9 +144,7 @@ class PerceptionProcess:
         self.delivery_ms: deque[float] = deque(maxlen=LOCATE_SAMPLES)
         self._taken_head = 0
         self._crash: str | None = None
-        self._started = False
-        self._closed = False
-        self._lock = threading.Lock()   # the channel's sends (the coach relays from any thread)
+        self._child = ChildProcess("hil.perception.child", "perception process", camera_name, ("close",))
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> PerceptionReady:
@@ -161,65 +158,35 @@ class PerceptionProcess:
         spec = self._spec_for()
         self.region = ShmRegion.create(ring_words())
         self.ring = MarkerRing(self.region)
-        ours, theirs = socket.socketpair()
-        self._conn = Connection(ours.detach())
         self._notify_r, notify_w = os.pipe()
         os.set_blocking(self._notify_r, False)
         try:
-            self._proc = subprocess.Popen(
-                [sys.executable, "-m", "hil.perception.child", str(theirs.fileno()), str(notify_w),
-                 str(os.getpid())], pass_fds=(theirs.fileno(), notify_w), stdin=subprocess.DEVNULL)
+            self._conn = self._child.spawn(extra_fds=(notify_w,))
         except BaseException:
-            self._conn.close()
             os.close(self._notify_r)
             self.region.close()
             raise
         finally:
-            theirs.close()
             os.close(notify_w)
-        self._started = True
-        try:
-            self._conn.send((spec, self.region.name))
-            msg = self._wait_ready()
-        except BaseException:
-            self.close()
-            raise
-        if msg[0] == "failed":
-            self.close()
-            raise error_from_wire(*msg[1])
-        info = msg[1]
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while self.ring.head == 0:   # the first (cold: caches, a full search) pair is published
-            if self._proc.poll() is not None or time.monotonic() > deadline:
-                self.close()
-                raise DeviceTimeoutError(self.camera_name,
-                                         "perception process published nothing after starting")
-            with contextlib.suppress(OSError, ValueError):
-                select.select([self._notify_r], [], [], ALIVE_CHECK_S)
+        info = self._child.handshake(
+            (spec, self.region.name), wait_ready=self._wait_ready,
+            failed=lambda payload: error_from_wire(*payload),
+            # the first (cold: caches, a full search) pair is published
+            published=lambda: self.ring.head != 0, pause=self._wait_notified,
+            unpublished="perception process published nothing after starting", on_failure=self.close)
         self.ready_info = PerceptionReady(str(info["camera_name"]), int(info["pid"]),
                                           tuple(int(c) for c in info["cpus"]), int(info["opened_ns"]))
         return self.ready_info
 
+    def _wait_notified(self, timeout_s: float = ALIVE_CHECK_S) -> None:
+        """Wait up to ``timeout_s`` for a notification (a record published); never raises."""
+        with contextlib.suppress(OSError, ValueError):
+            select.select([self._notify_r], [], [], timeout_s)
+
     def close(self, timeout_s: float = 5.0) -> None:
         """End the child (module doc), unlink the ring. Idempotent; never raises."""
-        if self._closed:
+        if not self._child.close(timeout_s):
             return
-        self._closed = True
-        if not self._started:
-            return
-        if self._proc.poll() is None:
-            with self._lock, contextlib.suppress(OSError, ValueError):
-                self._conn.send(("close",))
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self._proc.wait(timeout_s)
-        if self._proc.poll() is None:
-            self._proc.terminate()
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self._proc.wait(2.0)
-        if self._proc.poll() is None:
-            self._proc.kill()
-            self._proc.wait()
-        self._conn.close()
         with contextlib.suppress(OSError):
             os.close(self._notify_r)
         self.region.close()
@@ -227,40 +194,41 @@ class PerceptionProcess:
     @property
     def pid(self) -> int | None:
         """The child's process id (None before start)."""
-        return self._proc.pid if self._started else None
+        return self._child.pid
 
     @property
     def exitcode(self) -> int | None:
-        return self._proc.poll() if self._started else None
+        """The child's exit code (negative: the signal that ended it); None while it runs or
+        before :meth:`start`."""
+        return self._child.exitcode
 
     def gone(self) -> str | None:
         """None while the child runs; else why it is gone."""
-        if not self._started:
+        if not self._child.started:
             return "perception process not started"
-        if self._closed:
+        if self._child.closed:
             return "perception process closed"
         self._pump(0.0)
+        return self._gone_now()
+
+    def _gone_now(self) -> str | None:
+        """The crash the child reported, else its exit (None while it runs). Never blocks."""
         if self._crash is not None:
             return self._crash
-        code = self._proc.poll()
-        return None if code is None else f"perception process exited (code {code})"
+        return None if self._child.running else self._child.exited()
 
     def relay_breath_hold(self, start_s: float, duration_s: float, level: float) -> None:
         """Tell the child's simulated world about a breath-hold (world time ``start_s``). Never
         blocks for long, never raises (a gone child is reported by ``take``)."""
-        if not self._started or self._closed:
-            return
-        with self._lock, contextlib.suppress(OSError, ValueError):
-            self._conn.send(("hold", start_s, duration_s, level))
+        if self._child.started and not self._child.closed:
+            self._child.send_quietly(("hold", start_s, duration_s, level))
 
     def relay_servo_ring(self, ring_name: str) -> None:
         """Tell the child's simulated world to follow the arm through the state ring ``ring_name``
         (a restarted servo process's: the old ring is gone with the old loop). Never blocks for
         long, never raises (a gone child is reported by ``take``)."""
-        if not self._started or self._closed:
-            return
-        with self._lock, contextlib.suppress(OSError, ValueError):
-            self._conn.send(("follow", ring_name))
+        if self._child.started and not self._child.closed:
+            self._child.send_quietly(("follow", ring_name))
 
     def locate_figures(self) -> dict[str, float | None]:
         """p50 and p95 of the locate time in the perception process, ms (None before a pair), as
@@ -282,7 +250,7 @@ class PerceptionProcess:
     # ------------------------------------------------------------------ consumer contract
     def ready(self) -> bool:
         """Whether :meth:`take` would return at once (a record not taken yet). Never blocks."""
-        return self._started and not self._closed and self.ring.head > self._taken_head
+        return self._child.started and not self._child.closed and self.ring.head > self._taken_head
 
     def take(self, timeout_s: float, wake: Callable[[], bool] | None = None) -> Prefetched | None:
         """The newest marker set not taken yet, waiting up to ``timeout_s`` for one (blocking).
@@ -295,7 +263,7 @@ class PerceptionProcess:
             DisconnectedError: the perception process is gone (names the camera and why).
             DeviceTimeoutError: no record within ``timeout_s`` (names the camera).
         """
-        if self._closed or not self._started:
+        if self._child.closed or not self._child.started:
             raise DisconnectedError(self.camera_name, str(self.gone()))
         deadline = time.monotonic() + timeout_s
         while True:
@@ -313,9 +281,8 @@ class PerceptionProcess:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise DeviceTimeoutError(self.camera_name, f"no stereo pair within {timeout_s} s")
-            wait = min(remaining, ALIVE_CHECK_S, WAKE_POLL_S if wake is not None else ALIVE_CHECK_S)
-            with contextlib.suppress(OSError, ValueError):
-                select.select([self._notify_r], [], [], wait)
+            step_s = WAKE_POLL_S if wake is not None else ALIVE_CHECK_S
+            self._wait_notified(min(remaining, ALIVE_CHECK_S, step_s))
 
     def stop(self, timeout_s: float | None = None) -> None:
         """Nothing to stop: the process runs until :meth:`close` (the prefetcher's contract)."""
@@ -354,8 +321,8 @@ class PerceptionProcess:
                 return None
             msg = self._conn.recv()
         except (EOFError, OSError):
-            if self._crash is None and self._proc.poll() is not None:
-                self._crash = f"perception process exited (code {self._proc.poll()})"
+            if self._crash is None and not self._child.running:
+                self._crash = self._child.exited()
             return None
         if msg[0] == "crashed":
             last = str(msg[1]).strip().splitlines()[-1:] or ["?"]
@@ -363,15 +330,14 @@ class PerceptionProcess:
         return msg
 
     def _wait_ready(self) -> Any:
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise DeviceTimeoutError(self.camera_name,
-                                         f"perception process did not start within {START_TIMEOUT_S} s")
-            msg = self._pump(min(remaining, ALIVE_CHECK_S))
-            if msg is not None and msg[0] in ("ready", "failed"):
-                return msg
-            if self._crash is not None or self._proc.poll() is not None:
-                raise DisconnectedError(self.camera_name, self._crash
-                                        or f"perception process exited (code {self._proc.poll()})")
+        """The child's ``ready`` or ``failed`` answer (blocking, :data:`START_TIMEOUT_S` at most).
+
+        Raises:
+            DeviceTimeoutError: no answer in time. DisconnectedError: the child is gone first.
+        """
+        def receive(wait_s: float) -> Any:
+            msg = self._pump(wait_s)
+            return msg if msg is not None and msg[0] in ("ready", "failed") else None
+
+        timed_out = f"perception process did not start within {START_TIMEOUT_S} s"
+        return self._child.wait_message(receive, self._gone_now, START_TIMEOUT_S, timed_out, ALIVE_CHECK_S)

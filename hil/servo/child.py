@@ -4,17 +4,15 @@
 from __future__ import annotations
 
 import sys
-from multiprocessing.connection import Connection
 
+from hil.childproc import run_child
 from hil.servo.process import servo_main
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) != 2:
-        sys.stderr.write("usage: python -m hil.servo.child FD PARENT_PID (started by hil, not by hand)\n")
-        return 2
-    servo_main(Connection(int(argv[0])), int(argv[1]))
-    return 0
+    """Run the servo process on the channel FD for the parent PARENT_PID (``argv``); 2 with a
+    usage line on other arguments (:func:`hil.childproc.run_child`)."""
+    return run_child(argv, "hil.servo.child", (), servo_main)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,9 @@ Parent side: :class:`ServoProcess` (a :class:`~hil.servo.link.ServoLink`). It cr
 regions, starts the child (``python -m hil.servo.child``: a fresh interpreter, so nothing of the
 supervisor's threads, locks or heap comes along, and the caller's main module is never re-run),
 sends it the spec over a socket pair, waits for it to report ready (the real-time grant, the
-robot's rate and TCP), and answers the channel commands.
+robot's rate and TCP), and answers the channel commands. Spawning, the ready handshake,
+liveness, ending and restarting the child are :class:`hil.childproc.ChildProcess`'s, shared with
+the perception process.
 
 Child side: :func:`servo_main`. It builds the setup's robot through the driver registry on the
 wall clock and opens it, starts a command thread (channel commands such as a recovery
@@ -35,8 +37,6 @@ import dataclasses
 import os
 import select
 import signal
-import socket
-import subprocess
 import sys
 import threading
 import time
@@ -49,8 +49,10 @@ from typing import Any
 
 import numpy as np
 
-from drivers.interfaces.errors import DeviceTimeoutError, DisconnectedError, DriverError, LifecycleError
+from drivers.interfaces.errors import DisconnectedError, DriverError
 from drivers.interfaces.robot import FollowingModel
+from hil import childproc
+from hil.childproc import ChildProcess
 from hil.clock import MonotonicClock
 from hil.config.setup import SetupConfig
 from hil.geometry.transform import RigidTransform
@@ -63,7 +65,7 @@ from hil.servo.shm import Stat
 from hil.servo.wire import error_from_wire, error_to_wire
 
 #: How long the child may take to start (a fresh interpreter importing numpy and the driver).
-START_TIMEOUT_S = 60.0
+START_TIMEOUT_S = childproc.START_TIMEOUT_S
 #: Periods between two checks that the parent is still alive.
 PARENT_CHECK_PERIODS = 50
 #: periods after the start before the loop's timing maxima and late causes are counted (the first
@@ -72,7 +74,7 @@ TIMING_WARMUP_PERIODS = 100
 
 
 #: How long the end of the channel waits for the child's exit to be reported (s).
-CHANNEL_END_WAIT_S = 1.0
+CHANNEL_END_WAIT_S = childproc.CHANNEL_END_WAIT_S
 
 
 @dataclass(frozen=True)
@@ -114,6 +116,8 @@ class ServoReady:
 
 class ServoProcess:
     """Parent side of the servo process (module doc). ``start`` blocks until the child is ready.
+    The child's lifecycle (spawn, ready handshake, liveness, ending, restart) is
+    :class:`hil.childproc.ChildProcess`'s.
 
     Raises (start): DriverError from building or opening the robot in the child (same class,
     device and message); DeviceTimeoutError when the child does not start in time.
@@ -128,9 +132,7 @@ class ServoProcess:
         self._crash: str | None = None
         self._next_id = 0
         self.ready: ServoReady | None = None
-        self._closed = False
-        self._started = False
-        self._child_ended = False   # this child's channel and regions are freed (close, failed start)
+        self._child = ChildProcess("hil.servo.child", "servo process", robot_name, ("close", -1, ()))
         self._reserved_cpu: int | None = None   # the loop's CPU this process keeps off (reserve_cpu)
         #: one reader of the channel at a time (the controller's thread, observers' threads)
         self._channel_lock = threading.RLock()
@@ -148,37 +150,20 @@ class ServoProcess:
             return self._start()
 
     def _start(self) -> ServoReady:
-        self._child_ended = False
         self.regions = Regions.create(shared=True)
-        ours, theirs = socket.socketpair()
-        self._conn = Connection(ours.detach())
-        # whether a message waits, without the selector Connection.poll builds per call (the
-        # supervisor asks at every robot state read, on the pair's path)
-        self._readable = select.poll()
-        self._readable.register(self._conn.fileno(), select.POLLIN)
         try:
-            self._proc = subprocess.Popen(
-                [sys.executable, "-m", "hil.servo.child", str(theirs.fileno()), str(os.getpid())],
-                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL)
-        finally:
-            theirs.close()
-        self._started = True
-        try:
-            self._conn.send((self.spec, self.regions.names()))
-            msg = self._wait_for(lambda m: m[0] in ("ready", "failed"), START_TIMEOUT_S)
+            self._attach(self._child.spawn())
         except BaseException:
-            self._end_child()
+            self.regions.close()
             raise
-        if msg[0] == "failed":
-            self._end_child()
-            raise error_from_wire(*msg[1])
-        info = msg[1]
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while self.regions.ring.head == 0:   # the first period's record: state reads work from here
-            if self._proc.poll() is not None or time.monotonic() > deadline:
-                self._end_child()
-                raise DeviceTimeoutError(self._name, "servo loop did not read the robot after starting")
-            time.sleep(0.001)
+        info = self._child.handshake(
+            (self.spec, self.regions.names()),
+            wait_ready=lambda: self._wait_for(lambda m: m[0] in ("ready", "failed"), START_TIMEOUT_S),
+            failed=lambda payload: error_from_wire(*payload),
+            # the first period's record: state reads work from here
+            published=lambda: self.regions.ring.head != 0, pause=lambda: time.sleep(0.001),
+            unpublished="servo loop did not read the robot after starting", on_failure=self._end_child,
+            timeout_s=START_TIMEOUT_S)
         rt = RtGranted.from_dict(info["rt"])
         moved = None
         if self.spec.reserve_cpu and rt.realtime and rt.cpu is not None:
@@ -188,6 +173,14 @@ class ServoProcess:
                                 RigidTransform.from_matrix(np.asarray(info["T_flange_from_tcp"])),
                                 rt, int(info["pid"]), FollowingModel(**info["following"]), moved)
         return self.ready
+
+    def _attach(self, conn: Connection) -> None:
+        """Read the channel ``conn`` (a new child's) from here on."""
+        self._conn = conn
+        # whether a message waits, without the selector Connection.poll builds per call (the
+        # supervisor asks at every robot state read, on the pair's path)
+        self._readable = select.poll()
+        self._readable.register(conn.fileno(), select.POLLIN)
 
     def restart(self) -> ServoReady:
         """Start a new child in place of one that ended on its own (:meth:`gone` says why: the
@@ -202,10 +195,7 @@ class ServoProcess:
             LifecycleError: after :meth:`close`, or while the child runs (nothing to restart).
         """
         with self._channel_lock:   # observers' gone() never see the old child half replaced
-            if self._closed:
-                raise LifecycleError(self._name, "restart() after close()")
-            if self._started and self._crash is None and self._proc.poll() is None:
-                raise LifecycleError(self._name, "restart() while the servo process runs")
+            self._child.check_restart(crashed=self._crash is not None)
             self._end_child()
             self._crash, self.ready = None, None
             self._events.clear()
@@ -217,30 +207,17 @@ class ServoProcess:
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop the arm and end the child (module doc). Idempotent; never raises."""
-        if self._closed:
-            return
-        self._closed = True
-        self._end_child(timeout_s)
+        if self._child.close(timeout_s):
+            self._free_child()
 
     def _end_child(self, timeout_s: float = 5.0) -> None:
         """Ask the child to stop the arm and exit, then terminate, then kill it; free the channel
         and the regions. Once per child; never raises."""
-        if not self._started or self._child_ended:
-            return
-        self._child_ended = True
-        if self._proc.poll() is None:
-            with contextlib.suppress(OSError, ValueError):
-                self._conn.send(("close", -1, ()))
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self._proc.wait(timeout_s)
-        if self._proc.poll() is None:
-            self._proc.terminate()
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self._proc.wait(2.0)
-        if self._proc.poll() is None:
-            self._proc.kill()
-            self._proc.wait()
-        self._conn.close()
+        if self._child.end(timeout_s):
+            self._free_child()
+
+    def _free_child(self) -> None:
+        """Free what the ended child used: the regions, the loop's CPU kept off."""
         self.regions.close()
         if self._reserved_cpu is not None:
             release_cpu(self._reserved_cpu)
@@ -249,11 +226,13 @@ class ServoProcess:
     @property
     def closed(self) -> bool:
         """:meth:`close` was called (a child that ended on its own leaves this False)."""
-        return self._closed
+        return self._child.closed
 
     @property
     def exitcode(self) -> int | None:
-        return self._proc.poll() if self._started else None
+        """The child's exit code (negative: the signal that ended it); None while it runs or
+        before :meth:`start`."""
+        return self._child.exitcode
 
     # ------------------------------------------------------------------ link contract
     @property
@@ -285,7 +264,7 @@ class ServoProcess:
         self._next_id += 1
         rid = self._next_id
         try:
-            self._conn.send((command, rid, args))
+            self._child.send((command, rid, args))
         except (OSError, ValueError) as exc:
             raise DisconnectedError(self.robot_name, f"servo process channel: {exc}") from exc
         msg = self._wait_for(lambda m: m[0] == "reply" and m[1] == rid, timeout_s)
@@ -305,32 +284,26 @@ class ServoProcess:
         crash = self._crash
         if crash is not None:
             return crash
-        if self._closed:
+        if self._child.closed:
             return "servo process closed"
-        if not self._started:
+        if not self._child.started:
             return "servo process not started"
-        if self._proc.poll() is None:
+        if self._child.running:
             return None
         with self._channel_lock:
             # checked again under the lock: a restart (which holds it) may have replaced the child
-            if self._crash is None and self._proc.poll() is None:
-                return None
-            self._pump(0.0, None)
-            return self._exit_reason()
+            return self._gone_now()
+
+    def _gone_now(self) -> str | None:
+        """None while the child runs and reported no crash; else why it is gone (the channel
+        read first, for a crash report sent before it went)."""
+        if self._crash is None and self._child.running:
+            return None
+        self._pump(0.0, None)
+        return self._exit_reason()
 
     def _exit_reason(self) -> str:
-        return self._crash or f"servo process exited (code {self._proc.poll()})"
-
-    def _channel_end_reason(self) -> str:
-        """Why the channel ended: the child's exit, with its code. The channel closes as the
-        child dies, a moment before the OS reports the exit: waits up to
-        :data:`CHANNEL_END_WAIT_S` for it (a code read at once was often None, in the operator's
-        fault message and the session log)."""
-        try:
-            code = self._proc.wait(timeout=CHANNEL_END_WAIT_S)
-        except subprocess.TimeoutExpired:
-            return "servo process closed its channel and still runs"
-        return f"servo process exited (code {code})"
+        return self._crash or self._child.exited()
 
     def kick(self) -> None:
         """Nothing: the process loop reads the block every period."""
@@ -352,7 +325,7 @@ class ServoProcess:
                     return None
                 msg = self._conn.recv()
             except (EOFError, OSError):
-                self._crash = self._crash or self._channel_end_reason()
+                self._crash = self._crash or self._child.channel_end_reason(CHANNEL_END_WAIT_S)
                 return None
             if msg[0] == "event":
                 self._events.append((msg[1], msg[2]))
@@ -364,18 +337,8 @@ class ServoProcess:
                 return None
 
     def _wait_for(self, want: Any, timeout_s: float) -> Any:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise DeviceTimeoutError(self.robot_name,
-                                         f"servo process did not answer within {timeout_s} s")
-            msg = self._pump(min(remaining, 0.05), want)
-            if msg is not None:
-                return msg
-            if self._crash is not None or self._proc.poll() is not None:
-                self._pump(0.0, None)
-                raise DisconnectedError(self.robot_name, self._exit_reason())
+        return self._child.wait_message(lambda wait_s: self._pump(wait_s, want), self._gone_now, timeout_s,
+                                        f"servo process did not answer within {timeout_s} s")
 
 
 # ---------------------------------------------------------------------------- child

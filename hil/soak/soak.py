@@ -496,11 +496,10 @@ def run_soak(
         with_perception_process,
         with_servo_process,
     )
-    from hil.perception.camera import PerceptionCamera
 
     devices = with_servo_process(setup, build_devices(setup, clock), clock)
     devices = with_perception_process(setup, devices, clock)
-    feed = devices.camera.perception_feed if isinstance(devices.camera, PerceptionCamera) else None
+    feed = process if isinstance(process := devices.camera.perception_feed, PerceptionProcess) else None
     robot = devices.robot
     assert isinstance(robot, ServoRobot)
     session = _soak_session(session_dir, clock, config, minutes, rate_hz, realtime)

@@ -1,6 +1,7 @@
 """What the core needs from a device comes through the interface: a camera's ``calibration`` and
-a robot's ``T_flange_from_tcp``. Every wrapper hands over its inner device's value (never a
-default of its own), and the core raises a clear error when no calibration exists anywhere."""
+``perception_feed``, a robot's ``T_flange_from_tcp``. Every wrapper hands over its inner device's
+value (never a default of its own), and the core raises a clear error when no calibration exists
+anywhere."""
 
 from __future__ import annotations
 
@@ -70,6 +71,58 @@ def test_camera_wrappers_pass_the_inner_calibration_through(
 @pytest.mark.parametrize("wrap", CAMERA_WRAPPERS.values(), ids=list(CAMERA_WRAPPERS))
 def test_camera_wrappers_invent_no_calibration(wrap: Callable[[StereoCamera], StereoCamera]) -> None:
     assert wrap(_Camera(calibration=None)).calibration is None
+
+
+class _Feed:
+    """A stand-in perception feed (only its identity is looked at)."""
+
+    produced = 0
+    overwritten = 0
+
+    def ready(self) -> bool:
+        return False
+
+    def take(self, timeout_s: float, wake: Callable[[], bool] | None = None) -> None:
+        return None
+
+    def stop(self, timeout_s: float | None = None) -> None:
+        """Nothing to stop."""
+
+
+class _FeedCamera(_Camera):
+    """A camera whose pairs are located elsewhere, as the perception process's camera."""
+
+    def __init__(self, feed: _Feed) -> None:
+        super().__init__(calibration=CAL)
+        self._feed = feed
+
+    @property
+    def perception_feed(self) -> _Feed:
+        return self._feed
+
+
+@pytest.mark.parametrize("wrap", CAMERA_WRAPPERS.values(), ids=list(CAMERA_WRAPPERS))
+def test_camera_wrappers_pass_the_inner_perception_feed_through(
+        wrap: Callable[[StereoCamera], StereoCamera]) -> None:
+    feed = _Feed()
+    assert wrap(_FeedCamera(feed)).perception_feed is feed
+
+
+@pytest.mark.parametrize("wrap", CAMERA_WRAPPERS.values(), ids=list(CAMERA_WRAPPERS))
+def test_camera_wrappers_of_a_plain_camera_have_no_perception_feed(
+        wrap: Callable[[StereoCamera], StereoCamera]) -> None:
+    assert _Camera(calibration=CAL).perception_feed is None
+    assert wrap(_Camera(calibration=CAL)).perception_feed is None
+
+
+def test_the_perception_process_camera_declares_its_process_as_the_feed() -> None:
+    from hil.perception.camera import PerceptionCamera
+    from hil.perception.process import PerceptionProcess, PerceptionSpec
+
+    process = PerceptionProcess(lambda: PerceptionSpec(_setup(True)), "camera")   # never started
+    camera = PerceptionCamera(_Camera(calibration=CAL), process)
+    assert camera.perception_feed is process
+    assert TimeAlignedCamera(FaultyStereoCamera(camera, (), _clock()), 1).perception_feed is process
 
 
 def test_the_robot_base_class_needs_the_tcp() -> None:

@@ -16,7 +16,7 @@ from drivers.interfaces.robot import RobotMode, RobotState, SafetyStatus
 from hil.clock import MonotonicClock
 from hil.controller.located import LocatedMarkers
 from hil.controller.metrics import RunMetrics
-from hil.controller.pipeline import DevicePipeline, perception_feed
+from hil.controller.pipeline import DevicePipeline
 from hil.controller.prefetch import Prefetched
 from hil.geometry.transform import RigidTransform
 from hil.perception.process import PerceptionLocateError
@@ -118,7 +118,7 @@ def test_the_pipeline_takes_located_pairs_from_the_feed_and_never_grabs(
     stale, fresh, nxt = _pair(1, now - 10**9), _pair(2, now), _pair(3, now)
     feed = FakeFeed([_located(stale, 1), _located(fresh, 2), _located(nxt, 4)])
     p = make(feed)
-    assert perception_feed(p.camera) is feed
+    assert p.feed is feed
     p.prime()
     assert len(feed.items) == 1   # skipped the stale, primed on the fresh
     assert feed.items[0].frame is nxt

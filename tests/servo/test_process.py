@@ -96,25 +96,26 @@ def test_close_stops_the_arm_and_ends_the_process() -> None:
     proc.close()   # idempotent
 
 
-def test_a_channel_that_ends_before_the_exit_reports_the_exit_code() -> None:
+def test_a_channel_that_ends_before_the_exit_reports_the_exit_code(monkeypatch: pytest.MonkeyPatch) -> None:
     """The channel closes as the child dies, a moment before the OS reports its exit: the reason
-    waits for the exit code (it read "code None" when taken at once, in the operator's fault)."""
-    import socket
-    from multiprocessing.connection import Connection
+    waits for the exit code (it read "code None" when taken at once, in the operator's fault).
+    The child (tests/childproc/scripted_child.py) exits 0.3 s after closing its channel; the wait
+    is made long here so that a loaded machine cannot make the test race the exit."""
+    from hil.childproc import ChildProcess
+    from hil.servo import process as servo_process
 
+    monkeypatch.setattr(servo_process, "CHANNEL_END_WAIT_S", 60.0)
     proc = ServoProcess(_spec(), "robot", RigidTransform.identity())
-    ours, theirs = socket.socketpair()
-    script = f"import os, time; os.close({theirs.fileno()}); time.sleep(0.3); raise SystemExit(3)"
-    child = subprocess.Popen([sys.executable, "-c", script], pass_fds=(theirs.fileno(),))
-    theirs.close()
-    proc._conn, proc._proc, proc._started = Connection(ours.detach()), child, True   # a child, not started
+    child = ChildProcess("tests.childproc.scripted_child", "servo process", "robot", ("close", -1, ()),
+                         cwd=ROOT)
+    proc._child = child
+    proc._attach(child.spawn())   # a child, not started through start()
     try:
+        child.send("hang_up")
         assert proc._pump(2.0, None) is None         # the channel's end
         assert proc.gone() == "servo process exited (code 3)"
     finally:
-        child.kill()
-        child.wait()
-        proc._conn.close()
+        child.close()
 
 
 def test_a_killed_servo_process_makes_the_robot_disconnected(robot: ServoRobot) -> None:

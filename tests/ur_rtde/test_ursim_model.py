@@ -319,16 +319,54 @@ def test_the_speed_slider_moves_only_with_mask_1(mask: int, fraction: float) -> 
     assert c.output("target_speed_fraction", "DOUBLE") == expected
 
 
-def test_the_program_interpreter_does_not_import_the_controller() -> None:
-    """script.py reaches the controller only through its ScriptHost protocol (issue 45 item 4)."""
+def _ursim_imports() -> dict[str, set[str]]:
+    """Each module of tools/emulators/ursim -> the package's modules it imports (every form:
+    ``import a.b``, ``from a.b import c``, ``from a import b``, relative; TYPE_CHECKING ones too)."""
     import ast
     from pathlib import Path
 
+    import emulators.ursim as pkg
+
+    root = Path(pkg.__file__).parent
+    names = {p.stem for p in root.glob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for path in root.glob("*.py"):
+        found: set[str] = set()
+        for n in ast.walk(ast.parse(path.read_text())):
+            if isinstance(n, ast.Import):
+                mods = [a.name for a in n.names]
+            elif isinstance(n, ast.ImportFrom):
+                base = "emulators.ursim" if n.level else (n.module or "")
+                full = f"{base}.{n.module}" if n.level and n.module else base
+                mods = [full, *(f"{full}.{a.name}" for a in n.names)]
+            else:
+                continue
+            found |= {m.split(".")[2] for m in mods if m.startswith("emulators.ursim.")} & names
+        graph[path.stem] = found - {path.stem}
+    return graph
+
+
+def _reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+    seen: set[str] = set()
+    todo = list(graph[start])
+    while todo:
+        m = todo.pop()
+        if m not in seen:
+            seen.add(m)
+            todo.extend(graph.get(m, ()))
+    return seen
+
+
+def test_the_program_interpreter_does_not_import_the_controller() -> None:
+    """script.py reaches the controller only through its ScriptHost protocol (issue 45 item 4): no
+    import of the controller, directly or through another module, in any form; the controller
+    owns its interpreter (it imports the script, one way); no module of the emulator imports
+    itself back through others."""
     import emulators.ursim.script as script
 
-    tree = ast.parse(Path(script.__file__).read_text())
-    imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
-    imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-    assert "emulators.ursim.controller" not in imported
+    graph = _ursim_imports()
+    assert graph["controller"] >= {"script"}
+    assert "controller" not in _reachable(graph, "script")
+    assert [m for m in graph if m in _reachable(graph, m)] == []   # no import cycle
     host: script.ScriptHost = make()  # the controller is a ScriptHost (mypy checks the members)
     assert isinstance(host, UrController)
