@@ -166,11 +166,15 @@ def test_short_soak_compensates_with_the_servo_loop(short_soak: Any) -> None:
     assert 0.0 < res.servo_cpu_percent <= 105.0
     assert "rt_cpu_cap" in res.rt_granted       # the kernel's cap on a FIFO loop's CPU share
     assert res.locate_ms["p50"] is not None
-    # the supervisor's part of frame -> command: a command follows its setpoint
+    # both parts of frame -> command are measured. Their medians are not compared: the setpoints
+    # (every pair handed to the loop) and the commands (pairs whose setpoint a period picked up;
+    # frames_overwritten are not among them) are different populations, so on a loaded host the
+    # setpoints' median can exceed the commands' though each command follows its own setpoint
     f2s, f2c = res.frame_to_setpoint_ms["p50"], res.frame_to_command_ms["p50"]
     assert f2s is not None
     assert f2c is not None
-    assert f2s <= f2c
+    assert f2s > 0.0
+    assert f2c > 0.0
 
 
 #: further 10 s soaks (about 60 s of wall time each on a busy host) tried when the host took the
