@@ -134,6 +134,10 @@ class GateConfig(BaseModel):
     min_hold_left_s: float | None = Field(
         4.0, ge=0, description="open only while the requested breath-hold has at least this long left "
                                "(compensate's alignment and lock.hold_s must fit in it; None: not checked)")
+    moved_after_s: float | None = Field(
+        15.0, gt=0, description="pause for re-registration when the markers have stayed farther than "
+                                "tolerance_mm from the registered state this long with their shape back: "
+                                "the patient moved on the table (None: not judged)")
     hold_rest_s: float = Field(
         5.0, ge=0, description="after a breath-hold that could not be used ends, let the patient breathe "
                                "this long, then ask for the next")

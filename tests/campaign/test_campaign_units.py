@@ -81,6 +81,19 @@ def test_operator_waits_for_the_fault_to_end_then_resumes_then_restarts() -> Non
     assert op.finished(_view(State.DONE, 9.0))
 
 
+def test_operator_resumes_a_pause_once_then_re_registers() -> None:
+    """A body that still does not match after resuming (a marker slid, the patient moved) pauses
+    again: the second answer is a re-registration (START from PAUSED), as an operator would."""
+    op = CampaignOperator(recover_after_s=1.0, max_recoveries=3)
+    op.poll(_view(State.IDLE, 0.0))
+    assert op.poll(_view(State.PAUSED, 2.0)) is Event.RESUME_REQUESTED
+    assert op.poll(_view(State.APPROACH, 2.1)) is None
+    assert op.poll(_view(State.PAUSED, 3.0)) is Event.START_REQUESTED
+    assert op.poll(_view(State.REGISTER, 3.1)) is None
+    assert op.poll(_view(State.FAULT, 4.0)) is Event.RESUME_REQUESTED   # a fault is still resumed
+    assert op.recoveries_left == 0
+
+
 def test_operator_without_recoveries_ends_at_the_first_halt() -> None:
     op = CampaignOperator(recover_after_s=0.0, max_recoveries=0)
     op.poll(_view(State.IDLE, 0.0))

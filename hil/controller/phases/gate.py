@@ -15,13 +15,13 @@ the gate asks for the next one (``breath_hold_requested``) and waits again.
 
 A patient who shifted on the table (within the correction bounds) keeps the markers away from the
 registered state at every point of the breathing cycle while their shape is back: no breath-hold
-will ever open the gate. At the gate's timeout, when the markers' deviation never came within
-``tolerance_mm`` over the whole wait and the shape is back within ``shape_tolerance_mm``, GATE
-pauses for the operator (re-register) with that reason, instead of waiting again."""
+will ever open the gate. When the markers' deviation has not come within ``tolerance_mm`` for
+``moved_after_s`` (several breaths: a breathing patient passes the reference at every end-exhale,
+a held breath lasts ``hold_request_s``) and the shape is back within ``shape_tolerance_mm``, GATE
+pauses for the operator (re-register) with that reason, instead of asking for breath-holds."""
 
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING
 
 from hil.controller import events as ev
@@ -41,7 +41,7 @@ class GatePhase(Phase):
 
     _hold_end_ns: int = 0
     _too_short_logged: bool = False
-    _min_rms_mm: float = math.inf     # the smallest marker deviation (RMS) since the wait began
+    _last_within_ns: int = 0          # when the markers were last within tolerance (or the wait began)
 
     state = State.GATE
 
@@ -51,7 +51,7 @@ class GatePhase(Phase):
         if est.gate is None:
             est.gate = BreathHoldGate(cfg.gate, est.patient_reg.reference_optical_mm)
         est.gate.restart(self.entered_ns)
-        self._min_rms_mm = math.inf
+        self._last_within_ns = self.entered_ns
         # the arm holds before the patient is asked to (the log shows stop_sent first); a stop
         # that fails raises here, the entry faults, and no breath-hold is requested
         self.ctx.execute(Stop("gate: hold position while waiting for the breath-hold"))
@@ -104,25 +104,28 @@ class GatePhase(Phase):
         hold_problem = self._hold_problem(status.open)
         if status.open and hold_problem is None:
             return out.fire(Event.GATE_OPENED, status.justification)
-        self._min_rms_mm = min(self._min_rms_mm, status.deviation_rms_mm)
+        shifted = self._patient_shifted(status, inputs.frame.left.t_ns)
+        if shifted is not None:
+            self.ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=shifted)
+            return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, shifted + "; operator decision needed")
         if status.timed_out:
-            shifted = self._patient_shifted(status)
-            if shifted is not None:
-                self.ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=shifted)
-                return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, shifted + "; operator decision needed")
             self.ctx.session.write(ev.GATE_TIMED_OUT, message=status.justification)
             return out.fire(Event.TIMED_OUT, status.justification)
         return out
 
-    def _patient_shifted(self, status: GateStatus) -> str | None:
-        """At a timeout: why the body looks moved rather than not holding its breath (module
-        doc), or None."""
+    def _patient_shifted(self, status: GateStatus, t_ns: int) -> str | None:
+        """Why the body looks moved rather than not holding its breath (module doc), or None.
+        ``t_ns``: the pair's exposure (controller clock)."""
         g = self.ctx.cfg.gate
-        shape_tol = 1.0 if g.shape_tolerance_mm is None else g.shape_tolerance_mm
-        if status.markers < MIN_GATE_MARKERS or self._min_rms_mm <= g.tolerance_mm:
+        if status.deviation_rms_mm <= g.tolerance_mm:
+            self._last_within_ns = t_ns
             return None
+        away_s = (t_ns - self._last_within_ns) * 1e-9
+        if g.moved_after_s is None or away_s < g.moved_after_s or status.markers < MIN_GATE_MARKERS:
+            return None
+        shape_tol = 1.0 if g.shape_tolerance_mm is None else g.shape_tolerance_mm
         if not status.shape_mm <= shape_tol:
             return None
-        return (f"the skin markers stayed at least {self._min_rms_mm:.1f} mm RMS from the registered state "
-                f"for the whole {g.timeout_s:.0f} s wait with their shape back ({status.shape_mm:.2f} mm): "
-                "the patient has moved since registration (re-register)")
+        return (f"the skin markers have stayed more than {g.tolerance_mm} mm RMS from the registered state "
+                f"for {away_s:.0f} s (now {status.deviation_rms_mm:.1f} mm) with their shape back "
+                f"({status.shape_mm:.2f} mm): the patient has moved since registration (re-register)")
