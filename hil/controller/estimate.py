@@ -26,12 +26,13 @@ from drivers.interfaces.camera import StereoFrame
 from drivers.interfaces.robot import RobotState
 from drivers.interfaces.tracker import TrackerSample
 from hil.controller.change_estimate import ChangeFit
-from hil.controller.compensation import MotionFilter, interpolate_pose
+from hil.controller.compensation import ChangePredictor, MotionFilter, interpolate_pose
 from hil.controller.config import ProcedureConfig
 from hil.controller.gate import BreathHoldGate, GateMeasures, gate_measures, rms_deviation_mm
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, RigGeometry
 from hil.controller.registration import PatientRegistration, RobotRegistration
+from hil.errors import ConfigError
 from hil.geometry import native
 from hil.geometry.registration import register_horn
 from hil.geometry.transform import RigidTransform
@@ -56,9 +57,17 @@ def mean_transform(ts: list[RigidTransform]) -> RigidTransform:
 
 
 class Estimate:
-    """The procedure state (module doc). ``plan`` and ``rig`` are fixed for the procedure."""
+    """The procedure state (module doc). ``plan`` and ``rig`` are fixed for the procedure.
+    ``camera_rate_hz``: the pair rate the ``[procedure.compensation] predictor`` is set up for
+    (needed, Hz, unless the predictor is ``"alpha-beta"``).
 
-    def __init__(self, plan: ProcedurePlan, rig: RigGeometry, cfg: ProcedureConfig) -> None:
+    Raises:
+        ConfigError: a predictor other than alpha-beta without a camera rate.
+        PredictionError: a camera rate that is not a finite number > 0 for it.
+    """
+
+    def __init__(self, plan: ProcedurePlan, rig: RigGeometry, cfg: ProcedureConfig,
+                 camera_rate_hz: float | None = None) -> None:
         self.plan, self.rig = plan, rig
         self.patient_reg: PatientRegistration | None = None
         self.robot_reg: RobotRegistration | None = None
@@ -69,6 +78,11 @@ class Estimate:
         self.T_center = RigidTransform.identity()
         self.gate: BreathHoldGate | None = None
         self.filter = MotionFilter(cfg.compensation.filter_alpha, cfg.compensation.filter_beta)
+        if cfg.compensation.predictor != "alpha-beta":
+            if camera_rate_hz is None:
+                raise ConfigError("[procedure.compensation]", [
+                    f"predictor = {cfg.compensation.predictor!r} needs the camera's frame rate"])
+            self.filter.predictor = ChangePredictor(cfg.compensation, camera_rate_hz)
         self.comp_cfg, self.gate_cfg = cfg.compensation, cfg.gate
         #: the last pair's change estimate (estimator, rigid-fit residuals: the deformation monitor)
         self.change_fit: ChangeFit | None = None
