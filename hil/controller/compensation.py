@@ -146,6 +146,16 @@ class ChangePredictor:
         """Whether the model answers (warm, not holding after a fallback)."""
         return self.predictor.predicting
 
+    @property
+    def fallbacks(self) -> int:
+        """Fallbacks since the procedure started (gap, rate, innovation, output not finite)."""
+        return self.predictor.fallbacks
+
+    @property
+    def last_fallback_reason(self) -> str | None:
+        """Why the last fallback was taken (None: none yet)."""
+        return self.predictor.last_fallback_reason
+
     def update(self, T_local: RigidTransform, t_ns: int) -> None:
         """Feed the entry-centred measured change at exposure ``t_ns`` (ns). A refused sample
         (not finite, not after the previous one) is skipped and counted in :attr:`refused`."""

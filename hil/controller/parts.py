@@ -83,9 +83,8 @@ def _predictor_fields(est: Estimate) -> dict[str, Any]:
     cp = est.filter.predictor
     if cp is None:
         return {}
-    p = cp.predictor
-    return {"predictor": cp.name, "predictor_active": cp.predicting, "predictor_fallbacks": p.fallbacks,
-            "predictor_fallback_reason": p.last_fallback_reason}
+    return {"predictor": cp.name, "predictor_active": cp.predicting, "predictor_fallbacks": cp.fallbacks,
+            "predictor_fallback_reason": cp.last_fallback_reason}
 
 
 class ControllerParts(abc.ABC):
