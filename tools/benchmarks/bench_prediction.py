@@ -13,7 +13,9 @@ samples are fed one by one to a fresh predictor per trace, and after each one th
 ``horizon`` ahead is compared with the noise-free trace (linear between its samples) at that time.
 Errors are 3-D norms pooled over every sample of every trace (warm-up included: a predictor that
 is not warm answers the last sample): RMS, p95, max and the RMS's ratio to no prediction.
-``default`` is the predictor with the lowest RMS at the condition.
+``best`` is the predictor with the lowest RMS at the condition, ``default`` the one the controller
+uses (``[procedure.compensation] predictor``'s default; chosen on the closed-loop figures too,
+docs/prediction.md "In the loop").
 
 Without ``--trace``: the shared corpus ``<repo>/../shared/data/respiration`` (``$HIL_SHARED_DATA``
 overrides ``<repo>/../shared/data``; every 6-DoF trace file and
@@ -228,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="only the per-pair CPU of each predictor as COMPENSATE runs it (no traces)")
     args = ap.parse_args(argv)
     if args.cost:
-        return _print_cost(args.rate or DEFAULT_RATE_HZ, args.json)
+        return _print_cost(DEFAULT_RATE_HZ if args.rate is None else args.rate, args.json)
     try:
         for v, what in ((args.rate, "--rate"), (args.horizon_ms, "--horizon-ms")):
             if v is not None and not (math.isfinite(v) and v > 0):
@@ -254,7 +256,8 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({
             "rate_hz": rate, "horizon_ms": h_ms, "noise_mm": args.noise_mm, "seed": args.seed,
             "max_minutes": args.max_minutes,
-            "traces": len(traces), "samples": res["none"].samples, "predictors": figs, "default": best,
+            "traces": len(traces), "samples": res["none"].samples, "predictors": figs, "best": best,
+            "default": CompensationConfig().predictor,
             "ratio_to_filter": round(figs[best]["rmse_mm"] / ab, 4) if ab else None,
             "targets": {"ratio_to_none": TARGET_RATIO_NONE, "ratio_to_filter": TARGET_RATIO_FILTER},
             "data": [str(f) for f in files] if args.trace else str(CORPUS),
