@@ -156,14 +156,15 @@ class ChangePredictor:
         """Why the last fallback was taken (None: none yet)."""
         return self.predictor.last_fallback_reason
 
-    def update(self, T_local: RigidTransform, t_ns: int) -> None:
-        """Feed the entry-centred measured change at exposure ``t_ns`` (ns). A refused sample
-        (not finite, not after the previous one) is skipped and counted in :attr:`refused`."""
+    def update(self, displacement_mm: FloatArray, t_ns: int) -> None:
+        """Feed the entry's measured displacement (the translation of the entry-centred change,
+        (3,) mm) at exposure ``t_ns`` (ns). A refused sample (not finite, not after the previous
+        one) is skipped and counted in :attr:`refused`."""
         if self._t0_ns is None:
             self._t0_ns = t_ns
         before = self.predictor.fallbacks
         try:
-            self.predictor.update((t_ns - self._t0_ns) * 1e-9, T_local.t)
+            self.predictor.update((t_ns - self._t0_ns) * 1e-9, displacement_mm)
         except PredictionError:
             self.refused += 1
             return
@@ -230,8 +231,9 @@ class MotionFilter:
         (tests/controller/test_control_law.py). The :attr:`predictor`, if any, is fed the same
         change about the centre after the filter."""
         self._update_about(T_meas, T_center, t_ns)
-        if self.predictor is not None:
-            self.predictor.update(T_center.inverse() @ T_meas @ T_center, t_ns)
+        if self.predictor is not None:   # the translation of T_center^-1 @ T_meas @ T_center
+            Rc, tc = T_center.R, T_center.t
+            self.predictor.update(Rc.T @ (T_meas.R @ tc + T_meas.t - tc), t_ns)
 
     def _update_about(self, T_meas: RigidTransform, T_center: RigidTransform, t_ns: int) -> None:
         k = native.active()

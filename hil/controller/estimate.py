@@ -35,7 +35,7 @@ from hil.controller.registration import PatientRegistration, RobotRegistration
 from hil.errors import ConfigError
 from hil.geometry import native
 from hil.geometry.registration import register_horn
-from hil.geometry.transform import RigidTransform
+from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 
 FloatArray = NDArray[np.float64]
 #: Robot states kept for interpolation at a frame's exposure time.
@@ -251,6 +251,27 @@ class Estimate:
             return D0, np.zeros(3), np.zeros(3)
         D1 = self.desired_tcp_robot_local(f.estimate(t1_ns, max_horizon_s))
         return D0, (D1.t - D0.t) / velocity_step_s, (D1 @ D0.inverse()).as_rotvec() / velocity_step_s
+
+    def setpoint_of_line(self, x: FloatArray, v: FloatArray, h0_s: float, h1_s: float
+                         ) -> tuple[RigidTransform, FloatArray, FloatArray]:
+        """The TCP pose (robot frame, mm) :meth:`desired_tcp_robot_local` gives for the
+        entry-centred change ``x + v * h0_s`` (a 6-vector: t mm, rotation vector rad, as the
+        filter's state), and the linear (mm/s) and angular (rad/s, robot frame) velocity of the
+        secant to the pose at ``h1_s`` (``h1_s > h0_s``). The loop's predictor's setpoint
+        (hil/controller/phases/predicted.py). Compiled (``tcp_setpoint``) when selected, numpy
+        otherwise; the two agree to rounding (tests/controller/test_predictor_in_loop.py). Never
+        blocks."""
+        dt_s = h1_s - h0_s
+        k = native.active()
+        if k is not None:
+            L, R = self._chain_ends()
+            D_R, D_t, vel, w = np.empty((3, 3)), np.empty(3), np.empty(3), np.empty(3)
+            if k.tcp_setpoint(x, v, h0_s, h1_s, dt_s, L.R, L.t, R.R, R.t, D_R, D_t, vel, w) == 0:
+                return RigidTransform._composed(D_R, D_t), vel, w
+        x0, x1 = x + v * h0_s, x + v * h1_s
+        D0 = self.desired_tcp_robot_local(RigidTransform(rotvec_to_matrix(x0[3:]), x0[:3]))
+        D1 = self.desired_tcp_robot_local(RigidTransform(rotvec_to_matrix(x1[3:]), x1[:3]))
+        return D0, (D1.t - D0.t) / dt_s, (D1 @ D0.inverse()).as_rotvec() / dt_s
 
     def gate_measures(self) -> GateMeasures:
         """How far the live skin markers are from the reference state (RMS, worst marker, shape);

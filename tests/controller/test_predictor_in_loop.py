@@ -20,6 +20,7 @@ from hil.controller.phases.predicted import predicted_setpoint
 from hil.controller.plan_file import load_plan
 from hil.controller.planning import RigGeometry
 from hil.errors import ConfigError
+from hil.geometry import native
 from hil.geometry.transform import RigidTransform
 from hil.prediction import PREDICTOR_NAMES
 from tests.controller.fakes import chain_estimate
@@ -195,8 +196,31 @@ def test_refused_sample_is_skipped_and_counted() -> None:
     cp = est.filter.predictor
     assert cp is not None
     last = cp.last_t_ns
-    cp.update(RigidTransform.from_translation((0.0, 0.0, 0.0)), T0_NS)   # back in time
+    cp.update(np.zeros(3), T0_NS)   # back in time
     assert (cp.refused, cp.last_t_ns) == (1, last)
+
+
+def test_compiled_and_numpy_setpoints_agree() -> None:
+    """:meth:`Estimate.setpoint_of_line` compiled (``tcp_setpoint``) and in numpy, on a chain
+    with rotations and a turning change."""
+    est = chain_estimate(RigidTransform.from_rotvec((0.1, 0.2, 0.0), (10.0, -20.0, 300.0)),
+                         RigidTransform.from_rotvec((0.0, 0.3, 0.1), (100.0, 0.0, 200.0)),
+                         RigidTransform.from_translation(ENTRY_MM),
+                         RigidTransform.from_rotvec((0.0, 0.0, 0.01)))
+    x = np.array([1.0, -2.0, 3.0, 0.01, -0.02, 0.005])
+    v = np.array([5.0, 1.0, -3.0, 0.02, 0.01, -0.03])
+    assert native.active() is not None, native.native_status()
+    D_c, vel_c, w_c = est.setpoint_of_line(x, v, 0.091, 0.15)
+    was = native.use_native(False)
+    try:
+        D_n, vel_n, w_n = est.setpoint_of_line(x, v, 0.091, 0.15)
+    finally:
+        native.use_native(was)
+    np.testing.assert_allclose(D_c.R, D_n.R, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(D_c.t, D_n.t, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(vel_c, vel_n, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(w_c, w_n, rtol=0, atol=1e-9)
+    assert float(np.linalg.norm(vel_n)) > 1.0
 
 
 def test_alpha_beta_is_the_filter_alone() -> None:

@@ -12,14 +12,12 @@ translation is the predictor's forecast of the entry's displacement and whose ro
 alpha-beta filter's (the predictors forecast positions, not attitudes). The loop's line then
 passes through the predicted poses at ``h_a`` and ``h_b``.
 
-Nothing here blocks; numpy only (two predictions and two chain compositions per pair).
+Nothing here blocks: two predictions, then the compiled setpoint chain
+(:meth:`Estimate.setpoint_of_line`, numpy when the kernel is not built).
 """
 
 from __future__ import annotations
 
-import numpy as np
-
-from hil.controller.compensation import ChangePredictor
 from hil.controller.estimate import Estimate, FloatArray
 from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 
@@ -27,12 +25,6 @@ __all__ = ["MIN_SECANT_S", "predicted_setpoint"]
 
 #: the secant's shortest time base, s (below it the loop's line is not defined well enough)
 MIN_SECANT_S = 1e-3
-
-
-def _local(est: Estimate, cp: ChangePredictor, h_s: float) -> RigidTransform:
-    """The entry-centred change at horizon ``h_s``: the filter's rotation, the predicted translation."""
-    x, v = est.filter.vectors()
-    return RigidTransform(rotvec_to_matrix(x[3:] + v[3:] * h_s), cp.predict_mm(h_s))
 
 
 def predicted_setpoint(est: Estimate, exposure_t_ns: int, now_ns: int, lead_s: float, max_horizon_s: float
@@ -59,9 +51,14 @@ def predicted_setpoint(est: Estimate, exposure_t_ns: int, now_ns: int, lead_s: f
     dt_s = h_b - h_a
     if dt_s < MIN_SECANT_S:
         return None
-    D_a = est.desired_tcp_robot_local(_local(est, cp, h_a))
-    D_b = est.desired_tcp_robot_local(_local(est, cp, h_b))
-    vel = (D_b.t - D_a.t) / dt_s
-    w = (D_b @ D_a.inverse()).as_rotvec() / dt_s
+    # the entry-centred change as a line in h through the prediction at h_a and h_b (translation)
+    # and along the filter (rotation vector, linear in h already)
+    x, v = est.filter.vectors()
+    p_a, p_b = cp.predict_mm(h_a), cp.predict_mm(h_b)
+    v_line = v.copy()
+    v_line[:3] = (p_b - p_a) / dt_s
+    x_line = x.copy()
+    x_line[:3] = p_a - v_line[:3] * h_a
+    D_a, vel, w = est.setpoint_of_line(x_line, v_line, h_a, h_b)
     R0 = rotvec_to_matrix(-w * h_a) @ D_a.R
-    return RigidTransform(R0, D_a.t - vel * h_a), vel, np.asarray(w, dtype=np.float64)
+    return RigidTransform(R0, D_a.t - vel * h_a), vel, w
