@@ -5,6 +5,11 @@ loop extrapolates it over the measured latency, rate-limits and commands it at t
 hil/servo); a slow optical bias correction (seed 001 §2.3); ALIGNED once the guide is within the
 lock tolerance for the settle time with the gate open (and the needle check passed).
 
+With ``[procedure.compensation] predictor`` other than alpha-beta, the setpoint is the secant of
+that predictor's forecast (hil/controller/phases/predicted.py) whenever it answers, else the
+filter's (warm-up, after a fallback); each fallback is written to the session log
+(``predictor_fallback``) at the next pair, after its setpoint.
+
 The setpoint goes through the safety layer (the context's command sink) like every other command.
 It is published by :meth:`CompensatePhase.command`, which the tick calls as soon as the pair's
 markers are in the estimate, before the camera cross-check, the frame's records and
