@@ -209,10 +209,12 @@ def test_compiled_and_numpy_setpoints_agree() -> None:
                          RigidTransform.from_rotvec((0.0, 0.0, 0.01)))
     x = np.array([1.0, -2.0, 3.0, 0.01, -0.02, 0.005])
     v = np.array([5.0, 1.0, -3.0, 0.02, 0.01, -0.03])
-    assert native.active() is not None, native.native_status()
-    D_c, vel_c, w_c = est.setpoint_of_line(x, v, 0.091, 0.15)
-    was = native.use_native(False)
+    was = native.use_native(True)
     try:
+        assert native.active() is not None, native.native_status()
+        D_c, vel_c, w_c = est.setpoint_of_line(x, v, 0.091, 0.15)
+        native.use_native(False)
+        assert native.active() is None
         D_n, vel_n, w_n = est.setpoint_of_line(x, v, 0.091, 0.15)
     finally:
         native.use_native(was)

@@ -15,7 +15,9 @@ from hil.config.simulation import ShiftConfig
 from hil.controller import events as ev
 from hil.controller.metrics import RunSummary
 from hil.controller.plan_file import load_plan
+from hil.geometry import native
 from hil.session import read_session_log
+from hil.vision import kernel
 
 CONFIG = Path("configs/sim.toml")
 PLAN = load_plan("configs/plans/sim_plan.json")
@@ -58,7 +60,14 @@ def _run(setup: SetupConfig, tmp_path: Path, max_s: float) -> RunSummary:
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_alpha_beta_is_the_controller_before_the_predictor(tmp_path: Path) -> None:
-    s = _run(_following("alpha-beta"), tmp_path, 10.0)
+    # the figures were recorded with the compiled kernels (they agree with numpy to rounding only)
+    was_geometry, was_vision = native.use_native(True), kernel.use_kernel(True)
+    try:
+        assert native.active() is not None, native.native_status()
+        s = _run(_following("alpha-beta"), tmp_path, 10.0)
+    finally:
+        native.use_native(was_geometry)
+        kernel.use_kernel(was_vision)
     got = s.to_dict()
     assert {k: got[k] for k in BEFORE} == BEFORE
     steps = [r for r in read_session_log(s.session_log) if r["event"] == ev.COMPENSATION_STEP]
