@@ -7,11 +7,17 @@ smoothed by an alpha-beta filter (position and velocity of the 6 pose parameters
 forward over the measured latency plus the robot's actuation lag (capped), bounded (beyond the
 bound the controller pauses and asks the operator), and the command is rate-limited in speed and
 acceleration (a stopping-distance limit keeps it from overshooting).
+
+With ``[procedure.compensation] predictor`` other than ``"alpha-beta"`` a :class:`ChangePredictor`
+rides on the filter: it is fed the measured displacement of the entry point (the translation of
+the entry-centred change) at each pair and predicts it over the latency; the setpoint's
+translation follows it, the rotation stays the filter's (docs/prediction.md "In the loop").
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,10 +28,11 @@ from hil.errors import GeometryError
 from hil.geometry import native
 from hil.geometry.registration import Registration, register_horn
 from hil.geometry.transform import RigidTransform, rotvec_to_matrix
+from hil.prediction import GuardedPredictor, PredictionError, SafetyLimits, make_predictor
 from hil.servo.limiter import RateLimiter
 
-__all__ = ["MotionFilter", "RateLimiter", "change_out_of_bounds", "correction_out_of_bounds",
-           "deformation_out_of_bounds", "interpolate_pose", "rigid_change"]
+__all__ = ["ChangePredictor", "MotionFilter", "PredictorFallback", "RateLimiter", "change_out_of_bounds",
+           "correction_out_of_bounds", "deformation_out_of_bounds", "interpolate_pose", "rigid_change"]
 
 FloatArray = NDArray[np.float64]
 
@@ -82,6 +89,99 @@ def correction_out_of_bounds(T_change: RigidTransform, cfg: CompensationConfig) 
     return None
 
 
+@dataclass(frozen=True)
+class PredictorFallback:
+    """One fallback of the loop's predictor: the pair's exposure time (controller clock, ns), the
+    reason (:attr:`GuardedPredictor.last_fallback_reason`) and the count so far."""
+
+    exposure_t_ns: int
+    reason: str
+    fallbacks: int
+
+
+class ChangePredictor:
+    """The configured predictor (hil/prediction) on the entry point's displacement, mm, in the
+    entry-centred optical frame: the translation of ``T_center^-1 @ T_live_from_ref @ T_center``.
+
+    Fed by :meth:`MotionFilter.update_about` at each pair with a measured change (a dropout, no
+    change, feeds nothing; the next pair's interval is then a gap: the guard restarts the model).
+    Times are the pairs' exposures (controller clock, ns), taken relative to the first sample
+    after a reset. The guard's limits come from ``[procedure.compensation] predictor_*`` and
+    ``max_prediction_s``. Never blocks; CPU per pair: docs/prediction.md "Cost".
+
+    Args:
+        cfg: the compensation section (``predictor`` must not be ``"alpha-beta"``: that is the
+            filter alone).
+        rate_hz: the camera's pair rate the model is set up for, Hz.
+
+    Raises:
+        PredictionError: an unknown predictor or a rate that is not a finite number > 0.
+    """
+
+    def __init__(self, cfg: CompensationConfig, rate_hz: float) -> None:
+        limits = SafetyLimits(max_horizon_s=cfg.max_prediction_s,
+                              max_departure_mm=cfg.predictor_max_departure_mm,
+                              max_speed_mm_s=cfg.predictor_max_speed_mm_s,
+                              innovation_bound_mm=cfg.predictor_innovation_bound_mm,
+                              hold_s=cfg.predictor_hold_s)
+        self.predictor: GuardedPredictor = make_predictor(cfg.predictor, rate_hz, limits,
+                                                          alpha=cfg.filter_alpha, beta=cfg.filter_beta)
+        self.name = cfg.predictor
+        #: the last sample's exposure (ns; None before one) and the time origin of the model's seconds
+        self.last_t_ns: int | None = None
+        self._t0_ns: int | None = None
+        #: fallbacks not yet said in the session log (COMPENSATE drains them)
+        self.unreported: list[PredictorFallback] = []
+        #: samples the guard refused (not finite, time not forward): skipped like a dropout
+        self.refused = 0
+
+    def reset(self) -> None:
+        """Forget every sample (a new registration); the fallback count stays."""
+        self.predictor.reset()
+        self.last_t_ns = self._t0_ns = None
+        self.unreported.clear()
+
+    @property
+    def predicting(self) -> bool:
+        """Whether the model answers (warm, not holding after a fallback)."""
+        return self.predictor.predicting
+
+    @property
+    def fallbacks(self) -> int:
+        """Fallbacks since the procedure started (gap, rate, innovation, output not finite)."""
+        return self.predictor.fallbacks
+
+    @property
+    def last_fallback_reason(self) -> str | None:
+        """Why the last fallback was taken (None: none yet)."""
+        return self.predictor.last_fallback_reason
+
+    def update(self, displacement_mm: FloatArray, t_ns: int) -> None:
+        """Feed the entry's measured displacement (the translation of the entry-centred change,
+        (3,) mm) at exposure ``t_ns`` (ns). A refused sample (not finite, not after the previous
+        one) is skipped and counted in :attr:`refused`."""
+        if self._t0_ns is None:
+            self._t0_ns = t_ns
+        before = self.predictor.fallbacks
+        try:
+            self.predictor.update((t_ns - self._t0_ns) * 1e-9, displacement_mm)
+        except PredictionError:
+            self.refused += 1
+            return
+        self.last_t_ns = t_ns
+        if self.predictor.fallbacks != before:
+            self.unreported.append(PredictorFallback(t_ns, self.predictor.last_fallback_reason or "",
+                                                     self.predictor.fallbacks))
+
+    def predict_mm(self, horizon_s: float) -> FloatArray:
+        """The entry's displacement ``horizon_s`` after the last sample (mm; bounded by the guard).
+
+        Raises:
+            PredictionError: no sample yet, or a negative or non-finite horizon.
+        """
+        return self.predictor.predict(horizon_s)
+
+
 class MotionFilter:
     """Alpha-beta filter on ``T_live_from_ref`` as a 6-vector (t mm, rotation vector rad).
 
@@ -95,6 +195,8 @@ class MotionFilter:
         self._x: FloatArray | None = None
         self._v = np.zeros(6)
         self._t_ns = 0
+        #: the loop's predictor of the entry's displacement, fed beside the filter (None: alpha-beta)
+        self.predictor: ChangePredictor | None = None
 
     @property
     def initialised(self) -> bool:
@@ -103,6 +205,8 @@ class MotionFilter:
     def reset(self) -> None:
         self._x = None
         self._v = np.zeros(6)
+        if self.predictor is not None:
+            self.predictor.reset()
 
     def update(self, T_meas: RigidTransform, t_ns: int) -> None:
         """Feed the measured change at frame time ``t_ns`` (must not go back in time)."""
@@ -124,7 +228,14 @@ class MotionFilter:
         feeds ``T_center^-1 @ T_meas @ T_center``. Runs compiled (``filter_feed``,
         hil/geometry/_native.c) when selected and the filter has a sample; the numpy code
         otherwise and for any value the compiled code declines. The two agree to rounding
-        (tests/controller/test_control_law.py)."""
+        (tests/controller/test_control_law.py). The :attr:`predictor`, if any, is fed the same
+        change about the centre after the filter."""
+        self._update_about(T_meas, T_center, t_ns)
+        if self.predictor is not None:   # the translation of T_center^-1 @ T_meas @ T_center
+            Rc, tc = T_center.R, T_center.t
+            self.predictor.update(Rc.T @ (T_meas.R @ tc + T_meas.t - tc), t_ns)
+
+    def _update_about(self, T_meas: RigidTransform, T_center: RigidTransform, t_ns: int) -> None:
         k = native.active()
         if k is not None and self._x is not None:
             dt = (t_ns - self._t_ns) * 1e-9

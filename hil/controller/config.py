@@ -150,6 +150,21 @@ class CompensationConfig(BaseModel):
 
     filter_alpha: float = Field(0.9, gt=0, le=1, description="alpha-beta filter: position gain")
     filter_beta: float = Field(0.7, ge=0, le=2, description="alpha-beta filter: velocity gain")
+    predictor: Literal["alpha-beta", "none", "wlms", "ar-ls", "kalman-osc", "fast-lane"] = Field(
+        "alpha-beta", description="what predicts the entry point's displacement over the latency "
+                                  "(docs/prediction.md): alpha-beta (the filter's straight line, as before "
+                                  "issue 42) or a learning predictor of hil/prediction (the rotation stays "
+                                  "the alpha-beta filter's; warming up or after a fallback: alpha-beta)")
+    predictor_innovation_bound_mm: float = Field(
+        2.0, gt=0, le=50, description="a predictor's one-sample forecast error (3-D) beyond this is a "
+                                      "fallback: the model restarts, alpha-beta sets the setpoint (mm)")
+    predictor_hold_s: float = Field(1.0, ge=0, le=30, description="after an innovation fallback, alpha-beta "
+                                                                  "sets the setpoint at least this long (s)")
+    predictor_max_departure_mm: float = Field(
+        5.0, gt=0, le=50, description="a prediction never departs further than this from the last measured "
+                                      "displacement (mm)")
+    predictor_max_speed_mm_s: float = Field(
+        60.0, gt=0, description="nor further than this speed times the horizon (mm/s)")
     max_speed_mm_s: float = Field(60.0, gt=0, description="rate limit of the commanded correction")
     max_accel_mm_s2: float = Field(400.0, gt=0, description="acceleration limit of the correction")
     max_angular_speed_rad_s: float = Field(0.5, gt=0)

@@ -26,15 +26,16 @@ from drivers.interfaces.camera import StereoFrame
 from drivers.interfaces.robot import RobotState
 from drivers.interfaces.tracker import TrackerSample
 from hil.controller.change_estimate import ChangeFit
-from hil.controller.compensation import MotionFilter, interpolate_pose
+from hil.controller.compensation import ChangePredictor, MotionFilter, interpolate_pose
 from hil.controller.config import ProcedureConfig
 from hil.controller.gate import BreathHoldGate, GateMeasures, gate_measures, rms_deviation_mm
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, RigGeometry
 from hil.controller.registration import PatientRegistration, RobotRegistration
+from hil.errors import ConfigError
 from hil.geometry import native
 from hil.geometry.registration import register_horn
-from hil.geometry.transform import RigidTransform
+from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 
 FloatArray = NDArray[np.float64]
 #: Robot states kept for interpolation at a frame's exposure time.
@@ -56,9 +57,17 @@ def mean_transform(ts: list[RigidTransform]) -> RigidTransform:
 
 
 class Estimate:
-    """The procedure state (module doc). ``plan`` and ``rig`` are fixed for the procedure."""
+    """The procedure state (module doc). ``plan`` and ``rig`` are fixed for the procedure.
+    ``camera_rate_hz``: the pair rate the ``[procedure.compensation] predictor`` is set up for
+    (needed, Hz, unless the predictor is ``"alpha-beta"``).
 
-    def __init__(self, plan: ProcedurePlan, rig: RigGeometry, cfg: ProcedureConfig) -> None:
+    Raises:
+        ConfigError: a predictor other than alpha-beta without a camera rate.
+        PredictionError: a camera rate that is not a finite number > 0 for it.
+    """
+
+    def __init__(self, plan: ProcedurePlan, rig: RigGeometry, cfg: ProcedureConfig,
+                 camera_rate_hz: float | None = None) -> None:
         self.plan, self.rig = plan, rig
         self.patient_reg: PatientRegistration | None = None
         self.robot_reg: RobotRegistration | None = None
@@ -69,6 +78,11 @@ class Estimate:
         self.T_center = RigidTransform.identity()
         self.gate: BreathHoldGate | None = None
         self.filter = MotionFilter(cfg.compensation.filter_alpha, cfg.compensation.filter_beta)
+        if cfg.compensation.predictor != "alpha-beta":
+            if camera_rate_hz is None:
+                raise ConfigError("[procedure.compensation]", [
+                    f"predictor = {cfg.compensation.predictor!r} needs the camera's frame rate"])
+            self.filter.predictor = ChangePredictor(cfg.compensation, camera_rate_hz)
         self.comp_cfg, self.gate_cfg = cfg.compensation, cfg.gate
         #: the last pair's change estimate (estimator, rigid-fit residuals: the deformation monitor)
         self.change_fit: ChangeFit | None = None
@@ -237,6 +251,27 @@ class Estimate:
             return D0, np.zeros(3), np.zeros(3)
         D1 = self.desired_tcp_robot_local(f.estimate(t1_ns, max_horizon_s))
         return D0, (D1.t - D0.t) / velocity_step_s, (D1 @ D0.inverse()).as_rotvec() / velocity_step_s
+
+    def setpoint_of_line(self, x: FloatArray, v: FloatArray, h0_s: float, h1_s: float
+                         ) -> tuple[RigidTransform, FloatArray, FloatArray]:
+        """The TCP pose (robot frame, mm) :meth:`desired_tcp_robot_local` gives for the
+        entry-centred change ``x + v * h0_s`` (a 6-vector: t mm, rotation vector rad, as the
+        filter's state), and the linear (mm/s) and angular (rad/s, robot frame) velocity of the
+        secant to the pose at ``h1_s`` (``h1_s > h0_s``). The loop's predictor's setpoint
+        (hil/controller/phases/predicted.py). Compiled (``tcp_setpoint``) when selected, numpy
+        otherwise; the two agree to rounding (tests/controller/test_predictor_in_loop.py). Never
+        blocks."""
+        dt_s = h1_s - h0_s
+        k = native.active()
+        if k is not None:
+            L, R = self._chain_ends()
+            D_R, D_t, vel, w = np.empty((3, 3)), np.empty(3), np.empty(3), np.empty(3)
+            if k.tcp_setpoint(x, v, h0_s, h1_s, dt_s, L.R, L.t, R.R, R.t, D_R, D_t, vel, w) == 0:
+                return RigidTransform._composed(D_R, D_t), vel, w
+        x0, x1 = x + v * h0_s, x + v * h1_s
+        D0 = self.desired_tcp_robot_local(RigidTransform(rotvec_to_matrix(x0[3:]), x0[:3]))
+        D1 = self.desired_tcp_robot_local(RigidTransform(rotvec_to_matrix(x1[3:]), x1[:3]))
+        return D0, (D1.t - D0.t) / dt_s, (D1 @ D0.inverse()).as_rotvec() / dt_s
 
     def gate_measures(self) -> GateMeasures:
         """How far the live skin markers are from the reference state (RMS, worst marker, shape);

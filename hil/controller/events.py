@@ -44,6 +44,9 @@ GATE_TIMED_OUT: Final = "gate_timed_out"
 GATE_HOLD_TOO_SHORT: Final = "gate_hold_too_short"
 CORRECTION_OUT_OF_BOUNDS: Final = "correction_out_of_bounds"
 COMPENSATION_STEP: Final = "compensation_step"
+#: the loop's predictor fell back (innovation beyond its bound, a gap, a wrong rate, a non-finite
+#: output): alpha-beta sets the setpoint until it is warm again (docs/prediction.md "In the loop")
+PREDICTOR_FALLBACK: Final = "predictor_fallback"
 SERVO_DEADLINE_MISSED: Final = "servo_deadline_missed"
 #: the servo loop's counters, once per second of controller time (hil/servo/figures.py); the loop's
 #: own events (servo_stop_delivered, servo_refused, ...) are named in hil/servo/loop.py

@@ -78,6 +78,15 @@ def _finite(x: float | None) -> float | None:
     return x if x is not None and math.isfinite(x) else None
 
 
+def _predictor_fields(est: Estimate) -> dict[str, Any]:
+    """The snapshot's ``predictor*`` fields (alpha-beta alone: the defaults)."""
+    cp = est.filter.predictor
+    if cp is None:
+        return {}
+    return {"predictor": cp.name, "predictor_active": cp.predicting, "predictor_fallbacks": cp.fallbacks,
+            "predictor_fallback_reason": cp.last_fallback_reason}
+
+
 class ControllerParts(abc.ABC):
     """Builds the controller's parts.
 
@@ -135,7 +144,7 @@ class ControllerParts(abc.ABC):
         self.watchdogs = WatchdogSet(ages)
         self.frame_period_s = 1.0 / camera.frame_rate_hz
         self.t0_ns = clock.now_ns()
-        self.est = Estimate(plan, rig, procedure)
+        self.est = Estimate(plan, rig, procedure, camera.frame_rate_hz)
         self.metrics = RunMetrics()
         sup_ms = procedure.supervisor_period_ms
         self.pipeline = DevicePipeline(camera, robot, tracker, clock, locate, self.watchdogs, session,
@@ -441,7 +450,8 @@ class ControllerParts(abc.ABC):
             marker_residuals_mm=frozen_array(None if fit is None else fit.residuals_mm),
             marker_deviations_mm=frozen_array(deviations),
             gate_shape_mm=None if gm is None else _finite(gm.shape_mm),
-            gate_ok=None if gm is None else gm.problem(self.cfg.gate) is None)
+            gate_ok=None if gm is None else gm.problem(self.cfg.gate) is None,
+            **_predictor_fields(est))
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> RunSummary:

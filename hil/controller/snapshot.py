@@ -109,6 +109,14 @@ class ControllerSnapshot:
     marker_deviations_mm: FloatArray | None = None
     gate_shape_mm: float | None = None
     gate_ok: bool | None = None
+    #: the loop's predictor (``[procedure.compensation] predictor``; docs/prediction.md "In the
+    #: loop"), whether it answers now (False: warming up or holding after a fallback, alpha-beta
+    #: sets the setpoint; None for alpha-beta itself), its fallbacks since the start and the last
+    #: one's reason (None: none yet)
+    predictor: str = "alpha-beta"
+    predictor_active: bool | None = None
+    predictor_fallbacks: int = 0
+    predictor_fallback_reason: str | None = None
 
 
 def guide_in_image(est: Estimate) -> RigidTransform | None:

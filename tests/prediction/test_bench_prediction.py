@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from hil.controller.config import CompensationConfig
+
 REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / "tools" / "benchmarks" / "bench_prediction.py"
 SHARED_DATA = Path(os.environ.get("HIL_SHARED_DATA") or REPO.parent / "shared" / "data")
@@ -44,8 +46,27 @@ def test_bench_json_on_one_shared_trace() -> None:
         assert 0 < f["rmse_mm"] <= f["max_mm"]
         assert f["p95_mm"] <= f["max_mm"]
     assert out["predictors"]["none"]["ratio_to_none"] == 1.0
-    assert out["default"] in NAMES
+    assert out["default"] == CompensationConfig().predictor   # what the controller runs
     assert out["predictors"][out["default"]]["ratio_to_none"] < 1.0
+    assert out["best"] == min(NAMES, key=lambda n: out["predictors"][n]["rmse_mm"])
+
+
+def test_bench_cost_json() -> None:
+    proc = _run("--cost", "--json")
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert (out["rate_hz"], out["samples"]) == (15.0, 3000)
+    assert set(out["cost"]) == NAMES
+    for c in out["cost"].values():
+        assert set(c) == {"p50_us", "p99_us", "max_us", "mean_us", "cpu_mean_us"}
+        assert 0 < c["p50_us"] <= c["p99_us"] <= c["max_us"]
+    assert out["default"] == CompensationConfig().predictor
+
+
+def test_bench_cost_bad_rate() -> None:
+    proc = _run("--cost", "--rate", "0")
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == "tools/bench prediction: error: --rate must be a number > 0 (got 0.0)"
 
 
 def test_bench_other_condition() -> None:

@@ -2,7 +2,7 @@
 
 Run: ``tools/bench accuracy [--json] [--runs N | --rigs N [--tolerances FILE] [--executor local|dask]
 [--workers W] [--scheduler ADDRESS] [--rig-timeout-s S]] [--first-seed S] [--follow-s S] [--config FILE]
-[--no-rig-calibration] [--trace FILE [--trace-format F]]``
+[--no-rig-calibration] [--trace FILE [--trace-format F]] [--predictor NAME]``
 
 Each run is ``hil run`` on the simulator (configs/sim.toml by default) with seed-001-like camera
 noise (the sim camera's defaults: 1394 px, 120 mm baseline, 2 grey levels of sensor noise, blur),
@@ -66,6 +66,7 @@ from hil.controller.metrics import RunSummary
 from hil.controller.plan_file import ProcedurePlan, load_plan
 from hil.errors import HilError
 from hil.log import configure_logging
+from hil.prediction import PREDICTOR_NAMES
 from hil.rigcal.collect import auto_confirm
 from hil.rigcal.draw import RigTolerances, load_tolerances
 from hil.rigcal.fleet import DEFAULT_RIG_TIMEOUT_S, check_simulated, open_rig_executor, rig_task, summarize
@@ -327,6 +328,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --executor dask: the Dask scheduler (tcp://host:8786); default a LocalCluster")
     ap.add_argument("--rig-timeout-s", type=float, default=DEFAULT_RIG_TIMEOUT_S,
                     help=f"with --rigs: wall-time bound of one rig (default {DEFAULT_RIG_TIMEOUT_S:g} s)")
+    ap.add_argument("--predictor", choices=PREDICTOR_NAMES,
+                    help="override [procedure.compensation] predictor for this run (docs/prediction.md)")
     ap.add_argument("--json", action="store_true", help="one JSON object on stdout")
     args = ap.parse_args(argv)
     if args.runs < 1:
@@ -341,6 +344,10 @@ def main(argv: list[str] | None = None) -> int:
             base = with_trace(base, args.trace, args.trace_format)
         if args.estimator:
             comp = base.procedure.compensation.model_copy(update={"estimator": args.estimator})
+            proc = base.procedure.model_copy(update={"compensation": comp})
+            base = base.model_copy(update={"procedure": proc})
+        if args.predictor:
+            comp = base.procedure.compensation.model_copy(update={"predictor": args.predictor})
             proc = base.procedure.model_copy(update={"compensation": comp})
             base = base.model_copy(update={"procedure": proc})
     except HilError as exc:
@@ -360,6 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     out["config"] = str(cfg_path)
     out["trace"] = args.trace
     out["estimator"] = base.procedure.compensation.estimator
+    out["predictor"] = base.procedure.compensation.predictor
     if args.json:
         print(json.dumps(out))
     else:

@@ -13,7 +13,9 @@ samples are fed one by one to a fresh predictor per trace, and after each one th
 ``horizon`` ahead is compared with the noise-free trace (linear between its samples) at that time.
 Errors are 3-D norms pooled over every sample of every trace (warm-up included: a predictor that
 is not warm answers the last sample): RMS, p95, max and the RMS's ratio to no prediction.
-``default`` is the predictor with the lowest RMS at the condition.
+``best`` is the predictor with the lowest RMS at the condition, ``default`` the one the controller
+uses (``[procedure.compensation] predictor``'s default; chosen on the closed-loop figures too,
+docs/prediction.md "In the loop").
 
 Without ``--trace``: the shared corpus ``<repo>/../shared/data/respiration`` (``$HIL_SHARED_DATA``
 overrides ``<repo>/../shared/data``; every 6-DoF trace file and
@@ -56,6 +58,9 @@ NOISE_MM = 0.05
 #: Issue 42's targets at 15 Hz and 60 ms: RMS <= 0.5 x none and <= 0.8 x today's filter.
 TARGET_RATIO_NONE = 0.5
 TARGET_RATIO_FILTER = 0.8
+#: ``--cost``: pairs timed per predictor, after this warm-up (s of samples: every model warm)
+COST_SAMPLES = 3000
+COST_WARMUP_S = 10.0
 
 
 @dataclass
@@ -169,6 +174,40 @@ def figures(res: dict[str, Result], h: float) -> dict[str, dict[str, Any]]:
     return out
 
 
+def pair_cost(rate_hz: float, samples: int = COST_SAMPLES, seed: int = 0) -> dict[str, dict[str, float]]:
+    """The per-pair CPU of each predictor as COMPENSATE runs it (``--cost``): one update and the
+    two predictions of the setpoint's secant (hil/controller/phases/predicted.py), timed per pair
+    (wall clock, ``time.perf_counter_ns``) on simulated breathing (10 mm, 4 s, 0.05 mm noise) at
+    ``rate_hz``, after a warm-up of :data:`COST_WARMUP_S` of samples. name -> p50_us, p99_us,
+    max_us, mean_us (wall time: on a loaded machine it includes other processes' time) and
+    cpu_mean_us (this thread's CPU per pair, the whole loop's: not inflated by preemption)."""
+    rng = np.random.default_rng(seed)
+    warm = round(COST_WARMUP_S * rate_hz)
+    n = warm + samples
+    t = np.arange(n) / rate_hz
+    x = np.outer(10.0 * np.cos(np.pi * t / 4.0) ** 4, [0.0, 0.3, 1.0]) + rng.normal(0.0, 0.03, (n, 3))
+    h_a, h_b = 0.09, min(0.09 + 1.0 / rate_hz, 0.15)
+    out: dict[str, dict[str, float]] = {}
+    for name in PREDICTOR_NAMES:
+        p = make_predictor(name, rate_hz, SafetyLimits(max_horizon_s=0.15))
+        us = np.empty(samples)
+        cpu0 = 0
+        for i in range(n):
+            if i == warm:
+                cpu0 = time.thread_time_ns()
+            t0 = time.perf_counter_ns()
+            p.update(float(t[i]), x[i])
+            p.predict(h_a)
+            p.predict(h_b)
+            if i >= warm:
+                us[i - warm] = (time.perf_counter_ns() - t0) * 1e-3
+        cpu_us = (time.thread_time_ns() - cpu0) * 1e-3 / samples
+        out[name] = {"cpu_mean_us": round(cpu_us, 1),"p50_us": round(float(np.percentile(us, 50)), 1),
+                     "p99_us": round(float(np.percentile(us, 99)), 1),
+                     "max_us": round(float(us.max()), 1), "mean_us": round(float(us.mean()), 1)}
+    return out
+
+
 def _best(figs: dict[str, dict[str, Any]]) -> str:
     return min(figs, key=lambda n: float(figs[n]["rmse_mm"]))
 
@@ -187,7 +226,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-minutes", type=float,
                     help="replay only each trace's first M minutes (default: whole traces)")
     ap.add_argument("--json", action="store_true", help="print one JSON object (one condition)")
+    ap.add_argument("--cost", action="store_true",
+                    help="only the per-pair CPU of each predictor as COMPENSATE runs it (no traces)")
     args = ap.parse_args(argv)
+    if args.cost:
+        return _print_cost(DEFAULT_RATE_HZ if args.rate is None else args.rate, args.json)
     try:
         for v, what in ((args.rate, "--rate"), (args.horizon_ms, "--horizon-ms")):
             if v is not None and not (math.isfinite(v) and v > 0):
@@ -213,7 +256,8 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({
             "rate_hz": rate, "horizon_ms": h_ms, "noise_mm": args.noise_mm, "seed": args.seed,
             "max_minutes": args.max_minutes,
-            "traces": len(traces), "samples": res["none"].samples, "predictors": figs, "default": best,
+            "traces": len(traces), "samples": res["none"].samples, "predictors": figs, "best": best,
+            "default": CompensationConfig().predictor,
             "ratio_to_filter": round(figs[best]["rmse_mm"] / ab, 4) if ab else None,
             "targets": {"ratio_to_none": TARGET_RATIO_NONE, "ratio_to_filter": TARGET_RATIO_FILTER},
             "data": [str(f) for f in files] if args.trace else str(CORPUS),
@@ -238,6 +282,24 @@ def main(argv: list[str] | None = None) -> int:
                       f"{f['us_per_sample']:>9.1f}{mark}")
         sys.stdout.flush()
     print("(* lowest RMS at that condition; us/sample: CPU per sample fed, all horizons predicted)")
+    return 0
+
+
+def _print_cost(rate_hz: float, as_json: bool) -> int:
+    """``--cost``: :func:`pair_cost` as JSON or a table; 2 on a bad rate."""
+    if not (math.isfinite(rate_hz) and rate_hz > 0):
+        print(f"tools/bench prediction: error: --rate must be a number > 0 (got {rate_hz})", file=sys.stderr)
+        return 2
+    cost = pair_cost(rate_hz)
+    if as_json:
+        print(json.dumps({"rate_hz": rate_hz, "samples": COST_SAMPLES, "cost": cost,
+                          "default": CompensationConfig().predictor}))
+        return 0
+    print(f"per-pair CPU at {rate_hz:g} Hz (update + 2 predictions, {COST_SAMPLES} pairs, wall clock, us)")
+    print(f"{'predictor':<11} {'p50':>8} {'p99':>8} {'max':>8} {'mean':>8} {'CPU mean':>9}")
+    for name, c in cost.items():
+        print(f"{name:<11} {c['p50_us']:>8.1f} {c['p99_us']:>8.1f} {c['max_us']:>8.1f} {c['mean_us']:>8.1f} "
+              f"{c['cpu_mean_us']:>9.1f}")
     return 0
 
 

@@ -5,6 +5,11 @@ loop extrapolates it over the measured latency, rate-limits and commands it at t
 hil/servo); a slow optical bias correction (seed 001 §2.3); ALIGNED once the guide is within the
 lock tolerance for the settle time with the gate open (and the needle check passed).
 
+With ``[procedure.compensation] predictor`` other than alpha-beta, the setpoint is the secant of
+that predictor's forecast (hil/controller/phases/predicted.py) whenever it answers, else the
+filter's (warm-up, after a fallback); each fallback is written to the session log
+(``predictor_fallback``) at the next pair, after its setpoint.
+
 The setpoint goes through the safety layer (the context's command sink) like every other command.
 It is published by :meth:`CompensatePhase.command`, which the tick calls as soon as the pair's
 markers are in the estimate, before the camera cross-check, the frame's records and
@@ -27,6 +32,7 @@ from hil.controller.commands import Track
 from hil.controller.compensation import change_out_of_bounds, interpolate_pose
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
+from hil.controller.phases.predicted import predicted_setpoint
 from hil.controller.phases.streaming import stream_until_next_pair
 from hil.geometry.transform import RigidTransform
 
@@ -65,6 +71,8 @@ class _Scratch:
     settle_since_ns: int | None = None
     sub: CompensateSub = CompensateSub.WAITING
     sent: _Sent | None = None
+    #: whether the last setpoint came from the loop's predictor (False: the alpha-beta filter's)
+    predicted: bool = False
 
 
 class CompensatePhase(Phase):
@@ -78,8 +86,29 @@ class CompensatePhase(Phase):
     def sub_state(self) -> CompensateSub:
         return self.s.sub
 
+    @property
+    def setpoint_by(self) -> str:
+        """What set the last setpoint: the configured predictor, or ``alpha-beta`` (configured,
+        or the predictor's fallback)."""
+        return self.ctx.cfg.compensation.predictor if self.s.predicted else "alpha-beta"
+
+    def _say_fallbacks(self) -> None:
+        """Write each predictor fallback since the last pair to the session log
+        (:data:`~hil.controller.events.PREDICTOR_FALLBACK`)."""
+        cp = self.ctx.est.filter.predictor
+        if cp is None or not cp.unreported:
+            return
+        for f in cp.unreported:
+            self.ctx.session.write(ev.PREDICTOR_FALLBACK, predictor=cp.name, reason=f.reason,
+                                   fallbacks=f.fallbacks, exposure_t_ns=f.exposure_t_ns,
+                                   fallback="alpha-beta", hold_s=self.ctx.cfg.compensation.predictor_hold_s)
+        cp.unreported.clear()
+
     def on_enter(self, transition: str) -> PhaseResult:
         self.s = _Scratch()
+        cp = self.ctx.est.filter.predictor
+        if cp is not None:
+            cp.unreported.clear()   # before COMPENSATE the predictor sets nothing (counted, not said)
         self.ctx.safety.start_tracking()   # the loop restarts from the actual pose, at rest
         return PhaseResult()
 
@@ -101,6 +130,7 @@ class CompensatePhase(Phase):
         ctx, s, c, est = self.ctx, self.s, self.ctx.cfg.compensation, self.ctx.est
         frame = inputs.frame
         out = PhaseResult()
+        self._say_fallbacks()
         sent, s.sent = (s.sent if s.sent is not None and s.sent.frame is frame else None), None
         if sent is None:   # command() published nothing for this pair: say why (or publish now)
             if self.elapsed_s() > c.timeout_s:
@@ -125,6 +155,7 @@ class CompensatePhase(Phase):
                           change_mm=sent.change.translation_norm(), predicted_s=sent.horizon_s,
                           command_mm=sent.cmd.t, guide_error_mm=err, gate_deviation_mm=dev,
                           estimator=None if fit is None else fit.estimator,
+                          setpoint_by=self.setpoint_by,
                           change_fre_mm=None if fit is None else fit.rigid_fre_mm,
                           marker_residuals_mm=None if fit is None else fit.residuals_mm)
         if err is not None and err <= ctx.cfg.lock.tolerance_mm and est.gate_problem() is None:
@@ -173,11 +204,15 @@ class CompensatePhase(Phase):
         ctx, c, est = self.ctx, self.ctx.cfg.compensation, self.ctx.est
         t_exp = frame.left.t_ns
         predict = c.predict_latency and c.max_prediction_s > 0
-        D0, v, w = est.tracking_setpoint(t_exp, c.max_prediction_s, _VELOCITY_STEP_S if predict else 0.0)
         if predict:
             lead_s, max_h = 0.5 / ctx.robot.control_rate_hz + c.actuation_lag_s, c.max_prediction_s
         else:
             lead_s, max_h = 0.0, 0.0
+        sp = predicted_setpoint(est, t_exp, now_ns, lead_s, max_h) if predict else None
+        self.s.predicted = sp is not None
+        if sp is None:   # alpha-beta: configured, or the predictor's fallback
+            sp = est.tracking_setpoint(t_exp, c.max_prediction_s, _VELOCITY_STEP_S if predict else 0.0)
+        D0, v, w = sp
         timing = ctx.servo_timing()
         valid_until = t_exp + round(timing.camera_max_age_s * 1e9)
         ctx.execute(Track(D0, v, w, t_ref_ns=t_exp, valid_until_ns=valid_until, exposure_t_ns=t_exp,
