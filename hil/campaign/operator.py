@@ -1,9 +1,9 @@
 """The campaign's operator: confirms everything, and after a fault (once the injected fault is
 over and the robot had time to stop) recovers — resume from FAULT / SAFE_STOP / PAUSED, or reset
 and restart when there is no plan to resume — so a run shows whether the procedure can continue
-to lock after recovery. A second pause after resuming from one is answered as an operator
-would: the body no longer matches the registration (a marker slid, the patient moved), so it
-re-registers (START from PAUSED) instead of resuming into the same pause."""
+to lock after recovery. A pause after it has resumed once (from any halt) is answered as an
+operator would: the body no longer matches the registration (a marker slid, the patient
+moved), so it re-registers (START from PAUSED) instead of resuming into the same pause."""
 
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ class CampaignOperator:
         self._started = False
         self._last: Event | None = None
         self._last_state: State | None = None
-        self._resumed_a_pause = False
+        self._resumed = False
         self.commands: list[tuple[float, str]] = []
 
     def _send(self, view: OperatorView, ev: Event) -> Event:
@@ -68,9 +68,9 @@ class CampaignOperator:
         if self.recoveries_left <= 0:
             return None
         self.recoveries_left -= 1
-        if view.state is State.PAUSED and self._resumed_a_pause:
+        if view.state is State.PAUSED and self._resumed:
             return self._send(view, Event.START_REQUESTED)   # re-register
-        self._resumed_a_pause = view.state is State.PAUSED
+        self._resumed = True
         return self._send(view, Event.RESUME_REQUESTED)
 
     def finished(self, view: OperatorView) -> bool:

@@ -163,3 +163,40 @@ class BreathHoldGate:
                    f"ask the patient to hold breath")
         return GateStatus(is_open, rms, n, dwell, timed_out, why, m.max_marker_mm, m.shape_mm,
                           m.deviations_mm)
+
+
+class MovedPatientWatch:
+    """Tells a patient who moved on the table from one who is breathing (GATE and COMPENSATE).
+
+    A shift within the correction bounds keeps the skin markers away from the registered state
+    at every point of the breathing cycle while their shape is back; a breathing patient passes
+    the reference at every end-exhale, a held breath lasts ``hold_request_s``. So: once the
+    markers' RMS deviation has not come within ``tolerance_mm`` for ``moved_after_s`` (s) and
+    the shape is back within ``shape_tolerance_mm`` (1 mm when that check is off), the patient
+    has moved and the procedure needs a new registration. ``moved_after_s`` None: never judged.
+    """
+
+    def __init__(self, cfg: GateConfig) -> None:
+        self.cfg = cfg
+        self._last_within_ns: int | None = None
+
+    def restart(self, t_ns: int) -> None:
+        """Start watching at ``t_ns`` (controller clock): the markers count as within then."""
+        self._last_within_ns = t_ns
+
+    def update(self, rms_mm: float, markers: int, shape_mm: float, t_ns: int) -> str | None:
+        """Feed one measurement at ``t_ns`` (the pair's exposure); returns why the patient looks
+        moved (the operator's reason), or None."""
+        g = self.cfg
+        if self._last_within_ns is None or rms_mm <= g.tolerance_mm:
+            self._last_within_ns = t_ns
+            return None
+        away_s = (t_ns - self._last_within_ns) * 1e-9
+        if g.moved_after_s is None or away_s < g.moved_after_s or markers < MIN_GATE_MARKERS:
+            return None
+        shape_tol = 1.0 if g.shape_tolerance_mm is None else g.shape_tolerance_mm
+        if not shape_mm <= shape_tol:
+            return None
+        return (f"the skin markers have stayed more than {g.tolerance_mm} mm RMS from the registered state "
+                f"for {away_s:.0f} s (now {rms_mm:.1f} mm) with their shape back ({shape_mm:.2f} mm): "
+                "the patient has moved since registration (re-register)")

@@ -92,6 +92,12 @@ def test_operator_resumes_a_pause_once_then_re_registers() -> None:
     assert op.poll(_view(State.REGISTER, 3.1)) is None
     assert op.poll(_view(State.FAULT, 4.0)) is Event.RESUME_REQUESTED   # a fault is still resumed
     assert op.recoveries_left == 0
+    # a pause after resuming from a safe stop (drift while locked, then the patient found moved)
+    op2 = CampaignOperator(recover_after_s=1.0, max_recoveries=2)
+    op2.poll(_view(State.IDLE, 0.0))
+    assert op2.poll(_view(State.SAFE_STOP, 2.0)) is Event.RESUME_REQUESTED
+    assert op2.poll(_view(State.GATE, 2.1)) is None
+    assert op2.poll(_view(State.PAUSED, 3.0)) is Event.START_REQUESTED
 
 
 def test_operator_without_recoveries_ends_at_the_first_halt() -> None:

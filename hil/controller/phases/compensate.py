@@ -31,6 +31,7 @@ from hil.controller import events as ev
 from hil.controller.commands import Track
 from hil.controller.compensation import change_out_of_bounds, interpolate_pose
 from hil.controller.fsm import Event, State
+from hil.controller.gate import MovedPatientWatch
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
 from hil.controller.phases.predicted import predicted_setpoint
 from hil.controller.phases.streaming import stream_until_next_pair
@@ -73,6 +74,8 @@ class _Scratch:
     sent: _Sent | None = None
     #: whether the last setpoint came from the loop's predictor (False: the alpha-beta filter's)
     predicted: bool = False
+    #: a patient who moved on the table (the markers never back while the shape is): GATE's watch
+    moved: MovedPatientWatch | None = None
 
 
 class CompensatePhase(Phase):
@@ -105,7 +108,9 @@ class CompensatePhase(Phase):
         cp.unreported.clear()
 
     def on_enter(self, transition: str) -> PhaseResult:
-        self.s = _Scratch()
+        moved = MovedPatientWatch(self.ctx.cfg.gate)
+        moved.restart(self.entered_ns)
+        self.s = _Scratch(moved=moved)
         cp = self.ctx.est.filter.predictor
         if cp is not None:
             cp.unreported.clear()   # before COMPENSATE the predictor sets nothing (counted, not said)
@@ -158,6 +163,10 @@ class CompensatePhase(Phase):
                           setpoint_by=self.setpoint_by,
                           change_fre_mm=None if fit is None else fit.rigid_fre_mm,
                           marker_residuals_mm=None if fit is None else fit.residuals_mm)
+        moved = self._patient_moved(frame.left.t_ns)
+        if moved is not None:
+            ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=moved)
+            return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, moved + "; operator decision needed")
         if err is not None and err <= ctx.cfg.lock.tolerance_mm and est.gate_problem() is None:
             if not ctx.needle.ok_for_lock(est, frame, self.state):
                 s.settle_since_ns = None
@@ -172,6 +181,15 @@ class CompensatePhase(Phase):
             s.settle_since_ns = None
             s.sub = CompensateSub.TRACKING
         return out
+
+    def _patient_moved(self, t_ns: int) -> str | None:
+        """The gate's moved-patient watch (:class:`~hil.controller.gate.MovedPatientWatch`) on this
+        pair's markers: ALIGNED needs the body back in the registered state, which a shifted
+        patient never is, so COMPENSATE says so rather than track until its timeout."""
+        if self.s.moved is None:
+            return None
+        m = self.ctx.est.gate_measures()
+        return self.s.moved.update(m.rms_mm, m.markers, m.shape_mm, t_ns)
 
     def _send(self, inputs: TickInputs, change: RigidTransform,
               flange: Callable[[], None] | None = None) -> _Sent:

@@ -28,7 +28,7 @@ from hil.controller import events as ev
 from hil.controller.commands import Stop
 from hil.controller.compensation import change_out_of_bounds
 from hil.controller.fsm import Event, State
-from hil.controller.gate import MIN_GATE_MARKERS, BreathHoldGate, GateStatus
+from hil.controller.gate import BreathHoldGate, MovedPatientWatch
 from hil.controller.phases.base import Phase, PhaseResult
 
 if TYPE_CHECKING:
@@ -41,7 +41,7 @@ class GatePhase(Phase):
 
     _hold_end_ns: int = 0
     _too_short_logged: bool = False
-    _last_within_ns: int = 0          # when the markers were last within tolerance (or the wait began)
+    _moved: MovedPatientWatch
 
     state = State.GATE
 
@@ -51,7 +51,8 @@ class GatePhase(Phase):
         if est.gate is None:
             est.gate = BreathHoldGate(cfg.gate, est.patient_reg.reference_optical_mm)
         est.gate.restart(self.entered_ns)
-        self._last_within_ns = self.entered_ns
+        self._moved = MovedPatientWatch(cfg.gate)
+        self._moved.restart(self.entered_ns)
         # the arm holds before the patient is asked to (the log shows stop_sent first); a stop
         # that fails raises here, the entry faults, and no breath-hold is requested
         self.ctx.execute(Stop("gate: hold position while waiting for the breath-hold"))
@@ -104,7 +105,8 @@ class GatePhase(Phase):
         hold_problem = self._hold_problem(status.open)
         if status.open and hold_problem is None:
             return out.fire(Event.GATE_OPENED, status.justification)
-        shifted = self._patient_shifted(status, inputs.frame.left.t_ns)
+        shifted = self._moved.update(status.deviation_rms_mm, status.markers, status.shape_mm,
+                                     inputs.frame.left.t_ns)
         if shifted is not None:
             self.ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=shifted)
             return out.fire(Event.CORRECTION_OUT_OF_BOUNDS, shifted + "; operator decision needed")
@@ -112,20 +114,3 @@ class GatePhase(Phase):
             self.ctx.session.write(ev.GATE_TIMED_OUT, message=status.justification)
             return out.fire(Event.TIMED_OUT, status.justification)
         return out
-
-    def _patient_shifted(self, status: GateStatus, t_ns: int) -> str | None:
-        """Why the body looks moved rather than not holding its breath (module doc), or None.
-        ``t_ns``: the pair's exposure (controller clock)."""
-        g = self.ctx.cfg.gate
-        if status.deviation_rms_mm <= g.tolerance_mm:
-            self._last_within_ns = t_ns
-            return None
-        away_s = (t_ns - self._last_within_ns) * 1e-9
-        if g.moved_after_s is None or away_s < g.moved_after_s or status.markers < MIN_GATE_MARKERS:
-            return None
-        shape_tol = 1.0 if g.shape_tolerance_mm is None else g.shape_tolerance_mm
-        if not status.shape_mm <= shape_tol:
-            return None
-        return (f"the skin markers have stayed more than {g.tolerance_mm} mm RMS from the registered state "
-                f"for {away_s:.0f} s (now {status.deviation_rms_mm:.1f} mm) with their shape back "
-                f"({status.shape_mm:.2f} mm): the patient has moved since registration (re-register)")
