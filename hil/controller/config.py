@@ -142,6 +142,14 @@ class GateConfig(BaseModel):
         5.0, ge=0, description="after a breath-hold that could not be used ends, let the patient breathe "
                                "this long, then ask for the next")
 
+    @model_validator(mode="after")
+    def _hold_budget_fits(self) -> GateConfig:
+        if self.min_hold_left_s is not None and self.min_hold_left_s >= self.hold_request_s:
+            raise ValueError(f"min_hold_left_s ({self.min_hold_left_s} s) must be shorter than "
+                             f"hold_request_s ({self.hold_request_s} s): the gate could never open "
+                             "(None turns the budget off)")
+        return self
+
 
 class CompensationConfig(BaseModel):
     """COMPENSATE: follow the rigid change reference->live applied to the plan (seed 000 section 3)."""

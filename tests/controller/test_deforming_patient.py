@@ -116,3 +116,13 @@ def test_a_patient_who_shifted_in_the_gate_is_sent_back_to_registration(tmp_path
     gate_at = next(r["t_ns"] for r in records if r["event"] == "state_entered" and r["state"] == "gate")
     assert (gate_at - t0) * 1e-9 + 15.0 <= (why["t_ns"] - t0) * 1e-9 <= 6.9 + 15.0 + 0.5
     assert not [r for r in records if r["event"] == "gate_timed_out"]
+
+
+def test_a_hold_budget_longer_than_the_hold_is_refused() -> None:
+    from pydantic import ValidationError
+
+    from hil.controller.config import GateConfig
+
+    with pytest.raises(ValidationError, match=r"min_hold_left_s \(8.0 s\) must be shorter than"):
+        GateConfig(hold_request_s=8.0, min_hold_left_s=8.0)
+    assert GateConfig(hold_request_s=3.0, min_hold_left_s=None).min_hold_left_s is None

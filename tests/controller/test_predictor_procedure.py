@@ -41,6 +41,7 @@ def _following(predictor: str, sim: dict[str, Any] | None = None, settle_s: floa
     p = s.procedure
     proc = p.model_copy(update={
         "gate": p.gate.model_copy(update={"tolerance_mm": 30.0, "hold_request_s": 0.1,
+                                          "min_hold_left_s": None, "moved_after_s": None,
                                           "shape_tolerance_mm": None}),
         "compensation": p.compensation.model_copy(update={"settle_s": settle_s, "predictor": predictor}),
         "lock": p.lock.model_copy(update={"drift_alarm_mm": 30.0}),

@@ -113,6 +113,7 @@ def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Pa
     p = setup.procedure
     proc = p.model_copy(update={
         "gate": p.gate.model_copy(update={"tolerance_mm": 30.0, "hold_request_s": 0.1,
+                                          "min_hold_left_s": None, "moved_after_s": None,
                                           "shape_tolerance_mm": None}),
         "compensation": p.compensation.model_copy(update={"settle_s": follow_s + 60.0}),
         "lock": p.lock.model_copy(update={"drift_alarm_mm": 30.0}),
