@@ -175,34 +175,61 @@ def _run_in_child(task: RunTask, tmp: Path) -> TaskOutcome:
             stop()
 
 
-def _child(task: RunTask, child_spec: dict[str, Any], tmp: Path) -> TaskOutcome:
+@dataclass(frozen=True)
+class ChildRun:
+    """What one run in a child process left: its ``result`` (the JSON it wrote) or, without one,
+    whether it ``hung`` (killed at its timeout) or its ``returncode`` and ``stderr_tail``."""
+
+    result: dict[str, Any] | None
+    hung: bool
+    returncode: int | None
+    stderr_tail: str | None
+    wall_s: float
+
+
+def run_child_module(module: str, payload: dict[str, Any], tmp: Path, timeout_s: float) -> ChildRun:
+    """Run ``python -m MODULE TASK.json RESULT.json`` in its own session (``payload`` as the task
+    file, in ``tmp``), at most ``timeout_s`` of wall time. A hang, or an interruption while
+    waiting, kills the child's whole process group; every child is in :func:`kill_running`'s
+    set while it runs. Blocking; never raises for the child's failure (the :class:`ChildRun`
+    says it)."""
     task_path, result_path, err_path = tmp / "task.json", tmp / "result.json", tmp / "stderr.txt"
-    task_path.write_text(json.dumps({"tier": task.tier, "spec": child_spec, "hook": task.hook}))
+    task_path.write_text(json.dumps(payload))
     t0 = time.monotonic()
     with open(err_path, "wb") as err:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "hil.campaign.child", str(task_path), str(result_path)],
+            [sys.executable, "-m", module, str(task_path), str(result_path)],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True,
         )
         with _live_lock:
             _live.add(proc)
         try:
-            proc.wait(timeout=task.timeout_s)
+            proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             _kill_group(proc)
-            reasons = [f"run did not finish within {task.timeout_s:.0f} s (hang)"]
-            return TaskOutcome(_error_record(task, "hang", reasons, wall_s=round(time.monotonic() - t0, 3)),
-                               retryable=True)
+            return ChildRun(None, True, None, None, round(time.monotonic() - t0, 3))
         finally:
             if proc.poll() is None:  # interrupted while waiting: leave nothing behind
                 _kill_group(proc)
             with _live_lock:
                 _live.discard(proc)
+    wall_s = round(time.monotonic() - t0, 3)
     if result_path.is_file():
-        return TaskOutcome(json.loads(result_path.read_text()))
+        return ChildRun(json.loads(result_path.read_text()), False, proc.returncode, None, wall_s)
     tail = err_path.read_text(errors="replace")[-STDERR_TAIL_CHARS:] or None
-    reasons = [f"run process died (exit code {proc.returncode})"]
-    return TaskOutcome(_error_record(task, "crashed", reasons, error=tail), retryable=True)
+    return ChildRun(None, False, proc.returncode, tail, wall_s)
+
+
+def _child(task: RunTask, child_spec: dict[str, Any], tmp: Path) -> TaskOutcome:
+    run = run_child_module("hil.campaign.child", {"tier": task.tier, "spec": child_spec, "hook": task.hook},
+                           tmp, task.timeout_s)
+    if run.result is not None:
+        return TaskOutcome(run.result)
+    if run.hung:
+        reasons = [f"run did not finish within {task.timeout_s:.0f} s (hang)"]
+        return TaskOutcome(_error_record(task, "hang", reasons, wall_s=run.wall_s), retryable=True)
+    reasons = [f"run process died (exit code {run.returncode})"]
+    return TaskOutcome(_error_record(task, "crashed", reasons, error=run.stderr_tail), retryable=True)
 
 
 def _kill_group(proc: subprocess.Popen[bytes]) -> None:

@@ -17,17 +17,13 @@ rig's figures are a function of (config, plan, tolerances, seed, code) and rerun
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import shutil
-import signal
 import socket
-import subprocess
 import sys
 import tempfile
 import threading
-import time
 import traceback
 from collections import Counter
 from pathlib import Path
@@ -37,7 +33,7 @@ import numpy as np
 
 from hil.campaign.executor import DaskExecutor, Executor, ExecutorError, LocalExecutor
 from hil.campaign.runner import RunResult
-from hil.campaign.task import RunTask, TaskOutcome, finish_record
+from hil.campaign.task import RunTask, TaskOutcome, finish_record, kill_running, run_child_module
 from hil.campaign.version import code_version, config_digest
 from hil.clock import ManualClock
 from hil.config import build_devices, load_setup
@@ -75,8 +71,6 @@ EXIT_ORPHANED = 70
 #: Simulated-time bound of one procedure run, s (a run that neither locks nor gives up).
 MAX_PROCEDURE_S = 120.0
 
-_live: set[subprocess.Popen[bytes]] = set()  # rig processes this process started, still running
-_live_lock = threading.Lock()
 
 
 def check_simulated(setup: SetupConfig, config_path: Path) -> None:
@@ -216,49 +210,22 @@ def execute_rig_task(task: RunTask) -> TaskOutcome:
 
 
 def _run_child(task: RunTask, tmp: Path) -> TaskOutcome:
-    task_path, result_path, err_path = tmp / "task.json", tmp / "result.json", tmp / "stderr.txt"
-    task_path.write_text(json.dumps({"run_id": task.run_id, "spec": task.spec}))
-    t0 = time.monotonic()
-    with open(err_path, "wb") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "hil.rigcal.fleet", str(task_path), str(result_path)],
-                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
-                                start_new_session=True)
-        with _live_lock:
-            _live.add(proc)
-        try:
-            proc.wait(timeout=task.timeout_s)
-        except subprocess.TimeoutExpired:
-            _kill_group(proc)
-            rec = _record(task, "hang", [f"rig did not finish within {task.timeout_s:g} s (hang)"],
-                          wall_s=round(time.monotonic() - t0, 3))
-            return TaskOutcome(rec, retryable=True)
-        finally:
-            if proc.poll() is None:
-                _kill_group(proc)
-            with _live_lock:
-                _live.discard(proc)
-    if result_path.is_file():
-        return TaskOutcome(json.loads(result_path.read_text()))
-    tail = err_path.read_text(errors="replace")[-2000:] or None
-    died = [f"rig process died (exit code {proc.returncode})"]
-    return TaskOutcome(_record(task, "crashed", died, error=tail), retryable=True)
-
-
-def _kill_group(proc: subprocess.Popen[bytes]) -> None:
-    """SIGKILL the rig process's group, then reap it."""
-    with contextlib.suppress(ProcessLookupError, PermissionError):
-        os.killpg(proc.pid, signal.SIGKILL)
-    with contextlib.suppress(subprocess.TimeoutExpired):
-        proc.wait(timeout=10.0)
+    payload = {"run_id": task.run_id, "spec": task.spec}
+    run = run_child_module("hil.rigcal.fleet", payload, tmp, task.timeout_s)
+    if run.result is not None:
+        return TaskOutcome(run.result)
+    if run.hung:
+        hang = [f"rig did not finish within {task.timeout_s:g} s (hang)"]
+        rec = _record(task, "hang", hang, wall_s=run.wall_s)
+        return TaskOutcome(rec, retryable=True)
+    died = [f"rig process died (exit code {run.returncode})"]
+    return TaskOutcome(_record(task, "crashed", died, error=run.stderr_tail), retryable=True)
 
 
 def kill_running_rigs() -> int:
-    """Kill every rig process this process started that still runs; returns how many."""
-    with _live_lock:
-        procs = list(_live)
-    for proc in procs:
-        _kill_group(proc)
-    return len(procs)
+    """Kill every rig process this process started that still runs; returns how many (the
+    campaign's set: :func:`hil.campaign.task.kill_running`)."""
+    return kill_running()
 
 
 class RigLocalExecutor(LocalExecutor):
