@@ -36,6 +36,7 @@ class ScriptedCamera:
 
     name = "camera"
     frame_rate_hz = FRAME_RATE_HZ
+    perception_feed = None   # a plain camera (StereoCamera.perception_feed)
 
     def __init__(self, clock: ManualClock, due_s: list[float]) -> None:
         self.clock, self.due_ns = clock, [round(t * 1e9) for t in due_s]

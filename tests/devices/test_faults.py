@@ -26,6 +26,7 @@ from drivers.sim.tracker import SimTracker, SimTrackerConfig
 from drivers.sim.world import SimWorld
 from hil.clock import ManualClock
 from hil.config import FaultKind, FaultSpec, FramesConfig, SimulationConfig, build_devices, load_setup
+from hil.config.faults import FAULT_DEVICE
 from hil.geometry.transform import RigidTransform
 from hil.vision.camera_model import StereoCalibration
 from plugins.registry import DriverRegistry
@@ -283,16 +284,24 @@ def test_build_devices_wraps_the_faulted_roles(registry: DriverRegistry, clock: 
 
 
 def _iter_kinds() -> Iterator[FaultKind]:
-    yield from FaultKind
+    """The device kinds (the wrappers here play them; the patient kinds are the simulated
+    world's, tested in test_patient_faults.py)."""
+    yield from (k for k in FaultKind if FAULT_DEVICE[k] != "patient")
 
 
 def test_every_fault_kind_is_tested_here() -> None:
     import inspect
     import sys
 
+    from tests.devices import test_patient_faults
+
     source = inspect.getsource(sys.modules[__name__])
     missing = [k.value for k in _iter_kinds() if f'"{k.value}"' not in source]
     assert missing == []
+    patient_source = inspect.getsource(test_patient_faults)
+    patient = [k for k in FaultKind if FAULT_DEVICE[k] == "patient"]
+    assert len(patient) == 4
+    assert [k.name for k in patient if f"FaultKind.{k.name}" not in patient_source] == []
 
 
 def test_wrappers_pass_simulator_attributes_through(clock: ManualClock, world: SimWorld) -> None:
