@@ -297,7 +297,8 @@ def _print(cols: dict[str, dict[str, Any]]) -> None:
     print("targets (calibrated rig): lock error <= 0.5 mm RMS, following free breathing <= 1 mm p95")
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
+    """The bench's command line (module doc)."""
     ap = argparse.ArgumentParser(prog="tools/bench accuracy", description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5, help="number of seeds (default 5)")
     ap.add_argument("--first-seed", type=int, default=1)
@@ -332,6 +333,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--predictor", choices=PREDICTOR_NAMES,
                     help="override [procedure.compensation] predictor for this run (docs/prediction.md)")
     ap.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    return ap
+
+
+def _with_compensation(setup: SetupConfig, **update: str) -> SetupConfig:
+    """``setup`` with ``[procedure.compensation]`` keys overridden (``--estimator``, ``--predictor``)."""
+    comp = setup.procedure.compensation.model_copy(update=update)
+    return setup.model_copy(update={"procedure": setup.procedure.model_copy(update={"compensation": comp})})
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = _parser()
     args = ap.parse_args(argv)
     if args.runs < 1:
         ap.error("--runs must be >= 1")
@@ -343,14 +355,9 @@ def main(argv: list[str] | None = None) -> int:
         base = load_setup(cfg_path)
         if args.trace:
             base = with_trace(base, args.trace, args.trace_format)
-        if args.estimator:
-            comp = base.procedure.compensation.model_copy(update={"estimator": args.estimator})
-            proc = base.procedure.model_copy(update={"compensation": comp})
-            base = base.model_copy(update={"procedure": proc})
-        if args.predictor:
-            comp = base.procedure.compensation.model_copy(update={"predictor": args.predictor})
-            proc = base.procedure.model_copy(update={"compensation": comp})
-            base = base.model_copy(update={"procedure": proc})
+        overrides = {k: v for k, v in (("estimator", args.estimator), ("predictor", args.predictor)) if v}
+        if overrides:
+            base = _with_compensation(base, **overrides)
     except HilError as exc:
         print(f"tools/bench accuracy: error: {exc}", file=sys.stderr)
         return 2
