@@ -17,6 +17,7 @@ translation follows it, the rotation stays the filter's (docs/prediction.md "In 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -134,6 +135,8 @@ class ChangePredictor:
         self.unreported: list[PredictorFallback] = []
         #: samples the guard refused (not finite, time not forward): skipped like a dropout
         self.refused = 0
+        #: the last :meth:`update`'s duration, ns (process clock: a cost figure, not control)
+        self.update_ns = 0
 
     def reset(self) -> None:
         """Forget every sample (a new registration); the fallback count stays."""
@@ -163,11 +166,14 @@ class ChangePredictor:
         if self._t0_ns is None:
             self._t0_ns = t_ns
         before = self.predictor.fallbacks
+        t0 = time.perf_counter_ns()
         try:
             self.predictor.update((t_ns - self._t0_ns) * 1e-9, displacement_mm)
         except PredictionError:
             self.refused += 1
             return
+        finally:
+            self.update_ns = time.perf_counter_ns() - t0
         self.last_t_ns = t_ns
         if self.predictor.fallbacks != before:
             self.unreported.append(PredictorFallback(t_ns, self.predictor.last_fallback_reason or "",

@@ -22,6 +22,7 @@ from hil.clock import Clock
 from hil.controller import events as ev
 from hil.controller.commands import Command
 from hil.controller.config import ProcedureConfig
+from hil.controller.cost import CostFigures
 from hil.controller.crosscheck import CameraCrossCheck, CrossCheckBounds
 from hil.controller.estimate import Estimate, FloatArray, count_seen
 from hil.controller.fsm import Event, FireResult, Fsm, State
@@ -382,6 +383,11 @@ class ControllerParts(abc.ABC):
     @property
     def latency_ms(self) -> array[float]:
         return self.ctx.latency_ms
+
+    @property
+    def setpoint_cost(self) -> CostFigures:
+        """COMPENSATE's setpoint work per pair so far (hil/controller/cost.py), µs."""
+        return self.ctx.setpoint_cost.figures()
 
     @property
     def servo_deadlines_missed(self) -> int:

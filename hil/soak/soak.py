@@ -13,7 +13,9 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
 - *frame-to-command latency*: exposure time of a stereo pair -> the first servo command the loop
   computed from that pair's setpoint. ``frame_to_setpoint_ms``: its supervisor part, the exposure
   -> the pair's setpoint handed to the loop (the rest is the wait for the loop's next period and
-  that period's work).
+  that period's work). ``setpoint_us``: the setpoint work inside it, per pair (the predictor's
+  update and the setpoint; hil/controller/cost.py), under ``predictor``: what a predictor adds
+  to the path, measured in the run rather than by differencing two runs' latencies.
 - *memory growth*: resident set size of the supervisor (``rss_mb``), of the servo process
   (``servo_rss_mb``) and of the perception process (``perception_rss_mb``, when it runs) at the
   end minus after the warm-up (the first quarter of the compensation time, at most 30 s), and the
@@ -155,6 +157,10 @@ class SoakResult:
     frame_to_command_ms: dict[str, float | None] = field(default_factory=dict)
     #: p50/p99/max of the exposure -> the setpoint handed to the loop, ms (module doc)
     frame_to_setpoint_ms: dict[str, float | None] = field(default_factory=dict)
+    #: ``[procedure.compensation] predictor`` of the run
+    predictor: str = ""
+    #: COMPENSATE's setpoint work per pair: count, p50_us / p99_us / max_us (module doc)
+    setpoint_us: dict[str, float | int | None] = field(default_factory=dict)
     frame_boundaries: int = 0
     frame_boundary_missed: int = 0
     #: p50/p99/max of the frame-boundary intervals, ms
@@ -531,6 +537,7 @@ def run_soak(
     _add_fault_outcomes(res, schedule, str(session.path), t_open_ns, feed)
     _add_process_figures(res, robot, feed, ctl, sampler, operator, minutes)
     res.camera_clock_ppm = setup.simulation.rig_errors.camera_clock_rate_error_ppm
+    res.predictor = setup.procedure.compensation.predictor
     res.viewer = viewer_figures
     return res
 
@@ -665,6 +672,7 @@ def analyse(
     res.stream_deadlines_missed = ctl.servo_deadlines_missed
     res.compensation_frames = len(ctl.latency_ms)
     res.frame_to_setpoint_ms = _stats(list(ctl.latency_ms))
+    res.setpoint_us = ctl.setpoint_cost.to_dict()
     res.frames_overwritten = ctl.frames_overwritten
     res.rss_mb = _rss_figures([(t, m) for t, m, _ in rss], operator.t_comp, minutes)
     res.servo_rss_mb = _rss_figures([(t, m) for t, _, m in rss], operator.t_comp, minutes)

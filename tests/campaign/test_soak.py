@@ -26,6 +26,7 @@ from hypothesis import strategies as st
 
 from hil.cli.cmd_soak import _latency_bound
 from hil.config import default_setup_path, load_setup
+from hil.controller.cost import CostHistogram
 from hil.errors import InputFileError
 from hil.servo.figures import LoopFigures
 from hil.soak.attribution import fault_outcomes, unexplained_faults
@@ -62,7 +63,11 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
                        read_errors=0, command_errors=0, stops_sent=0, late_wakes=1, overruns=1,
                        wake_late_max_ms=26.0, step_max_ms=3.5, overrun_max_ms=2.5, overruns_off_cpu=1,
                        step_cpu_max_ms=0.9, step_off_cpu_max_ms=2.6)
-    ctl = SimpleNamespace(latency_ms=[30.0, 40.0, 50.0], servo_deadlines_missed=0, frames_overwritten=4)
+    cost = CostHistogram()
+    for ns in (12_300, 15_000, 80_200):
+        cost.add_ns(ns)
+    ctl = SimpleNamespace(latency_ms=[30.0, 40.0, 50.0], servo_deadlines_missed=0, frames_overwritten=4,
+                          setpoint_cost=cost.figures())
     op = SoakOperator(60.0, 60.0, lambda: None)
     op.t_comp = 0.0
     rss = [(0.0, 100.0, 500.0), (10.0, 100.5, 500.0), (20.0, 101.0, 500.0), (30.0, 101.0, 500.2),
@@ -82,6 +87,7 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     assert res.frame_to_command_ms == figs.latency_ms
     assert res.stale_periods == 7
     assert res.compensation_frames == 3
+    assert res.setpoint_us == {"count": 3, "p50_us": 16.0, "p99_us": 80.2, "max_us": 80.2}
     assert res.frames_overwritten == 4
     assert res.rss_mb["after_warmup"] == 101.0  # warm-up: min(30 s, a quarter of 1 min) = 15 s
     assert res.rss_mb["growth"] == 0.5
@@ -175,6 +181,10 @@ def test_short_soak_compensates_with_the_servo_loop(short_soak: Any) -> None:
     assert f2c is not None
     assert f2s > 0.0
     assert f2c > 0.0
+    # the setpoint's own work is timed for every pair that published one (alpha-beta: the filter's)
+    assert res.predictor == "alpha-beta"
+    assert res.setpoint_us["count"] == res.compensation_frames
+    assert 0.0 < res.setpoint_us["p50_us"] <= res.setpoint_us["p99_us"] <= res.setpoint_us["max_us"]
 
 
 #: further 10 s soaks (about 60 s of wall time each on a busy host) tried when the host took the

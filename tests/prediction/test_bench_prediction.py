@@ -116,3 +116,48 @@ def test_max_minutes_cuts_each_trace() -> None:
     out = json.loads(proc.stdout)
     assert out["max_minutes"] == 1.0
     assert out["samples"] == 60 * 15 + 1
+
+
+def test_resampling_is_recorded_and_changes_the_samples_between_recorded_ones() -> None:
+    """The 5 Hz trace at 15 Hz: the cubic spline and the straight lines agree on the recorded
+    samples and differ between them, so the two methods give different errors; the JSON says which."""
+    assert TRACE.is_file(), f"shared data missing: {TRACE}"
+    outs = {}
+    for method in ("cubic", "linear"):
+        proc = _run("--trace", str(TRACE), "--max-minutes", "1", "--resample", method, "--json")
+        assert proc.returncode == 0, proc.stderr
+        outs[method] = json.loads(proc.stdout)
+        assert outs[method]["resample"] == method
+    assert outs["cubic"]["samples"] == outs["linear"]["samples"]
+    rms = {m: o["predictors"]["alpha-beta"]["rmse_mm"] for m, o in outs.items()}
+    assert rms["cubic"] != rms["linear"]
+
+
+def test_resample_cubic_passes_through_the_recorded_samples() -> None:
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import bench_prediction as bp
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    import numpy as np
+    t = np.arange(12) * 0.2
+    x = np.stack([np.sin(t), np.cos(2 * t), t * t], axis=1)
+    tr = bp.Trace("synthetic", t, x)
+    assert np.allclose(bp.truth_at(tr, t, "cubic"), x, atol=1e-12)
+    assert np.allclose(bp.truth_at(tr, t, "linear"), x, atol=1e-12)
+    mid = t[:-1] + 0.1
+    # the spline follows the smooth curve between samples better than straight lines do
+    exact = np.stack([np.sin(mid), np.cos(2 * mid), mid * mid], axis=1)
+    err_cubic = np.abs(bp.truth_at(tr, mid, "cubic") - exact).max()
+    err_linear = np.abs(bp.truth_at(tr, mid, "linear") - exact).max()
+    assert err_cubic < 0.1 * err_linear
+    with pytest.raises(ValueError, match="--resample must be one of cubic, linear"):
+        bp.truth_at(tr, mid, "nearest")
+
+
+def test_too_few_samples_after_the_cut_is_one_line() -> None:
+    assert TRACE.is_file(), f"shared data missing: {TRACE}"
+    proc = _run("--trace", str(TRACE), "--max-minutes", "0.005", "--json")
+    assert proc.returncode == 2
+    assert proc.stdout == ""
+    assert "at least 4 are needed" in proc.stderr.strip().splitlines()[0]

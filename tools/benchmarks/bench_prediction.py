@@ -2,20 +2,28 @@
 no prediction and today's COMPENSATE filter, at the system's camera rates and latencies.
 
 Run: ``tools/bench prediction [--trace FILE ...] [--rate HZ] [--horizon-ms MS] [--noise-mm MM]
-[--seed N] [--max-minutes M] [--json]``
+[--seed N] [--max-minutes M] [--resample cubic|linear] [--json]``
 
 Method (docs/prediction.md): each trace (any file or paired directory the project's trace reader
 takes, hil/io/traces.py) gives a target position (mm; the tumour translations, else the first
-recorded skin point), which is resampled linearly to the camera rate, Gaussian noise
+recorded skin point), which is resampled to the camera rate (``--resample``, below), Gaussian noise
 like the stereo pipeline's is added (``--noise-mm``, the 3-D RMS, default 0.05 mm: the vision
 bench's 3-D marker error, docs/benchmarks.md; per axis ``noise / sqrt(3)``, fixed seed), the
 samples are fed one by one to a fresh predictor per trace, and after each one the prediction
-``horizon`` ahead is compared with the noise-free trace (linear between its samples) at that time.
+``horizon`` ahead is compared with the noise-free trace (the same interpolant) at that time.
 Errors are 3-D norms pooled over every sample of every trace (warm-up included: a predictor that
 is not warm answers the last sample): RMS, p95, max and the RMS's ratio to no prediction.
 ``best`` is the predictor with the lowest RMS at the condition, ``default`` the one the controller
 uses (``[procedure.compensation] predictor``'s default; chosen on the closed-loop figures too,
 docs/prediction.md "In the loop").
+
+Resampling: the shared recordings are sampled at 5 Hz, so every camera rate above it is made by
+interpolating between recorded samples, and what lies between them is not known. ``cubic`` (the
+default) is the C2 cubic spline through the samples (scipy ``CubicSpline``, not-a-knot ends):
+breathing is smooth, and its velocity changes continuously. ``linear`` joins the samples with
+straight lines: a velocity jump every 0.2 s and, at 15 Hz, two samples of every three on a straight
+line, which favours the straight-line extrapolation of the alpha-beta filter (docs/prediction.md
+"Resampling" has both tables and the native 5 Hz check, which needs no interpolation at all).
 
 Without ``--trace``: the shared corpus ``<repo>/../shared/data/respiration`` (``$HIL_SHARED_DATA``
 overrides ``<repo>/../shared/data``; every 6-DoF trace file and
@@ -38,6 +46,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.interpolate import CubicSpline
 
 from hil.controller.config import CompensationConfig
 from hil.errors import InputFileError
@@ -109,14 +118,28 @@ def corpus_files(root: Path = CORPUS) -> list[Path]:
     return files
 
 
-def resample(tr: Trace, rate_hz: float) -> tuple[FloatArray, FloatArray]:
-    """(t, x): the trace linearly interpolated at ``k / rate_hz`` from its first to its last time."""
+#: ``--resample``: how samples between the recorded ones are made (module doc)
+RESAMPLE_METHODS = ("cubic", "linear")
+
+
+def resample(tr: Trace, rate_hz: float, method: str = "cubic") -> tuple[FloatArray, FloatArray]:
+    """(t, x): the trace interpolated (``method``, :data:`RESAMPLE_METHODS`) at ``k / rate_hz``
+    from its first to its last time."""
     t = np.arange(0.0, tr.time_s[-1] + 1e-9, 1.0 / rate_hz)
-    return t, truth_at(tr, t)
+    return t, truth_at(tr, t, method)
 
 
-def truth_at(tr: Trace, t: FloatArray) -> FloatArray:
-    return np.stack([np.interp(t, tr.time_s, tr.target_mm[:, k]) for k in range(3)], axis=1)
+def truth_at(tr: Trace, t: FloatArray, method: str = "cubic") -> FloatArray:
+    """The trace at times ``t`` (s; clamped to the recorded span), ``method`` between its samples:
+    ``cubic`` the C2 spline through them, ``linear`` straight lines (mm, (len(t), 3))."""
+    if method == "linear":
+        return np.stack([np.interp(t, tr.time_s, tr.target_mm[:, k]) for k in range(3)], axis=1)
+    if method != "cubic":
+        raise ValueError(f"--resample must be one of {', '.join(RESAMPLE_METHODS)} (got {method!r})")
+    if len(tr.time_s) < 4:
+        raise ValueError(f"trace {tr.name}: {len(tr.time_s)} samples, the cubic resampling needs 4")
+    spline = CubicSpline(tr.time_s, tr.target_mm, axis=0)
+    return np.asarray(spline(np.clip(t, tr.time_s[0], tr.time_s[-1])), dtype=float)
 
 
 @dataclass
@@ -128,16 +151,17 @@ class Result:
 
 
 def replay(traces: list[Trace], rate_hz: float, horizons_s: list[float], noise_mm: float, seed: int,
-           names: tuple[str, ...] = PREDICTOR_NAMES) -> dict[str, Result]:
-    """Every predictor over every trace at ``rate_hz``, each horizon predicted after every sample."""
+           names: tuple[str, ...] = PREDICTOR_NAMES, method: str = "cubic") -> dict[str, Result]:
+    """Every predictor over every trace at ``rate_hz`` (resampled by ``method``), each horizon
+    predicted after every sample."""
     cc = CompensationConfig()
     limits = SafetyLimits(max_horizon_s=max(0.2, max(horizons_s)))
     out = {n: Result({h: [] for h in horizons_s}) for n in names}
     sigma = noise_mm / math.sqrt(3.0)
     for k, tr in enumerate(traces):
-        t, x = resample(tr, rate_hz)
+        t, x = resample(tr, rate_hz, method)
         z = x + np.random.default_rng(seed + k).normal(0.0, sigma, x.shape)
-        truths = {h: truth_at(tr, t + h) for h in horizons_s}
+        truths = {h: truth_at(tr, t + h, method) for h in horizons_s}
         valid = {h: t + h <= tr.time_s[-1] + 1e-9 for h in horizons_s}
         for name in names:
             p = make_predictor(name, rate_hz, limits, alpha=cc.filter_alpha, beta=cc.filter_beta,
@@ -225,6 +249,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     ap.add_argument("--max-minutes", type=float,
                     help="replay only each trace's first M minutes (default: whole traces)")
+    ap.add_argument("--resample", choices=RESAMPLE_METHODS, default="cubic",
+                    help="how samples between the recorded ones are made: cubic spline (default) or "
+                         "straight lines (module doc)")
     ap.add_argument("--json", action="store_true", help="print one JSON object (one condition)")
     ap.add_argument("--cost", action="store_true",
                     help="only the per-pair CPU of each predictor as COMPENSATE runs it (no traces)")
@@ -243,19 +270,23 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--horizon-ms at most 200 ms (the predictors' bound; got {args.horizon_ms})")
         files = [Path(f) for f in args.trace] or corpus_files()
         traces = [truncate(load(f), args.max_minutes) for f in files]
+        for tr in traces:
+            if len(tr.time_s) < 4:
+                raise ValueError(f"trace {tr.name}: {len(tr.time_s)} samples (--max-minutes "
+                                 f"{args.max_minutes:g}); at least 4 are needed")
     except (ValueError, InputFileError) as exc:
         print(f"tools/bench prediction: error: {exc}", file=sys.stderr)
         return 2
     if args.json:
         rate = args.rate or DEFAULT_RATE_HZ
         h_ms = args.horizon_ms or DEFAULT_HORIZON_MS
-        res = replay(traces, rate, [h_ms / 1e3], args.noise_mm, args.seed)
+        res = replay(traces, rate, [h_ms / 1e3], args.noise_mm, args.seed, method=args.resample)
         figs = figures(res, h_ms / 1e3)
         ab = figs["alpha-beta"]["rmse_mm"]
         best = _best(figs)
         print(json.dumps({
             "rate_hz": rate, "horizon_ms": h_ms, "noise_mm": args.noise_mm, "seed": args.seed,
-            "max_minutes": args.max_minutes,
+            "max_minutes": args.max_minutes, "resample": args.resample,
             "traces": len(traces), "samples": res["none"].samples, "predictors": figs, "best": best,
             "default": CompensationConfig().predictor,
             "ratio_to_filter": round(figs[best]["rmse_mm"] / ab, 4) if ab else None,
@@ -266,12 +297,13 @@ def main(argv: list[str] | None = None) -> int:
     rates = [args.rate] if args.rate else list(RATES_HZ)
     hs = [args.horizon_ms] if args.horizon_ms else list(HORIZONS_MS)
     cut = f" (first {args.max_minutes:g} min of each)" if args.max_minutes else ""
-    print(f"{len(traces)} traces{cut}, noise {args.noise_mm:g} mm 3-D RMS (seed {args.seed}); "
+    print(f"{len(traces)} traces{cut}, resampled {args.resample}, noise {args.noise_mm:g} mm 3-D RMS "
+          f"(seed {args.seed}); "
           "RMS / p95 / max error, mm, and RMS ratio to no prediction")
     print(f"{'rate':>6} {'horizon':>8}  {'predictor':<11} {'rms':>7} {'p95':>7} {'max':>7} {'/none':>6} "
           f"{'fallbacks':>9} {'us/sample':>9}")
     for rate in rates:
-        res = replay(traces, rate, [h / 1e3 for h in hs], args.noise_mm, args.seed)
+        res = replay(traces, rate, [h / 1e3 for h in hs], args.noise_mm, args.seed, method=args.resample)
         for h_ms in hs:
             figs = figures(res, h_ms / 1e3)
             best = _best(figs)

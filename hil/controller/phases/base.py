@@ -25,6 +25,7 @@ from drivers.interfaces.robot import Robot
 from hil.clock import Clock
 from hil.controller.commands import Command
 from hil.controller.config import ProcedureConfig
+from hil.controller.cost import CostHistogram
 from hil.controller.estimate import Estimate
 from hil.controller.fsm import Event, State
 from hil.controller.needle import NeedleCheck
@@ -91,6 +92,8 @@ class PhaseContext:
     step_servo: Callable[[int], None] | None = None
     #: latency of each frame's setpoint (exposure -> setpoint published), ms
     latency_ms: array[float] = field(default_factory=lambda: array("d"))
+    #: COMPENSATE's setpoint work per pair (the predictor's update, then the setpoint), µs
+    setpoint_cost: CostHistogram = field(default_factory=CostHistogram)
     servo_deadlines_missed: int = 0
 
 

@@ -22,6 +22,7 @@ publishes.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
@@ -226,10 +227,13 @@ class CompensatePhase(Phase):
             lead_s, max_h = 0.5 / ctx.robot.control_rate_hz + c.actuation_lag_s, c.max_prediction_s
         else:
             lead_s, max_h = 0.0, 0.0
+        t0 = time.perf_counter_ns()   # the setpoint's cost (hil/controller/cost.py), not control
         sp = predicted_setpoint(est, t_exp, now_ns, lead_s, max_h) if predict else None
         self.s.predicted = sp is not None
         if sp is None:   # alpha-beta: configured, or the predictor's fallback
             sp = est.tracking_setpoint(t_exp, c.max_prediction_s, _VELOCITY_STEP_S if predict else 0.0)
+        cp = est.filter.predictor
+        ctx.setpoint_cost.add_ns(time.perf_counter_ns() - t0 + (0 if cp is None else cp.update_ns))
         D0, v, w = sp
         timing = ctx.servo_timing()
         valid_until = t_exp + round(timing.camera_max_age_s * 1e9)
