@@ -240,6 +240,9 @@ def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
     loc = " / ".join("n/a" if res.locate_ms.get(k) is None else f"{res.locate_ms[k]:.2f}"
                      for k in ("p50", "p95"))
     out.write(f"locate               {loc} ms (p50/p95, {where})\n")
+    ht = res.heap_trim
+    out.write(f"heap trims           {ht.get('trims', 0)} ({ht.get('released', 0)} gave memory back; "
+              f"longest {ht.get('max_ms')} ms; [procedure] heap_trim_every_s)\n")
     mems = [("memory supervisor", res.rss_mb), ("memory servo proc.", res.servo_rss_mb)]
     if res.perception_rss_mb:
         mems.append(("memory perception", res.perception_rss_mb))

@@ -185,6 +185,7 @@ class Controller(ControllerParts):
             self.fault(f"internal error: {type(exc).__name__}: {exc}")
         self.metrics.processing_ms.append((time.perf_counter_ns() - t_start_wall) * 1e-6)
         self._notify_observers()
+        self.heap.after_tick(self.clock.now_ns())   # after the setpoint and the observers
 
     def _tick(self) -> None:
         stats = self.servo_stats.due(self.clock.now_ns())

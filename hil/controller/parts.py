@@ -63,6 +63,7 @@ from hil.controller.tracker_roles import TrackerRoles
 from hil.controller.tracker_use import TrackerUse
 from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.geometry.transform import RigidTransform
+from hil.heap import HeapTrimmer
 from hil.log import get_logger
 from hil.safety.layer import SafetyLayer
 from hil.safety.watchdog import WatchdogSet
@@ -147,6 +148,8 @@ class ControllerParts(abc.ABC):
         self.t0_ns = clock.now_ns()
         self.est = Estimate(plan, rig, procedure, camera.frame_rate_hz)
         self.metrics = RunMetrics()
+        #: gives the free C-heap pages back after ticks (hil/heap.py; the supervisor's memory)
+        self.heap = HeapTrimmer(procedure.heap_trim_every_s)
         sup_ms = procedure.supervisor_period_ms
         self.pipeline = DevicePipeline(camera, robot, tracker, clock, locate, self.watchdogs, session,
                                        self.metrics, None if sup_ms is None else sup_ms / 1e3,

@@ -161,6 +161,8 @@ class SoakResult:
     predictor: str = ""
     #: COMPENSATE's setpoint work per pair: count, p50_us / p99_us / max_us (module doc)
     setpoint_us: dict[str, float | int | None] = field(default_factory=dict)
+    #: the supervisor's heap trims (hil/heap.py): trims, released, max_ms, total_ms
+    heap_trim: dict[str, float | int] = field(default_factory=dict)
     frame_boundaries: int = 0
     frame_boundary_missed: int = 0
     #: p50/p99/max of the frame-boundary intervals, ms
@@ -673,6 +675,7 @@ def analyse(
     res.compensation_frames = len(ctl.latency_ms)
     res.frame_to_setpoint_ms = _stats(list(ctl.latency_ms))
     res.setpoint_us = ctl.setpoint_cost.to_dict()
+    res.heap_trim = ctl.heap.figures().to_dict()
     res.frames_overwritten = ctl.frames_overwritten
     res.rss_mb = _rss_figures([(t, m) for t, m, _ in rss], operator.t_comp, minutes)
     res.servo_rss_mb = _rss_figures([(t, m) for t, _, m in rss], operator.t_comp, minutes)

@@ -28,6 +28,7 @@ from hil.cli.cmd_soak import _latency_bound
 from hil.config import default_setup_path, load_setup
 from hil.controller.cost import CostHistogram
 from hil.errors import InputFileError
+from hil.heap import HeapTrimmer
 from hil.servo.figures import LoopFigures
 from hil.soak.attribution import fault_outcomes, unexplained_faults
 from hil.soak.host import (
@@ -66,8 +67,11 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     cost = CostHistogram()
     for ns in (12_300, 15_000, 80_200):
         cost.add_ns(ns)
+    heap = HeapTrimmer(1.0, trim=lambda: 1)
+    for t_ns in (0, 1_000_000_000, 2_500_000_000):
+        heap.after_tick(t_ns)
     ctl = SimpleNamespace(latency_ms=[30.0, 40.0, 50.0], servo_deadlines_missed=0, frames_overwritten=4,
-                          setpoint_cost=cost.figures())
+                          setpoint_cost=cost.figures(), heap=heap)
     op = SoakOperator(60.0, 60.0, lambda: None)
     op.t_comp = 0.0
     rss = [(0.0, 100.0, 500.0), (10.0, 100.5, 500.0), (20.0, 101.0, 500.0), (30.0, 101.0, 500.2),
@@ -88,6 +92,8 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     assert res.stale_periods == 7
     assert res.compensation_frames == 3
     assert res.setpoint_us == {"count": 3, "p50_us": 16.0, "p99_us": 80.2, "max_us": 80.2}
+    assert res.heap_trim["trims"] == 2
+    assert res.heap_trim["released"] == 2
     assert res.frames_overwritten == 4
     assert res.rss_mb["after_warmup"] == 101.0  # warm-up: min(30 s, a quarter of 1 min) = 15 s
     assert res.rss_mb["growth"] == 0.5
@@ -185,6 +191,8 @@ def test_short_soak_compensates_with_the_servo_loop(short_soak: Any) -> None:
     assert res.predictor == "alpha-beta"
     assert res.setpoint_us["count"] == res.compensation_frames
     assert 0.0 < res.setpoint_us["p50_us"] <= res.setpoint_us["p99_us"] <= res.setpoint_us["max_us"]
+    # the supervisor gave its free heap back every 10 s of the run (hil/heap.py; glibc here)
+    assert res.heap_trim["trims"] >= 1
 
 
 #: further 10 s soaks (about 60 s of wall time each on a busy host) tried when the host took the

@@ -1,0 +1,103 @@
+"""Give the C heap's free pages back to the operating system now and then (glibc ``malloc_trim``).
+
+Why (docs/benchmarks.md "Supervisor memory", issue 45): the supervisor's resident size stepped up
+~10 MB at the first fault of a soak and stayed there. Nothing leaked: the first full-frame
+re-acquisition after a fault allocates image-sized buffers (a 1920x1080 grey image is 2 MB) and
+frees them; glibc serves buffers that large with ``mmap`` until one is freed, then raises its
+dynamic mmap threshold above that size, and from then on such buffers come from the heap, whose
+freed pages stay resident. Fixing the threshold instead (``MALLOC_MMAP_THRESHOLD_``) maps and
+unmaps every image-sized buffer and slowed the pair path (same section).
+
+The policy: the controller calls :meth:`HeapTrimmer.after_tick` after every tick; at most once per
+``every_s`` (the controller's clock) it calls ``malloc_trim(0)``, which returns every whole free
+page of every arena to the system (``madvise``) and shrinks the heap's top. When nothing is free it
+costs ~10-15 µs; releasing 16 MB took 1.2 ms on the development machine. It runs after the tick's
+setpoint is out and never in the servo process (its own process, memory locked, no heap traffic).
+
+Where the C library is not glibc (``malloc_trim`` absent) the trimmer does nothing and says so in
+:attr:`HeapTrimmer.unavailable`.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+__all__ = ["HeapTrimFigures", "HeapTrimmer", "glibc_malloc_trim"]
+
+
+def glibc_malloc_trim() -> Callable[[], int] | None:
+    """``malloc_trim(0)`` of the process's C library (returns 1 when memory went back to the
+    system), or None where the library has none (not glibc). ctypes releases the GIL in the call."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        fn = libc.malloc_trim
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_size_t]
+    fn.restype = ctypes.c_int
+    return lambda: int(fn(0))
+
+
+@dataclass(frozen=True)
+class HeapTrimFigures:
+    """What the trimmer did: trims called, how many returned memory, the longest and total time of
+    a trim (ms, wall clock)."""
+
+    trims: int
+    released: int
+    max_ms: float
+    total_ms: float
+
+    def to_dict(self) -> dict[str, float | int]:
+        return {"trims": self.trims, "released": self.released, "max_ms": round(self.max_ms, 3),
+                "total_ms": round(self.total_ms, 3)}
+
+
+class HeapTrimmer:
+    """Calls ``trim`` at most once per ``every_s`` of the caller's clock (module doc).
+
+    Args:
+        every_s: the period, s (0: never trim).
+        trim: the trim call (default: :func:`glibc_malloc_trim`; injected in tests).
+    """
+
+    def __init__(self, every_s: float, trim: Callable[[], int] | None = None) -> None:
+        if not every_s >= 0:
+            raise ValueError(f"heap trim period must be >= 0 s (got {every_s})")
+        self.every_ns = round(every_s * 1e9)
+        self._trim = trim if trim is not None else glibc_malloc_trim()
+        #: why no trim is done (None: trims are done)
+        self.unavailable: str | None = (
+            "disabled (period 0)" if self.every_ns == 0
+            else "the C library has no malloc_trim (not glibc)" if self._trim is None else None)
+        self._next_ns: int | None = None
+        self._trims = 0
+        self._released = 0
+        self._max_ns = 0
+        self._total_ns = 0
+
+    def after_tick(self, now_ns: int) -> None:
+        """Trim when the period has passed since the last trim (the first call only starts the
+        period). Never raises."""
+        if self._trim is None or self.every_ns == 0:
+            return
+        if self._next_ns is None:
+            self._next_ns = now_ns + self.every_ns
+            return
+        if now_ns < self._next_ns:
+            return
+        self._next_ns = now_ns + self.every_ns
+        t0 = time.perf_counter_ns()   # a cost figure, not control
+        released = self._trim()
+        dt = time.perf_counter_ns() - t0
+        self._trims += 1
+        self._released += 1 if released else 0
+        self._total_ns += dt
+        self._max_ns = max(self._max_ns, dt)
+
+    def figures(self) -> HeapTrimFigures:
+        return HeapTrimFigures(self._trims, self._released, self._max_ns / 1e6, self._total_ns / 1e6)

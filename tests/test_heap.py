@@ -1,0 +1,73 @@
+"""The supervisor's heap trim policy (hil/heap.py): the period on the caller's clock, the figures,
+and the real glibc call."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hil.heap import HeapTrimmer, glibc_malloc_trim
+
+S = 1_000_000_000
+
+
+def test_trims_once_per_period_of_the_callers_clock() -> None:
+    calls: list[int] = []
+    answers = iter([1, 0, 1])
+
+    def trim() -> int:
+        calls.append(1)
+        return next(answers)
+
+    h = HeapTrimmer(10.0, trim=trim)
+    for t in (0, 5 * S, 9 * S, 10 * S, 11 * S, 19 * S, 20 * S, 35 * S, 36 * S):
+        h.after_tick(t)
+    # the first call starts the period; then at 10 s, 20 s and 35 s (the next period runs from each trim)
+    assert len(calls) == 3
+    f = h.figures()
+    assert (f.trims, f.released) == (3, 2)
+    assert f.max_ms >= 0.0
+    assert f.total_ms >= f.max_ms
+    assert h.unavailable is None
+
+
+def test_period_zero_never_trims() -> None:
+    calls: list[int] = []
+
+    def trim() -> int:
+        calls.append(1)
+        return 1
+
+    h = HeapTrimmer(0.0, trim=trim)
+    for t in range(0, 100 * S, S):
+        h.after_tick(t)
+    assert calls == []
+    assert h.unavailable == "disabled (period 0)"
+    assert h.figures().to_dict() == {"trims": 0, "released": 0, "max_ms": 0.0, "total_ms": 0.0}
+
+
+@pytest.mark.parametrize("bad", [-1.0, float("nan")])
+def test_a_negative_or_nan_period_is_refused(bad: float) -> None:
+    with pytest.raises(ValueError, match="heap trim period must be >= 0 s"):
+        HeapTrimmer(bad)
+
+
+def test_glibc_trim_gives_freed_heap_pages_back() -> None:
+    """This machine's C library is glibc (Debian): buffers that came from the heap, once freed,
+    stay resident until the trim returns them."""
+    trim = glibc_malloc_trim()
+    assert trim is not None, "the Debian image's C library is glibc: malloc_trim must be found"
+
+    def rss_mb() -> float:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * 4096 / 1e6
+
+    # below the mmap threshold: many 100 kB buffers from the heap, touched, then freed
+    bufs = [np.ones(100_000, dtype=np.uint8) for _ in range(300)]
+    keep = bufs[-1]   # the top of the heap stays in use, so glibc cannot shrink it on free
+    del bufs
+    before = rss_mb()
+    assert trim() in (0, 1)
+    after = rss_mb()
+    assert after <= before
+    assert keep.sum() == 100_000
