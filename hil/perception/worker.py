@@ -21,6 +21,7 @@ from drivers.interfaces.camera import FrameTime, StereoCamera, StereoFrame
 from drivers.interfaces.errors import DriverError
 from hil.clock import MonotonicClock
 from hil.geometry.transform import RigidTransform
+from hil.heap import HeapTrimmer
 from hil.perception.follow import FollowingWorld, RingFlangeSource
 from hil.perception.process import PerceptionSpec
 from hil.perception.ring import MarkerRing, RecordKind, ring_words
@@ -69,7 +70,8 @@ def perception_main(conn: Connection, notify_fd: int, parent_pid: int) -> None:
     send(("ready", {"camera_name": camera.name, "pid": os.getpid(), "cpus": sorted(cpus),
                     "opened_ns": opened_ns}))
     try:
-        _run(camera, locate, ring, notify_fd, parent_pid, closing)
+        _run(camera, locate, ring, notify_fd, parent_pid, closing,
+             HeapTrimmer(spec.setup.procedure.heap_trim_every_s))
     except BaseException:  # noqa: BLE001 - a crash: say why, exit non-zero
         send(("crashed", traceback.format_exc(limit=6)))
         with contextlib.suppress(Exception):
@@ -133,7 +135,9 @@ def _build(spec: PerceptionSpec) -> tuple[StereoCamera, Any, FollowingWorld | No
 
 
 def _run(camera: StereoCamera, locate: Any, ring: MarkerRing, notify_fd: int, parent_pid: int,
-         closing: threading.Event) -> None:
+         closing: threading.Event, heap: HeapTrimmer) -> None:
+    """Grab, locate and publish until closed or orphaned; after each pair's notification the
+    heap trim policy (hil/heap.py: this process renders and searches whole images)."""
     from hil.controller.located import locate_in
 
     timeout_s = max(4.0 / camera.frame_rate_hz, 0.2)
@@ -158,6 +162,7 @@ def _run(camera: StereoCamera, locate: Any, ring: MarkerRing, notify_fd: int, pa
             ring.write_error(RecordKind.LOCATE_ERROR, pair_seq, (type(exc).__name__, camera.name, str(exc)),
                              done_ns)
         _notify(notify_fd)
+        heap.after_tick(clock.now_ns())
 
 
 def _publish(ring: MarkerRing, pair_seq: int, frame: StereoFrame, found: Any, done_ns: int,
