@@ -10,8 +10,9 @@ unmaps every image-sized buffer and slowed the pair path (same section).
 
 The policy: the controller calls :meth:`HeapTrimmer.after_tick` after every tick, and the
 perception process (when it runs) after every pair it publishes; at most once per ``every_s``
-(``[procedure] heap_trim_every_s``, the caller's clock) it calls ``malloc_trim(0)``, which returns every whole free
-page of every arena to the system (``madvise``) and shrinks the heap's top. When nothing is free it
+(``[procedure] heap_trim_every_s``, the caller's clock) it calls ``malloc_trim(0)``, which
+returns every whole free page of every arena to the system (``madvise``) and shrinks the heap's
+top. When nothing is free it
 costs ~10-15 µs; releasing 16 MB took 1.2 ms on the development machine. It runs after the tick's
 setpoint is out and never in the servo process (its own process, memory locked, no heap traffic).
 

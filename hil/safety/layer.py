@@ -38,6 +38,8 @@ class TrackingRobot(Protocol):
               t_ref_ns: int, valid_until_ns: int, exposure_t_ns: int, frame_seq: int,
               speed_scale: float, max_horizon_s: float, lead_s: float) -> None: ...
 
+    def move_profile_done(self) -> bool: ...
+
 
 #: ``(event, fields)`` — e.g. ``("command_sent", {...})`` or ``("command_refused", {...})``.
 CommandLog = Callable[[str, dict[str, Any]], None]
@@ -179,8 +181,7 @@ class SafetyLayer:
         short correction move starts within the arrival tolerance of its target, and the state
         read on the tick after the command may precede the move. True for a robot without a servo
         loop (its state's MOVING mode covers a move it runs itself)."""
-        done = getattr(self.robot, "move_profile_done", None)
-        return True if done is None else bool(done())
+        return True if self._tracking_robot is None else self._tracking_robot.move_profile_done()
 
     def start_tracking(self) -> None:
         """A new tracking session: the servo loop restarts from the actual pose, at rest."""

@@ -180,6 +180,9 @@ class _TrackingFake(FakeRobot):
     def hold(self) -> None:
         self.calls.append(("hold", None))
 
+    def move_profile_done(self) -> bool:
+        return True
+
     def track(self, T_robot_from_tcp: RigidTransform, v_mm_s: Any, w_rad_s: Any, *, t_ref_ns: int,
               valid_until_ns: int, exposure_t_ns: int, frame_seq: int, speed_scale: float,
               max_horizon_s: float, lead_s: float) -> None:
@@ -240,3 +243,24 @@ class TestTrack:
             self._track(layer, None)
         with pytest.raises(TypeError, match="FakeRobot has no servo loop"):
             layer.hold("test")
+
+
+def test_move_profile_done_asks_the_servo_loop_and_is_true_without_one() -> None:
+    """The arrival check's ``move_profile_done`` is part of the servo client's declared interface
+    (``TrackingRobot``), not probed by name: a robot without a servo loop is always done."""
+    layer, _, _, _ = _layer()
+    assert layer.move_profile_done() is True    # a plain robot runs its own moves
+
+    class _Streaming(_TrackingFake):
+        done = False
+
+        def move_profile_done(self) -> bool:
+            return self.done
+
+    clock = ManualClock(10**9)
+    robot = _Streaming(clock)
+    robot.open()
+    tracking = SafetyLayer(robot, LIMITS, clock, robot_state_max_age_s=0.05)
+    assert tracking.move_profile_done() is False
+    robot.done = True
+    assert tracking.move_profile_done() is True
