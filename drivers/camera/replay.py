@@ -57,6 +57,14 @@ class ReplayStereoCamera(StereoCamera):
             self._info = read_info(self.directory)
         return self._info
 
+    def describe(self) -> dict[str, str]:
+        """The recording's format (``hil probe``): codec, image size, rate and pairs."""
+        if self._info is None:
+            return {}
+        i = self._info
+        return {"codec": str(i.codec), "image": f"{i.image_size[0]}x{i.image_size[1]}",
+                "rate": f"{i.frame_rate_hz:g} Hz", "pairs": str(i.pairs)}
+
     @property
     def frame_rate_hz(self) -> float:
         return self.info.frame_rate_hz

@@ -65,6 +65,12 @@ class Device(ABC):
         if self._state is not DeviceState.ACTIVE:
             raise LifecycleError(self.name, f"{operation}() needs state active, is {self._state}")
 
+    def describe(self) -> dict[str, str]:
+        """What the open device says about itself, for ``hil probe``'s "opens" line (model,
+        serial, firmware, format: whatever the driver learnt while opening). Never blocks and
+        never raises; the default says nothing."""
+        return {}
+
     def __enter__(self) -> Device:
         self.open()
         return self

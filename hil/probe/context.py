@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass
-from typing import Any
 
 from pydantic import BaseModel
 
@@ -78,8 +77,7 @@ def open_step(cl: Checklist, device: Device, cfg: BaseModel, what: str, timeout_
 
     def do_open() -> Outcome:
         device.open()
-        info: Any = getattr(device, "info", None)
-        data = {str(k): str(v) for k, v in info.items()} if isinstance(info, dict) else {}
+        data = device.describe()
         detail = ", ".join(f"{k} {v}" for k, v in data.items())
         return Outcome(f"{what} opens" + (f" ({detail})" if detail else ""), data=data)
 

@@ -15,7 +15,7 @@ through the setpoint block.
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from drivers.interfaces.robot import FollowingModel, MotionLimits, Robot
 from hil.clock import Clock
@@ -24,6 +24,9 @@ from hil.servo.limiter import RateLimiter
 from hil.servo.loop import ServoLoop
 from hil.servo.shm import SETPOINT_WORDS as SETPOINT_WORDS
 from hil.servo.shm import LoopStats, SetpointBlock, ShmRegion, StateRing, ring_words, stats_words
+
+if TYPE_CHECKING:
+    from hil.servo.process import ServoReady
 
 #: Ring slots: 2 s of periods at 500 Hz.
 RING_SLOTS = 1024
@@ -63,6 +66,9 @@ class ServoLink(Protocol):
 
     regions: Regions
     in_process: bool
+    #: what the servo process reported once ready (its pid, the CPUs the supervisor was moved
+    #: to, ...); None for the loop in this process, and before a process is ready
+    ready: ServoReady | None
 
     @property
     def robot_name(self) -> str: ...
@@ -114,6 +120,8 @@ class InProcessLink:
     """
 
     in_process = True
+    #: no servo process (:class:`ServoLink`)
+    ready: ServoReady | None = None
 
     def __init__(self, robot: Robot, limits: MotionLimits, clock: Clock, limiter: RateLimiter) -> None:
         self.robot, self.clock = robot, clock

@@ -81,7 +81,7 @@ class Sampler:
         if now - self._last < 1.0:
             return
         self._last = now
-        ready = getattr(self.robot.link, "ready", None)
+        ready = self.robot.link.ready
         self.rss.append((now, rss_mb(), rss_mb(ready.pid) if ready is not None else 0.0))
         pid = None if self.perception_pid is None else self.perception_pid()
         if pid is not None:
@@ -122,7 +122,7 @@ class Sampler:
                           self.host_steal_percent(), free_dict)
 
     def _servo_cpu_s(self) -> float | None:
-        ready = getattr(self.robot.link, "ready", None)
+        ready = self.robot.link.ready
         return None if ready is None else cpu_s(ready.pid)
 
     def servo_cpu_percent(self) -> float | None:

@@ -578,7 +578,7 @@ def _add_process_figures(res: SoakResult, robot: ServoRobot, feed: PerceptionPro
     """What the servo and perception processes were granted and measured, and the operator's
     re-registrations, into ``res``."""
     res.rt_granted = robot.rt.to_dict() if robot.rt is not None else {}
-    ready = getattr(robot.link, "ready", None)
+    ready = robot.link.ready
     moved = None if ready is None else ready.supervisor_cpus
     res.supervisor_cpus = None if moved is None else sorted(moved)
     res.reregistrations = operator.reregistrations

@@ -83,6 +83,10 @@ def test_replay_recording(tmp_path: Path, run_probe: Callable[..., ProbeRun]) ->
     run = run_probe(path)
     camera = run.checks("camera")
     assert camera["recording_found"]["data"] == {"pairs_listed": 40}
+    # the driver says what it opened (Device.describe), shown on the "opens" line
+    assert camera["driver_opens"]["data"] == {"codec": "png", "image": "64x48", "rate": "30 Hz",
+                                              "pairs": "40"}
+    assert camera["driver_opens"]["message"].endswith("(codec png, image 64x48, rate 30 Hz, pairs 40)")
     assert camera["resolution"]["message"] == "resolution 64x48 px, as configured"
     assert camera["skew"]["data"] == {"median_ms": 0.25, "max_ms": 0.25}  # 1 ms recorded, replayed 4x faster
     assert camera["dropped_frames"]["status"] == "warn"
