@@ -1,15 +1,16 @@
 """Serve a recording in Rerun's web viewer on loopback (``hil replay --serve``).
 
-:class:`ViewerServer` runs the viewer that ships in the rerun-sdk wheel (``rerun
---serve-web``) as a child process bound to 127.0.0.1: a gRPC server holding the recording on
-``grpc_port`` and Rerun's HTTP server for the web viewer's assets on a private loopback port
-(the wheel's ``rerun`` binary, run directly so that terminating it ends it). The browser is
+:class:`ViewerServer` runs the wheel's ``rerun`` binary as a child bound to 127.0.0.1 holding the
+recording in a gRPC server on ``grpc_port`` (``rerun --serve-grpc``: no web server). The browser is
 pointed at ``web_port``, where :class:`~hil.replay.webfront.LoopbackFront` (a thread of this
-process) relays those assets with a guarded page and a Content-Security-Policy, so that the page
-can reach no host but 127.0.0.1 (its analytics, web font, release check and examples manifest
-are refused inside the browser; docs/replay.md). The viewer's assets are in the wheel. Analytics
-are off in the child as in this process (:mod:`hil.replay.rerun_env`: the config file is shared;
-``FORCE_RERUN_ANALYTICS`` is not passed on).
+process) serves the web viewer's assets with a guarded page and a Content-Security-Policy, so that
+the page can reach no host but 127.0.0.1 (its analytics, web font, release check and examples
+manifest are refused inside the browser; docs/replay.md). The assets ship inside the wheel's
+binary: :func:`viewer_assets` takes them once per process from a short-lived ``rerun
+--serve-web`` on private loopback ports, which it then ends, so no unguarded copy of the page is
+served while the recording is. Analytics are off in every child as in this process
+(:mod:`hil.replay.rerun_env`: the config file is shared; ``FORCE_RERUN_ANALYTICS`` is not passed
+on).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from urllib.parse import quote
 
 from hil.errors import HilError
 from hil.replay.rerun_env import FORCE_ANALYTICS_ENV, disable_rerun_analytics
-from hil.replay.webfront import LoopbackFront, WebFrontError
+from hil.replay.webfront import Asset, LoopbackFront, WebFrontError, snapshot_assets
 
 LOOPBACK = "127.0.0.1"
 DEFAULT_WEB_PORT = 9090
@@ -66,6 +67,69 @@ def _accepts(port: int) -> bool:
         return False
 
 
+#: the viewer's assets by the binary they came from (:func:`viewer_assets`; ~43 MB, taken once)
+_ASSETS: dict[Path, dict[str, Asset]] = {}
+
+
+def viewer_assets(timeout_s: float = 30.0) -> dict[str, Asset]:
+    """The web viewer's files (the page guarded) from the wheel's ``rerun`` binary: the first call
+    starts ``rerun --serve-web`` on two free loopback ports with no recording, snapshots its files
+    (:func:`~hil.replay.webfront.snapshot_assets`) and ends it; later calls return the same.
+    Blocks for up to ``timeout_s`` plus the transfer.
+
+    Raises:
+        ViewerServeError: the binary is missing, exits, does not come up in time, or serves a
+            page that cannot be guarded.
+    """
+    exe = rerun_binary()
+    cached = _ASSETS.get(exe)
+    if cached is not None:
+        return cached
+    web_port, grpc_port = free_port(), free_port()
+    proc = _spawn([str(exe), "--serve-web", "--bind", LOOPBACK, "--port", str(grpc_port),
+                   "--web-viewer-port", str(web_port)])
+    try:
+        _wait_for(proc, (web_port, grpc_port), timeout_s, "the Rerun web viewer")
+        try:
+            assets = snapshot_assets(web_port)
+        except WebFrontError as exc:
+            raise ViewerServeError(str(exc)) from None
+    finally:
+        _end(proc)
+    _ASSETS[exe] = assets
+    return assets
+
+
+def _spawn(cmd: list[str]) -> subprocess.Popen[bytes]:
+    """Start a ``rerun`` child with analytics off (module doc), its output discarded.
+
+    Raises:
+        ViewerServeError: it cannot be started.
+    """
+    disable_rerun_analytics()
+    env = {k: v for k, v in os.environ.items() if k != FORCE_ANALYTICS_ENV}
+    try:
+        return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, env=env)
+    except OSError as exc:
+        raise ViewerServeError(f"cannot start the Rerun viewer: {exc.strerror or exc}") from None
+
+
+def _wait_for(proc: subprocess.Popen[bytes], ports: tuple[int, ...], timeout_s: float, what: str) -> None:
+    """Until every port accepts a connection.
+
+    Raises:
+        ViewerServeError: ``proc`` exited, or ``timeout_s`` passed (the caller ends ``proc``).
+    """
+    deadline = time.monotonic() + timeout_s
+    while not all(_accepts(p) for p in ports):
+        code = proc.poll()
+        if code is not None or time.monotonic() > deadline:
+            why = f"exited with code {code}" if code is not None else f"not up after {timeout_s:g} s"
+            raise ViewerServeError(f"{what} {why} (is rerun-sdk installed?)")
+        time.sleep(0.05)  # polling a port's readiness, not a synchronisation by sleeping
+
+
 class ViewerServer:
     """The web viewer serving ``rrd`` on loopback. Start with :meth:`start` (or ``with``), stop
     with :meth:`close` (idempotent; terminates the viewer, then kills it after ``2 s``; then stops
@@ -73,8 +137,7 @@ class ViewerServer:
 
     Args:
         rrd: the recording to serve.
-        web_port / grpc_port: loopback ports (0: pick a free one). Rerun's own web server runs on
-            a third, private port (:attr:`upstream_port`), behind the front on ``web_port``.
+        web_port / grpc_port: loopback ports (0: pick a free one).
     """
 
     def __init__(self, rrd: str | Path, web_port: int = DEFAULT_WEB_PORT,
@@ -82,7 +145,6 @@ class ViewerServer:
         self.rrd = Path(rrd)
         self.web_port = web_port or free_port()
         self.grpc_port = grpc_port or free_port()
-        self.upstream_port = 0
         self._proc: subprocess.Popen[bytes] | None = None
         self._front: LoopbackFront | None = None
         self.pid: int | None = None
@@ -97,7 +159,8 @@ class ViewerServer:
         return f"http://{LOOPBACK}:{self.web_port}/?url={quote(self.grpc_url, safe='')}"
 
     def start(self, timeout_s: float = 30.0) -> ViewerServer:
-        """Start the viewer, wait (up to ``timeout_s``) until its ports accept connections, then
+        """Take the viewer's assets (:func:`viewer_assets`, once per process), start the gRPC
+        server with the recording, wait (up to ``timeout_s``) until it accepts connections, then
         start the front on ``web_port``.
 
         Raises:
@@ -106,34 +169,20 @@ class ViewerServer:
         for port in (self.web_port, self.grpc_port):
             if _accepts(port):
                 raise ViewerServeError(f"{LOOPBACK}:{port} is already in use")
-        self.upstream_port = free_port()
-        self._start_viewer(timeout_s)
+        assets = viewer_assets(timeout_s)
+        self._proc = _spawn([str(rerun_binary()), "--serve-grpc", "--bind", LOOPBACK,
+                             "--port", str(self.grpc_port), str(self.rrd)])
+        self.pid = self._proc.pid
         try:
-            self._front = LoopbackFront(self.web_port, self.upstream_port, self.grpc_port).start()
+            _wait_for(self._proc, (self.grpc_port,), timeout_s, "the Rerun gRPC server")
+            self._front = LoopbackFront(self.web_port, assets, self.grpc_port).start()
         except WebFrontError as exc:
             self.close()
             raise ViewerServeError(str(exc)) from None
+        except ViewerServeError:
+            self.close()
+            raise
         return self
-
-    def _start_viewer(self, timeout_s: float) -> None:
-        disable_rerun_analytics()
-        env = {k: v for k, v in os.environ.items() if k != FORCE_ANALYTICS_ENV}
-        cmd = [str(rerun_binary()), "--serve-web", "--bind", LOOPBACK, "--port", str(self.grpc_port),
-               "--web-viewer-port", str(self.upstream_port), str(self.rrd)]
-        try:
-            self._proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                          stderr=subprocess.DEVNULL, env=env)
-        except OSError as exc:
-            raise ViewerServeError(f"cannot start the Rerun viewer: {exc.strerror or exc}") from None
-        self.pid = self._proc.pid
-        deadline = time.monotonic() + timeout_s
-        while not (_accepts(self.upstream_port) and _accepts(self.grpc_port)):
-            code = self._proc.poll()
-            if code is not None or time.monotonic() > deadline:
-                self.close()
-                why = f"exited with code {code}" if code is not None else f"not up after {timeout_s:g} s"
-                raise ViewerServeError(f"the Rerun web viewer {why} (is rerun-sdk installed?)")
-            time.sleep(0.05)  # polling a port's readiness, not a synchronisation by sleeping
 
     def wait(self) -> int:
         """Block until the viewer exits (Ctrl-C raises KeyboardInterrupt here); its exit code."""

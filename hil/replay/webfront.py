@@ -6,8 +6,9 @@ ask the Internet for things: a web-font stylesheet (``fonts.googleapis.com``, a 
 build has no opt-out, crate ``re_analytics``, ``web/config.rs``), a check for a newer release
 (``api.github.com``) and the welcome screen's examples manifest (``app.rerun.io``). A clinical
 tool must not. :class:`LoopbackFront` is a small HTTP server on 127.0.0.1 that the user's browser
-talks to instead; it relays the viewer's assets from Rerun's server (itself on a private loopback
-port) and:
+talks to instead. It serves the viewer's assets from a snapshot (:func:`snapshot_assets`, taken
+once from a short-lived Rerun web server on a private loopback port, which is then ended: no
+unguarded copy of the page stays reachable while the recording is served) and:
 
 * rewrites ``index.html`` (:func:`guard_index_html`): every ``<link>`` and ``<script src>`` naming
   a host is removed, and a first script (:data:`FETCH_GUARD_JS`) wraps ``fetch``,
@@ -19,24 +20,25 @@ port) and:
   the page connect only to itself and to the recording's gRPC port on 127.0.0.1, load scripts
   only from itself (plus the hashes of its own inline scripts) and fonts only from itself: should
   the guard miss a way out, the browser itself refuses it;
-* answers only ``GET``/``HEAD`` whose ``Host`` is ``127.0.0.1:<port>`` or ``localhost:<port>``
-  (421 otherwise: a page from elsewhere cannot reach it through DNS rebinding).
+* answers only ``GET``/``HEAD`` of the snapshot's paths whose ``Host`` is ``127.0.0.1:<port>`` or
+  ``localhost:<port>`` (421 otherwise: a page from elsewhere cannot reach it through DNS
+  rebinding; 404 for a path the snapshot does not hold).
 
 Threads: one serving thread (``hil-viewer-front``) plus one per request; :meth:`LoopbackFront.close`
-stops and joins them all (a request streaming from a stopped upstream ends at once; a client
-that stops reading times out after :data:`SOCKET_TIMEOUT_S`).
+stops and joins them all (a client that stops reading times out after :data:`SOCKET_TIMEOUT_S`).
 """
 
 from __future__ import annotations
 
 import base64
 import hashlib
-import http.client
 import re
 import sys
 import threading
 import urllib.error
 import urllib.request
+from collections.abc import Mapping
+from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from types import TracebackType
 
@@ -49,14 +51,19 @@ _log = get_logger(__name__)
 EV_FRONT_REQUEST_FAILED = "viewer_front_request_failed"
 
 LOOPBACK = "127.0.0.1"
-#: Seconds a request's socket (to the browser and to the upstream) may stay silent.
+#: Seconds a request's socket (to the browser, and to Rerun's server while snapshotting) may stay
+#: silent.
 SOCKET_TIMEOUT_S = 10.0
-#: Bytes relayed per read from the upstream (the viewer's wasm is ~43 MB).
+#: Bytes written per call to the browser (the viewer's wasm is ~43 MB).
 CHUNK_BYTES = 1 << 18
-#: Response headers relayed from Rerun's server (the page reads ``rerun-final-length``).
+#: Response headers kept from Rerun's server (the page reads ``rerun-final-length``).
 RELAYED_HEADERS = ("content-type", "content-encoding", "rerun-final-length")
-#: The pages that are ``index.html`` (rewritten).
+#: The pages that are ``index.html`` (served rewritten).
 INDEX_PATHS = ("/", "/index.html")
+#: What the viewer's page loads from its server (Rerun 0.41: the page, its script and wasm, the
+#: icons and the service worker); a path Rerun's server does not have is left out of the snapshot.
+ASSET_PATHS = ("/", "/re_viewer.js", "/re_viewer_bg.wasm", "/favicon.ico", "/favicon.svg",
+               "/apple-touch-icon.png", "/sw.js", "/manifest.json")
 
 #: The first script of the page: every request to a host but loopback is refused in the page.
 FETCH_GUARD_JS = """
@@ -155,13 +162,59 @@ def content_security_policy(grpc_port: int, script_hashes: list[str]) -> str:
         "form-action 'none'", "frame-ancestors 'none'"])
 
 
+@dataclass(frozen=True)
+class Asset:
+    """One file of the viewer as the front serves it: its headers (:data:`RELAYED_HEADERS`) and
+    body; ``script_hashes``: the CSP hashes of its inline scripts (the guarded page only)."""
+
+    headers: Mapping[str, str]
+    body: bytes
+    script_hashes: tuple[str, ...] = ()
+
+
+def snapshot_assets(upstream_port: int, paths: tuple[str, ...] = ASSET_PATHS) -> dict[str, Asset]:
+    """The viewer's files from Rerun's web server on ``127.0.0.1:upstream_port``, the page
+    guarded (:func:`guard_index_html`; under every name of :data:`INDEX_PATHS`). Blocks for the
+    transfer (~43 MB over loopback).
+
+    Raises:
+        WebFrontError: the server does not answer, or has no page, or a page that cannot be
+            guarded (nothing is served then).
+    """
+    out: dict[str, Asset] = {}
+    for path in paths:
+        try:
+            with urllib.request.urlopen(f"http://{LOOPBACK}:{upstream_port}{path}",
+                                        timeout=SOCKET_TIMEOUT_S) as r:
+                headers = {k: v for k, v in r.headers.items() if k.lower() in RELAYED_HEADERS}
+                out[path] = Asset(headers, r.read())
+        except urllib.error.HTTPError as exc:
+            exc.close()
+            if exc.code != 404:
+                raise WebFrontError(f"the Rerun web viewer answered {exc.code} for {path}") from None
+        except OSError as exc:
+            raise WebFrontError(f"the Rerun web viewer is not answering ({exc})") from None
+    index = out.get("/")
+    if index is None:
+        raise WebFrontError("the Rerun web viewer has no page at /")
+    try:
+        page = guard_index_html(index.body.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise WebFrontError("the web viewer's index.html is not UTF-8: not Rerun's viewer page") from None
+    guarded = Asset({"Content-Type": "text/html; charset=utf-8"}, page.encode("utf-8"),
+                    tuple(inline_script_hashes(page)))
+    for name in INDEX_PATHS:
+        out[name] = guarded
+    return out
+
+
 class _FrontServer(ThreadingHTTPServer):
     daemon_threads = False  # server_close() joins the request threads
     block_on_close = True
 
-    def __init__(self, port: int, upstream_port: int, grpc_port: int) -> None:
+    def __init__(self, port: int, assets: Mapping[str, Asset], grpc_port: int) -> None:
         super().__init__((LOOPBACK, port), _FrontHandler)
-        self.upstream = f"http://{LOOPBACK}:{upstream_port}"
+        self.assets = assets
         self.grpc_port = grpc_port
         bound = self.server_address[1]
         self.allowed_hosts = {f"{LOOPBACK}:{bound}", f"localhost:{bound}"}
@@ -193,27 +246,20 @@ class _FrontHandler(BaseHTTPRequestHandler):
         if not path.startswith("/") or path.startswith("//"):  # only this server's own paths
             self.send_error(400, "not a path of this server")
             return
-        try:
-            upstream = urllib.request.urlopen(self.server.upstream + path,
-                                              timeout=SOCKET_TIMEOUT_S)
-        except urllib.error.HTTPError as exc:
-            exc.close()
-            self.send_error(exc.code)
+        asset = self.server.assets.get(path)
+        if asset is None:
+            self.send_error(404)
             return
-        except OSError:
-            self.send_error(502, "the Rerun web viewer is not answering")
-            return
+        csp = content_security_policy(self.server.grpc_port, list(asset.script_hashes))
         try:
-            if path in INDEX_PATHS:
-                self._send_index(upstream, with_body)
-            else:
-                self._relay(upstream, with_body)
-        except OSError:  # the browser or the upstream went away mid-response
+            self._start(200, {**asset.headers, "Content-Length": str(len(asset.body))}, csp)
+            view = memoryview(asset.body)
+            for k in range(0, len(view) if with_body else 0, CHUNK_BYTES):
+                self.wfile.write(view[k:k + CHUNK_BYTES])
+        except OSError:  # the browser went away mid-response
             self.close_connection = True
-        finally:
-            upstream.close()
 
-    def _start(self, code: int, headers: dict[str, str], csp: str) -> None:
+    def _start(self, code: int, headers: Mapping[str, str], csp: str) -> None:
         self.send_response(code)
         for name, value in headers.items():
             self.send_header(name, value)
@@ -223,47 +269,26 @@ class _FrontHandler(BaseHTTPRequestHandler):
         self.send_header("Cache-Control", "no-store")
         self.end_headers()
 
-    def _send_index(self, upstream: http.client.HTTPResponse, with_body: bool) -> None:
-        """The guarded page, or 502 when the upstream's is not one we can guard (nothing of it
-        is sent)."""
-        try:
-            page = guard_index_html(upstream.read().decode("utf-8")).encode("utf-8")
-        except (WebFrontError, UnicodeDecodeError) as exc:
-            self.send_error(502, f"the web viewer's page cannot be served safely: {exc}")
-            return
-        csp = content_security_policy(self.server.grpc_port, inline_script_hashes(page.decode()))
-        self._start(200, {"Content-Type": "text/html; charset=utf-8",
-                          "Content-Length": str(len(page))}, csp)
-        if with_body:
-            self.wfile.write(page)
-
-    def _relay(self, upstream: http.client.HTTPResponse, with_body: bool) -> None:
-        headers = {k: v for k, v in upstream.headers.items() if k.lower() in RELAYED_HEADERS}
-        self._start(upstream.status, headers, content_security_policy(self.server.grpc_port, []))
-        self.close_connection = True  # HTTP/1.0: the body ends with the connection
-        while with_body and (chunk := upstream.read(CHUNK_BYTES)):
-            self.wfile.write(chunk)
-
 
 class LoopbackFront:
-    """The front (module doc) on ``127.0.0.1:port`` for Rerun's web viewer server on
-    ``127.0.0.1:upstream_port``, the recording on ``127.0.0.1:grpc_port``. :meth:`start` binds
+    """The front (module doc) on ``127.0.0.1:port`` serving the viewer's ``assets``
+    (:func:`snapshot_assets`), the recording on ``127.0.0.1:grpc_port``. :meth:`start` binds
     and serves on a thread; :meth:`close` (idempotent) stops it and joins every thread.
 
     Raises (start):
         WebFrontError: the port cannot be bound (in use).
     """
 
-    def __init__(self, port: int, upstream_port: int, grpc_port: int) -> None:
+    def __init__(self, port: int, assets: Mapping[str, Asset], grpc_port: int) -> None:
         self.port = port
-        self.upstream_port = upstream_port
+        self.assets = assets
         self.grpc_port = grpc_port
         self._server: _FrontServer | None = None
         self._thread: threading.Thread | None = None
 
     def start(self) -> LoopbackFront:
         try:
-            self._server = _FrontServer(self.port, self.upstream_port, self.grpc_port)
+            self._server = _FrontServer(self.port, self.assets, self.grpc_port)
         except OSError as exc:
             raise WebFrontError(f"{LOOPBACK}:{self.port}: cannot serve the viewer there: "
                                 f"{exc.strerror or exc}") from None

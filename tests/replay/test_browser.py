@@ -39,6 +39,25 @@ def _distinct_colours(png: bytes) -> int:
         return len(im.convert("RGB").getcolors(maxcolors=1 << 20) or [])
 
 
+def _listening(pid: int) -> set[tuple[str, int]]:
+    """The (IPv4 address, port) of every TCP socket ``pid`` listens on (/proc: its socket
+    inodes matched with the LISTEN rows of /proc/net/tcp and tcp6)."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        target = os.readlink(fd)
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    out: set[tuple[str, int]] = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for row in Path(table).read_text().splitlines()[1:]:
+            f = row.split()
+            if f[3] == "0A" and f[9] in inodes:   # 0A: LISTEN
+                addr, port = f[1].split(":")
+                ip = ".".join(str(int(addr[i:i + 2], 16)) for i in (6, 4, 2, 0)) if len(addr) == 8 else addr
+                out.add((ip, int(port, 16)))
+    return out
+
+
 @pytest.mark.timeout(400)
 def test_served_viewer_renders_the_replay_and_reaches_only_loopback(sim_session: Path,
                                                                     tmp_path: Path) -> None:
@@ -46,6 +65,10 @@ def test_served_viewer_renders_the_replay_and_reaches_only_loopback(sim_session:
     rrd = write_replay(sim_session, tmp_path / "run.rrd").path
     with ViewerServer(rrd, web_port=0, grpc_port=0) as server, HeadlessChromium() as browser:
         assert server.url.startswith(f"http://127.0.0.1:{server.web_port}/")
+        # Rerun's child serves the recording only: one listening socket, the gRPC port on
+        # loopback; no copy of the unguarded page is reachable anywhere while it is served
+        assert server.pid is not None
+        assert _listening(server.pid) == {("127.0.0.1", server.grpc_port)}
         page = browser.open(server.url)
         assert page.wait_for("document.querySelector('canvas') !== null", timeout_s=90)
         # the viewer (egui) draws everything, text included, on its canvas: wait until a

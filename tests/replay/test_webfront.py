@@ -1,12 +1,13 @@
-"""The loopback front of the web viewer (hil/replay/webfront.py) against a stand-in for Rerun's
-web server on loopback: the page is rewritten (hosted links and scripts gone, the guard first),
-every response carries the Content-Security-Policy whose script hashes match the page's inline
-scripts, assets are relayed byte for byte with their headers, and requests that are not a plain
-GET/HEAD of this server's own paths by its loopback name are refused. Every server and thread is
-closed."""
+"""The loopback front of the web viewer (hil/replay/webfront.py) serving a snapshot taken from a
+stand-in for Rerun's web server on loopback: the page is rewritten (hosted links and scripts gone,
+the guard first), every response carries the Content-Security-Policy whose script hashes match the
+page's inline scripts, assets are served byte for byte with their headers, and requests that are
+not a plain GET/HEAD of the snapshot's paths by its loopback name are refused. The front never
+talks to Rerun's server after the snapshot. Every server and thread is closed."""
 
 from __future__ import annotations
 
+import contextlib
 import http.client
 import threading
 from collections.abc import Iterator
@@ -21,6 +22,7 @@ from hil.replay.webfront import (
     content_security_policy,
     guard_index_html,
     inline_script_hashes,
+    snapshot_assets,
 )
 
 PAGE = """<!doctype html><html><head>
@@ -34,16 +36,20 @@ WASM = bytes(range(256)) * 4000  # > one relay chunk
 
 
 class _Upstream(BaseHTTPRequestHandler):
+    server: _QuietServer
+
     def log_message(self, format: str, *args: object) -> None:
         """Quiet."""
 
     def do_GET(self) -> None:
-        files = {"/": (PAGE.encode(), "text/html"), "/re_viewer_bg.wasm": (WASM, "application/wasm"),
-                 "/index.html": (b"<html>no script here</html>", "text/html")}
-        if self.path not in files:
+        self.server.requests.append(self.path)
+        if self.path == "/sw.js":
+            self.send_error(500)
+            return
+        if self.path not in self.server.files:
             self.send_error(404)
             return
-        body, kind = files[self.path]
+        body, kind = self.server.files[self.path]
         self.send_response(200)
         self.send_header("Content-Type", kind)
         self.send_header("rerun-final-length", str(len(body)))
@@ -53,22 +59,41 @@ class _Upstream(BaseHTTPRequestHandler):
 
 
 class _QuietServer(HTTPServer):
+    def __init__(self, files: dict[str, tuple[bytes, str]]) -> None:
+        super().__init__(("127.0.0.1", 0), _Upstream)
+        self.files = files
+        self.requests: list[str] = []
+
     def handle_error(self, request: object, client_address: object) -> None:
-        """A client that hangs up early (the front relaying a HEAD) is not an error here."""
+        """A client that hangs up early is not an error here."""
 
 
-@pytest.fixture
-def front() -> Iterator[LoopbackFront]:
-    upstream = _QuietServer(("127.0.0.1", 0), _Upstream)
+FILES = {"/": (PAGE.encode(), "text/html"), "/re_viewer_bg.wasm": (WASM, "application/wasm")}
+#: what the front asks the stand-in for (no service worker here: it answers 500 for it)
+PATHS = ("/", "/re_viewer.js", "/re_viewer_bg.wasm")
+
+
+@contextlib.contextmanager
+def _upstream(files: dict[str, tuple[bytes, str]]) -> Iterator[_QuietServer]:
+    upstream = _QuietServer(files)
     thread = threading.Thread(target=upstream.serve_forever, name="test-upstream")
     thread.start()
     try:
-        with LoopbackFront(0, int(upstream.server_address[1]), grpc_port=45678) as f:
-            yield f
+        yield upstream
     finally:
         upstream.shutdown()
         thread.join()
         upstream.server_close()
+
+
+@pytest.fixture
+def front() -> Iterator[LoopbackFront]:
+    with _upstream(FILES) as upstream:
+        assets = snapshot_assets(int(upstream.server_address[1]), PATHS)
+        seen = len(upstream.requests)
+        with LoopbackFront(0, assets, grpc_port=45678) as f:
+            yield f
+        assert len(upstream.requests) == seen   # served from the snapshot: Rerun's server never asked
 
 
 def _get(port: int, path: str, method: str = "GET",
@@ -112,7 +137,7 @@ def test_index_is_served_guarded_with_a_policy_naming_its_inline_scripts(front: 
     assert headers["referrer-policy"] == "no-referrer"
 
 
-def test_assets_are_relayed_byte_for_byte_with_their_headers(front: LoopbackFront) -> None:
+def test_assets_are_served_byte_for_byte_with_their_headers(front: LoopbackFront) -> None:
     status, headers, body = _get(front.port, "/re_viewer_bg.wasm")
     assert (status, body) == (200, WASM)
     assert headers["content-type"] == "application/wasm"
@@ -125,6 +150,7 @@ def test_assets_are_relayed_byte_for_byte_with_their_headers(front: LoopbackFron
 
 @pytest.mark.parametrize(("method", "path", "host", "code"), [
     ("GET", "/missing.js", None, 404),
+    ("GET", "/re_viewer.js", None, 404),   # not in the snapshot
     ("GET", "/", "rebound.example.com", 421),
     ("GET", "/", "127.0.0.1:1", 421),
     ("GET", "http://example.com/", None, 400),
@@ -136,18 +162,35 @@ def test_other_requests_are_refused(front: LoopbackFront, method: str, path: str
     assert _get(front.port, path, method=method, host=host)[0] == code
 
 
-def test_a_page_that_cannot_be_guarded_is_not_served(front: LoopbackFront) -> None:
-    status, _, body = _get(front.port, "/index.html")
-    assert status == 502
-    assert b"no script here" not in body
+def test_a_page_that_cannot_be_guarded_is_not_served() -> None:
+    with _upstream({"/": (b"<html>no script here</html>", "text/html")}) as upstream, \
+            pytest.raises(WebFrontError, match="no <script>"):
+        snapshot_assets(int(upstream.server_address[1]), PATHS)
 
 
-def test_upstream_gone_is_a_bad_gateway_and_close_joins_every_thread() -> None:
-    with LoopbackFront(0, 1, grpc_port=45678) as f:  # nothing listens on port 1
-        assert _get(f.port, "/")[0] == 502
+def test_the_snapshot_leaves_out_what_the_server_does_not_have_and_refuses_its_errors() -> None:
+    with _upstream(FILES) as upstream:
+        port = int(upstream.server_address[1])
+        assets = snapshot_assets(port, PATHS)
+        assert set(assets) == {"/", "/index.html", "/re_viewer_bg.wasm"}   # no re_viewer.js there
+        assert assets["/index.html"] is assets["/"]
+        with pytest.raises(WebFrontError, match=r"answered 500 for /sw\.js"):
+            snapshot_assets(port, ("/", "/sw.js"))
+    with _upstream({}) as upstream, pytest.raises(WebFrontError, match="no page at /"):
+        snapshot_assets(int(upstream.server_address[1]), PATHS)
+
+
+def test_upstream_gone_is_a_typed_error() -> None:
+    with pytest.raises(WebFrontError, match="not answering"):
+        snapshot_assets(1)   # nothing listens on port 1
+
+
+def test_close_joins_every_thread(front: LoopbackFront) -> None:
+    assert _get(front.port, "/")[0] == 200
+    front.close()
     assert not [t for t in threading.enumerate() if t.name == "hil-viewer-front"]
 
 
-def test_a_busy_port_is_a_typed_error() -> None:
-    with LoopbackFront(0, 1, grpc_port=45678) as f, pytest.raises(WebFrontError, match="cannot serve"):
-        LoopbackFront(f.port, 1, grpc_port=45678).start()
+def test_a_busy_port_is_a_typed_error(front: LoopbackFront) -> None:
+    with pytest.raises(WebFrontError, match="cannot serve"):
+        LoopbackFront(front.port, front.assets, grpc_port=45678).start()
