@@ -233,6 +233,9 @@ def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
     out.write(f"setpoint work        {sp.get('p50_us')} / {sp.get('p99_us')} / {sp.get('max_us')} us "
               f"(p50/p99/max over {sp.get('count', 0)} pairs; predictor {res.predictor}: its update "
               f"and the setpoint, inside frame->setpoint)\n")
+    cf = res.change_fit_us
+    out.write(f"change estimate      {cf.get('p50_us')} / {cf.get('p99_us')} / {cf.get('max_us')} us "
+              f"(p50/p99/max over {cf.get('count', 0)} pairs; estimator {res.estimator})\n")
     out.write(f"latency bound        {_latency_bound(res)}\n")
     out.write(f"camera clock         {res.camera_clock_ppm:g} ppm off the host's (--camera-clock-ppm)\n")
     out.write(f"stop->command        {_fmt(res.stop_to_command_ms)} ms (p50/p99/max)\n")

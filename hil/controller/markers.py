@@ -15,12 +15,14 @@ is out unless the setpoint needs it (a bias correction).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hil.controller.change_estimate import estimate_change
+from hil.controller.cost import CostHistogram
 from hil.controller.estimate import Estimate, count_seen
 from hil.controller.registration import identify, track
 
@@ -38,6 +40,9 @@ class MarkerTracker:
 
     def __init__(self, match_tolerance_mm: float) -> None:
         self.match_tolerance_mm = match_tolerance_mm
+        #: the change estimator's time per registered pair (``[procedure.compensation]
+        #: estimator``), µs: what it adds to the pair path
+        self.change_cost = CostHistogram()
 
     def update(self, est: Estimate, points_mm: FloatArray, exposure_t_ns: int,
                reference_hook: Callable[[], None] | None = None) -> None:
@@ -67,7 +72,9 @@ class MarkerTracker:
             live = found if found is not None else live
         est.live_mm = live
         c = est.comp_cfg
+        t0 = time.perf_counter_ns()   # the estimator's cost (hil/controller/cost.py), not control
         fit = estimate_change(ref, live, est.T_center.t, c.estimator, c.weight_sigma_mm)
+        self.change_cost.add_ns(time.perf_counter_ns() - t0)
         est.change_fit = fit
         est.T_change_meas = None if fit is None else fit.T_live_from_ref
         if reference_hook is not None:

@@ -393,6 +393,11 @@ class ControllerParts(abc.ABC):
         return self.ctx.setpoint_cost.figures()
 
     @property
+    def change_cost(self) -> CostFigures:
+        """The change estimator's time per registered pair so far (hil/controller/cost.py), µs."""
+        return self.markers.change_cost.figures()
+
+    @property
     def servo_deadlines_missed(self) -> int:
         return self.ctx.servo_deadlines_missed
 

@@ -161,6 +161,10 @@ class SoakResult:
     predictor: str = ""
     #: COMPENSATE's setpoint work per pair: count, p50_us / p99_us / max_us (module doc)
     setpoint_us: dict[str, float | int | None] = field(default_factory=dict)
+    #: ``[procedure.compensation] estimator`` of the run, and its time per registered pair
+    #: (count, p50_us / p99_us / max_us; hil/controller/cost.py)
+    estimator: str = ""
+    change_fit_us: dict[str, float | int | None] = field(default_factory=dict)
     #: the supervisor's heap trims (hil/heap.py): trims, released, max_ms, total_ms
     heap_trim: dict[str, float | int] = field(default_factory=dict)
     frame_boundaries: int = 0
@@ -540,6 +544,7 @@ def run_soak(
     _add_process_figures(res, robot, feed, ctl, sampler, operator, minutes)
     res.camera_clock_ppm = setup.simulation.rig_errors.camera_clock_rate_error_ppm
     res.predictor = setup.procedure.compensation.predictor
+    res.estimator = setup.procedure.compensation.estimator
     res.viewer = viewer_figures
     return res
 
@@ -676,6 +681,7 @@ def analyse(
     res.frame_to_setpoint_ms = _stats(list(ctl.latency_ms))
     res.setpoint_us = ctl.setpoint_cost.to_dict()
     res.heap_trim = ctl.heap.figures().to_dict()
+    res.change_fit_us = ctl.change_cost.to_dict()
     res.frames_overwritten = ctl.frames_overwritten
     res.rss_mb = _rss_figures([(t, m) for t, m, _ in rss], operator.t_comp, minutes)
     res.servo_rss_mb = _rss_figures([(t, m) for t, _, m in rss], operator.t_comp, minutes)

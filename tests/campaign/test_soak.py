@@ -71,7 +71,7 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     for t_ns in (0, 1_000_000_000, 2_500_000_000):
         heap.after_tick(t_ns)
     ctl = SimpleNamespace(latency_ms=[30.0, 40.0, 50.0], servo_deadlines_missed=0, frames_overwritten=4,
-                          setpoint_cost=cost.figures(), heap=heap)
+                          setpoint_cost=cost.figures(), heap=heap, change_cost=CostHistogram().figures())
     op = SoakOperator(60.0, 60.0, lambda: None)
     op.t_comp = 0.0
     rss = [(0.0, 100.0, 500.0), (10.0, 100.5, 500.0), (20.0, 101.0, 500.0), (30.0, 101.0, 500.2),
@@ -92,6 +92,7 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     assert res.stale_periods == 7
     assert res.compensation_frames == 3
     assert res.setpoint_us == {"count": 3, "p50_us": 16.0, "p99_us": 80.2, "max_us": 80.2}
+    assert res.change_fit_us == {"count": 0, "p50_us": None, "p99_us": None, "max_us": None}
     assert res.heap_trim["trims"] == 2
     assert res.heap_trim["released"] == 2
     assert res.frames_overwritten == 4
@@ -193,6 +194,9 @@ def test_short_soak_compensates_with_the_servo_loop(short_soak: Any) -> None:
     assert 0.0 < res.setpoint_us["p50_us"] <= res.setpoint_us["p99_us"] <= res.setpoint_us["max_us"]
     # the supervisor gave its free heap back every 10 s of the run (hil/heap.py; glibc here)
     assert res.heap_trim["trims"] >= 1
+    # the change estimator is timed on every registered pair (compensation and before it)
+    assert res.estimator == "rigid"
+    assert res.change_fit_us["count"] >= res.compensation_frames
 
 
 #: further 10 s soaks (about 60 s of wall time each on a busy host) tried when the host took the
