@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import math
-from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Final, Protocol, runtime_checkable
@@ -17,6 +16,7 @@ from hil.controller import events as ev
 from hil.controller.compensation import rigid_change
 from hil.controller.estimate import Estimate
 from hil.controller.fsm import State
+from hil.controller.series import SampleSeries
 from hil.controller.truth import GroundTruth
 from hil.session.log import SessionLog
 
@@ -94,22 +94,22 @@ class RunSummary:
         return d
 
 
-def percentile(values: Sequence[float], q: float) -> float | None:
+def percentile(values: Sequence[float] | SampleSeries, q: float) -> float | None:
     return float(np.percentile(np.asarray(values, dtype=np.float64), q)) if len(values) else None
 
 
-def samples() -> array[float]:
-    """A per-frame sample series: 8 bytes a value (a long run's figures must not grow the process
-    by a Python object per frame: 32 bytes)."""
-    return array("d")
+def samples() -> SampleSeries:
+    """A per-tick or per-frame sample series whose memory does not grow with the run
+    (:class:`~hil.controller.series.SampleSeries`: exact up to its capacity)."""
+    return SampleSeries()
 
 
 @dataclass
 class RunMetrics:
     """Figures collected during the run (ms on the controller clock unless said)."""
 
-    detect_ms: array[float] = field(default_factory=samples)       # exposure -> markers perceived
-    processing_ms: array[float] = field(default_factory=samples)   # tick work, wall clock (profiling)
+    detect_ms: SampleSeries = field(default_factory=samples)       # exposure -> markers perceived
+    processing_ms: SampleSeries = field(default_factory=samples)   # tick work, wall clock (profiling)
     gate_samples: int = 0
     gate_open_samples: int = 0
     lock_time_s: float | None = None

@@ -8,7 +8,6 @@ from __future__ import annotations
 import abc
 import collections
 import math
-from array import array
 from collections.abc import Sequence
 from typing import Any
 
@@ -51,6 +50,7 @@ from hil.controller.pipeline import DevicePipeline, MarkerLocator
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, RigGeometry
 from hil.controller.registration import PatientRegistration, RobotRegistration
+from hil.controller.series import SampleSeries
 from hil.controller.snapshot import (
     ControllerSnapshot,
     TimelineRow,
@@ -384,7 +384,7 @@ class ControllerParts(abc.ABC):
         return self.metrics.frames_overwritten
 
     @property
-    def latency_ms(self) -> array[float]:
+    def latency_ms(self) -> SampleSeries:
         return self.ctx.latency_ms
 
     @property
@@ -402,7 +402,7 @@ class ControllerParts(abc.ABC):
         return self.ctx.servo_deadlines_missed
 
     @property
-    def comp_errors_mm(self) -> array[float]:
+    def comp_errors_mm(self) -> SampleSeries:
         return self.truth_meter.comp_errors_mm
 
     @property
@@ -425,7 +425,7 @@ class ControllerParts(abc.ABC):
         truth: float | None = None
         tm = self.truth_meter
         if state is State.COMPENSATE and tm.comp_errors_mm:
-            truth = tm.comp_errors_mm[-1]
+            truth = tm.comp_errors_mm.last
         elif state is State.LOCK and tm.lock_errors:
             truth = tm.lock_errors[-1][0]
         try:
@@ -485,8 +485,7 @@ class ControllerParts(abc.ABC):
             lock_error_mm=None if lock is None else lock[0],
             lock_error_max_mm=max(e[0] for e in tm.lock_errors) if tm.lock_errors else None,
             lock_direction_error_deg=None if lock is None else lock[1],
-            comp_error_rms_mm=float(np.sqrt(np.mean(np.square(comp)))) if comp else None,
-            comp_error_p95_mm=percentile(comp, 95), comp_error_max_mm=max(comp) if comp else None,
+            comp_error_rms_mm=comp.rms, comp_error_p95_mm=percentile(comp, 95), comp_error_max_mm=comp.max,
             latency_ms={"p50": percentile(lat, 50), "p95": percentile(lat, 95)},
             processing_ms={"p50": percentile(m.processing_ms, 50), "p95": percentile(m.processing_ms, 95)},
             gate_open_fraction=m.gate_open_fraction, time_to_lock_s=m.lock_time_s, duration_s=self.t_s(),
@@ -509,7 +508,7 @@ def _body_truth(tm: TruthMeter) -> dict[str, Any]:
         "target_error_max_mm": max(targets) if targets else None,
         "entry_axis_error_mm": lock[0].entry_mm if lock else None,
         "body_rigid_residual_mm_p95": percentile(res, 95),
-        "body_rigid_residual_mm_max": max(res) if res else None,
+        "body_rigid_residual_mm_max": res.max,
         "comp_target_error_p95_mm": percentile(tm.comp_target_errors_mm, 95),
         "comp_entry_error_p95_mm": percentile(tm.comp_entry_errors_mm, 95),
         "comp_entry_errors_mm": list(tm.comp_entry_errors_mm),

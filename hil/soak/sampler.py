@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import time
+from array import array
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -64,8 +65,13 @@ class Sampler:
 
     def __init__(self, robot: ServoRobot, perception_pid: Callable[[], int | None] | None) -> None:
         self.robot, self.perception_pid = robot, perception_pid
-        self.rss: list[tuple[float, float, float]] = []   # (monotonic s, supervisor MB, servo MB)
-        self.perception_rss: list[tuple[float, float]] = []   # (monotonic s, perception process MB)
+        # once a second for the whole soak, so flat arrays (8 bytes a value, not ~150 bytes a
+        # tuple: the supervisor's memory is what the soak measures): :attr:`rss` reads them
+        self._rss_t = array("d")
+        self._rss_sup_mb = array("d")
+        self._rss_servo_mb = array("d")
+        self._perc_t = array("d")
+        self._perc_mb = array("d")
         self.start: StatsCopy | None = None
         self._last = 0.0
         #: (monotonic s, CPU s) of the servo process when compensation first started
@@ -82,10 +88,23 @@ class Sampler:
             return
         self._last = now
         ready = self.robot.link.ready
-        self.rss.append((now, rss_mb(), rss_mb(ready.pid) if ready is not None else 0.0))
+        self._rss_t.append(now)
+        self._rss_sup_mb.append(rss_mb())
+        self._rss_servo_mb.append(rss_mb(ready.pid) if ready is not None else 0.0)
         pid = None if self.perception_pid is None else self.perception_pid()
         if pid is not None:
-            self.perception_rss.append((now, rss_mb(pid)))
+            self._perc_t.append(now)
+            self._perc_mb.append(rss_mb(pid))
+
+    @property
+    def rss(self) -> list[tuple[float, float, float]]:
+        """(monotonic s, supervisor MB, servo process MB), once a second (a new list)."""
+        return list(zip(self._rss_t, self._rss_sup_mb, self._rss_servo_mb, strict=True))
+
+    @property
+    def perception_rss(self) -> list[tuple[float, float]]:
+        """(monotonic s, perception process MB), once a second while it runs (a new list)."""
+        return list(zip(self._perc_t, self._perc_mb, strict=True))
 
     def on_compensate(self) -> None:
         self.start = StatsCopy.of(self.robot.link.regions.stats)

@@ -71,7 +71,6 @@ from __future__ import annotations
 
 import os
 import time
-from array import array
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -302,11 +301,8 @@ class SoakOperator:
         self._started = False
         self._last_halt_t: float | None = None
         self._tried_resume = False
-        #: monotonic time of every poll, ns: one per control tick, before it takes the next pair
-        self.tick_ns: array[int] = array("q")
 
     def poll(self, view: OperatorView) -> Event | None:
-        self.tick_ns.append(time.monotonic_ns())
         now = time.monotonic()
         if view.state is State.COMPENSATE and self.t_comp is None:
             self.t_comp = now
@@ -679,6 +675,8 @@ def analyse(
     res.stream_deadlines_missed = ctl.servo_deadlines_missed
     res.compensation_frames = len(ctl.latency_ms)
     res.frame_to_setpoint_ms = _stats(list(ctl.latency_ms))
+    if ctl.latency_ms:   # beyond the series' capacity its percentiles are estimates; the max is exact
+        res.frame_to_setpoint_ms["max"] = round(float(ctl.latency_ms.max or 0.0), 4)
     res.setpoint_us = ctl.setpoint_cost.to_dict()
     res.heap_trim = ctl.heap.figures().to_dict()
     res.change_fit_us = ctl.change_cost.to_dict()

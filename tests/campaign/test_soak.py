@@ -27,6 +27,7 @@ from hypothesis import strategies as st
 from hil.cli.cmd_soak import _latency_bound
 from hil.config import default_setup_path, load_setup
 from hil.controller.cost import CostHistogram
+from hil.controller.series import SampleSeries
 from hil.errors import InputFileError
 from hil.heap import HeapTrimmer
 from hil.servo.figures import LoopFigures
@@ -70,7 +71,10 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     heap = HeapTrimmer(1.0, trim=lambda: 1)
     for t_ns in (0, 1_000_000_000, 2_500_000_000):
         heap.after_tick(t_ns)
-    ctl = SimpleNamespace(latency_ms=[30.0, 40.0, 50.0], servo_deadlines_missed=0, frames_overwritten=4,
+    latency = SampleSeries()
+    for ms in (30.0, 40.0, 50.0):
+        latency.append(ms)
+    ctl = SimpleNamespace(latency_ms=latency, servo_deadlines_missed=0, frames_overwritten=4,
                           setpoint_cost=cost.figures(), heap=heap, change_cost=CostHistogram().figures())
     op = SoakOperator(60.0, 60.0, lambda: None)
     op.t_comp = 0.0

@@ -15,7 +15,6 @@ servo stream's command sink in COMPENSATE).
 
 from __future__ import annotations
 
-from array import array
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
@@ -29,6 +28,7 @@ from hil.controller.cost import CostHistogram
 from hil.controller.estimate import Estimate
 from hil.controller.fsm import Event, State
 from hil.controller.needle import NeedleCheck
+from hil.controller.series import SampleSeries
 from hil.controller.tracker_roles import TrackerRoles
 from hil.controller.truth import BreathHoldCoach
 from hil.safety.layer import SafetyLayer
@@ -91,7 +91,7 @@ class PhaseContext:
     #: steps the in-process servo loop at a time, ns (None: the servo process runs its own loop)
     step_servo: Callable[[int], None] | None = None
     #: latency of each frame's setpoint (exposure -> setpoint published), ms
-    latency_ms: array[float] = field(default_factory=lambda: array("d"))
+    latency_ms: SampleSeries = field(default_factory=SampleSeries)
     #: COMPENSATE's setpoint work per pair (the predictor's update, then the setpoint), µs
     setpoint_cost: CostHistogram = field(default_factory=CostHistogram)
     servo_deadlines_missed: int = 0
