@@ -17,9 +17,13 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
   update and the setpoint; hil/controller/cost.py), under ``predictor``: what a predictor adds
   to the path, measured in the run rather than by differencing two runs' latencies.
 - *memory growth*: resident set size of the supervisor (``rss_mb``), of the servo process
-  (``servo_rss_mb``) and of the perception process (``perception_rss_mb``, when it runs) at the
-  end minus after the warm-up (the first quarter of the compensation time, at most 30 s), and the
-  least-squares slope.
+  (``servo_rss_mb``) and of the perception process (``perception_rss_mb``, when it runs), sampled
+  once a second. ``growth``: the median of the last window minus the median of the first window
+  after the warm-up (the first quarter of the compensation time, at most 30 s); a window is 60 s,
+  or a quarter of the compensation time when shorter. Medians, because the heap trim
+  (hil/heap.py, every 10 s) makes the resident size a saw-tooth around what is really held: a
+  single sample catches a tooth. ``end`` - ``after_warmup`` are the raw samples; the
+  least-squares slope over everything after the warm-up.
 - ``locate_ms``: p50 / p95 of the time to locate one pair's markers (where it ran).
 - ``camera_latency_ms``: p50 / p99 of the camera's own latency, the left exposure -> the camera
   handed the pair over (measured in the perception process; empty when perception ran in the
@@ -620,11 +624,15 @@ def _rss_figures(rss: list[tuple[float, float]], t_comp: float | None,
         ts = np.array([t for t, _ in after]) / 60.0
         ms = np.array([m for _, m in after])
         slope = round(float(np.polyfit(ts - ts[0], ms, 1)[0]), 4)
+    window_s = min(60.0, 0.25 * minutes * 60.0)
+    first = [m for t, m in after if t < after[0][0] + window_s]
+    last = [m for t, m in after if t > after[-1][0] - window_s]
     return {
         "start": round(rss[0][1], 2),
         "after_warmup": round(after[0][1], 2),
         "end": round(rss[-1][1], 2),
-        "growth": round(rss[-1][1] - after[0][1], 2),
+        "growth": round(float(np.median(last)) - float(np.median(first)), 2),
+        "window_s": window_s,
         "slope_mb_per_min": slope,
     }
 

@@ -101,8 +101,11 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     assert res.heap_trim["released"] == 2
     assert res.frames_overwritten == 4
     assert res.rss_mb["after_warmup"] == 101.0  # warm-up: min(30 s, a quarter of 1 min) = 15 s
-    assert res.rss_mb["growth"] == 0.5
-    assert res.servo_rss_mb["growth"] == 0.2
+    # windows of min(60 s, a quarter of 1 min) = 15 s: medians of [20, 35) and (25, 40]
+    assert res.rss_mb["window_s"] == 15.0
+    assert res.rss_mb["growth"] == 0.25         # median(101, 101.5) - median(101, 101)
+    assert res.rss_mb["end"] - res.rss_mb["after_warmup"] == 0.5
+    assert res.servo_rss_mb["growth"] == 0.1     # median(500.2, 500.2) - median(500, 500.2)
     assert res.rss_mb_by_minute == [100.0]      # the samples span 40 s: only minute 0
 
 
@@ -143,6 +146,35 @@ def test_bench_loop_reports_the_bound_beside_frame_to_command() -> None:
     assert out["camera_latency_ms"] == {"p50": 28.0, "p99": 41.0}
     assert out["locate_ms"] == {"p50": 1.43, "p95": 3.0}
     assert out["frame_to_command_ms"] == {"p50": 36.25, "p99": 40.55, "max": 60.0}
+
+
+def test_memory_growth_reads_through_the_heap_trims_saw_tooth() -> None:
+    """RSS once a second over 10 min: a floor of 200 MB with a 12 MB tooth for 5 s after each
+    trim period (allocations the next trim gives back): no growth; the same with the floor 0.8 MB
+    higher in the last minutes: that growth."""
+    def series(rise_mb: float) -> list[tuple[float, float, float]]:
+        out = []
+        for t in range(600):
+            tooth = 12.0 if t % 60 < 5 else 0.0
+            floor = 200.0 + (rise_mb if t >= 480 else 0.0)
+            out.append((float(t), floor + tooth, 500.0))
+        return out
+
+    op = SoakOperator(600.0, 60.0, lambda: None)
+    op.t_comp = 0.0
+    figs = LoopFigures(periods=1, commands=1, intervals=1, late=0, late_fraction=0.0, longest_ms=2.0,
+                       period_ms={}, jitter_ms={}, latency_ms={}, refusals=0, stale_periods=0,
+                       read_errors=0, command_errors=0, stops_sent=0, late_wakes=0, overruns=0,
+                       wake_late_max_ms=0.0, step_max_ms=0.0, overrun_max_ms=0.0, overruns_off_cpu=0,
+                       step_cpu_max_ms=0.0, step_off_cpu_max_ms=0.0)
+    ctl = SimpleNamespace(latency_ms=SampleSeries(), servo_deadlines_missed=0, frames_overwritten=0,
+                          setpoint_cost=CostHistogram().figures(), heap=HeapTrimmer(0.0),
+                          change_cost=CostHistogram().figures())
+    flat = analyse(500.0, 10.0, figs, ctl, op, series(0.0), "compensate", [], [], "x")  # type: ignore[arg-type]
+    assert flat.rss_mb["after_warmup"] == 200.0
+    assert flat.rss_mb["growth"] == 0.0
+    risen = analyse(500.0, 10.0, figs, ctl, op, series(0.8), "compensate", [], [], "x")  # type: ignore[arg-type]
+    assert risen.rss_mb["growth"] == 0.8
 
 
 def test_rss_by_minute_takes_the_first_sample_of_each_whole_minute() -> None:
