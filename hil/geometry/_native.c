@@ -8,7 +8,9 @@
  *          (hil.kinematics.ur.ur_newton_ik: the simulated arm's servo command, every period);
  *   filter_feed, filter_pose, tcp_setpoint: the per-pair control law of COMPENSATE, the motion
  *          filter's step and pose (hil.controller.compensation.MotionFilter) and the tracking
- *          setpoint with its velocity (hil.controller.estimate.Estimate.tracking_setpoint).
+ *          setpoint with its velocity (hil.controller.estimate.Estimate.tracking_setpoint);
+ *   ar_feed, ar_forecast: the loop's "ar-ls" predictor (hil.prediction.ar.ArModel): its update
+ *          and forecast, once and twice per pair in COMPENSATE.
  *
  * Why: horn, track and the control law run for every stereo pair on the path from the exposure
  * to the servo setpoint, ur_newton in every servo period between the setpoint and the command. On a
@@ -895,6 +897,212 @@ static PyObject *k_tcp_setpoint(PyObject *self, PyObject *args)
     return result;
 }
 
+/* ---- the sliding-window AR predictor (hil.prediction.ar.ArModel) ---------------------------- */
+
+/* The AR model's state, in arrays the Python side owns (hil/prediction/ar.py, "compiled"):
+ *   ring (C, 3): the last C = N + p + 1 increments, a ring; meta (4,): head (index of the newest
+ *   increment), increments held, samples seen (0, 1 or more), rows in the normal equations;
+ *   A (3, p*p), b (3, p): each axis's running normal equations; a (3, p): its coefficients;
+ *   y (3,): the last sample. Counters are whole numbers stored as float64 (exact below 2^53). */
+
+/* The j-th newest increment (j = 0: newest), axis c. */
+static double ar_inc(const double *ring, Py_ssize_t cap, Py_ssize_t head, Py_ssize_t j, int c)
+{
+    Py_ssize_t i = (head - j) % cap;
+    if (i < 0) {
+        i += cap;
+    }
+    return ring[3 * i + c];
+}
+
+/* Add (sign +1) or remove (-1) the row whose target is the k-th newest increment: regressors the
+ * p increments before it, newest first (ArModel._row). */
+static void ar_row(double *A, double *b, const double *ring, Py_ssize_t cap, Py_ssize_t head, int p,
+                   Py_ssize_t k, double sign)
+{
+    for (int c = 0; c < 3; c++) {
+        double phi[64];
+        double tgt = ar_inc(ring, cap, head, k, c);
+        for (int i = 0; i < p; i++) {
+            phi[i] = ar_inc(ring, cap, head, k + 1 + i, c);
+        }
+        for (int i = 0; i < p; i++) {
+            for (int j = 0; j < p; j++) {
+                A[c * p * p + i * p + j] += sign * phi[i] * phi[j];
+            }
+            b[c * p + i] += sign * phi[i] * tgt;
+        }
+    }
+}
+
+/* Solve (A_c + ridge I) a_c = b_c for each axis by Gaussian elimination with partial pivoting.
+ * 0, or -1 (a singular or non-finite system: ``a`` is left as it was). */
+static int ar_solve(const double *A, const double *b, double ridge, int p, double *a)
+{
+    double out[3][64];
+    for (int c = 0; c < 3; c++) {
+        double m[64][65];
+        for (int i = 0; i < p; i++) {
+            for (int j = 0; j < p; j++) {
+                m[i][j] = A[c * p * p + i * p + j] + (i == j ? ridge : 0.0);
+            }
+            m[i][p] = b[c * p + i];
+        }
+        for (int col = 0; col < p; col++) {
+            int piv = col;
+            for (int r = col + 1; r < p; r++) {
+                if (fabs(m[r][col]) > fabs(m[piv][col])) {
+                    piv = r;
+                }
+            }
+            if (!(fabs(m[piv][col]) > 0.0) || !isfinite(m[piv][col])) {
+                return -1;
+            }
+            if (piv != col) {
+                for (int j = col; j <= p; j++) {
+                    double t = m[col][j];
+                    m[col][j] = m[piv][j];
+                    m[piv][j] = t;
+                }
+            }
+            for (int r = col + 1; r < p; r++) {
+                double f = m[r][col] / m[col][col];
+                for (int j = col; j <= p; j++) {
+                    m[r][j] -= f * m[col][j];
+                }
+            }
+        }
+        for (int i = p - 1; i >= 0; i--) {
+            double acc = m[i][p];
+            for (int j = i + 1; j < p; j++) {
+                acc -= m[i][j] * out[c][j];
+            }
+            out[c][i] = acc / m[i][i];
+        }
+        if (!all_finite(out[c], p)) {
+            return -1;
+        }
+    }
+    for (int c = 0; c < 3; c++) {
+        memcpy(a + c * p, out[c], (size_t)p * sizeof(double));
+    }
+    return 0;
+}
+
+PyDoc_STRVAR(ar_feed_doc,
+"ar_feed(x, ring, A, b, a, y, meta, order, window, ridge) -> int\n\n"
+"One sample x (3,) mm into the AR model's state (hil.prediction.ar.ArModel.feed): its increment\n"
+"into the ring, the newest row added to each axis's normal equations and the row leaving the\n"
+"window removed, the coefficients solved once the window is full. 0; -1 when the solve failed\n"
+"(the coefficients are unchanged: the caller refits with numpy, which raises). order <= 64.");
+
+static PyObject *k_ar_feed(PyObject *self, PyObject *args)
+{
+    static const BufSpec spec[7] = {
+        {"x", 1, {3}, 0}, {"ring", 2, {-1, 3}, 1}, {"A", 2, {3, -1}, 1}, {"b", 2, {3, -1}, 1},
+        {"a", 2, {3, -1}, 1}, {"y", 1, {3}, 1}, {"meta", 1, {4}, 1}};
+    PyObject *o[7];
+    int p, n;
+    double ridge, *q[7];
+    if (!PyArg_ParseTuple(args, "OOOOOOOiid", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &p, &n,
+                          &ridge)) {
+        return NULL;
+    }
+    Py_buffer views[7];
+    PyObject *result = NULL;
+    if (get_all(o, spec, 7, views, q) == 0) {
+        Py_ssize_t cap = views[1].shape[0];
+        if (p < 1 || p > 64 || n <= p || cap != (Py_ssize_t)n + p + 1 || views[2].shape[1] != (Py_ssize_t)p * p
+                || views[3].shape[1] != p || views[4].shape[1] != p) {
+            PyErr_SetString(PyExc_ValueError, "ar_feed: shapes do not match order and window");
+        } else {
+            double *ring = q[1], *A = q[2], *b = q[3], *a = q[4], *y = q[5], *meta = q[6];
+            Py_ssize_t head = (Py_ssize_t)meta[0], held = (Py_ssize_t)meta[1], rows = (Py_ssize_t)meta[3];
+            int status = 0;
+            if (meta[2] > 0.0) {
+                head = (head + 1) % cap;
+                for (int c = 0; c < 3; c++) {
+                    ring[3 * head + c] = q[0][c] - y[c];
+                }
+                held = held < cap ? held + 1 : cap;
+            }
+            memcpy(y, q[0], 3 * sizeof(double));
+            meta[2] = meta[2] < 2.0 ? meta[2] + 1.0 : 2.0;
+            if (held > p) {
+                ar_row(A, b, ring, cap, head, p, 0, 1.0);
+                rows += 1;
+                if (rows > n) {
+                    ar_row(A, b, ring, cap, head, p, n, -1.0);
+                    rows = n;
+                }
+                if (rows >= n) {
+                    status = ar_solve(A, b, ridge, p, a);
+                }
+            }
+            meta[0] = (double)head;
+            meta[1] = (double)held;
+            meta[3] = (double)rows;
+            result = PyLong_FromLong(status);
+        }
+    }
+    release(views, 7);
+    return result;
+}
+
+PyDoc_STRVAR(ar_forecast_doc,
+"ar_forecast(steps, ring, a, y, meta, order, out) -> None\n\n"
+"The AR model's forecast ``steps`` samples after the last (hil.prediction.ar.ArModel.forecast):\n"
+"the one-step model iterated, a fractional step linear between its whole neighbours; into\n"
+"out (3,) mm. The model must be ready (the window full).");
+
+static PyObject *k_ar_forecast(PyObject *self, PyObject *args)
+{
+    static const BufSpec spec[5] = {
+        {"ring", 2, {-1, 3}, 0}, {"a", 2, {3, -1}, 0}, {"y", 1, {3}, 0}, {"meta", 1, {4}, 0},
+        {"out", 1, {3}, 1}};
+    PyObject *o[5];
+    int p;
+    double steps, *q[5];
+    if (!PyArg_ParseTuple(args, "dOOOOiO", &steps, &o[0], &o[1], &o[2], &o[3], &p, &o[4])) {
+        return NULL;
+    }
+    Py_buffer views[5];
+    PyObject *result = NULL;
+    if (get_all(o, spec, 5, views, q) == 0) {
+        Py_ssize_t cap = views[0].shape[0];
+        if (p < 1 || p > 64 || views[1].shape[1] != p || q[3][1] < p || !isfinite(steps)) {
+            PyErr_SetString(PyExc_ValueError, "ar_forecast: shapes do not match order, or too few increments");
+        } else {
+            const double *ring = q[0], *a = q[1];
+            Py_ssize_t head = (Py_ssize_t)q[3][0];
+            double s = steps > 0.0 ? steps : 0.0;
+            long hi = (long)ceil(s);
+            for (int c = 0; c < 3; c++) {
+                double reg[64], y = q[2][c], prev = y, inc = 0.0, res = y;
+                for (int i = 0; i < p; i++) {
+                    reg[i] = ar_inc(ring, cap, head, i, c);
+                }
+                for (long k = 1; k <= hi; k++) {
+                    inc = 0.0;
+                    for (int i = 0; i < p; i++) {
+                        inc += a[c * p + i] * reg[i];
+                    }
+                    prev = y;
+                    y = y + inc;
+                    memmove(reg + 1, reg, (size_t)(p - 1) * sizeof(double));
+                    reg[0] = inc;
+                }
+                res = (hi >= 1 && s < (double)hi) ? prev + (s - (double)(hi - 1)) * inc : y;
+                q[4][c] = res;
+            }
+            Py_INCREF(Py_None);
+            result = Py_None;
+        }
+    }
+    release(views, 5);
+    return result;
+}
+
 /* ---- module --------------------------------------------------------------------------------- */
 
 static PyMethodDef native_methods[] = {
@@ -904,6 +1112,8 @@ static PyMethodDef native_methods[] = {
     {"filter_feed", k_filter_feed, METH_VARARGS, filter_feed_doc},
     {"filter_pose", k_filter_pose, METH_VARARGS, filter_pose_doc},
     {"tcp_setpoint", k_tcp_setpoint, METH_VARARGS, tcp_setpoint_doc},
+    {"ar_feed", k_ar_feed, METH_VARARGS, ar_feed_doc},
+    {"ar_forecast", k_ar_forecast, METH_VARARGS, ar_forecast_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -13,6 +13,15 @@ running sums (the newest row added, the one leaving the window subtracted), so o
 O(p^2) plus one p x p solve. A k-step forecast iterates the one-step model (feeding each forecast
 increment back); a fractional step interpolates linearly between its two whole neighbours.
 Each axis has its own coefficients.
+
+Compiled: when the per-pair geometry extension is built and selected (:mod:`hil.geometry.native`,
+``HIL_GEOMETRY_KERNEL``), :meth:`ArModel.feed` and :meth:`ArModel.forecast` are one call each into
+``ar_feed`` / ``ar_forecast`` (hil/geometry/_native.c) on state arrays this class owns (a ring of
+the increments instead of :class:`~hil.prediction._history.History`); the numpy code here is the
+reference, and the two agree to rounding (tests/prediction/test_ar_compiled.py). Why: in the
+loop, the numpy code's ~100 small calls per pair took 0.24 ms p50 / 0.37 ms p99 of a
+supervisor whose CPU the camera thread shares (docs/benchmarks.md, issue 42: at most 0.2 ms p99
+more on the pair path). The choice is made when the model is built.
 """
 
 from __future__ import annotations
@@ -21,10 +30,14 @@ import math
 
 import numpy as np
 
+from hil.geometry import native
 from hil.prediction._history import History
 from hil.prediction.base import FloatArray
 
-__all__ = ["ArModel"]
+__all__ = ["MAX_COMPILED_ORDER", "ArModel"]
+
+#: the largest order the compiled code takes (its stack arrays)
+MAX_COMPILED_ORDER = 64
 
 
 class ArModel:
@@ -49,10 +62,22 @@ class ArModel:
         self._b = np.zeros((3, order))
         self._a = np.zeros((3, order))
         self._rows = 0
+        #: the compiled module (module doc; None: the numpy code) and its state
+        self._k = native.active() if order <= MAX_COMPILED_ORDER else None
+        self._ring = np.zeros((window + order + 1, 3))
+        self._Af = np.zeros((3, order * order))
+        self._yf = np.zeros(3)
+        self._meta = np.zeros(4)    # head, increments held, samples seen, rows (ar_feed's doc)
+        self._out = np.zeros(3)
+
+    @property
+    def compiled(self) -> bool:
+        """Whether feed and forecast run compiled (module doc)."""
+        return self._k is not None
 
     @property
     def ready(self) -> bool:
-        return self._rows >= self.N
+        return (self._meta[3] if self._k is not None else self._rows) >= self.N
 
     def reset(self) -> None:
         self._y.clear()
@@ -61,6 +86,10 @@ class ArModel:
         self._b[:] = 0.0
         self._a[:] = 0.0
         self._rows = 0
+        self._ring[:] = 0.0
+        self._Af[:] = 0.0
+        self._yf[:] = 0.0
+        self._meta[:] = 0.0
 
     def _row(self, k: int) -> tuple[FloatArray, FloatArray]:
         """(regressor (3, p), target (3,)) of the row whose target is the increment ``k`` back."""
@@ -69,6 +98,12 @@ class ArModel:
         return block[: self.p][::-1].T, block[self.p]
 
     def feed(self, x_mm: FloatArray, steps: float) -> None:
+        if self._k is not None:
+            if self._k.ar_feed(x_mm, self._ring, self._Af, self._b, self._a, self._yf, self._meta,
+                               self.p, self.N, self.ridge) != 0:   # a singular window: numpy says why
+                A = self._Af.reshape(3, self.p, self.p) + self.ridge * np.eye(self.p)
+                self._a = np.asarray(np.linalg.solve(A, self._b[:, :, None])[:, :, 0], dtype=np.float64)
+            return
         if self._y.count:
             self._d.append(x_mm - self._y.back(0))
         self._y.append(x_mm)
@@ -88,6 +123,9 @@ class ArModel:
             self._a = np.asarray(np.linalg.solve(A, self._b[:, :, None])[:, :, 0], dtype=np.float64)
 
     def forecast(self, steps: float) -> FloatArray:
+        if self._k is not None:
+            self._k.ar_forecast(float(steps), self._ring, self._a, self._yf, self._meta, self.p, self._out)
+            return self._out.copy()
         y = self._y.back(0).copy()
         s = max(steps, 0.0)
         hi = math.ceil(s)
