@@ -27,6 +27,10 @@ FloatArray = NDArray[np.float64]
 
 MIN_GATE_MARKERS = 3
 
+#: what a pause's reason says when the body no longer matches the registration and the operator
+#: should register again, not resume into the same pause (scripted operators read it too)
+REREGISTER_ADVICE = "(re-register)"
+
 
 def rms_deviation_mm(reference_mm: FloatArray, live_mm: FloatArray) -> tuple[float, int]:
     """RMS distance between corresponding reference and live markers, over the rows where both
@@ -199,4 +203,4 @@ class MovedPatientWatch:
             return None
         return (f"the skin markers have stayed more than {g.tolerance_mm} mm RMS from the registered state "
                 f"for {away_s:.0f} s (now {rms_mm:.1f} mm) with their shape back ({shape_mm:.2f} mm): "
-                "the patient has moved since registration (re-register)")
+                f"the patient has moved since registration {REREGISTER_ADVICE}")

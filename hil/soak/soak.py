@@ -90,6 +90,7 @@ from hil.config.setup import SetupConfig
 from hil.config.simulation import RigErrorsConfig
 from hil.controller.controller import Controller
 from hil.controller.fsm import Event, State
+from hil.controller.gate import REREGISTER_ADVICE
 from hil.controller.operator_input import OperatorView
 from hil.controller.perception import StereoMarkerLocator
 from hil.controller.plan_file import load_plan
@@ -274,7 +275,8 @@ REREGISTER_AFTER_GATE_S = 30.0
 
 class SoakOperator:
     """Starts, confirms, resumes after a pause or fault, re-registers when the gate stays shut for
-    ``reregister_after_s`` (pause, then start: PAUSED -> REGISTER), and ends the run ``soak_s`` of
+    ``reregister_after_s`` (pause, then start: PAUSED -> REGISTER) or when a pause's reason advises
+    it (:data:`~hil.controller.gate.REREGISTER_ADVICE`: the patient moved), and ends the run ``soak_s`` of
     wall time after the procedure first entered COMPENSATE (or after ``give_up_s`` without
     reaching it)."""
 
@@ -288,7 +290,7 @@ class SoakOperator:
         #: protective stops unlocked at the pendant, and unlock presses the arm refused
         self.unlocks = 0
         self.unlocks_refused = 0
-        #: re-registrations asked for because the gate stayed shut
+        #: re-registrations: the gate stayed shut, or a pause advised it
         self.reregistrations = 0
         self._gate_since: float | None = None
         self._reregister = False
@@ -339,7 +341,11 @@ class SoakOperator:
         if now - self._last_halt_t < 0.5:  # let the robot stop, then carry on
             return None
         self._last_halt_t = now
-        if self._reregister and view.state is State.PAUSED:
+        if view.state is State.PAUSED and (self._reregister or REREGISTER_ADVICE in view.last_reason):
+            # the gate stayed shut, or the controller says the body no longer matches the
+            # registration (the patient moved): register again rather than resume into the pause
+            if not self._reregister:
+                self.reregistrations += 1
             self._reregister = False
             return Event.START_REQUESTED   # PAUSED -> REGISTER
         if not self._unlocked():

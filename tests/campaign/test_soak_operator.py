@@ -13,6 +13,7 @@ import pytest
 from hil.config import default_setup_path
 from hil.config.faults import FaultKind, FaultSpec
 from hil.controller.fsm import Event, State
+from hil.controller.gate import REREGISTER_ADVICE
 from hil.controller.operator_input import OperatorView
 from hil.soak import soak as soak_module
 from hil.soak.soak import SoakOperator, run_soak
@@ -85,3 +86,34 @@ def test_an_injected_protective_stop_is_one_fault_in_a_soak(tmp_path: Path,
     assert outcome["back_in_compensation_s"] is not None, outcome
     assert res.unlocks >= 1
     assert res.resumes >= 1
+
+
+def test_a_pause_that_advises_re_registration_is_answered_by_registering(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The moved-patient pause (hil/controller/gate.py) says "re-register": resuming goes back to
+    GATE, where the markers are still off and the same pause follows 15 s later, for ever (an
+    8-minute soak looped so after its first fault and never compensated again). The operator
+    registers again; a plain pause is still resumed."""
+    now = [100.0]
+    monkeypatch.setattr("hil.soak.soak.time", SimpleNamespace(monotonic=lambda: now[0],
+                                                              monotonic_ns=lambda: round(now[0] * 1e9)))
+    op = SoakOperator(600.0, 60.0, lambda: None)
+
+    def poll(state: State, t: float, reason: str = "") -> Event | None:
+        now[0] = t
+        return op.poll(OperatorView(state=state, pending=None, last_reason=reason, t_s=t - 100.0,
+                                    started=True))
+
+    moved = ("the skin markers have stayed more than 1.5 mm RMS from the registered state for 15 s "
+             f"(now 2.2 mm) with their shape back (0.05 mm): the patient has moved since registration "
+             f"{REREGISTER_ADVICE}; operator decision needed")
+    assert poll(State.IDLE, 100.0) is Event.START_REQUESTED
+    assert poll(State.GATE, 100.1) is None
+    assert poll(State.PAUSED, 100.2, moved) is None                     # let the robot stop
+    assert poll(State.PAUSED, 100.8, moved) is Event.START_REQUESTED    # PAUSED -> REGISTER
+    assert op.reregistrations == 1
+    assert op.resumes == 0
+    assert poll(State.GATE, 101.0) is None
+    assert poll(State.PAUSED, 102.0, "operator") is None
+    assert poll(State.PAUSED, 102.6, "operator") is Event.RESUME_REQUESTED   # a plain pause: resumed
+    assert op.reregistrations == 1
