@@ -148,8 +148,7 @@ class ControllerParts(abc.ABC):
         self.t0_ns = clock.now_ns()
         self.est = Estimate(plan, rig, procedure, camera.frame_rate_hz)
         self.metrics = RunMetrics()
-        #: gives the free C-heap pages back after ticks (hil/heap.py; the supervisor's memory)
-        self.heap = HeapTrimmer(procedure.heap_trim_every_s)
+        self.heap = HeapTrimmer(procedure.heap_trim_every_s)   # free heap pages back (hil/heap.py)
         sup_ms = procedure.supervisor_period_ms
         self.pipeline = DevicePipeline(camera, robot, tracker, clock, locate, self.watchdogs, session,
                                        self.metrics, None if sup_ms is None else sup_ms / 1e3,
@@ -388,14 +387,9 @@ class ControllerParts(abc.ABC):
         return self.ctx.latency_ms
 
     @property
-    def setpoint_cost(self) -> CostFigures:
-        """COMPENSATE's setpoint work per pair so far (hil/controller/cost.py), µs."""
-        return self.ctx.setpoint_cost.figures()
-
-    @property
-    def change_cost(self) -> CostFigures:
-        """The change estimator's time per registered pair so far (hil/controller/cost.py), µs."""
-        return self.markers.change_cost.figures()
+    def pair_costs(self) -> tuple[CostFigures, CostFigures]:
+        """COMPENSATE's setpoint work and the change estimator's time per pair so far, µs."""
+        return self.ctx.setpoint_cost.figures(), self.markers.change_cost.figures()
 
     @property
     def servo_deadlines_missed(self) -> int:

@@ -548,10 +548,9 @@ def run_soak(
     res.following_peak_mm, res.following_faults = figs.following_peak_mm, figs.following_faults
     _add_fault_outcomes(res, schedule, str(session.path), t_open_ns, feed)
     _add_process_figures(res, robot, feed, ctl, sampler, operator, minutes)
+    comp = setup.procedure.compensation
     res.camera_clock_ppm = setup.simulation.rig_errors.camera_clock_rate_error_ppm
-    res.predictor = setup.procedure.compensation.predictor
-    res.estimator = setup.procedure.compensation.estimator
-    res.viewer = viewer_figures
+    res.predictor, res.estimator, res.viewer = comp.predictor, comp.estimator, viewer_figures
     return res
 
 
@@ -691,9 +690,9 @@ def analyse(
     res.frame_to_setpoint_ms = _stats(list(ctl.latency_ms))
     if ctl.latency_ms:   # beyond the series' capacity its percentiles are estimates; the max is exact
         res.frame_to_setpoint_ms["max"] = round(float(ctl.latency_ms.max or 0.0), 4)
-    res.setpoint_us = ctl.setpoint_cost.to_dict()
+    setpoint, change_fit = ctl.pair_costs
+    res.setpoint_us, res.change_fit_us = setpoint.to_dict(), change_fit.to_dict()
     res.heap_trim = ctl.heap.figures().to_dict()
-    res.change_fit_us = ctl.change_cost.to_dict()
     res.frames_overwritten = ctl.frames_overwritten
     res.rss_mb = _rss_figures([(t, m) for t, m, _ in rss], operator.t_comp, minutes)
     res.servo_rss_mb = _rss_figures([(t, m) for t, _, m in rss], operator.t_comp, minutes)

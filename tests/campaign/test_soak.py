@@ -75,7 +75,7 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     for ms in (30.0, 40.0, 50.0):
         latency.append(ms)
     ctl = SimpleNamespace(latency_ms=latency, servo_deadlines_missed=0, frames_overwritten=4,
-                          setpoint_cost=cost.figures(), heap=heap, change_cost=CostHistogram().figures())
+                          pair_costs=(cost.figures(), CostHistogram().figures()), heap=heap)
     op = SoakOperator(60.0, 60.0, lambda: None)
     op.t_comp = 0.0
     rss = [(0.0, 100.0, 500.0), (10.0, 100.5, 500.0), (20.0, 101.0, 500.0), (30.0, 101.0, 500.2),
@@ -168,8 +168,8 @@ def test_memory_growth_reads_through_the_heap_trims_saw_tooth() -> None:
                        wake_late_max_ms=0.0, step_max_ms=0.0, overrun_max_ms=0.0, overruns_off_cpu=0,
                        step_cpu_max_ms=0.0, step_off_cpu_max_ms=0.0)
     ctl = SimpleNamespace(latency_ms=SampleSeries(), servo_deadlines_missed=0, frames_overwritten=0,
-                          setpoint_cost=CostHistogram().figures(), heap=HeapTrimmer(0.0),
-                          change_cost=CostHistogram().figures())
+                          pair_costs=(CostHistogram().figures(), CostHistogram().figures()),
+                          heap=HeapTrimmer(0.0))
     flat = analyse(500.0, 10.0, figs, ctl, op, series(0.0), "compensate", [], [], "x")  # type: ignore[arg-type]
     assert flat.rss_mb["after_warmup"] == 200.0
     assert flat.rss_mb["growth"] == 0.0
