@@ -1,7 +1,7 @@
 /*
  * hil.geometry._native: the per-pair marker geometry of the controller in compiled code.
  *
- *   horn:  Horn's closed-form registration with unit weights (hil.geometry.registration.
+ *   horn:  Horn's closed-form registration, unit or given weights (hil.geometry.registration.
  *          register_horn, seed 000 eqs 17-21), with that module's configuration checks;
  *   track: the greedy frame-to-frame marker assignment (hil.controller.registration.track);
  *   ur_newton: the Newton steps of a UR arm's inverse kinematics for a small step
@@ -185,12 +185,18 @@ static int jacobi_sym(int n, double a[4][4], double v[4][4])
 /* 0 when ``pts`` (n x 3) fixes a rotation by registration.py's rule (its centred set's singular
  * values: the largest above COINCIDENT_TOL_MM * max(1, max |p|), the second above
  * COLLINEAR_REL_TOL times the largest), else -1. The singular values are the square roots of the
- * eigenvalues of the centred scatter matrix. */
-static int configuration_ok(const double *pts, Py_ssize_t n)
+ * eigenvalues of the centred scatter matrix. ``w`` (n, or NULL: all): only the points with a
+ * positive weight count, as the numpy code checks the active pairs. */
+static int configuration_ok(const double *pts, Py_ssize_t n, const double *w)
 {
     double mean[3] = {0.0, 0.0, 0.0};
     double scale = 0.0;
+    Py_ssize_t used = 0;
     for (Py_ssize_t i = 0; i < n; i++) {
+        if (w != NULL && !(w[i] > 0.0)) {
+            continue;
+        }
+        used++;
         for (int j = 0; j < 3; j++) {
             double x = pts[3 * i + j];
             mean[j] += x;
@@ -199,11 +205,17 @@ static int configuration_ok(const double *pts, Py_ssize_t n)
             }
         }
     }
+    if (used < 3) {
+        return -1;
+    }
     for (int j = 0; j < 3; j++) {
-        mean[j] /= (double)n;
+        mean[j] /= (double)used;
     }
     double s[4][4] = {{0.0}};
     for (Py_ssize_t i = 0; i < n; i++) {
+        if (w != NULL && !(w[i] > 0.0)) {
+            continue;
+        }
         double d[3];
         for (int j = 0; j < 3; j++) {
             d[j] = pts[3 * i + j] - mean[j];
@@ -260,21 +272,37 @@ static int all_within(const double *x, Py_ssize_t count, double bound)
 }
 
 PyDoc_STRVAR(horn_doc,
-"horn(fixed, moving, R, t, residuals) -> float\n\n"
-"Horn's registration with unit weights (hil.geometry.registration.register_horn): fixed, moving\n"
-"(N, 3) float64 C-contiguous, mm; writes R (3, 3) and t (3,) of T_fixed_from_moving and the\n"
-"residuals (N,) |R m_i + t - f_i| in mm; returns the FRE (RMS of the residuals, mm). Returns\n"
-"-1.0 (outputs undefined) for N < 3, NaN/inf or a coordinate beyond 1e9 mm, a coincident or\n"
-"collinear set, no convergence or a non-finite result: the numpy code decides those (and\n"
-"raises). TypeError / ValueError for a bad buffer.");
+"horn(fixed, moving, R, t, residuals, weights=None) -> float\n\n"
+"Horn's registration (hil.geometry.registration.register_horn): fixed, moving (N, 3) float64\n"
+"C-contiguous, mm; weights (N,) float64 or None (unit weights); writes R (3, 3) and t (3,) of\n"
+"T_fixed_from_moving and the residuals (N,) |R m_i + t - f_i| in mm; returns the FRE (the\n"
+"weighted RMS of the residuals, mm). Returns -1.0 (outputs undefined) for N < 3, NaN/inf or a\n"
+"coordinate beyond 1e9 mm, a weight that is negative or not finite, fewer than 3 positive\n"
+"weights, a coincident or collinear set of the weighted pairs, no convergence or a non-finite\n"
+"result: the numpy code decides those (and raises). TypeError / ValueError for a bad buffer.");
+
+/* Whether the weights are finite, non-negative, at least 3 positive and their sum finite. */
+static int weights_ok(const double *w, Py_ssize_t n)
+{
+    Py_ssize_t positive = 0;
+    double sum = 0.0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (!isfinite(w[i]) || w[i] < 0.0) {
+            return 0;
+        }
+        positive += w[i] > 0.0;
+        sum += w[i];
+    }
+    return positive >= 3 && isfinite(sum);
+}
 
 static PyObject *k_horn(PyObject *self, PyObject *args)
 {
-    PyObject *o_f, *o_m, *o_R, *o_t, *o_res;
-    if (!PyArg_ParseTuple(args, "OOOOO", &o_f, &o_m, &o_R, &o_t, &o_res)) {
+    PyObject *o_f, *o_m, *o_R, *o_t, *o_res, *o_w = Py_None;
+    if (!PyArg_ParseTuple(args, "OOOOO|O", &o_f, &o_m, &o_R, &o_t, &o_res, &o_w)) {
         return NULL;
     }
-    Py_buffer views[5];
+    Py_buffer views[6];
     memset(views, 0, sizeof(views));
     PyObject *result = NULL;
     const Py_ssize_t any3[2] = {-1, 3};
@@ -294,15 +322,26 @@ static PyObject *k_horn(PyObject *self, PyObject *args)
     if (res == NULL) {
         goto done;
     }
+    const double *w = NULL;
+    if (o_w != Py_None && (w = get_f64(o_w, &views[5], "weights", 1, sn, 0)) == NULL) {
+        goto done;
+    }
     if (n < 3 || !all_within(f, 3 * n, MAX_COORDINATE_MM) || !all_within(m, 3 * n, MAX_COORDINATE_MM)
-        || configuration_ok(f, n) != 0 || configuration_ok(m, n) != 0) {
+        || (w != NULL && !weights_ok(w, n))
+        || configuration_ok(f, n, w) != 0 || configuration_ok(m, n, w) != 0) {
         result = PyFloat_FromDouble(-1.0);
         goto done;
     }
-    /* eq 17 with w_i = 1/N: centroids and A = sum w_i (m_i - m_bar)(f_i - f_bar)^T */
-    double wn = 1.0 / (double)n;
+    /* eq 17 with wn_i = w_i / sum w (1/N without weights): centroids and
+     * A = sum wn_i (m_i - m_bar)(f_i - f_bar)^T, in the numpy code's order of operations */
+    double w_sum = 0.0;
+    for (Py_ssize_t i = 0; w != NULL && i < n; i++) {
+        w_sum += w[i];
+    }
+#define WN(i) (w == NULL ? 1.0 / (double)n : w[(i)] / w_sum)
     double f_bar[3] = {0.0, 0.0, 0.0}, m_bar[3] = {0.0, 0.0, 0.0};
     for (Py_ssize_t i = 0; i < n; i++) {
+        double wn = WN(i);
         for (int j = 0; j < 3; j++) {
             f_bar[j] += wn * f[3 * i + j];
             m_bar[j] += wn * m[3 * i + j];
@@ -310,6 +349,7 @@ static PyObject *k_horn(PyObject *self, PyObject *args)
     }
     double A[3][3] = {{0.0}};
     for (Py_ssize_t i = 0; i < n; i++) {
+        double wn = WN(i);
         for (int j = 0; j < 3; j++) {
             double mj = (m[3 * i + j] - m_bar[j]) * wn;
             for (int k = 0; k < 3; k++) {
@@ -368,14 +408,15 @@ static PyObject *k_horn(PyObject *self, PyObject *args)
             r2 += d * d;
         }
         res[i] = sqrt(r2);
-        sum_r2 += r2;
+        sum_r2 += w == NULL ? r2 : w[i] * res[i] * res[i];   /* numpy: w @ residuals**2 */
     }
-    double fre = sqrt(sum_r2 / (double)n);
+#undef WN
+    double fre = sqrt(sum_r2 / (w == NULL ? (double)n : w_sum));
     /* coordinates so large that a square overflows: never a non-finite transform (numpy decides) */
     result = PyFloat_FromDouble(all_finite(R, 9) && all_finite(t, 3) && all_finite(res, n) && isfinite(fre)
                                 ? fre : -1.0);
 done:
-    release(views, 5);
+    release(views, 6);
     return result;
 }
 

@@ -186,27 +186,31 @@ def register_horn(fixed: ArrayLike, moving: ArrayLike, weights: ArrayLike | None
         GeometryError: < 3 pairs, different counts, NaN/inf, bad weights.
         DegenerateConfigurationError: collinear or coincident points.
 
-    Without weights, (N, 3) float64 arrays are registered by the compiled code
+    (N, 3) float64 arrays (and (N,) float64 weights) are registered by the compiled code
     (:mod:`hil.geometry.native`, the same equations; it agrees with :func:`register_horn_numpy`
     to rounding) unless it declines (any input the checks refuse): then the numpy code runs.
     """
-    if weights is None:
-        reg = _horn_compiled(fixed, moving)
-        if reg is not None:
-            return reg
+    reg = _horn_compiled(fixed, moving, weights)
+    if reg is not None:
+        return reg
     return register_horn_numpy(fixed, moving, weights)
 
 
-def _horn_compiled(fixed: ArrayLike, moving: ArrayLike) -> Registration | None:
+def _horn_compiled(fixed: ArrayLike, moving: ArrayLike, weights: ArrayLike | None) -> Registration | None:
     """:func:`register_horn` by the compiled code, or None where the numpy code must decide (not
-    built or not selected, not two (N, 3) float64 arrays of one N, or refused by its checks)."""
+    built or not selected, not two (N, 3) float64 arrays of one N with None or (N,) float64
+    weights, or refused by its checks)."""
     k = native.active()
     if (k is None or not isinstance(fixed, np.ndarray) or not isinstance(moving, np.ndarray)
             or fixed.dtype != np.float64 or moving.dtype != np.float64 or fixed.ndim != 2
             or fixed.shape[1] != 3 or fixed.shape != moving.shape):
         return None
+    if weights is not None and (not isinstance(weights, np.ndarray) or weights.dtype != np.float64
+                                or weights.shape != (fixed.shape[0],)):
+        return None
+    w = None if weights is None else np.ascontiguousarray(weights)
     R, t, residuals = np.empty((3, 3)), np.empty(3), np.empty(fixed.shape[0])
-    fre = k.horn(np.ascontiguousarray(fixed), np.ascontiguousarray(moving), R, t, residuals)
+    fre = k.horn(np.ascontiguousarray(fixed), np.ascontiguousarray(moving), R, t, residuals, w)
     if fre < 0.0:
         return None
     residuals.setflags(write=False)
