@@ -11,6 +11,16 @@ writes them through a :class:`SnapshotWriter` — by default
 (at most ``close_timeout_s``; the rest is abandoned and counted ``lost_on_close``), joins it and
 closes the writer; call it on every path.
 
+Memory is bounded on both sides of the worker. Before it: the queue (``queue_size`` snapshots).
+After it: Rerun encodes and writes in threads of its own, through channels with no bound, so a
+worker that logs faster than Rerun writes (a busy machine, a slow disk or viewer) would pile
+up encoded data in the process (an 8-minute 500 Hz soak grew the supervisor 3.6 MB a minute,
+and a writer logging flat out reached +180 MB). So every ``drain_every_s`` (0.2 s, Rerun's own
+batching period) the worker waits until what it has logged has reached the file or the socket
+(:meth:`SnapshotWriter.drain`, at most ``drain_timeout_s``): a slow sink then holds the worker,
+the queue fills, and what it cannot take is dropped and counted, never kept. A drain that times
+out is counted (``drain_errors``) and the stream goes on.
+
 Entities (same paths as a replay, :mod:`hil.replay.scene`; the optical frame is ``world``):
 ``world/skin/seen``, ``world/flange/seen``, ``world/robot/tcp``, ``world/robot/guide`` is not
 streamed (the snapshot carries the TCP, the rig's guide offset is not in it), ``world/robot``
@@ -37,6 +47,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from hil.controller.cost import CostHistogram
 from hil.errors import InputFileError
 from hil.log import get_logger
 from hil.replay.recording import APPLICATION_ID, TIMELINE_TIME, blueprint
@@ -56,8 +67,14 @@ PLUGIN_NAME = "rerun_viewer"
 TIMELINE_TICK = "tick"
 #: Log event when the stream is closed (with its counts).
 EV_VIEWER_CLOSED = "viewer_stream_closed"
+#: Log events when a write or a drain first fails (with the error).
+EV_VIEWER_WRITE_FAILED = "viewer_write_failed"
+EV_VIEWER_DRAIN_FAILED = "viewer_drain_failed"
 #: Default queue length (snapshots): 1 s of ticks at 500 Hz.
 DEFAULT_QUEUE = 500
+#: How often the worker waits for Rerun to write what it logged, and for how long at most, s.
+DRAIN_EVERY_S = 0.2
+DRAIN_TIMEOUT_S = 5.0
 
 
 class SnapshotWriter(Protocol):
@@ -69,6 +86,11 @@ class SnapshotWriter(Protocol):
 
     def write_truth(self, positions: Mapping[str, Any]) -> None:
         """The simulator's true positions (a ``truth_positions`` record's fields)."""
+        ...
+
+    def drain(self, timeout_s: float) -> None:
+        """Block until what was written has reached the sink (at most ``timeout_s``; raises
+        when that is not enough)."""
         ...
 
     def close(self) -> None: ...
@@ -152,6 +174,11 @@ class RerunSnapshotWriter:
         elif item.kind == "strips":
             self.rec.log(item.entity, rr.LineStrips3D([item.points]))
 
+    def drain(self, timeout_s: float) -> None:
+        """Rerun's blocking flush: the batcher's pending rows encoded and handed to the file or
+        the socket (raises when ``timeout_s`` is not enough)."""
+        self.rec.flush(timeout_sec=timeout_s)
+
     def close(self) -> None:
         try:
             self.rec.flush()
@@ -168,14 +195,16 @@ class _Item:
 
 class LiveViewerPlugin:
     """The live stream (module doc). ``writer``: where snapshots go (started here: the worker
-    thread starts in the constructor). ``hook_s``: the time each hook call took, for the cost
-    figure (bounded: the last ``keep_timings`` calls)."""
+    thread starts in the constructor). ``hook_cost``: the time each hook call took, for the cost
+    figure (a fixed histogram: every call counted, no growth)."""
 
     def __init__(self, writer: SnapshotWriter, queue_size: int = DEFAULT_QUEUE,
-                 close_timeout_s: float = 5.0, keep_timings: int = 100_000,
-                 poll_s: float = 0.02) -> None:
+                 close_timeout_s: float = 5.0, poll_s: float = 0.02,
+                 drain_every_s: float = DRAIN_EVERY_S, drain_timeout_s: float = DRAIN_TIMEOUT_S) -> None:
         self.writer = writer
         self.close_timeout_s = close_timeout_s
+        self.drain_every_s = drain_every_s
+        self.drain_timeout_s = drain_timeout_s
         self._q: collections.deque[_Item] = collections.deque()
         self._queue_size = queue_size
         self.poll_s = poll_s
@@ -185,8 +214,9 @@ class LiveViewerPlugin:
         self.dropped = 0
         self.written = 0
         self.write_errors = 0
-        self.hook_s: list[float] = []
-        self._keep = keep_timings
+        self.drains = 0
+        self.drain_errors = 0
+        self.hook_cost = CostHistogram()
         self._truth: TruthSource | None = None
         self._truth_t_ns: object = None   # the worker's: the last positions written
         self.truth_written = 0
@@ -202,14 +232,13 @@ class LiveViewerPlugin:
 
     # ---------------------------------------------------------------- controller thread
     def _offer(self, item: _Item) -> None:
-        t = time.perf_counter()
+        t = time.perf_counter_ns()
         self.offered += 1
         if len(self._q) < self._queue_size:
             self._q.append(item)  # atomic; no lock, no wake-up of the worker (it polls)
         else:
             self.dropped += 1
-        if len(self.hook_s) < self._keep:
-            self.hook_s.append(time.perf_counter() - t)
+        self.hook_cost.add_ns(time.perf_counter_ns() - t)
 
     @hookimpl
     def hil_on_tick(self, snapshot: ControllerSnapshot) -> None:
@@ -224,24 +253,40 @@ class LiveViewerPlugin:
 
     # ---------------------------------------------------------------- worker thread
     def _work(self) -> None:
-        """Every ``poll_s``: write what is queued; after :meth:`close` asks, end once it is empty."""
+        """Every ``poll_s``: write what is queued, drain the writer every ``drain_every_s``
+        (module doc); after :meth:`close` asks, end once the queue is empty."""
+        last_drain = time.monotonic()
         while True:
             stopping = self._stop.wait(self.poll_s)
             while self._q and not self._abandon.is_set():
-                item = self._q.popleft()
-                try:
-                    if item.transition is None:
-                        self.writer.write_tick(item.snap)
-                        self._write_truth(item.truth)
-                    else:
-                        self.writer.write_transition(item.transition, item.snap)
-                    self.written += 1
-                except Exception as exc:  # noqa: BLE001 -- a viewer problem must not end the stream
-                    self.write_errors += 1
-                    if self.write_errors == 1:
-                        _log.warning("viewer_write_failed", error=repr(exc))
+                self._write(self._q.popleft())
+                if time.monotonic() - last_drain >= self.drain_every_s:
+                    self._drain()
+                    last_drain = time.monotonic()
             if stopping or self._abandon.is_set():
                 return
+
+    def _write(self, item: _Item) -> None:
+        try:
+            if item.transition is None:
+                self.writer.write_tick(item.snap)
+                self._write_truth(item.truth)
+            else:
+                self.writer.write_transition(item.transition, item.snap)
+            self.written += 1
+        except Exception as exc:  # noqa: BLE001 -- a viewer problem must not end the stream
+            self.write_errors += 1
+            if self.write_errors == 1:
+                _log.warning(EV_VIEWER_WRITE_FAILED, error=repr(exc))
+
+    def _drain(self) -> None:
+        try:
+            self.writer.drain(self.drain_timeout_s)
+            self.drains += 1
+        except Exception as exc:  # noqa: BLE001 -- a slow viewer must not end the stream
+            self.drain_errors += 1
+            if self.drain_errors == 1:
+                _log.warning(EV_VIEWER_DRAIN_FAILED, error=repr(exc), timeout_s=self.drain_timeout_s)
 
     def _write_truth(self, truth: Mapping[str, Any] | None) -> None:
         """Each new set of true positions once (the worker thread)."""
@@ -252,10 +297,12 @@ class LiveViewerPlugin:
         self.truth_written += 1
 
     def counts(self) -> dict[str, int]:
-        """``offered``, ``written``, ``dropped`` (queue full), ``write_errors``, ``lost_on_close``."""
+        """``offered``, ``written``, ``dropped`` (queue full), ``write_errors``, ``lost_on_close``,
+        ``drains`` and ``drain_errors`` (module doc)."""
         return {"offered": self.offered, "written": self.written, "dropped": self.dropped,
                 "write_errors": self.write_errors,
-                "lost_on_close": self.offered - self.dropped - self.written - self.write_errors}
+                "lost_on_close": self.offered - self.dropped - self.written - self.write_errors,
+                "drains": self.drains, "drain_errors": self.drain_errors}
 
     def close(self) -> dict[str, int]:
         """Write what is queued (at most ``close_timeout_s``), stop and join the worker, close
@@ -301,8 +348,7 @@ def stream_line(plugin: LiveViewerPlugin, target: str) -> str:
 
 
 def hook_cost_us(plugin: LiveViewerPlugin) -> dict[str, float]:
-    """p50 / p99 / max of the hook's time per call, microseconds (0 when never called)."""
-    if not plugin.hook_s:
-        return {"p50": 0.0, "p99": 0.0, "max": 0.0}
-    a = np.asarray(plugin.hook_s) * 1e6
-    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "max": float(a.max())}
+    """p50 / p99 / max of the hook's time per call, microseconds (0 when never called); the
+    percentiles are the upper edges of their 1 µs bins (:class:`hil.controller.cost.CostHistogram`)."""
+    fig = plugin.hook_cost.figures()
+    return {"p50": fig.p50_us or 0.0, "p99": fig.p99_us or 0.0, "max": fig.max_us or 0.0}

@@ -4,7 +4,8 @@ meter's positions streamed too, and the stream's cost for the soak's JSON (``vie
 
 The cost is what the plugin adds to a supervisor tick: its hook's time per call (it runs in the
 controller's thread after every tick, and after every transition), measured around the hook's
-body (``LiveViewerPlugin.hook_s``, ``time.perf_counter``), p50 / p99 / max in ms. The worker
+body (``LiveViewerPlugin.hook_cost``, ``time.perf_counter_ns``, every call in 1 µs bins), p50 /
+p99 / max in ms (a percentile is its bin's upper edge, the maximum exact). The worker
 thread that writes through Rerun runs beside the supervisor; what it costs the servo loop shows
 in the soak's servo figures, to be compared with a soak without ``--viewer``.
 """
@@ -12,8 +13,6 @@ in the soak's servo figures, to be compared with a soak without ``--viewer``.
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
-
-import numpy as np
 
 if TYPE_CHECKING:
     from hil.config.build import Devices
@@ -90,8 +89,10 @@ def close_soak_viewer(live: LiveViewerPlugin | None) -> dict[str, Any]:
     if live is None:
         return {}
     counts = live.close()
-    a = np.asarray(live.hook_s, dtype=np.float64) * 1e3
-    hook_ms = ({"p50": None, "p99": None, "max": None} if not len(a) else
-               {"p50": round(float(np.percentile(a, 50)), 6), "p99": round(float(np.percentile(a, 99)), 6),
-                "max": round(float(a.max()), 6)})
-    return {**counts, "truth_written": live.truth_written, "hook_calls": len(a), "hook_ms": hook_ms}
+    fig = live.hook_cost.figures()
+
+    def ms(us: float | None) -> float | None:
+        return None if us is None else round(us / 1e3, 6)
+
+    hook_ms = {"p50": ms(fig.p50_us), "p99": ms(fig.p99_us), "max": ms(fig.max_us)}
+    return {**counts, "truth_written": live.truth_written, "hook_calls": fig.count, "hook_ms": hook_ms}

@@ -26,6 +26,7 @@ class SlowWriter:
         self.release = threading.Event()
         self.ticks: list[Any] = []
         self.transitions: list[str] = []
+        self.drained_after: list[int] = []   # len(ticks) at each drain
         self.closed = False
 
     def write_tick(self, snap: Any) -> None:
@@ -35,6 +36,9 @@ class SlowWriter:
 
     def write_transition(self, text: str, snap: Any) -> None:
         self.transitions.append(text)
+
+    def drain(self, timeout_s: float) -> None:
+        self.drained_after.append(len(self.ticks))
 
     def close(self) -> None:
         self.closed = True
@@ -60,11 +64,90 @@ def test_slow_consumer_drops_are_counted_and_the_hook_stays_cheap() -> None:
     finally:
         writer.release.set()
         counts = plugin.close()
-    assert counts == {"offered": 1001, "written": 101, "dropped": 900, "write_errors": 0,
-                      "lost_on_close": 0}
+    assert {k: v for k, v in counts.items() if not k.startswith("drain")} == {
+        "offered": 1001, "written": 101, "dropped": 900, "write_errors": 0, "lost_on_close": 0}
     assert writer.ticks == [0, *range(1, 101)]  # the first 100 queued, in order
     assert writer.closed
     assert not _viewer_threads()
+
+
+class SlowSink(SlowWriter):
+    """Writes at once; its drain blocks until released (Rerun's sink behind a stalled disk or
+    viewer: what was logged has not reached it)."""
+
+    def write_tick(self, snap: Any) -> None:
+        self.ticks.append(snap)
+
+    def drain(self, timeout_s: float) -> None:
+        self.entered.set()
+        assert self.release.wait(30.0)
+        super().drain(timeout_s)
+
+
+def test_a_slow_sink_holds_the_worker_so_the_queue_drops_instead_of_piling_up() -> None:
+    writer = SlowSink()
+    plugin = LiveViewerPlugin(writer, queue_size=100, poll_s=0.001, drain_every_s=0.0)
+    try:
+        plugin.hil_on_tick(snapshot=0)  # type: ignore[arg-type]
+        assert writer.entered.wait(30.0)  # written, and the worker waits for the sink to take it
+        for i in range(1, 1001):
+            plugin.hil_on_tick(snapshot=i)  # type: ignore[arg-type]
+        assert plugin.dropped == 900  # nothing more was handed to the writer meanwhile
+        assert writer.ticks == [0]
+        writer.release.set()
+    finally:
+        writer.release.set()
+        counts = plugin.close()
+    assert (counts["written"], counts["dropped"], counts["drain_errors"]) == (101, 900, 0)
+    assert writer.drained_after[0] == 1
+    assert counts["drains"] == len(writer.drained_after) >= 1
+    assert not _viewer_threads()
+
+
+class FailingDrain(SlowWriter):
+    def write_tick(self, snap: Any) -> None:
+        self.ticks.append(snap)
+
+    def drain(self, timeout_s: float) -> None:
+        raise TimeoutError(f"flush took more than {timeout_s} s")
+
+
+def test_drain_timeouts_are_counted_and_the_stream_goes_on() -> None:
+    writer = FailingDrain()
+    plugin = LiveViewerPlugin(writer, queue_size=10, poll_s=0.001, drain_every_s=0.0, drain_timeout_s=0.5)
+    try:
+        for i in range(5):
+            plugin.hil_on_tick(snapshot=i)  # type: ignore[arg-type]
+    finally:
+        counts = plugin.close()
+    assert writer.ticks == [0, 1, 2, 3, 4]
+    assert (counts["written"], counts["drains"], counts["drain_errors"]) == (5, 0, 5)
+
+
+def test_a_drain_puts_what_was_logged_in_the_file(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    import numpy as np
+    from rerun.chunk import RrdReader
+    from rerun.error_utils import RerunWarning
+
+    from hil.replay.live import RerunSnapshotWriter
+
+    rrd = tmp_path / "drain.rrd"
+    writer = RerunSnapshotWriter(str(rrd))
+    try:
+        robot = SimpleNamespace(T_robot_from_tcp=SimpleNamespace(t=np.zeros(3)))
+        for i in range(50):
+            writer.write_tick(SimpleNamespace(  # type: ignore[arg-type]
+                t_ns=1000 * i, T_robot_from_optical=None, live_mm=None, flange_mm=None, robot_now=robot,
+                robot=None, gate_deviation_mm=None, guide_error_mm=None, truth_error_mm=None))
+        writer.drain(10.0)
+        with pytest.warns(RerunWarning, match="no footer"):  # still being written: no footer yet
+            reader = RrdReader(rrd)
+        rows = sum(c.num_rows for c in reader.stream() if c.entity_path == "/world/robot/tcp")
+        assert rows == 50
+    finally:
+        writer.close()
 
 
 class FailingWriter(SlowWriter):
