@@ -11,15 +11,24 @@ writes them through a :class:`SnapshotWriter` — by default
 (at most ``close_timeout_s``; the rest is abandoned and counted ``lost_on_close``), joins it and
 closes the writer; call it on every path.
 
-Memory is bounded on both sides of the worker. Before it: the queue (``queue_size`` snapshots).
-After it: Rerun encodes and writes in threads of its own, through channels with no bound, so a
-worker that logs faster than Rerun writes (a busy machine, a slow disk or viewer) would pile
-up encoded data in the process (an 8-minute 500 Hz soak grew the supervisor 3.6 MB a minute,
-and a writer logging flat out reached +180 MB). So every ``drain_every_s`` (0.2 s, Rerun's own
-batching period) the worker waits until what it has logged has reached the file or the socket
-(:meth:`SnapshotWriter.drain`, at most ``drain_timeout_s``): a slow sink then holds the worker,
-the queue fills, and what it cannot take is dropped and counted, never kept. A drain that times
-out is counted (``drain_errors``) and the stream goes on.
+Memory is bounded on both sides of the worker, for a stream of any length:
+
+- before it, the queue (``queue_size`` snapshots);
+- after it, Rerun encodes and writes in threads of its own, through channels with no bound, so
+  a worker that logs faster than Rerun writes (a busy machine, a slow disk or viewer) would pile
+  up encoded data in the process (a writer logging flat out on a loaded machine reached +180
+  MB). So every ``drain_every_s`` (0.2 s, Rerun's own batching period) the worker waits until
+  what it has logged has reached the file or the socket (:meth:`SnapshotWriter.drain`, at most
+  ``drain_timeout_s``): a slow sink then holds the worker, the queue fills, and what it cannot
+  take is dropped and counted, never kept. A drain that times out is counted (``drain_errors``)
+  and the stream goes on;
+- a ``.rrd`` file is written without Rerun's footer. The footer's manifest lists every chunk, and
+  Rerun keeps it in memory until the file is closed: ~1 kB per chunk, a chunk per entity per
+  0.2 s, which grew an 8-minute soak's supervisor by 3.6 MB a minute (~200 MB an hour). Without
+  it the file is still a valid recording that the viewer, ``rerun rrd verify`` and
+  ``rerun.chunk.RrdReader(...).stream()`` read (the reader warns that it has no footer);
+  ``rerun rrd optimize`` adds one afterwards for fast random access. ``hil replay`` files keep
+  their footer (written at once, not streamed).
 
 Entities (same paths as a replay, :mod:`hil.replay.scene`; the optical frame is ``world``):
 ``world/skin/seen``, ``world/flange/seen``, ``world/robot/tcp``, ``world/robot/guide`` is not
@@ -117,8 +126,8 @@ class RerunSnapshotWriter:
         self.rec = self.rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
         if is_address(target):
             self.rec.connect_grpc(target, default_blueprint=blueprint())
-        else:
-            self.rec.save(target, default_blueprint=blueprint())
+        else:   # no footer: its manifest of every chunk would grow with the stream (module doc)
+            self.rec.save(target, default_blueprint=blueprint(), write_footer=False)
         self.rec.set_log_time_enabled(False)
         self._t0: int | None = None
         self._tick = 0

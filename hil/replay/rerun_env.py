@@ -8,12 +8,19 @@ set; ``FORCE_RERUN_ANALYTICS`` forces it on whatever the file says. There is no 
 ``FORCE_RERUN_ANALYTICS`` from the environment (of this process and so of its children) and
 writes that config file with ``analytics_enabled`` false when it is missing or says otherwise
 (keeping its other fields). It never sets ``CI`` (other tools read it).
+
+:func:`import_rerun` also quiets one line: the live stream writes its ``.rrd`` without a footer on
+purpose (:mod:`hil.replay.live`: the footer's manifest grows without bound in memory), and Rerun's
+file sink warns about that on the terminal each time. Before Rerun is first imported, its Rust log
+filter (``RUST_LOG``, read at import) gets ``re_log_encoding::rrd::file_sink=error`` added (with
+``warn`` for everything else when ``RUST_LOG`` was unset): that module's errors still show.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import sys
 import uuid
 from pathlib import Path
 from types import ModuleType
@@ -26,6 +33,9 @@ _log = get_logger(__name__)
 
 #: The variable that forces Rerun's analytics on (removed from the environment).
 FORCE_ANALYTICS_ENV = "FORCE_RERUN_ANALYTICS"
+#: Rerun's Rust log filter, and what :func:`import_rerun` adds to it (module doc).
+RUST_LOG_ENV = "RUST_LOG"
+QUIET_FILE_SINK = "re_log_encoding::rrd::file_sink=error"
 #: Log event: the Rerun analytics config was written (off).
 EV_ANALYTICS_DISABLED = "rerun_analytics_disabled"
 
@@ -78,6 +88,14 @@ def disable_rerun_analytics() -> Path:
     return path
 
 
+def quiet_file_sink_warning() -> str:
+    """Add :data:`QUIET_FILE_SINK` to ``RUST_LOG`` (module doc); the new value. Idempotent."""
+    current = os.environ.get(RUST_LOG_ENV, "").strip()
+    if QUIET_FILE_SINK not in current.split(","):
+        os.environ[RUST_LOG_ENV] = f"{current or 'warn'},{QUIET_FILE_SINK}"
+    return os.environ[RUST_LOG_ENV]
+
+
 def import_rerun() -> ModuleType:
     """``rerun``, imported after :func:`disable_rerun_analytics`.
 
@@ -85,6 +103,8 @@ def import_rerun() -> ModuleType:
         ViewerUnavailableError: rerun-sdk is not installed, or analytics cannot be turned off.
     """
     disable_rerun_analytics()
+    if "rerun" not in sys.modules:
+        quiet_file_sink_warning()
     try:
         import rerun
     except ImportError as exc:

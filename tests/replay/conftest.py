@@ -29,3 +29,14 @@ def sim_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def read_records(log: Path) -> list[dict[str, Any]]:
     """The records of a session log, parsed here (independently of hil's reader)."""
     return [json.loads(line) for line in log.read_text(encoding="utf-8").splitlines()]
+
+
+def live_chunks(rrd: Path) -> list[Any]:
+    """The chunks of a live stream's ``.rrd``, read as Rerun's reader streams them; asserts that
+    the file has no footer, as the live stream writes it (hil.replay.live: bounded memory)."""
+    from rerun.chunk import RrdReader
+    from rerun.error_utils import RerunWarning
+
+    with pytest.warns(RerunWarning, match="no footer"):
+        reader = RrdReader(rrd)
+    return list(reader.stream())

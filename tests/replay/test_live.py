@@ -15,7 +15,7 @@ import pytest
 
 from hil.cli import main
 from hil.replay.live import LiveViewerPlugin, hook_cost_us
-from tests.replay.conftest import read_records
+from tests.replay.conftest import live_chunks, read_records
 
 
 class SlowWriter:
@@ -128,8 +128,6 @@ def test_a_drain_puts_what_was_logged_in_the_file(tmp_path: Path) -> None:
     from types import SimpleNamespace
 
     import numpy as np
-    from rerun.chunk import RrdReader
-    from rerun.error_utils import RerunWarning
 
     from hil.replay.live import RerunSnapshotWriter
 
@@ -142,9 +140,7 @@ def test_a_drain_puts_what_was_logged_in_the_file(tmp_path: Path) -> None:
                 t_ns=1000 * i, T_robot_from_optical=None, live_mm=None, flange_mm=None, robot_now=robot,
                 robot=None, gate_deviation_mm=None, guide_error_mm=None, truth_error_mm=None))
         writer.drain(10.0)
-        with pytest.warns(RerunWarning, match="no footer"):  # still being written: no footer yet
-            reader = RrdReader(rrd)
-        rows = sum(c.num_rows for c in reader.stream() if c.entity_path == "/world/robot/tcp")
+        rows = sum(c.num_rows for c in live_chunks(rrd) if c.entity_path == "/world/robot/tcp")
         assert rows == 50
     finally:
         writer.close()
@@ -171,7 +167,6 @@ def test_write_errors_are_counted_and_the_stream_goes_on() -> None:
 
 
 def test_hil_run_viewer_writes_a_live_recording(tmp_path: Path) -> None:
-    from rerun.chunk import RrdReader
 
     rrd = tmp_path / "live.rrd"
     out, err = io.StringIO(), io.StringIO()
@@ -187,7 +182,7 @@ def test_hil_run_viewer_writes_a_live_recording(tmp_path: Path) -> None:
             for r in recs if r["event"] == "transition_applied"]
     entities: dict[str, int] = {}
     texts: list[tuple[int, str]] = []
-    for chunk in RrdReader(rrd).stream():
+    for chunk in live_chunks(rrd):
         entities[chunk.entity_path] = entities.get(chunk.entity_path, 0) + chunk.num_rows
         if chunk.entity_path == "/events/transitions":
             b = chunk.to_record_batch()
@@ -252,7 +247,6 @@ def test_rerun_writer_draws_the_truth_at_its_own_time(tmp_path: Path) -> None:
     from types import SimpleNamespace
 
     import numpy as np
-    from rerun.chunk import RrdReader
 
     from hil.replay.live import RerunSnapshotWriter
 
@@ -270,7 +264,7 @@ def test_rerun_writer_draws_the_truth_at_its_own_time(tmp_path: Path) -> None:
     finally:
         writer.close()
     got: dict[str, list[tuple[int, Any]]] = {}
-    for chunk in RrdReader(rrd).stream():
+    for chunk in live_chunks(rrd):
         if chunk.entity_path.startswith("/world/truth/"):
             b = chunk.to_record_batch()
             col = "LineStrips3D:strips" if chunk.entity_path.endswith("path") else "Points3D:positions"

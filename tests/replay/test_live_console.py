@@ -10,11 +10,10 @@ import pytest
 
 from hil.console.session import open_console_session
 from hil.errors import InputFileError
+from tests.replay.conftest import live_chunks
 
 
 def test_console_session_streams_and_closes_the_viewer(tmp_path: Path) -> None:
-    from rerun.chunk import RrdReader
-
     rrd = tmp_path / "console.rrd"
     session = open_console_session(None, session_dir=tmp_path, fast=True, viewer=str(rrd))
     try:
@@ -27,7 +26,7 @@ def test_console_session_streams_and_closes_the_viewer(tmp_path: Path) -> None:
         + counts["lost_on_close"]
     assert counts["write_errors"] == 0
     assert "hil-viewer" not in [t.name for t in threading.enumerate()]
-    assert RrdReader(rrd).recordings()  # a readable recording, even of a session closed at once
+    assert live_chunks(rrd)  # a readable recording, even of a session closed at once
 
 
 def test_console_refuses_a_viewer_file_in_a_missing_directory(tmp_path: Path) -> None:

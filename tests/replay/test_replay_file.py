@@ -216,3 +216,13 @@ def test_analytics_are_turned_off_before_rerun_runs(tmp_path: Path, monkeypatch:
     assert proc.returncode == 0, proc.stderr
     assert '"analytics_enabled": false' in proc.stdout.replace("\n", " ") or \
         "analytics_enabled: false" in proc.stdout, proc.stdout
+
+
+def test_rerun_is_imported_with_the_footerless_file_warning_quieted(monkeypatch: pytest.MonkeyPatch) -> None:
+    from hil.replay.rerun_env import QUIET_FILE_SINK, RUST_LOG_ENV, quiet_file_sink_warning
+
+    monkeypatch.delenv(RUST_LOG_ENV, raising=False)
+    assert quiet_file_sink_warning() == f"warn,{QUIET_FILE_SINK}"
+    assert quiet_file_sink_warning() == f"warn,{QUIET_FILE_SINK}"   # idempotent
+    monkeypatch.setenv(RUST_LOG_ENV, "debug")   # a user's own filter is kept
+    assert quiet_file_sink_warning() == f"debug,{QUIET_FILE_SINK}"
