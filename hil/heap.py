@@ -1,23 +1,37 @@
-"""Give the C heap's free pages back to the operating system now and then (glibc ``malloc_trim``).
+"""Keep the C heap's free memory out of the resident set: one malloc arena, trimmed now and then.
 
 Why (docs/benchmarks.md "Supervisor memory", issue 45): the supervisor's resident size stepped up
-~10 MB at the first fault of a soak and stayed there. Nothing leaked: the first full-frame
+~10-14 MB at the first fault of a soak and stayed there. Nothing leaked: the first full-frame
 re-acquisition after a fault allocates image-sized buffers (a 1920x1080 grey image is 2 MB) and
-frees them; glibc serves buffers that large with ``mmap`` until one is freed, then raises its
-dynamic mmap threshold above that size, and from then on such buffers come from the heap, whose
-freed pages stay resident. Fixing the threshold instead (``MALLOC_MMAP_THRESHOLD_``) maps and
-unmaps every image-sized buffer and slowed the pair path (same section).
+frees them. glibc serves buffers that large with ``mmap`` until one is freed, then raises its
+dynamic mmap threshold above that size (and its trim threshold to twice that), and from then on
+such buffers come from the heap. The camera thread allocates them, and a thread other than the
+main one gets an arena of its own (glibc creates one when the main arena's lock is taken); when
+the buffers are freed they stay as the free top of that arena, below the raised trim threshold.
+``malloc_trim`` returns the free pages inside every arena and the main arena's top, but not the
+top of a thread's arena: the step stayed (measured: the camera thread's arena at
+``0x7f..44000000`` went from 14 to 24 MB resident at the first fault; the process's free heap
+from 22.7 to 35.1 MB, in use unchanged). Fixing the thresholds instead
+(``MALLOC_MMAP_THRESHOLD_``) maps and unmaps every image-sized buffer and slowed the pair path
+(same section).
 
-The policy: the controller calls :meth:`HeapTrimmer.after_tick` after every tick, and the
-perception process (when it runs) after every pair it publishes; at most once per ``every_s``
-(``[procedure] heap_trim_every_s``, the caller's clock) it calls ``malloc_trim(0)``, which
-returns every whole free page of every arena to the system (``madvise``) and shrinks the heap's
-top. When nothing is free it
-costs ~10-15 µs; releasing 16 MB took 1.2 ms on the development machine. It runs after the tick's
-setpoint is out and never in the servo process (its own process, memory locked, no heap traffic).
+The policy, two parts:
 
-Where the C library is not glibc (``malloc_trim`` absent) the trimmer does nothing and says so in
-:attr:`HeapTrimmer.unavailable`.
+1. :func:`use_one_arena` (``mallopt(M_ARENA_MAX, 1)``), first thing in a process that runs a
+   supervisor or the perception worker, before it starts a thread: every thread allocates from
+   the main arena, whose top ``malloc_trim`` does return. Threads then share the arena's lock;
+   they hold it for a few hundred nanoseconds per allocation, and the supervisor's threads take
+   turns on the GIL anyway.
+2. :class:`HeapTrimmer`: the controller calls :meth:`HeapTrimmer.after_tick` after every tick, and
+   the perception process (when it runs) after every pair it publishes; at most once per
+   ``every_s`` (``[procedure] heap_trim_every_s``, the caller's clock) it calls
+   ``malloc_trim(0)``, which returns every whole free page of every arena to the system
+   (``madvise``) and shrinks the main arena's top. When nothing is free it costs ~10-15 µs;
+   releasing 16 MB took 1.2 ms on the development machine. It runs after the tick's setpoint is
+   out and never in the servo process (its own process, memory locked, no heap traffic).
+
+Where the C library is not glibc (no ``mallopt`` / ``malloc_trim``) neither does anything, and
+each says so (:func:`use_one_arena` returns False; :attr:`HeapTrimmer.unavailable`).
 """
 
 from __future__ import annotations
@@ -28,16 +42,37 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-__all__ = ["HeapTrimFigures", "HeapTrimmer", "glibc_malloc_trim"]
+__all__ = ["M_ARENA_MAX", "HeapTrimFigures", "HeapTrimmer", "glibc_malloc_trim", "use_one_arena"]
+
+#: glibc's ``mallopt`` parameter for the most arenas a process may have (malloc.h)
+M_ARENA_MAX = -8
+
+
+def _libc() -> ctypes.CDLL | None:
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return None
+
+
+def use_one_arena() -> bool:
+    """``mallopt(M_ARENA_MAX, 1)``: threads started from now on allocate from the main arena
+    (module doc); call it before the process starts a thread (a thread that already has an arena
+    keeps it). True when glibc took the setting; False where the C library is not glibc."""
+    libc = _libc()
+    fn = getattr(libc, "mallopt", None)
+    if fn is None:
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_int]
+    fn.restype = ctypes.c_int
+    return bool(fn(M_ARENA_MAX, 1))
 
 
 def glibc_malloc_trim() -> Callable[[], int] | None:
     """``malloc_trim(0)`` of the process's C library (returns 1 when memory went back to the
     system), or None where the library has none (not glibc). ctypes releases the GIL in the call."""
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        fn = libc.malloc_trim
-    except (OSError, AttributeError):
+    fn = getattr(_libc(), "malloc_trim", None)
+    if fn is None:
         return None
     fn.argtypes = [ctypes.c_size_t]
     fn.restype = ctypes.c_int

@@ -71,3 +71,62 @@ def test_glibc_trim_gives_freed_heap_pages_back() -> None:
     after = rss_mb()
     assert after <= before
     assert keep.sum() == 100_000
+
+
+# A fresh interpreter: an image-sized buffer raises glibc's thresholds, then a thread allocates
+# and frees 12 MB of image-sized buffers and the trim runs; prints the resident growth, kB.
+_THREAD_ARENA_SCRIPT = """
+import ctypes, sys, threading
+from hil.heap import glibc_malloc_trim, use_one_arena
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype = ctypes.c_void_p
+libc.malloc.argtypes = [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+def rss_anon_kb():
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("RssAnon:"))
+if sys.argv[1] == "one":
+    assert use_one_arena()
+libc.free(libc.malloc(8 << 20))   # mmap-served and freed: the mmap threshold rises past 8 MB
+base = rss_anon_kb()
+def work():
+    ptrs = [libc.malloc(2 << 20) for _ in range(6)]   # now from the heap (this thread's arena)
+    for p in ptrs:
+        ctypes.memset(p, 1, 2 << 20)
+    for p in ptrs:
+        libc.free(p)
+t = threading.Thread(target=work)
+t.start()
+t.join()
+trim = glibc_malloc_trim()
+assert trim is not None
+trim()
+print(rss_anon_kb() - base)
+"""
+
+
+@pytest.mark.parametrize(("arenas", "kept_kb"), [("default", (10_000, 14_000)), ("one", (-1_000, 1_000))])
+def test_one_arena_lets_the_trim_return_what_a_thread_freed(arenas: str, kept_kb: tuple[int, int]) -> None:
+    """The first-fault step of issue 45: a thread's arena keeps its freed top through
+    ``malloc_trim`` (12 MB here); with every thread on the main arena the trim returns it."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _THREAD_ARENA_SCRIPT, arenas], capture_output=True,
+                         text=True, timeout=120, check=True)
+    low, high = kept_kb
+    assert low <= int(out.stdout.strip()) < high, out.stdout
+
+
+def test_the_cli_puts_every_thread_on_one_arena(monkeypatch: pytest.MonkeyPatch,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    import hil.cli
+
+    calls: list[str] = []
+    real_parser = hil.cli.build_parser
+    monkeypatch.setattr(hil.cli, "use_one_arena", lambda: calls.append("arena") or True)
+    monkeypatch.setattr(hil.cli, "build_parser", lambda: calls.append("parser") or real_parser())
+    assert hil.cli.main([]) == hil.cli.EXIT_USAGE   # no command: the help
+    assert calls == ["arena", "parser"]   # before anything else
+    assert "usage: hil" in capsys.readouterr().err
+

@@ -23,6 +23,7 @@ from types import FrameType
 
 from hil import __version__
 from hil.errors import HilError
+from hil.heap import use_one_arena
 from hil.log import configure_logging
 
 # Subcommand modules, in the order `hil --help` lists them. A module missing here is not a command.
@@ -77,7 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``hil`` console script. Returns the process exit code. SIGTERM is
-    handled like Ctrl-C while the command runs (module doc); the previous handler is restored."""
+    handled like Ctrl-C while the command runs (module doc); the previous handler is restored.
+    First, before any thread starts, every thread is put on one malloc arena (hil/heap.py: the
+    supervisor's freed image buffers must stay trimmable)."""
+    use_one_arena()
     parser = build_parser()
     args = parser.parse_args(argv)
     configure_logging(json=args.log_json, level=args.log_level)

@@ -21,7 +21,7 @@ from drivers.interfaces.camera import FrameTime, StereoCamera, StereoFrame
 from drivers.interfaces.errors import DriverError
 from hil.clock import MonotonicClock
 from hil.geometry.transform import RigidTransform
-from hil.heap import HeapTrimmer
+from hil.heap import HeapTrimmer, use_one_arena
 from hil.perception.follow import FollowingWorld, RingFlangeSource
 from hil.perception.process import PerceptionSpec
 from hil.perception.ring import MarkerRing, RecordKind, ring_words
@@ -35,6 +35,7 @@ def perception_main(conn: Connection, notify_fd: int, parent_pid: int) -> None:
     """The perception process (module doc): receives ``(spec, ring name)`` first, builds and
     opens the camera, reports ``ready`` (or ``failed`` with the driver error), then publishes
     until closed or orphaned. A crash reports its traceback and exits with code 1."""
+    use_one_arena()   # before any thread: its frees must stay trimmable (hil/heap.py)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     from hil.log import configure_logging
 
