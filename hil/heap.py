@@ -5,12 +5,12 @@ Why (docs/benchmarks.md "Supervisor memory", issue 45): the supervisor's residen
 re-acquisition after a fault allocates image-sized buffers (a 1920x1080 grey image is 2 MB) and
 frees them. glibc serves buffers that large with ``mmap`` until one is freed, then raises its
 dynamic mmap threshold above that size (and its trim threshold to twice that), and from then on
-such buffers come from the heap. The camera thread allocates them, and a thread other than the
-main one gets an arena of its own (glibc creates one when the main arena's lock is taken); when
-the buffers are freed they stay as the free top of that arena, below the raised trim threshold.
+such buffers come from the heap. A thread other than the main one (the supervisor's camera and
+worker threads) gets an arena of its own (glibc creates one when the main arena's lock is taken);
+buffers such a thread frees stay as the free top of its arena, below the raised trim threshold.
 ``malloc_trim`` returns the free pages inside every arena and the main arena's top, but not the
-top of a thread's arena: the step stayed (measured: the camera thread's arena at
-``0x7f..44000000`` went from 14 to 24 MB resident at the first fault; the process's free heap
+top of a thread's arena: the step stayed (measured: one thread arena, the 64 MB-aligned mapping
+at ``0x7f..44000000``, went from 14 to 24 MB resident at the first fault; the process's free heap
 from 22.7 to 35.1 MB, in use unchanged). Fixing the thresholds instead
 (``MALLOC_MMAP_THRESHOLD_``) maps and unmaps every image-sized buffer and slowed the pair path
 (same section).
