@@ -52,9 +52,10 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
   then start) when the gate stays shut for :data:`REREGISTER_AFTER_GATE_S` — the patient moved
   since registration; ``reregistrations`` counts those. After a protective stop it first unlocks
   the arm at the pendant (:mod:`hil.soak.pendant`), as an operator does, pressing unlock again
-  every half second while the arm refuses (its stop not yet over), and resumes once the arm is
-  unlocked: ``unlocks`` and ``unlocks_refused`` count those presses (a resume while the arm is
-  still locked would fault the procedure a second time).
+  every half second while the arm refuses (its stop not yet over), and resumes once the pendant
+  no longer shows the stop (half a second after the press that took, or later): ``unlocks`` and
+  ``unlocks_refused`` count those presses (a resume while the arm is still locked, or still
+  reads locked, would fault the procedure a second time).
 - ``following_peak_mm``: the largest following error the servo loop measured
   (hil/safety/following.py), and ``following_faults``.
 - ``late_causes``: where late intervals came from, as the servo process timed each period after
@@ -361,7 +362,10 @@ class SoakOperator:
 
     def _unlocked(self) -> bool:
         """Before a resume: when the pendant shows a protective stop, press unlock (once per call,
-        so at most once per settling time); True when the arm is not (or no longer) locked."""
+        so at most once per settling time); True when the pendant shows no stop. After an unlock
+        that took, the resume waits for the next call: the arm's status read right after the
+        press may still be the stop's, and a resume on it faults again ("robot is in
+        protective_stop" on entering APPROACH: seen twice in the hour's soak)."""
         if self.pendant is None or not self.pendant.protective_stop():
             return True
         why = self.pendant.unlock()
@@ -371,7 +375,7 @@ class SoakOperator:
                 self.progress(f"soak: unlock refused at the pendant ({why}); trying again")
             return False
         self.unlocks += 1
-        return True
+        return False
 
     def _gate_shut_too_long(self, state: State, now: float) -> bool:
         """True once per ``reregister_after_s`` spent in GATE without a break (then the operator

@@ -22,19 +22,22 @@ CANNOT_CLEAR = "cannot be cleared yet"
 
 
 class _Pendant:
-    """A pendant whose arm stays locked until ``unlockable_from`` (operator wall time, s)."""
+    """A pendant whose arm stays locked until ``unlockable_from`` (operator wall time, s), and
+    whose status still shows the stop for ``status_lag_s`` after the unlock took (a UR's status
+    comes with the next state package)."""
 
-    def __init__(self, now: list[float], unlockable_from: float) -> None:
-        self.now, self.unlockable_from = now, unlockable_from
-        self.locked = True
+    def __init__(self, now: list[float], unlockable_from: float, status_lag_s: float = 0.0) -> None:
+        self.now, self.unlockable_from, self.status_lag_s = now, unlockable_from, status_lag_s
+        self.unlocked_at: float | None = None
         self.presses: list[tuple[float, str]] = []
 
     def protective_stop(self) -> bool:
-        return self.locked
+        return self.unlocked_at is None or self.now[0] < self.unlocked_at + self.status_lag_s
 
     def unlock(self) -> str:
         why = "" if self.now[0] >= self.unlockable_from else f"protective stop {CANNOT_CLEAR}"
-        self.locked = bool(why)
+        if not why and self.unlocked_at is None:
+            self.unlocked_at = self.now[0]
         self.presses.append((self.now[0], why))
         return why
 
@@ -56,7 +59,8 @@ def test_the_operator_unlocks_at_the_pendant_before_it_resumes(monkeypatch: pyte
     assert poll(State.FAULT, 100.7) is None            # unlock pressed: refused, no resume
     assert pendant.presses == [(100.7, f"protective stop {CANNOT_CLEAR}")]
     assert poll(State.FAULT, 100.9) is None            # not pressed again at once
-    assert poll(State.FAULT, 101.3) is Event.RESUME_REQUESTED   # unlocked, then resumed
+    assert poll(State.FAULT, 101.3) is None            # unlocked: resumed once the pendant shows it
+    assert poll(State.FAULT, 101.8) is Event.RESUME_REQUESTED
     assert pendant.presses[1:] == [(101.3, "")]
     assert (op.unlocks, op.unlocks_refused, op.resumes) == (1, 1, 1)
     # a fault that is not a protective stop: resumed without touching the pendant
@@ -65,6 +69,35 @@ def test_the_operator_unlocks_at_the_pendant_before_it_resumes(monkeypatch: pyte
     assert poll(State.FAULT, 103.5) is Event.RESUME_REQUESTED
     assert len(pendant.presses) == 2
     assert (op.unlocks, op.unlocks_refused, op.resumes) == (1, 1, 2)
+
+
+def test_the_operator_resumes_only_once_the_pendant_shows_the_arm_unlocked(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The hour's soak: the unlock took, but the status read right after it still showed the
+    stop, and a resume then faulted the procedure again on entering APPROACH."""
+    now = [100.0]
+    monkeypatch.setattr("hil.soak.soak.time", SimpleNamespace(monotonic=lambda: now[0],
+                                                              monotonic_ns=lambda: round(now[0] * 1e9)))
+    pendant = _Pendant(now, unlockable_from=100.0, status_lag_s=0.8)
+    op = SoakOperator(600.0, 60.0, lambda: None, pendant=pendant)
+    resumed_while_locked: list[float] = []
+
+    def poll(state: State, t: float) -> Event | None:
+        now[0] = t
+        event = op.poll(OperatorView(state=state, pending=None, last_reason="", t_s=t - 100.0, started=True))
+        if event is Event.RESUME_REQUESTED and pendant.protective_stop():
+            resumed_while_locked.append(t)
+        return event
+
+    assert poll(State.IDLE, 100.0) is Event.START_REQUESTED
+    assert poll(State.COMPENSATE, 100.1) is None
+    assert poll(State.FAULT, 100.2) is None            # let the robot stop
+    assert poll(State.FAULT, 100.7) is None            # unlock pressed: it took
+    assert poll(State.FAULT, 101.2) is None            # the status still shows the stop: pressed again
+    assert poll(State.FAULT, 101.7) is Event.RESUME_REQUESTED
+    assert resumed_while_locked == []
+    assert [t for t, _ in pendant.presses] == [100.7, 101.2]
+    assert (op.unlocks, op.unlocks_refused, op.resumes) == (2, 0, 1)
 
 
 def test_an_injected_protective_stop_is_one_fault_in_a_soak(tmp_path: Path,
