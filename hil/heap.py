@@ -32,6 +32,10 @@ The policy, two parts:
 
 Where the C library is not glibc (no ``mallopt`` / ``malloc_trim``) neither does anything, and
 each says so (:func:`use_one_arena` returns False; :attr:`HeapTrimmer.unavailable`).
+
+What this does not yet bound: in the hour's soak (docs/benchmarks.md "The hour at 500 Hz") the
+first faults left nothing, but three later ones (minutes 30, 35, 55) left 4-8 MB each through
+every trim; what holds them is not found.
 """
 
 from __future__ import annotations
