@@ -148,8 +148,11 @@ def test_reset_fault_at_the_comm_rate_arrives_as_noise(aurora_emulator: AuroraFa
         assert _ask(ser, "BEEP:1").startswith(b"1")
         dev.faults.inject("reset", dev.now_s())
         wait_until(lambda: dev.faults.fired["reset"] == 1, what="the reset")
-        assert dev.baud == 9600
-        ser.reset_input_buffer()
+        wait_until(lambda: dev.baud == 9600, what="the device back at 9600 baud")
+        # its RESET follows the fault's firing (at 9600: noise to us); drain until the line is
+        # quiet for the read timeout, so the next read holds only what our command causes
+        while ser.read(64):
+            pass
         ser.write(_cmd("BX:0801"))
         assert ser.read(64) == b""  # the device at 9600 reads our bytes as framing errors
 
