@@ -87,6 +87,9 @@ def print_text(s: dict[str, Any], out: TextIO) -> None:
         out.write(f"residual         {_fmt(s['residual_mm_rms'], 'mm')} RMS, "
                   f"{_fmt(s['residual_deg_rms'], 'deg')} RMS\n")
         out.write(f"validation       {_fmt(s['validation_mm_rms'], 'mm')} RMS on held-out poses\n")
+        if s.get("optical_correction_mm") is not None:
+            out.write(f"optical corr.    moves the markers by up to {s['optical_correction_mm']:.3f} mm "
+                      "(the stereo calibration's error, undone in every located point)\n")
         for p in s["per_pose"]:
             out.write(f"  pose {p['index']:3d}  {p['residual_mm']:.3f} mm  {p['residual_deg']:.3f} deg  "
                       f"{p['role']}\n")

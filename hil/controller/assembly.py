@@ -33,7 +33,12 @@ from hil.controller.planning import RigGeometry
 from hil.controller.tracker_use import TrackerUse
 from hil.controller.truth import BreathHoldCoach, GroundTruth
 from hil.errors import ConfigError, InputFileError
-from hil.rigcal.apply import flange_markers_mm, rig_calibration_sha256, with_rig_time_offsets
+from hil.rigcal.apply import (
+    flange_markers_mm,
+    optical_correction,
+    rig_calibration_sha256,
+    with_rig_time_offsets,
+)
 from hil.session.log import SessionLog, file_sha256
 from hil.tracking.session import load_tracker_calibration
 from hil.vision.camera_model import StereoCalibration, load_calibration
@@ -72,10 +77,11 @@ def stereo_calibration(setup: SetupConfig, camera: StereoCamera | None) -> Stere
 
 
 def marker_locator(setup: SetupConfig, camera: StereoCamera | None) -> StereoMarkerLocator:
-    """The controller's marker locator on the setup's calibration: region-of-interest tracking
-    when ``[procedure.vision] roi_tracking`` (the default), else a full-frame search per pair."""
+    """The controller's marker locator on the setup's calibration, its points corrected by the
+    rig calibration's optical correction when it has one: region-of-interest tracking when
+    ``[procedure.vision] roi_tracking`` (the default), else a full-frame search per pair."""
     v = setup.procedure.vision
-    loc = StereoMarkerLocator(stereo_calibration(setup, camera))
+    loc = StereoMarkerLocator(stereo_calibration(setup, camera), correction=optical_correction(setup))
     if v.roi_tracking and isinstance(loc, _Locator):  # (tests may substitute their own locator)
         loc.use_tracking(TrackingParams(window_margin_px=v.window_margin_px,
                                         reacquire_every=v.reacquire_every_frames,

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from drivers.interfaces.camera import StereoFrame
 from hil.controller.located import LocatedMarkers
+from hil.geometry.projective import ProjectiveCorrection
 from hil.vision.beads import BeadAxisMeasurement, measure_bead_axis
 from hil.vision.camera_model import StereoCalibration
 from hil.vision.detect import RingDetection
@@ -39,17 +40,21 @@ class StereoMarkerLocator:
 
     With ``tracking`` the markers are searched in windows around their predicted positions between
     full-frame searches (:class:`hil.vision.tracking.MarkerTracker`, which keeps the state); without,
-    every pair gets a full-frame search. Either way the time of each call (wall clock, ms) is kept:
-    :meth:`locate_ms` gives its p50 / p95. Calls must not overlap (the controller's thread or the
-    frame prefetcher's, one at a time); a lock makes overlapping calls wait rather than corrupt
-    the tracking state.
+    every pair gets a full-frame search. With ``correction`` (a rig calibration's
+    ``optical_correction``) every triangulated point is mapped through it: the stereo calibration's
+    error, as the arm's motion measured it, undone (a few microseconds per pair). Either way the
+    time of each call (wall clock, ms) is kept: :meth:`locate_ms` gives its p50 / p95. Calls must
+    not overlap (the controller's thread or the frame prefetcher's, one at a time); a lock makes
+    overlapping calls wait rather than corrupt the tracking state.
 
     Raises (when called):
         VisionError: an image does not fit the calibration.
     """
 
-    def __init__(self, calibration: StereoCalibration, tracking: TrackingParams | None = None) -> None:
+    def __init__(self, calibration: StereoCalibration, tracking: TrackingParams | None = None,
+                 correction: ProjectiveCorrection | None = None) -> None:
         self.calibration = calibration
+        self.correction = correction
         self.tracker = None if tracking is None else MarkerTracker(calibration, tracking)
         self._lock = threading.Lock()
         self._locate_ms: deque[float] = deque(maxlen=LOCATE_SAMPLES)
@@ -74,7 +79,8 @@ class StereoMarkerLocator:
             else:
                 res = self.tracker.locate(frame.left.image, frame.right.image, frame.left.t_ns * 1e-9)
             self._locate_ms.append((time.perf_counter_ns() - t0) * 1e-6)
-        return LocatedMarkers.of(frame, res.points_mm, _centres_px(res.detections_left),
+        points = res.points_mm if self.correction is None else self.correction.apply(res.points_mm)
+        return LocatedMarkers.of(frame, points, _centres_px(res.detections_left),
                                  _centres_px(res.detections_right))
 
     def locate_ms(self) -> dict[str, float | None]:

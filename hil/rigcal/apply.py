@@ -1,5 +1,6 @@
 """What ``hil run`` takes from ``[calibration] rig``: the calibrated flange-marker layout in place of
-the CAD one, and the devices wrapped so their stamps carry the calibrated time offsets."""
+the CAD one, the optical correction every located point goes through, and the devices wrapped so
+their stamps carry the calibrated time offsets."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from numpy.typing import NDArray
 from hil.config.build import Devices
 from hil.config.setup import SetupConfig
 from hil.errors import InputFileError
+from hil.geometry.projective import ProjectiveCorrection
 from hil.log import get_logger
 from hil.rigcal.rigfile import RigCalibration, load_rig_calibration
 from hil.rigcal.time_align import time_aligned
@@ -46,6 +48,17 @@ def flange_markers_mm(setup: SetupConfig) -> FloatArray:
     if rig is not None and rig.flange_markers_mm is not None:
         return rig.flange_markers_mm
     return np.asarray(setup.frames.flange_markers_mm, dtype=np.float64)
+
+
+def optical_correction(setup: SetupConfig) -> ProjectiveCorrection | None:
+    """The rig calibration's optical correction (measured -> metric optical points), or None
+    without a file or without one in it.
+
+    Raises:
+        InputFileError: see :func:`rig_calibration`.
+    """
+    rig = rig_calibration(setup)
+    return None if rig is None else rig.optical_correction
 
 
 def with_rig_time_offsets(setup: SetupConfig, devices: Devices) -> Devices:

@@ -57,6 +57,12 @@ class RigCalibrationConfig(BaseModel):
         0.5, gt=0, description="refuse to write a file whose validation RMS is over this")
     outlier_floor_mm: float = Field(
         0.3, gt=0, description="a pose under this RMS residual is never an outlier")
+    optical_correction: bool = Field(
+        True, description="also fit the stereo calibration's error as a projective warp of space (nine "
+                          "numbers) and correct every located point with it (docs/rig-calibration.md)")
+    max_optical_correction_mm: float = Field(
+        5.0, gt=0, le=50, description="refuse a correction that moves a seen marker further than this "
+                                      "(the stereo calibration is then wrong, not slightly off)")
     temporal: TemporalConfig = Field(TemporalConfig(), description="the temporal calibration's motion")
 
     @model_validator(mode="after")

@@ -17,7 +17,14 @@ pose the arm reports and ``p_i`` the marker's position in the TCP frame. Unknown
    gripper := TCP).
 2. Refine: nonlinear least squares (scipy ``least_squares``, soft-L1 loss) on every 3D marker
    residual over ``Z`` (rotation vector, translation) and every ``p_i`` separately, so each
-   marker's own CAD error is recovered, not only the plate's pose.
+   marker's own CAD error is recovered, not only the plate's pose. With
+   ``SolverSettings.optical_correction`` a second refinement adds a projective warp ``W`` of the
+   optical frame (nine numbers, :mod:`hil.geometry.projective`), ``y_ki = W(Z B_k p_i)``: a stereo
+   calibration a fraction of a pixel off scales, shears and bends triangulated space, and without
+   ``W`` the layout absorbs that (a 0.3 px calibration error put 0.3 mm RMS into a simulated rig's
+   layout). The arm's reported translations are the metric reference that makes ``W``
+   observable; its undoing is the result's ``optical_correction``, applied to every located
+   point when the rig file is used.
 3. Robust: a pose whose RMS residual is beyond ``median + k * 1.4826 * MAD`` of all poses (and
    above a floor) is an outlier; the worst is dropped and the fit repeated, one at a time.
 4. Held out: every ``holdout_every``-th pose (in canonical order) is not fitted; the model's RMS
@@ -38,6 +45,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from hil.errors import GeometryError, HilError
+from hil.geometry.projective import WARP_PARAMETERS, ProjectiveCorrection, apply_homography, warp_matrix
 from hil.geometry.registration import register_horn
 from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 
@@ -93,6 +101,9 @@ class HandEyeResult:
         validation_mm_rms: RMS marker residual over the held-out poses (None: none held out).
         validation_deg_rms: the same in rotation.
         rotation_spread_deg: the largest rotation between two used poses.
+        optical_correction: measured -> metric optical points (the stereo calibration's error as
+            the arm's motion shows it), or None when not fitted.
+        optical_correction_mm: the furthest the correction moves a marker the fit saw, mm.
     """
 
     T_optical_from_robot: RigidTransform
@@ -103,6 +114,8 @@ class HandEyeResult:
     validation_mm_rms: float | None
     validation_deg_rms: float | None
     rotation_spread_deg: float
+    optical_correction: ProjectiveCorrection | None = None
+    optical_correction_mm: float | None = None
 
     @property
     def outliers(self) -> list[int]:
@@ -127,6 +140,9 @@ class SolverSettings:
         outlier_floor_mm: a pose under this RMS residual is never an outlier.
         max_outlier_fraction: never reject more than this fraction of the fitted poses.
         depth_weight: weight of the residuals' optical z (depth) component (see :func:`refine`).
+        optical_correction: also fit the stereo calibration's error as a projective warp of space
+            (:mod:`hil.geometry.projective`), so it stays out of the layout.
+        max_optical_correction_mm: refuse a warp whose undoing moves a seen marker further.
     """
 
     min_poses: int = 8
@@ -137,6 +153,8 @@ class SolverSettings:
     outlier_floor_mm: float = 0.3
     max_outlier_fraction: float = 0.25
     depth_weight: float = 1.0
+    optical_correction: bool = False
+    max_optical_correction_mm: float = 5.0
 
 
 def canonical_order(samples: Sequence[PoseSample]) -> list[PoseSample]:
@@ -239,49 +257,95 @@ def initial_estimate(samples: Sequence[PoseSample],
     return T_optical_from_robot, T_plate_from_tcp.inverse().apply(layout_tcp_mm)
 
 
-def _pack(Z: RigidTransform, layout: FloatArray) -> FloatArray:
-    return np.concatenate([Z.as_rotvec(), Z.t, layout.ravel()])
+def _pack(Z: RigidTransform, layout: FloatArray, warp: FloatArray | None) -> FloatArray:
+    parts = [Z.as_rotvec(), Z.t, layout.ravel()]
+    return np.concatenate(parts if warp is None else [*parts, warp])
 
 
-def _unpack(x: FloatArray, m: int) -> tuple[RigidTransform, FloatArray]:
-    return RigidTransform(rotvec_to_matrix(x[:3]), x[3:6]), x[6:].reshape(m, 3)
+def _unpack(x: FloatArray, m: int, warp: bool) -> tuple[RigidTransform, FloatArray, FloatArray | None]:
+    end = 6 + 3 * m
+    return (RigidTransform(rotvec_to_matrix(x[:3]), x[3:6]), x[6:end].reshape(m, 3),
+            x[end:end + WARP_PARAMETERS] if warp else None)
 
 
-def refine(samples: Sequence[PoseSample], Z0: RigidTransform, layout0: FloatArray,
-           scale_mm: float = 0.2, depth_weight: float = 1.0) -> tuple[RigidTransform, FloatArray]:
-    """Least squares on every 3D marker residual over ``Z`` and each ``p_i`` (soft-L1 loss of
-    scale ``scale_mm``, so a few bad markers do not pull the fit). The residual's optical z
-    (depth) component is multiplied by ``depth_weight``: a stereo rig measures depth about
-    distance / baseline times worse than across (whitening by that ratio is the weighted least
-    squares of triangulated points, and keeps depth-only calibration errors out of the layout)."""
-    m = layout0.shape[0]
+@dataclass(frozen=True)
+class RigModel:
+    """What the hand-eye fit estimates: ``Z = T_optical_from_robot``, the layout (M, 3, TCP frame,
+    mm) and, with an optical correction, the warp ``W`` (4x4, metric -> measured optical; None:
+    the stereo calibration is taken as exact). A marker is predicted at ``W(Z @ B_k @ p_i)``."""
+
+    Z: RigidTransform
+    layout: FloatArray
+    warp: FloatArray | None = None
+
+    def predict(self, T_robot_from_tcp: RigidTransform, layout: FloatArray | None = None) -> FloatArray:
+        """Where the camera should see the markers (``layout`` rows, default all) at this pose."""
+        pts = (self.Z @ T_robot_from_tcp).apply(self.layout if layout is None else layout)
+        return pts if self.warp is None else apply_homography(self.warp, pts)
+
+    def metric(self, measured_mm: FloatArray) -> FloatArray:
+        """Measured points (optical frame) with the warp undone (unchanged without one)."""
+        if self.warp is None:
+            return measured_mm
+        undo = np.asarray(np.linalg.inv(self.warp), dtype=np.float64)
+        return apply_homography(undo, measured_mm)
+
+
+def refine(samples: Sequence[PoseSample], start: RigModel, center_mm: FloatArray | None = None,
+           scale_mm: float = 0.2, depth_weight: float = 1.0) -> RigModel:
+    """Least squares on every 3D marker residual over ``Z``, each ``p_i`` and, when ``start`` has
+    a warp, its nine parameters about ``center_mm`` (:func:`hil.geometry.projective.warp_matrix`:
+    the stereo calibration's error as a projective map of space, with no rigid part, which is
+    ``Z``'s), soft-L1 loss of scale ``scale_mm`` so a few bad markers do not pull the fit. The
+    residual's optical z (depth) component is multiplied by ``depth_weight``: a stereo rig
+    measures depth about distance / baseline times worse than across (whitening by that ratio is
+    the weighted least squares of triangulated points). The robot's reported translations are the
+    metric reference that makes the warp's scale and shear observable."""
+    m = start.layout.shape[0]
+    has_warp = start.warp is not None
+    c = np.zeros(3) if center_mm is None else np.asarray(center_mm, dtype=np.float64)
     B_R = np.array([s.T_robot_from_tcp.R for s in samples])
     B_t = np.array([s.T_robot_from_tcp.t for s in samples])
     Y = np.array([s.markers_optical_mm for s in samples])     # (K, M, 3)
     seen = np.all(np.isfinite(Y), axis=2)                      # (K, M)
 
     def residuals(x: FloatArray) -> FloatArray:
-        Z, p = _unpack(x, m)
+        Z, p, w = _unpack(x, m, has_warp)
         robot = np.einsum("kab,mb->kma", B_R, p) + B_t[:, None, :]
         pred = robot @ Z.R.T + Z.t
+        if w is not None:
+            pred = apply_homography(warp_matrix(c, w), pred.reshape(-1, 3)).reshape(pred.shape)
         d = (pred - Y)[seen]
         d[:, 2] *= depth_weight
         r: FloatArray = d.ravel()
         return r
 
-    sol = least_squares(residuals, _pack(Z0, layout0), loss="soft_l1", f_scale=scale_mm,
-                        x_scale="jac", max_nfev=200)
-    return _unpack(np.asarray(sol.x, dtype=np.float64), m)
+    w0 = None if start.warp is None else _warp_params(start.warp, c)
+    sol = least_squares(residuals, _pack(start.Z, start.layout, w0), loss="soft_l1", f_scale=scale_mm,
+                        x_scale="jac", max_nfev=200 if not has_warp else 400)
+    Z, p, w = _unpack(np.asarray(sol.x, dtype=np.float64), m, has_warp)
+    return RigModel(Z, p, None if w is None else warp_matrix(c, w))
 
 
-def pose_residual(s: PoseSample, Z: RigidTransform, layout: FloatArray, role: str) -> PoseResidual:
+def _warp_params(warp: FloatArray, center_mm: FloatArray) -> FloatArray:
+    """The nine parameters of a :func:`warp_matrix` about ``center_mm`` (its inverse)."""
+    to_c, from_c = np.eye(4), np.eye(4)
+    to_c[:3, 3], from_c[:3, 3] = -center_mm, center_mm
+    about = to_c @ warp @ from_c
+    about = about / about[3, 3]
+    S = about[:3, :3] - np.eye(3)
+    return np.array([S[0, 0], S[1, 1], S[2, 2], S[0, 1], S[0, 2], S[1, 2], *about[3, :3]])
+
+
+def pose_residual(s: PoseSample, model: RigModel, role: str) -> PoseResidual:
     """RMS marker distance (mm) and rotation (deg) between what pose ``s`` saw and the model."""
     ok = np.all(np.isfinite(s.markers_optical_mm), axis=1)
-    T_pred = Z @ s.T_robot_from_tcp
-    d = T_pred.apply(layout[ok]) - s.markers_optical_mm[ok]
+    layout = model.layout[ok]
+    d = model.predict(s.T_robot_from_tcp, layout) - s.markers_optical_mm[ok]
     mm = float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
+    T_pred = model.Z @ s.T_robot_from_tcp
     try:
-        T_meas = register_horn(s.markers_optical_mm[ok], layout[ok]).T_fixed_from_moving
+        T_meas = register_horn(model.metric(s.markers_optical_mm[ok]), layout).T_fixed_from_moving
         deg = math.degrees((T_pred.inverse() @ T_meas).rotation_angle_rad())
     except GeometryError:
         deg = float("nan")
@@ -325,11 +389,14 @@ def solve_hand_eye(samples: Sequence[PoseSample], layout_tcp_mm: FloatArray,
     held = [s for i, s in enumerate(ordered) if k > 0 and i % k == k - 1]
     fit = [s for i, s in enumerate(ordered) if not (k > 0 and i % k == k - 1)]
     spread = check_rotation_diversity(fit, st)
-    Z, layout = refine(fit, *initial_estimate(fit, layout_tcp_mm), depth_weight=st.depth_weight)
+    center = _center(fit)
+    model = refine(fit, RigModel(*initial_estimate(fit, layout_tcp_mm)), depth_weight=st.depth_weight)
+    if st.optical_correction:
+        model = refine(fit, RigModel(model.Z, model.layout, np.eye(4)), center, depth_weight=st.depth_weight)
     outliers: list[PoseSample] = []
     max_out = int(st.max_outlier_fraction * len(fit))
     while True:
-        res = [pose_residual(s, Z, layout, "used") for s in fit]
+        res = [pose_residual(s, model, "used") for s in fit]
         worst = _worst_outlier(res, st)
         if worst is None:
             break
@@ -340,16 +407,47 @@ def solve_hand_eye(samples: Sequence[PoseSample], layout_tcp_mm: FloatArray,
                 "check the marker plate is rigid and the arm reports the pose of the markers' time")
         outliers.append(fit.pop(worst))
         check_rotation_diversity(fit, st)
-        Z, layout = refine(fit, Z, layout, depth_weight=st.depth_weight)
-    res_out = [pose_residual(s, Z, layout, "outlier") for s in outliers]
-    res_held = [pose_residual(s, Z, layout, "held_out") for s in held]
+        model = refine(fit, model, center, depth_weight=st.depth_weight)
+    correction, moved_mm = _correction(model, fit, st)
+    res_out = [pose_residual(s, model, "outlier") for s in outliers]
+    res_held = [pose_residual(s, model, "held_out") for s in held]
     by_sample = {id(s): r for s, r in zip(fit + outliers + held, res + res_out + res_held, strict=True)}
     return HandEyeResult(
-        T_optical_from_robot=Z, markers_tcp_mm=layout,
+        T_optical_from_robot=model.Z, markers_tcp_mm=model.layout,
         poses=tuple(by_sample[id(s)] for s in ordered),
         residual_mm_rms=_rms([r.residual_mm for r in res]),
         residual_deg_rms=_rms([r.residual_deg for r in res]),
         validation_mm_rms=_rms([r.residual_mm for r in res_held]) if res_held else None,
         validation_deg_rms=_rms([r.residual_deg for r in res_held]) if res_held else None,
         rotation_spread_deg=spread,
+        optical_correction=correction, optical_correction_mm=moved_mm,
     )
+
+
+def _center(samples: Sequence[PoseSample]) -> FloatArray:
+    """The mean of every seen marker (optical frame, mm): the warp's centre."""
+    pts = np.concatenate([s.markers_optical_mm for s in samples])
+    out: FloatArray = np.mean(pts[np.all(np.isfinite(pts), axis=1)], axis=0)
+    return out
+
+
+def _correction(model: RigModel, fit: Sequence[PoseSample],
+                st: SolverSettings) -> tuple[ProjectiveCorrection | None, float | None]:
+    """The fitted warp's undoing and the furthest it moves a marker the fit saw (mm), checked
+    against ``st.max_optical_correction_mm`` ((None, None) without a warp).
+
+    Raises:
+        RigCalibrationError: the correction moves a seen marker further than the bound.
+    """
+    if model.warp is None:
+        return None, None
+    correction = ProjectiveCorrection.undoing(model.warp)
+    pts = np.concatenate([s.markers_optical_mm for s in fit])
+    moved = correction.displacement_mm(pts[np.all(np.isfinite(pts), axis=1)])
+    if moved > st.max_optical_correction_mm:
+        raise RigCalibrationError(
+            f"the stereo calibration disagrees with the arm's motion by up to {moved:.2f} mm over the "
+            f"calibration volume (bound {st.max_optical_correction_mm} mm, [rig_calibration] "
+            "max_optical_correction_mm): recalibrate the cameras (hil calibrate) and check the "
+            "calibration file is this camera's")
+    return correction, moved

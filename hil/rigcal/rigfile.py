@@ -10,6 +10,8 @@ A JSON object::
                          "poses": n, "poses_used": n, "outliers": [i, ...],
                          "residual_mm_rms": r, "residual_deg_rms": r,
                          "validation_mm_rms": r | null, "validation_bound_mm": b,
+                         "optical_correction": null | 4x4,   # measured -> metric optical points
+                         "optical_correction_mm": m | null,  # its furthest move over the poses
                          "per_pose": [{"index", "residual_mm", "residual_deg", "role"}, ...]},
      "time_offsets": null | {"camera": {"offset_ms": o, "sigma_ms": s}, "robot": {...},
                              "tracker": {...}}}   # sigma_ms null: unknown
@@ -29,13 +31,19 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from hil.errors import InputFileError
+from hil.errors import GeometryError, InputFileError
+from hil.geometry.projective import ProjectiveCorrection
 
 FloatArray = NDArray[np.float64]
 
 SCHEMA = "hil.rig_calibration"
 VERSION = 1
 DEVICES = ("camera", "robot", "tracker")
+#: A file's optical correction is refused when its linear part is further than this from the
+#: identity (per element) or its projective row larger than this per mm: no stereo calibration that
+#: ``hil rig-calibrate`` accepts is off by that much (its own bound is in millimetres, far smaller).
+MAX_CORRECTION_LINEAR = 0.05
+MAX_CORRECTION_PROJECTIVE_PER_MM = 1e-4
 
 
 @dataclass(frozen=True)
@@ -52,11 +60,13 @@ class RigCalibration:
 
     Attributes:
         flange_markers_mm: (M, 3) calibrated layout in the flange frame, or None (no hand-eye part).
+        optical_correction: measured -> metric optical points, or None (none fitted).
         time_offsets: per device, or empty (no temporal part).
         document: the whole file as read.
     """
 
     flange_markers_mm: FloatArray | None
+    optical_correction: ProjectiveCorrection | None = None
     time_offsets: dict[str, TimeOffset] = field(default_factory=dict)
     document: dict[str, Any] = field(default_factory=dict)
 
@@ -99,6 +109,29 @@ def _layout(he: Any, path: str) -> FloatArray | None:
                      for i, p in enumerate(pts)], dtype=np.float64)
 
 
+def _correction(he: Any, path: str) -> ProjectiveCorrection | None:
+    H = he.get("optical_correction") if isinstance(he, dict) else None
+    if H is None:
+        return None
+    where = "hand_eye.optical_correction"
+    if not isinstance(H, list) or len(H) != 4 or not all(isinstance(r, list) and len(r) == 4 for r in H):
+        raise InputFileError(path, f"{where} must be a 4x4 matrix (a list of four rows of four) or null")
+    M = np.array([[_finite(v, f"{where}[{i}][{j}]", path) for j, v in enumerate(r)] for i, r in enumerate(H)])
+    try:
+        corr = ProjectiveCorrection.from_matrix(M)
+    except GeometryError as exc:
+        raise InputFileError(path, f"{where}: {exc}") from None
+    Hn = corr.H_metric_from_measured
+    linear = float(np.max(np.abs(Hn[:3, :3] - np.eye(3))))
+    projective = float(np.max(np.abs(Hn[3, :3])))
+    if linear > MAX_CORRECTION_LINEAR or projective > MAX_CORRECTION_PROJECTIVE_PER_MM:
+        raise InputFileError(path, f"{where} is too far from the identity (linear part off by "
+                                   f"{linear:.3g}, bound {MAX_CORRECTION_LINEAR}; projective row "
+                                   f"{projective:.3g}/mm, bound {MAX_CORRECTION_PROJECTIVE_PER_MM}/mm): not "
+                                   "a correction of a stereo calibration; recalibrate (hil rig-calibrate)")
+    return corr
+
+
 def _offsets(to: Any, path: str) -> dict[str, TimeOffset]:
     if to is None:
         return {}
@@ -128,10 +161,11 @@ def rig_calibration_from_dict(doc: Any, path: str = "<rig calibration>") -> RigC
         raise InputFileError(path, f"rig calibration version {doc.get('version')!r} is not supported "
                                    f"(this hil reads version {VERSION})")
     layout = _layout(doc.get("hand_eye"), path)
+    correction = _correction(doc.get("hand_eye"), path)
     offsets = _offsets(doc.get("time_offsets"), path)
     if layout is None and not offsets:
         raise InputFileError(path, "the file holds neither a hand_eye nor a time_offsets part")
-    return RigCalibration(layout, offsets, doc)
+    return RigCalibration(layout, correction, offsets, doc)
 
 
 def load_rig_calibration(path: str | Path) -> RigCalibration:

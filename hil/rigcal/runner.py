@@ -72,6 +72,9 @@ def _hand_eye_doc(res: HandEyeResult, T_flange_from_tcp: RigidTransform, bound_m
         "residual_mm_rms": res.residual_mm_rms, "residual_deg_rms": res.residual_deg_rms,
         "validation_mm_rms": res.validation_mm_rms, "validation_deg_rms": res.validation_deg_rms,
         "validation_bound_mm": bound_mm, "rotation_spread_deg": res.rotation_spread_deg,
+        "optical_correction": (None if res.optical_correction is None
+                               else np.round(res.optical_correction.H_metric_from_measured, 12).tolist()),
+        "optical_correction_mm": res.optical_correction_mm,
         "per_pose": [{"index": p.index, "residual_mm": p.residual_mm, "residual_deg": p.residual_deg,
                       "role": p.role} for p in res.poses],
     }
@@ -149,7 +152,9 @@ def run_rig_calibration(setup: SetupConfig, config_path: Path, devices: Devices,
             result = solve_hand_eye(got.samples, cad_tcp, SolverSettings(
                 min_poses=cfg.min_poses, holdout_every=cfg.holdout_every,
                 outlier_floor_mm=cfg.outlier_floor_mm,
-                depth_weight=_depth_weight(stereo, got.samples)))
+                depth_weight=_depth_weight(stereo, got.samples),
+                optical_correction=cfg.optical_correction,
+                max_optical_correction_mm=cfg.max_optical_correction_mm))
             v = result.validation_mm_rms
             if v is not None and v > cfg.max_validation_mm:
                 raise RigCalibrationError(
@@ -188,6 +193,7 @@ def _summary(out_path: Path, result: HandEyeResult | None, frames_used: int, doc
         "validation_mm_rms": result.validation_mm_rms if result else None,
         "validation_deg_rms": result.validation_deg_rms if result else None,
         "rotation_spread_deg": result.rotation_spread_deg if result else None,
+        "optical_correction_mm": result.optical_correction_mm if result else None,
         "frames": frames_used,
         "per_pose": doc["hand_eye"]["per_pose"] if doc.get("hand_eye") and result else [],
         "time_offset_ms": {k: v.offset_ms for k, v in offsets.items()},

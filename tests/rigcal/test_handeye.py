@@ -126,3 +126,59 @@ def test_closed_form_start_is_exact_without_noise(seed: int) -> None:
     Z0, layout0 = initial_estimate(samples, CAD)
     assert Z0.is_close(Z, atol_mm=1e-6, atol_rad=1e-9)
     np.testing.assert_allclose(layout0, CAD, atol=1e-6)
+
+
+# A stereo calibration a fraction of a pixel off, as the simulator's worst drawn rig showed it:
+# scales of a few per mille, depth bent by a few 1e-6 per mm (hil.geometry.projective).
+WARP = np.array([0.003, 0.0035, 0.0057, 0.0004, -0.0008, 0.001, 3.6e-6, 1.0e-6, -2.4e-6])
+
+
+def _warped(samples: list[PoseSample], warp: np.ndarray = WARP) -> list[PoseSample]:
+    from hil.geometry.projective import apply_homography, warp_matrix
+
+    pts = np.concatenate([s.markers_optical_mm for s in samples])
+    W = warp_matrix(pts.mean(axis=0), warp)
+    return [PoseSample(s.index, s.T_robot_from_tcp, apply_homography(W, s.markers_optical_mm))
+            for s in samples]
+
+
+def _layout_err(res_layout: np.ndarray, layout: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((res_layout - layout) ** 2, axis=1))))
+
+
+def test_a_stereo_calibration_error_stays_out_of_the_layout() -> None:
+    layout = _true_layout()
+    samples = _warped(_samples(_poses(20), layout, noise_mm=0.01))
+    rigid = solve_hand_eye(samples, CAD)
+    assert rigid.optical_correction is None
+    assert rigid.optical_correction_mm is None
+    res = solve_hand_eye(samples, CAD, SolverSettings(optical_correction=True))
+    assert _layout_err(rigid.markers_tcp_mm, layout) > 0.15    # the layout took the camera's error
+    assert _layout_err(res.markers_tcp_mm, layout) < 0.02
+    assert res.residual_mm_rms < 0.03 < rigid.residual_mm_rms
+    assert res.optical_correction is not None
+    assert res.optical_correction_mm is not None
+    assert 0.2 < res.optical_correction_mm < 5.0
+    # corrected, the camera measures metric distances again (whatever the rigid gauge)
+    corrected = [res.optical_correction.apply(s.markers_optical_mm) for s in samples]
+    truth = [(Z_TRUE @ s.T_robot_from_tcp).apply(layout) for s in samples]
+    for i, j in ((0, 7), (3, 15), (9, 19)):
+        d_meas = np.linalg.norm(corrected[i] - corrected[j], axis=1)
+        d_true = np.linalg.norm(truth[i] - truth[j], axis=1)
+        np.testing.assert_allclose(d_meas, d_true, atol=0.03)
+
+
+def test_without_a_stereo_error_the_correction_is_nearly_the_identity() -> None:
+    layout = _true_layout()
+    res = solve_hand_eye(_samples(_poses(20), layout, noise_mm=0.01), CAD,
+                         SolverSettings(optical_correction=True))
+    assert res.optical_correction_mm is not None
+    assert res.optical_correction_mm < 0.03
+    assert _layout_err(res.markers_tcp_mm, layout) < 0.02
+
+
+def test_a_correction_past_its_bound_is_refused() -> None:
+    samples = _warped(_samples(_poses(20), _true_layout(), noise_mm=0.01), 4.0 * WARP)
+    with pytest.raises(RigCalibrationError, match=r"stereo calibration disagrees with the arm's motion by "
+                                                  r"up to \d+\.\d\d mm .*max_optical_correction_mm"):
+        solve_hand_eye(samples, CAD, SolverSettings(optical_correction=True, max_optical_correction_mm=0.5))

@@ -47,10 +47,32 @@ def test_a_valid_file_loads(tmp_path: Path) -> None:
     ({"hand_eye": None, "time_offsets": None}, "neither a hand_eye nor a time_offsets part"),
     ({"time_offsets": {"lidar": {"offset_ms": 1}}}, "time_offsets.lidar: unknown device"),
     ({"time_offsets": {"robot": {"offset_ms": "x"}}}, "time_offsets.robot.offset_ms must be a finite number"),
+    ({"hand_eye": {**GOOD["hand_eye"], "optical_correction": [[1, 0, 0]]}},  # type: ignore[dict-item]
+     r"hand_eye.optical_correction must be a 4x4 matrix"),
+    ({"hand_eye": {**GOOD["hand_eye"], "optical_correction": [[1, 0, 0, 0]] * 3 + [[0, 0, 0, None]]}},  # type: ignore[dict-item]
+     r"hand_eye.optical_correction\[3\]\[3\] must be a finite number"),
+    ({"hand_eye": {**GOOD["hand_eye"], "optical_correction": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],  # type: ignore[dict-item]
+                                                              [0, 0, 0, 0]]}},
+     r"hand_eye.optical_correction: a projective correction needs H\[3\]\[3\] != 0"),
+    ({"hand_eye": {**GOOD["hand_eye"], "optical_correction": [[1.2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],  # type: ignore[dict-item]
+                                                              [0, 0, 0, 1]]}},
+     r"hand_eye.optical_correction is too far from the identity \(linear part off by 0.2, bound 0.05"),
+    ({"hand_eye": {**GOOD["hand_eye"], "optical_correction": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],  # type: ignore[dict-item]
+                                                              [0, 0, 0.001, 1]]}},
+     r"projective row 0.001/mm, bound 0.0001/mm"),
 ])
 def test_a_bad_file_names_what_is_wrong(tmp_path: Path, change: dict[str, object], message: str) -> None:
     with pytest.raises(InputFileError, match=message):
         load_rig_calibration(_write(tmp_path, {**GOOD, **change}))
+
+
+def test_an_optical_correction_loads_normalised(tmp_path: Path) -> None:
+    H = [[2.002, 0.0, 0.0, 1.0], [0.0, 2.0, 0.0, -4.0], [0.0, 0.0, 1.998, 6.0], [0.0, 0.0, 2e-6, 2.0]]
+    rig = load_rig_calibration(_write(tmp_path, {**GOOD, "hand_eye": {**GOOD["hand_eye"],  # type: ignore[dict-item]
+                                                                      "optical_correction": H}}))
+    assert rig.optical_correction is not None
+    np.testing.assert_array_equal(rig.optical_correction.H_metric_from_measured, np.array(H) / 2.0)
+    assert load_rig_calibration(_write(tmp_path, GOOD)).optical_correction is None
 
 
 def test_not_json(tmp_path: Path) -> None:
@@ -79,7 +101,7 @@ def test_delay_of_a_delayed_copy_is_recovered(delay_ms: float, noise_mm: float) 
 def test_adapters_subtract_the_offsets(realistic: SetupConfig, registry: DriverRegistry) -> None:
     clock = ManualClock(start_ns=1_000_000_000)
     raw = build_devices(realistic, clock, registry)
-    rig = RigCalibration(None, {"camera": TimeOffset(45.0, 0.1), "robot": TimeOffset(8.0, 0.1),
+    rig = RigCalibration(None, time_offsets={"camera": TimeOffset(45.0, 0.1), "robot": TimeOffset(8.0, 0.1),
                                 "tracker": TimeOffset(20.0, 0.1)})
     cam, rob, trk = time_aligned(raw.camera, raw.robot, raw.tracker, rig)
     assert trk is not None
