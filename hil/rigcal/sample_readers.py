@@ -22,6 +22,9 @@ Formats (``--format``):
   inverted to ``T_camera_from_target``); the eye stream is the member whose name holds
   ``camera``, ``target`` or ``W_``. Eye-in-hand only (the camera rides on the hand). Samples
   are sorted by time, a repeated stamp keeping its first sample.
+* ``session-log``: the project's own session log (``hil run``'s JSONL; detected from a ``.jsonl``
+  whose first record is ``session_started``): one pair per still pose of the arm, the hand frame
+  being the needle guide (:mod:`hil.rigcal.session_samples`). Eye-to-hand only.
 
 Units: translations in metres or millimetres, told apart per stream (:mod:`hil.rigcal.samples`).
 """
@@ -52,8 +55,9 @@ from hil.rigcal.samples import (
     to_mm,
     transform,
 )
+from hil.rigcal.session_samples import is_session_log, read_session_log
 
-FORMATS = ("csv", "opencv-yaml", "easy-handeye", "eth")
+FORMATS = ("csv", "opencv-yaml", "easy-handeye", "eth", "session-log")
 STREAMS = ("robot", "camera")
 _QUAT_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 _MAT_COLS = tuple(f"m{r}{c}" for r in range(4) for c in range(4))
@@ -72,6 +76,8 @@ def detect_format(path: Path) -> str:
         return "csv"
     if suffix == ".samples":
         return "easy-handeye"
+    if suffix == ".jsonl" and is_session_log(path):
+        return "session-log"
     if suffix in (".yaml", ".yml"):
         head = _read_text(path)
         if "frameCount" in head:
@@ -99,6 +105,11 @@ def read_samples(path: Path, fmt: str, eye_in_hand: bool) -> PosePairs | Recorde
             raise SamplesError(str(path), "the eth format is eye-in-hand (the camera rides on the "
                                           "hand); use --setup eye-in-hand")
         return read_eth_zip(path)
+    if fmt == "session-log":
+        if eye_in_hand:
+            raise SamplesError(str(path), "a session log is eye-to-hand (the camera stands still, the "
+                                          "markers ride on the arm); use --setup eye-to-hand")
+        return read_session_log(path)
     raise SamplesError(str(path), f"unknown format {fmt!r} (one of {', '.join(FORMATS)})")
 
 

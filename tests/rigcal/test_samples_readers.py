@@ -178,7 +178,7 @@ def test_unknown_format(tmp_path: Path) -> None:
     with pytest.raises(SamplesError) as exc:
         detect_format(f)
     assert str(exc.value) == (f"{f}: unknown format (give --format, one of csv, opencv-yaml, "
-                              "easy-handeye, eth)")
+                              "easy-handeye, eth, session-log)")
 
 
 def test_eth_is_eye_in_hand_only(tmp_path: Path) -> None:
