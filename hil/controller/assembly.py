@@ -92,14 +92,16 @@ def marker_locator(setup: SetupConfig, camera: StereoCamera | None) -> StereoMar
 def _needle_checker(setup: SetupConfig,
                     camera: StereoCamera) -> StereoNeedleChecker | CollinearNeedleChecker | None:
     """The seed-004 needle-axis check when ``[procedure.lock.needle_check]`` is set, else None:
-    contour lines (``method = "cylinder"``) or collinear beads (``method = "collinear"``)."""
+    contour lines (``method = "cylinder"``) or collinear beads (``method = "collinear"``), in the
+    camera space of the rig calibration's optical correction when it has one."""
     nc = setup.procedure.lock.needle_check
     if nc is None:
         return None
+    correction = optical_correction(setup)
     if nc.method == "collinear":
         return CollinearNeedleChecker(stereo_calibration(setup, camera), nc.bead_positions_mm(),
-                                      nc.max_mono_stereo_deg)
-    return StereoNeedleChecker(stereo_calibration(setup, camera), nc.radius_mm)
+                                      nc.max_mono_stereo_deg, correction)
+    return StereoNeedleChecker(stereo_calibration(setup, camera), nc.radius_mm, correction)
 
 
 #: Takes the robot driver the setup built (CONFIGURED, not opened) and returns the robot the

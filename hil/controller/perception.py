@@ -98,18 +98,37 @@ class StereoNeedleChecker:
     searched around the expected segment ``start_mm -> end_mm`` (optical frame, mm), the axis from
     the two views' planes, and its error against the path ``entry_mm -> target_mm`` (optical frame).
 
+    With ``correction`` (the rig calibration's, which the marker locator applies) the four points,
+    given in the controller's corrected optical frame, are mapped back to where the stereo
+    calibration sees them before the image search; the errors are then measured there (the
+    correction changes lengths by parts per thousand).
+
     Pure CPU (a few tens of ms), no blocking. Raises (when called): VisionError (needle not found
     in a view), DegenerateConfigurationError (axis near an epipolar plane).
     """
 
-    def __init__(self, calibration: StereoCalibration, radius_mm: float | None = None) -> None:
+    def __init__(self, calibration: StereoCalibration, radius_mm: float | None = None,
+                 correction: ProjectiveCorrection | None = None) -> None:
         self.calibration = calibration
         self.radius_mm = radius_mm
+        self.correction = correction
 
     def __call__(self, frame: StereoFrame, start_mm: FloatArray, end_mm: FloatArray, entry_mm: FloatArray,
                  target_mm: FloatArray) -> NeedleAxisMeasurement:
+        start_mm, end_mm, entry_mm, target_mm = _camera_space(self.correction, start_mm, end_mm, entry_mm,
+                                                              target_mm)
         return measure_needle_axis(self.calibration, frame.left.image, frame.right.image, start_mm, end_mm,
                                    entry_mm, target_mm, radius_mm=self.radius_mm)
+
+
+def _camera_space(correction: ProjectiveCorrection | None,
+                  *points_mm: FloatArray) -> tuple[FloatArray, ...]:
+    """``points_mm`` (each (3,), corrected optical frame) where the stereo calibration sees them
+    (unchanged without a correction)."""
+    if correction is None:
+        return points_mm
+    seen = correction.to_measured(np.array(points_mm, dtype=np.float64).reshape(-1, 3))
+    return tuple(np.array(p) for p in seen)
 
 
 class CollinearNeedleChecker:
@@ -118,19 +137,23 @@ class CollinearNeedleChecker:
     same call and result shape (``path_error``) as :class:`StereoNeedleChecker`; the direction error
     is oriented (the beads fix which end is the tip).
 
-    ``positions_mm``: the beads' axis coordinates from the tip (>= 3). Pure CPU (a few ms), no
-    blocking. Raises (when called): VisionError (beads not found, monocular/stereo disagreement over
-    ``max_mono_stereo_deg``), DegenerateConfigurationError.
+    ``positions_mm``: the beads' axis coordinates from the tip (>= 3); ``correction`` as for
+    :class:`StereoNeedleChecker`. Pure CPU (a few ms), no blocking. Raises (when called):
+    VisionError (beads not found, monocular/stereo disagreement over ``max_mono_stereo_deg``),
+    DegenerateConfigurationError.
     """
 
     def __init__(self, calibration: StereoCalibration, positions_mm: tuple[float, ...],
-                 max_mono_stereo_deg: float = 10.0) -> None:
+                 max_mono_stereo_deg: float = 10.0, correction: ProjectiveCorrection | None = None) -> None:
         self.calibration = calibration
         self.positions_mm = positions_mm
         self.max_mono_stereo_deg = max_mono_stereo_deg
+        self.correction = correction
 
     def __call__(self, frame: StereoFrame, start_mm: FloatArray, end_mm: FloatArray, entry_mm: FloatArray,
                  target_mm: FloatArray) -> BeadAxisMeasurement:
+        start_mm, end_mm, entry_mm, target_mm = _camera_space(self.correction, start_mm, end_mm, entry_mm,
+                                                              target_mm)
         return measure_bead_axis(self.calibration, frame.left.image, frame.right.image, start_mm, end_mm,
                                  entry_mm, target_mm, self.positions_mm,
                                  max_mono_stereo_deg=self.max_mono_stereo_deg)

@@ -99,6 +99,12 @@ class ProjectiveCorrection:
         """The metric positions of ``points_mm`` (N, 3, optical frame, mm): a new (N, 3) array."""
         return apply_homography(self.H_metric_from_measured, points_mm)
 
+    def to_measured(self, points_mm: ArrayLike) -> FloatArray:
+        """The inverse: metric points (N, 3, mm) to where the stereo calibration triangulates them
+        (a new (N, 3) array; for image-space checks such as the needle's)."""
+        undo = np.asarray(np.linalg.inv(self.H_metric_from_measured), dtype=np.float64)
+        return apply_homography(undo, points_mm)
+
     def displacement_mm(self, points_mm: ArrayLike) -> float:
         """The largest distance a point of ``points_mm`` (N, 3) is moved by the correction, mm."""
         P = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)

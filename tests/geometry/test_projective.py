@@ -79,3 +79,13 @@ def test_bad_matrices_are_refused(bad: np.ndarray, says: str) -> None:
 def test_a_singular_warp_is_refused() -> None:
     with pytest.raises(GeometryError, match="singular"):
         ProjectiveCorrection.undoing(np.zeros((4, 4)))
+
+
+@settings(max_examples=40, deadline=None)
+@given(params, points)
+def test_to_measured_is_the_inverse_of_apply(p: tuple[float, ...], offsets: np.ndarray) -> None:
+    x = CENTER + offsets
+    corr = ProjectiveCorrection.undoing(warp_matrix(CENTER, p))
+    np.testing.assert_allclose(corr.to_measured(corr.apply(x)), x, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(corr.to_measured(x), apply_homography(warp_matrix(CENTER, p), x), rtol=0,
+                               atol=1e-8)
