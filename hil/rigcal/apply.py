@@ -17,6 +17,7 @@ from hil.geometry.projective import ProjectiveCorrection
 from hil.log import get_logger
 from hil.rigcal.rigfile import RigCalibration, load_rig_calibration
 from hil.rigcal.time_align import time_aligned
+from hil.session.log import file_sha256
 
 FloatArray = NDArray[np.float64]
 _log = get_logger(__name__)
@@ -27,18 +28,37 @@ def rig_calibration(setup: SetupConfig) -> RigCalibration | None:
     """The setup's rig calibration file, or None when ``[calibration] rig`` is not set.
 
     Raises:
-        InputFileError: the file is unreadable or invalid, or its layout has a different number of
-            markers than ``[frames] flange_markers_mm`` (a file of another rig).
+        InputFileError: the file is unreadable or invalid, its layout has a different number of
+            markers than ``[frames] flange_markers_mm`` (a file of another rig), or it was made
+            through another stereo calibration file than ``[calibration] stereo`` now names (its
+            layout and optical correction were measured through that one).
     """
     path = setup.calibration.rig
     if path is None:
         return None
     rig = load_rig_calibration(path)
+    _check_stereo(rig, setup, str(path))
     n = len(setup.frames.flange_markers_mm)
     if rig.flange_markers_mm is not None and rig.flange_markers_mm.shape[0] != n:
         raise InputFileError(str(path), f"hand_eye.flange_markers_mm has {rig.flange_markers_mm.shape[0]} "
                                         f"markers, [frames] flange_markers_mm {n}: a file of another rig?")
     return rig
+
+
+def _check_stereo(rig: RigCalibration, setup: SetupConfig, path: str) -> None:
+    made_with = rig.document.get("stereo_calibration_sha256")
+    stereo = setup.calibration.stereo
+    if not isinstance(made_with, str) or stereo is None:
+        return   # a file from before the field, or a camera that knows its own calibration
+    try:
+        now = file_sha256(stereo)
+    except OSError:
+        return   # the stereo file's own loader names that problem
+    if now != made_with:
+        raise InputFileError(path, f"made through another stereo calibration (SHA-256 {made_with[:12]}...) "
+                                   f"than [calibration] stereo = {stereo} ({now[:12]}...): its layout and "
+                                   "optical correction were measured through that one; run hil rig-calibrate "
+                                   "again after a camera calibration")
 
 
 def flange_markers_mm(setup: SetupConfig) -> FloatArray:

@@ -328,7 +328,8 @@ def refine(samples: Sequence[PoseSample], start: RigModel, center_mm: FloatArray
 
 
 def _warp_params(warp: FloatArray, center_mm: FloatArray) -> FloatArray:
-    """The nine parameters of a :func:`warp_matrix` about ``center_mm`` (its inverse)."""
+    """The nine parameters ``p`` with ``warp_matrix(center_mm, p) == warp``: the inverse of
+    :func:`~hil.geometry.projective.warp_matrix` (a restart's starting point)."""
     to_c, from_c = np.eye(4), np.eye(4)
     to_c[:3, 3], from_c[:3, 3] = -center_mm, center_mm
     about = to_c @ warp @ from_c

@@ -5,6 +5,7 @@ A JSON object::
     {"schema": "hil.rig_calibration", "version": 1,
      "units": {"length": "mm", "time": "ms", "angle": "deg"},
      "created_utc": "...", "setup": "...", "setup_name": "...",
+     "stereo_calibration": path | null, "stereo_calibration_sha256": hex | null,
      "hand_eye": null | {"flange_markers_mm": [[x, y, z], ...],      # flange frame, layout order
                          "T_flange_from_tcp": 4x4, "T_optical_from_robot": 4x4,
                          "poses": n, "poses_used": n, "outliers": [i, ...],

@@ -34,6 +34,7 @@ from hil.rigcal.rigfile import (
 )
 from hil.rigcal.temporal import TemporalRecorder, offsets_from_recording
 from hil.rigcal.truth import RigTruthSource
+from hil.session.log import file_sha256
 from hil.vision.camera_model import StereoCalibration
 
 FloatArray = NDArray[np.float64]
@@ -205,6 +206,7 @@ def _summary(out_path: Path, result: HandEyeResult | None, frames_used: int, doc
 def _document(setup: SetupConfig, config_path: Path, result: HandEyeResult | None, T_ft: RigidTransform,
               offsets: dict[str, TimeOffset], out_path: Path, hand_eye: bool) -> dict[str, Any]:
     he: Any = None
+    stereo = setup.calibration.stereo
     if result is not None:
         he = _hand_eye_doc(result, T_ft, setup.rig_calibration.max_validation_mm)
     elif not hand_eye:
@@ -215,6 +217,8 @@ def _document(setup: SetupConfig, config_path: Path, result: HandEyeResult | Non
         "units": {"length": "mm", "time": "ms", "angle": "deg"},
         "created_utc": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "setup": str(config_path), "setup_name": setup.name,
+        "stereo_calibration": None if stereo is None else str(stereo),
+        "stereo_calibration_sha256": None if stereo is None else file_sha256(stereo),
         "hand_eye": he,
         "time_offsets": ({k: {"offset_ms": v.offset_ms,
                               "sigma_ms": v.sigma_ms if math.isfinite(v.sigma_ms) else None}

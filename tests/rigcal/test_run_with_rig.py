@@ -71,3 +71,30 @@ def test_a_rig_file_of_another_rig_is_refused(tmp_path: Path, capsys: pytest.Cap
     assert err.endswith("hand_eye.flange_markers_mm has 3 markers, [frames] flange_markers_mm 4: "
                         "a file of another rig?")
     assert len(err.splitlines()) == 1
+
+
+def test_a_rig_file_made_through_another_stereo_calibration_is_refused(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cal = (CONFIGS / "calibration" / "sim_stereo.json").resolve()
+    now = hashlib.sha256(cal.read_bytes()).hexdigest()
+    ok = _setup_with_rig(tmp_path, {**DOC, "stereo_calibration_sha256": now})
+    np.testing.assert_array_equal(flange_markers_mm(load_setup(ok)), np.array(LAYOUT))   # the same: used
+    cfg = _setup_with_rig(tmp_path, {**DOC, "stereo_calibration_sha256": "ab" * 32})
+    assert main(["run", str(cfg), "--auto", "--plan", str(CONFIGS / "plans" / "sim_realistic_plan.json"),
+                 "--session-dir", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert err.endswith(f"made through another stereo calibration (SHA-256 abababababab...) than "
+                        f"[calibration] stereo = {cal} ({now[:12]}...): its layout and optical correction "
+                        "were measured through that one; run hil rig-calibrate again after a camera "
+                        "calibration")
+
+
+def test_the_rig_file_names_its_stereo_calibration(tmp_path: Path) -> None:
+    out = tmp_path / "rig.json"
+    assert main(["rig-calibrate", str(CONFIGS / "sim_realistic.toml"), "--auto", "--no-temporal",
+                 "--poses", "8", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    cal = (CONFIGS / "calibration" / "sim_stereo.json").resolve()
+    assert Path(doc["stereo_calibration"]).resolve() == cal
+    assert doc["stereo_calibration_sha256"] == hashlib.sha256(cal.read_bytes()).hexdigest()
