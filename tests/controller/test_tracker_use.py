@@ -105,8 +105,8 @@ def test_reference_sensor_stands_in_for_occluded_skin_markers(tmp_path: Path,
         captured["devices"] = real_build(*a, **k)
         return captured["devices"]
 
-    def locator(cal: Any) -> Any:
-        inner = StereoMarkerLocator(cal)
+    def locator(cal: Any, correction: Any = None) -> Any:
+        inner = StereoMarkerLocator(cal, correction=correction)
 
         def locate(frame: Any) -> Any:
             pts = np.asarray(inner(frame), dtype=np.float64).reshape(-1, 3)
