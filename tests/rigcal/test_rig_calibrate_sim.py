@@ -4,7 +4,9 @@ the file, and every bad input giving one error, the arm stopped and nothing writ
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -12,10 +14,10 @@ import pytest
 from hil.cli import main
 from hil.clock import ManualClock
 from hil.config import SetupConfig, build_devices
-from hil.rigcal.collect import RigCalibrationAbortedError
+from hil.rigcal.collect import Confirm, RigCalibrationAbortedError
 from hil.rigcal.handeye import RigCalibrationError
 from hil.rigcal.rigfile import load_rig_calibration
-from hil.rigcal.runner import run_rig_calibration
+from hil.rigcal.runner import RigCalibrationOutcome, run_rig_calibration
 from plugins.registry import DriverRegistry
 from tests.rigcal.conftest import CONFIGS
 
@@ -59,15 +61,15 @@ def test_the_optical_correction_keeps_the_cameras_error_out_of_the_layout(
     for on in (True, False):
         _, go = _run(_with(rig24, optical_correction=on), registry, tmp_path / f"rig_{on}.json",
                      temporal=False)
-        s = go().summary  # type: ignore[operator]
+        s = go().summary
         errors[on] = s["truth_layout_error_mm_rms"]
         assert (s["optical_correction_mm"] is None) is (not on)
         assert (load_rig_calibration(tmp_path / f"rig_{on}.json").optical_correction is None) is (not on)
     assert errors[True] < 0.03 < 0.25 < errors[False]
 
 
-def _run(setup: SetupConfig, registry: DriverRegistry, out: Path, confirm: object = None,
-         **kw: bool) -> object:
+def _run(setup: SetupConfig, registry: DriverRegistry, out: Path, confirm: Confirm | None = None,
+         **kw: bool) -> tuple[Any, Callable[[], RigCalibrationOutcome]]:
     clock = ManualClock(start_ns=1_000_000_000)
     devices = build_devices(setup, clock, registry)
     return devices, lambda: run_rig_calibration(
@@ -81,10 +83,10 @@ def test_operator_abort_midway_stops_the_arm_and_writes_nothing(
     out = tmp_path / "rig.json"
     devices, go = _run(realistic, registry, out, confirm=lambda _p: next(answers))
     stops: list[float | None] = []
-    original = devices.robot._stop  # type: ignore[attr-defined]
-    devices.robot._stop = lambda d: (stops.append(d), original(d))  # type: ignore[attr-defined]
+    original = devices.robot._stop
+    devices.robot._stop = lambda d: (stops.append(d), original(d))
     with pytest.raises(RigCalibrationAbortedError, match="operator aborted at pose 4 of 16"):
-        go()  # type: ignore[operator]
+        go()
     assert stops
     assert not out.exists()
 
@@ -94,7 +96,7 @@ def test_poses_too_similar(realistic: SetupConfig, registry: DriverRegistry, tmp
     _, go = _run(_with(realistic, cone_half_angle_deg=1.0, spin_deg=0.0), registry, out, temporal=False)
     with pytest.raises(RigCalibrationError, match="poses too similar: the largest rotation between two "
                                                   r"poses is \d\.\d deg"):
-        go()  # type: ignore[operator]
+        go()
     assert not out.exists()
 
 
@@ -104,10 +106,10 @@ def test_a_pose_outside_the_workspace_is_refused_before_the_arm_moves(
     out = tmp_path / "rig.json"
     devices, go = _run(realistic.model_copy(update={"safety": safety}), registry, out, temporal=False)
     moves: list[object] = []
-    original = devices.robot._move_linear  # type: ignore[attr-defined]
-    devices.robot._move_linear = lambda *a: (moves.append(a), original(*a))  # type: ignore[attr-defined]
+    original = devices.robot._move_linear
+    devices.robot._move_linear = lambda *a: (moves.append(a), original(*a))
     with pytest.raises(RigCalibrationError, match=r"pose 0 at \[.*\] mm cannot be reached: .*outside box"):
-        go()  # type: ignore[operator]
+        go()
     assert moves == []
     assert not out.exists()
 
@@ -119,10 +121,10 @@ def test_markers_not_seen(realistic: SetupConfig, registry: DriverRegistry, tmp_
     out = tmp_path / "rig.json"
     devices, go = _run(setup, registry, out, temporal=False)
     stops: list[float] = []
-    original = devices.robot._stop  # type: ignore[attr-defined]
-    devices.robot._stop = lambda d: (stops.append(d), original(d))  # type: ignore[attr-defined]
+    original = devices.robot._stop
+    devices.robot._stop = lambda d: (stops.append(d), original(d))
     with pytest.raises(RigCalibrationError, match="markers not seen at pose 0"):
-        go()  # type: ignore[operator]
+        go()
     assert stops
     assert not out.exists()
 
@@ -132,7 +134,7 @@ def test_validation_bound_refuses_the_file(realistic: SetupConfig, registry: Dri
     out = tmp_path / "rig.json"
     _, go = _run(_with(realistic, max_validation_mm=0.001), registry, out, temporal=False)
     with pytest.raises(RigCalibrationError, match=r"validation error .* over the bound 0.001 mm"):
-        go()  # type: ignore[operator]
+        go()
     assert not out.exists()
 
 
@@ -147,11 +149,11 @@ def test_temporal_only_keeps_the_hand_eye_part(realistic: SetupConfig, registry:
                                                tmp_path: Path) -> None:
     out = tmp_path / "rig.json"
     _, go = _run(_with(realistic, poses=8, min_poses=8), registry, out, temporal=False)
-    go()  # type: ignore[operator]
+    go()
     first = load_rig_calibration(out)
     assert first.time_offsets == {}
     _, go2 = _run(realistic, registry, out, hand_eye=False)
-    go2()  # type: ignore[operator]
+    go2()
     second = load_rig_calibration(out)
     assert first.flange_markers_mm is not None
     assert second.flange_markers_mm is not None

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -20,9 +21,9 @@ from hil.rigcal.rigfile import RigCalibration, TimeOffset, load_rig_calibration
 from hil.rigcal.time_align import time_aligned
 from plugins.registry import DriverRegistry
 
-GOOD = {"schema": "hil.rig_calibration", "version": 1,
-        "hand_eye": {"flange_markers_mm": [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 10.0]]},
-        "time_offsets": {"camera": {"offset_ms": 45.0, "sigma_ms": 0.2}}}
+HAND_EYE: dict[str, Any] = {"flange_markers_mm": [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 10.0]]}
+GOOD: dict[str, Any] = {"schema": "hil.rig_calibration", "version": 1, "hand_eye": HAND_EYE,
+                        "time_offsets": {"camera": {"offset_ms": 45.0, "sigma_ms": 0.2}}}
 
 
 def _write(tmp_path: Path, doc: object) -> Path:
@@ -34,7 +35,7 @@ def _write(tmp_path: Path, doc: object) -> Path:
 def test_a_valid_file_loads(tmp_path: Path) -> None:
     rig = load_rig_calibration(_write(tmp_path, GOOD))
     assert rig.flange_markers_mm is not None
-    assert rig.flange_markers_mm.tolist() == GOOD["hand_eye"]["flange_markers_mm"]  # type: ignore[index]
+    assert rig.flange_markers_mm.tolist() == HAND_EYE["flange_markers_mm"]
     assert rig.time_offsets == {"camera": TimeOffset(45.0, 0.2)}
     assert rig.offset_ns("camera") == 45_000_000
     assert rig.offset_ns("robot") == 0
@@ -47,17 +48,17 @@ def test_a_valid_file_loads(tmp_path: Path) -> None:
     ({"hand_eye": None, "time_offsets": None}, "neither a hand_eye nor a time_offsets part"),
     ({"time_offsets": {"lidar": {"offset_ms": 1}}}, "time_offsets.lidar: unknown device"),
     ({"time_offsets": {"robot": {"offset_ms": "x"}}}, "time_offsets.robot.offset_ms must be a finite number"),
-    ({"hand_eye": {**GOOD["hand_eye"], "optical_correction": [[1, 0, 0]]}},  # type: ignore[dict-item]
+    ({"hand_eye": {**HAND_EYE, "optical_correction": [[1, 0, 0]]}},
      r"hand_eye.optical_correction must be a 4x4 matrix"),
-    ({"hand_eye": {**GOOD["hand_eye"], "optical_correction": [[1, 0, 0, 0]] * 3 + [[0, 0, 0, None]]}},  # type: ignore[dict-item]
+    ({"hand_eye": {**HAND_EYE, "optical_correction": [[1, 0, 0, 0]] * 3 + [[0, 0, 0, None]]}},
      r"hand_eye.optical_correction\[3\]\[3\] must be a finite number"),
-    ({"hand_eye": {**GOOD["hand_eye"], "optical_correction": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],  # type: ignore[dict-item]
+    ({"hand_eye": {**HAND_EYE, "optical_correction": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],
                                                               [0, 0, 0, 0]]}},
      r"hand_eye.optical_correction: a projective correction needs H\[3\]\[3\] != 0"),
-    ({"hand_eye": {**GOOD["hand_eye"], "optical_correction": [[1.2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],  # type: ignore[dict-item]
+    ({"hand_eye": {**HAND_EYE, "optical_correction": [[1.2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],
                                                               [0, 0, 0, 1]]}},
      r"hand_eye.optical_correction is too far from the identity \(linear part off by 0.2, bound 0.05"),
-    ({"hand_eye": {**GOOD["hand_eye"], "optical_correction": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],  # type: ignore[dict-item]
+    ({"hand_eye": {**HAND_EYE, "optical_correction": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],
                                                               [0, 0, 0.001, 1]]}},
      r"projective row 0.001/mm, bound 0.0001/mm"),
 ])
@@ -68,7 +69,7 @@ def test_a_bad_file_names_what_is_wrong(tmp_path: Path, change: dict[str, object
 
 def test_an_optical_correction_loads_normalised(tmp_path: Path) -> None:
     H = [[2.002, 0.0, 0.0, 1.0], [0.0, 2.0, 0.0, -4.0], [0.0, 0.0, 1.998, 6.0], [0.0, 0.0, 2e-6, 2.0]]
-    rig = load_rig_calibration(_write(tmp_path, {**GOOD, "hand_eye": {**GOOD["hand_eye"],  # type: ignore[dict-item]
+    rig = load_rig_calibration(_write(tmp_path, {**GOOD, "hand_eye": {**HAND_EYE,
                                                                       "optical_correction": H}}))
     assert rig.optical_correction is not None
     np.testing.assert_array_equal(rig.optical_correction.H_metric_from_measured, np.array(H) / 2.0)
