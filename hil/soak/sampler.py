@@ -15,6 +15,7 @@ from typing import Any
 from hil.servo.client import ServoRobot
 from hil.servo.figures import StatsCopy
 from hil.servo.shm import Stat
+from hil.soak.heapmap import HeapBreakdown, read_heap_breakdown
 from hil.soak.host import StealFreeLate, StealSample, sample_steal, steal_percent
 
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
@@ -59,7 +60,8 @@ class SamplerEnd:
 
 class Sampler:
     """Called by the soak operator every tick: once a second the RSS of the supervisor, the servo
-    process and the perception process; when compensation first starts (:meth:`on_compensate`)
+    process and the perception process; once a minute where the supervisor's memory is
+    (:attr:`heap`); when compensation first starts (:meth:`on_compensate`)
     the loop's counters, the servo process's CPU time and the host's steal counters; and from
     then the steal-free windows (:class:`~hil.soak.host.StealFreeLate`)."""
 
@@ -72,6 +74,9 @@ class Sampler:
         self._rss_servo_mb = array("d")
         self._perc_t = array("d")
         self._perc_mb = array("d")
+        #: (monotonic s, breakdown) of the supervisor's memory, once a minute (hil/soak/heapmap.py)
+        self.heap: list[tuple[float, HeapBreakdown]] = []
+        self._heap_last: float | None = None
         self.start: StatsCopy | None = None
         self._last = 0.0
         #: (monotonic s, CPU s) of the servo process when compensation first started
@@ -95,6 +100,9 @@ class Sampler:
         if pid is not None:
             self._perc_t.append(now)
             self._perc_mb.append(rss_mb(pid))
+        if self._heap_last is None or now - self._heap_last >= 60.0:
+            self._heap_last = now
+            self.heap.append((now, read_heap_breakdown()))
 
     @property
     def rss(self) -> list[tuple[float, float, float]]:

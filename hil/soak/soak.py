@@ -101,6 +101,7 @@ from hil.servo.client import ServoRobot
 from hil.servo.figures import LoopFigures, loop_figures
 from hil.session.log import SessionLog
 from hil.soak.attribution import fault_outcomes, unexplained_faults
+from hil.soak.heapmap import HeapBreakdown
 from hil.soak.pendant import Pendant, RobotPendant
 from hil.soak.sampler import Sampler
 from hil.soak.viewer import check_viewer_target, close_soak_viewer, follow_truth, open_devices_and_viewer
@@ -227,6 +228,9 @@ class SoakResult:
     rss_mb_by_minute: list[float] = field(default_factory=list)
     #: the perception process's RSS (MB) at each whole minute, as ``rss_mb_by_minute``
     perception_rss_mb_by_minute: list[float] = field(default_factory=list)
+    #: where the supervisor's memory is, once a minute (hil/soak/heapmap.py ``HeapBreakdown``
+    #: fields, MB, plus ``t_min``: minutes from compensation's first start, negative before it)
+    heap_by_minute: list[dict[str, float | int | None]] = field(default_factory=list)
     #: the camera was grabbed, rendered and located in the perception process (else in the
     #: supervisor)
     perception_process: bool = False
@@ -601,6 +605,7 @@ def _add_process_figures(res: SoakResult, robot: ServoRobot, feed: PerceptionPro
     res.perception_rss_mb = _rss_figures(sampler.perception_rss, operator.t_comp, minutes)
     res.perception_process = feed is not None
     res.perception_rss_mb_by_minute = rss_by_minute(sampler.perception_rss, operator.t_comp)
+    res.heap_by_minute = heap_by_minute(sampler.heap, operator.t_comp)
     if feed is not None:
         res.locate_ms = feed.locate_figures()
         res.camera_latency_ms = feed.delivery_figures()
@@ -702,6 +707,16 @@ def analyse(
     res.servo_rss_mb = _rss_figures([(t, m) for t, _, m in rss], operator.t_comp, minutes)
     res.rss_mb_by_minute = rss_by_minute([(t, m) for t, m, _ in rss], operator.t_comp)
     return res
+
+
+def heap_by_minute(heap: list[tuple[float, HeapBreakdown]],
+                   t_comp: float | None) -> list[dict[str, float | int | None]]:
+    """``SoakResult.heap_by_minute`` from the sampler's (monotonic s, breakdown) readings:
+    ``t_min`` counts from ``t_comp`` (None: the first reading)."""
+    if not heap:
+        return []
+    t0 = heap[0][0] if t_comp is None else t_comp
+    return [{"t_min": round((t - t0) / 60.0, 2), **b.to_dict()} for t, b in heap]
 
 
 def rss_by_minute(rss: list[tuple[float, float]], t_comp: float | None) -> list[float]:
