@@ -1,7 +1,7 @@
 """``tools/bench accuracy --rigs N`` (issue 43): two rigs end to end on the local executor (the
 JSON's keys, the worst rig rerun alone by its printed command gives the same figure), a refused
 calibration and a hung rig counted with their reasons, a worker on other code refused, the
-summary's arithmetic, and bad input one line with exit 2.
+summary's arithmetic, and bad input (a missing plan in both modes too) one line with exit 2.
 
 The rigs run a shortened rig calibration (8 poses, 2 temporal cycles) to keep the tests short."""
 
@@ -203,3 +203,16 @@ def test_rigs_run_on_a_dask_local_cluster(tmp_path: Path, capsys: pytest.Capture
     assert out is not None
     assert out["executor"] == {"kind": "dask", "scheduler": "LocalCluster", "workers": 1}
     assert out["crashed_reasons"] == {"after 2 attempts: rig did not finish within 0.5 s (hang)": 1}
+
+
+@pytest.mark.parametrize("mode", [["--runs", "1"], ["--rigs", "1"]])
+def test_a_missing_plan_is_one_line(mode: list[str], tmp_path: Path,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = tmp_path / "no_plan_beside.toml"     # its bundled plan, plans/no_plan_beside_plan.json, is absent
+    cfg.write_text((CONFIGS / "sim_realistic.toml").read_text())
+    code = _bench().main(["--config", str(cfg), *mode])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.startswith(f"tools/bench accuracy: error: {tmp_path / 'plans' / 'no_plan_beside_plan.json'}: "
+                          "cannot read plan")
+    assert err.count("\n") == 1

@@ -358,12 +358,11 @@ def main(argv: list[str] | None = None) -> int:
         overrides = {k: v for k, v in (("estimator", args.estimator), ("predictor", args.predictor)) if v}
         if overrides:
             base = _with_compensation(base, **overrides)
+        bundled = cfg_path.resolve().parent / "plans" / f"{cfg_path.stem}_plan.json"
+        plan = load_plan(Path(args.plan) if args.plan else bundled)
     except HilError as exc:
         print(f"tools/bench accuracy: error: {exc}", file=sys.stderr)
         return 2
-    bundled = cfg_path.resolve().parent / "plans" / f"{cfg_path.stem}_plan.json"
-    plan_path = Path(args.plan) if args.plan else bundled
-    plan = load_plan(plan_path)
     side_by_side = base.simulation.rig_errors != RigErrorsConfig() and not args.no_rig_calibration
     t0 = time.perf_counter()
     only_calibrated = side_by_side and args.calibrated_only
