@@ -198,6 +198,16 @@ class CompensationConfig(BaseModel):
     deformation_bound_mm: float = Field(
         4.0, gt=0, description="rigid-fit residual of the skin markers beyond which the body no longer moves "
                                "as the model explains: pause, ask the operator")
+    target_model: Literal["rigid", "surrogate"] = Field(
+        "rigid", description="the path's direction after motion (docs/compensation.md): rigid (turned with "
+                             "the skin about the entry) or surrogate (at the target a 4D CT's correlation "
+                             "with the skin predicts; needs the plan's phases)")
+    target_model_residual_mm: float = Field(
+        2.0, gt=0, description="surrogate: per-marker RMS residual of the breathing pattern beyond which a "
+                               "pair keeps the rigid direction")
+    target_model_max_turn_deg: float = Field(
+        10.0, gt=0, le=45, description="surrogate: the most the model may turn the path; beyond, a pair "
+                                       "keeps the rigid direction")
 
 
 class NeedleCheckConfig(BaseModel):

@@ -32,6 +32,7 @@ from hil.controller.gate import BreathHoldGate, GateMeasures, gate_measures, rms
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, RigGeometry
 from hil.controller.registration import PatientRegistration, RobotRegistration
+from hil.controller.target_model import SurrogateTargetModel, TargetSteer, fit_target_model
 from hil.errors import ConfigError
 from hil.geometry import native
 from hil.geometry.registration import register_horn
@@ -64,6 +65,8 @@ class Estimate:
     Raises:
         ConfigError: a predictor other than alpha-beta without a camera rate.
         PredictionError: a camera rate that is not a finite number > 0 for it.
+        InputFileError: ``target_model = "surrogate"`` with a plan whose 4D CT cannot carry the
+            model (hil/controller/target_model.py :func:`fit_target_model`).
     """
 
     def __init__(self, plan: ProcedurePlan, rig: RigGeometry, cfg: ProcedureConfig,
@@ -84,6 +87,13 @@ class Estimate:
                     f"predictor = {cfg.compensation.predictor!r} needs the camera's frame rate"])
             self.filter.predictor = ChangePredictor(cfg.compensation, camera_rate_hz)
         self.comp_cfg, self.gate_cfg = cfg.compensation, cfg.gate
+        c = cfg.compensation
+        #: the surrogate target model (``target_model = "surrogate"``), fitted to the plan's 4D CT
+        self.target_model: SurrogateTargetModel | None = (
+            fit_target_model(plan, c.target_model_residual_mm, c.target_model_max_turn_deg)
+            if c.target_model == "surrogate" else None)
+        #: the last pair's use of it (None: no model, or no change measured this pair)
+        self.target_steer: TargetSteer | None = None
         #: the last pair's change estimate (estimator, rigid-fit residuals: the deformation monitor)
         self.change_fit: ChangeFit | None = None
         self.live_mm: FloatArray | None = None      # skin markers, reference order
@@ -108,6 +118,7 @@ class Estimate:
         self.patient_reg = None
         self.live_mm = None
         self.change_fit = None
+        self.target_steer = None
         self.filter.reset()
         self.T_bias = RigidTransform.identity()
 

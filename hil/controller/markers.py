@@ -5,7 +5,8 @@ Input: the marker centres the locator triangulated (optical frame, mm, any order
 registered reference once there is one, else against the plan's fiducial layout) and the flange
 markers in layout order; NaN rows are markers not seen this pair. Once registered, the patient's
 change (optical frame) is estimated by ``[procedure.compensation] estimator``
-(:mod:`hil.controller.change_estimate`) and fed to the motion filter.
+(:mod:`hil.controller.change_estimate`), its direction steered at the modelled target when
+``target_model = "surrogate"`` (:mod:`hil.controller.target_model`), and fed to the motion filter.
 
 Tracking first (each predicted marker takes the nearest point within ``TRACK_TOLERANCE_MM``); a
 full identification against the layout when fewer than three markers are tracked. The skin and the
@@ -74,9 +75,15 @@ class MarkerTracker:
         c = est.comp_cfg
         t0 = time.perf_counter_ns()   # the estimator's cost (hil/controller/cost.py), not control
         fit = estimate_change(ref, live, est.T_center.t, c.estimator, c.weight_sigma_mm)
+        change = None if fit is None else fit.T_live_from_ref
+        est.target_steer = None
+        if change is not None and est.target_model is not None:
+            est.target_steer = est.target_model.steer(change, ref, live, est.plan,
+                                                      est.patient_reg.T_optical_from_image)
+            change = est.target_steer.T_live_from_ref
         self.change_cost.add_ns(time.perf_counter_ns() - t0)
         est.change_fit = fit
-        est.T_change_meas = None if fit is None else fit.T_live_from_ref
+        est.T_change_meas = change
         if reference_hook is not None:
             reference_hook()
         if est.T_change_meas is not None:

@@ -5,7 +5,14 @@ Two ways to write a plan:
 1. The project's own JSON (``configs/plans/*.json``)::
 
     {"format": "hil-plan", "version": 1, "frame": "image", "units": "mm",
-     "fiducials_mm": [[x, y, z], ...], "entry_mm": [x, y, z], "target_mm": [x, y, z]}
+     "fiducials_mm": [[x, y, z], ...], "entry_mm": [x, y, z], "target_mm": [x, y, z],
+     "phases": [{"fiducials_mm": [[x, y, z], ...], "target_mm": [x, y, z]}, ...]}
+
+   ``phases`` is optional: the fiducials and the target at other phases of a breathing cycle, as a
+   4D CT shows them (same frame, fiducials in the same order). The main ``fiducials_mm`` and
+   ``target_mm`` are the phase the procedure registers at (end-exhale). The surrogate target
+   model (``[procedure.compensation] target_model = "surrogate"``, hil/controller/target_model.py)
+   is fitted to them.
 
 2. A labelled point list, as planning software writes it: a 3D Slicer markups file
    (``.mrk.json``, ``.fcsv``) or a CSV/JSON point file read by :func:`hil.io.read_points`, with one
@@ -31,6 +38,15 @@ FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
+class PlanPhase:
+    """One breathing phase of a 4D CT (image frame, mm): the fiducials in the plan's order, (N, 3),
+    and the target, (3,)."""
+
+    fiducials_mm: FloatArray
+    target_mm: FloatArray
+
+
+@dataclass(frozen=True)
 class ProcedurePlan:
     """The physician's plan in the image frame (mm).
 
@@ -39,18 +55,24 @@ class ProcedurePlan:
         entry_mm: (3,) skin entry point.
         target_mm: (3,) target point.
         source: where it came from (file path or ``<memory>``).
+        phases: other breathing phases of a 4D CT (module doc); empty when the plan has none.
     """
 
     fiducials_mm: FloatArray
     entry_mm: FloatArray
     target_mm: FloatArray
     source: str = "<memory>"
+    phases: tuple[PlanPhase, ...] = ()
 
     def __post_init__(self) -> None:
         if self.fiducials_mm.shape[0] < 3:
             raise GeometryError(f"plan needs >= 3 fiducials, has {self.fiducials_mm.shape[0]}")
         if float(np.linalg.norm(self.target_mm - self.entry_mm)) < 1.0:
             raise GeometryError("plan entry and target are less than 1 mm apart")
+        for k, ph in enumerate(self.phases):
+            if ph.fiducials_mm.shape != self.fiducials_mm.shape:
+                raise GeometryError(f"phases[{k}].fiducials_mm: {ph.fiducials_mm.shape[0]} points, the plan "
+                                    f"has {self.fiducials_mm.shape[0]} fiducials")
 
     @property
     def path_length_mm(self) -> float:
@@ -76,19 +98,40 @@ def plan_from_dict(doc: Any, source: str = "<memory>") -> ProcedurePlan:
         fid = as_points(doc.get("fiducials_mm", []), "fiducials_mm")
     except (GeometryError, TypeError, ValueError) as exc:
         raise InputFileError(source, f"fiducials_mm: {exc}") from None
-    pts: dict[str, FloatArray] = {}
-    for key in ("entry_mm", "target_mm"):
-        try:
-            arr = as_points(doc.get(key, []), key)
-        except (GeometryError, TypeError, ValueError) as exc:
-            raise InputFileError(source, f"{key}: {exc}") from None
-        if arr.shape[0] != 1:
-            raise InputFileError(source, f"{key}: must be one point [x, y, z]")
-        pts[key] = arr[0]
+    pts = {key: _one_point(doc.get(key, []), key, source) for key in ("entry_mm", "target_mm")}
+    phases = _phases(doc.get("phases", []), source)
     try:
-        return ProcedurePlan(fid, pts["entry_mm"], pts["target_mm"], source)
+        return ProcedurePlan(fid, pts["entry_mm"], pts["target_mm"], source, phases)
     except GeometryError as exc:
         raise InputFileError(source, str(exc)) from None
+
+
+def _one_point(value: Any, where: str, source: str) -> FloatArray:
+    try:
+        arr = as_points(value, where)
+    except (GeometryError, TypeError, ValueError) as exc:
+        raise InputFileError(source, f"{where}: {exc}") from None
+    if arr.shape[0] != 1:
+        raise InputFileError(source, f"{where}: must be one point [x, y, z]")
+    out: FloatArray = arr[0]
+    return out
+
+
+def _phases(doc: Any, source: str) -> tuple[PlanPhase, ...]:
+    """``phases`` of a plan document (module doc); InputFileError naming the phase and field."""
+    if not isinstance(doc, list):
+        raise InputFileError(source, "phases: must be a list of {fiducials_mm, target_mm}")
+    out: list[PlanPhase] = []
+    for k, ph in enumerate(doc):
+        if not isinstance(ph, dict) or set(ph) != {"fiducials_mm", "target_mm"}:
+            raise InputFileError(source,
+                                 f"phases[{k}]: must be an object with exactly fiducials_mm and target_mm")
+        try:
+            fid = as_points(ph["fiducials_mm"], f"phases[{k}].fiducials_mm")
+        except (GeometryError, TypeError, ValueError) as exc:
+            raise InputFileError(source, f"phases[{k}].fiducials_mm: {exc}") from None
+        out.append(PlanPhase(fid, _one_point(ph["target_mm"], f"phases[{k}].target_mm", source)))
+    return tuple(out)
 
 
 def plan_from_points(points: PointSet, source: str) -> ProcedurePlan:

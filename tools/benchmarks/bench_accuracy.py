@@ -2,7 +2,8 @@
 
 Run: ``tools/bench accuracy [--json] [--runs N | --rigs N [--tolerances FILE] [--executor local|dask]
 [--workers W] [--scheduler ADDRESS] [--rig-timeout-s S]] [--first-seed S] [--follow-s S] [--config FILE]
-[--no-rig-calibration] [--trace FILE [--trace-format F]] [--predictor NAME]``
+[--no-rig-calibration] [--trace FILE [--trace-format F]] [--predictor NAME] [--estimator NAME]
+[--target-model rigid|surrogate]``
 
 Each run is ``hil run`` on the simulator (configs/sim.toml by default) with seed-001-like camera
 noise (the sim camera's defaults: 1394 px, 120 mm baseline, 2 grey levels of sensor noise, blur),
@@ -56,6 +57,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.sim.planning_ct import four_d_ct_phases
 from hil.cli.cmd_run import run_procedure
 from hil.config import SetupConfig, build_devices, default_setup_path, load_setup
 from hil.config.build import clock_for
@@ -63,8 +65,9 @@ from hil.config.overrides import TRACE_FORMATS, with_trace
 from hil.config.simulation import RigErrorsConfig
 from hil.controller.change_estimate import CHANGE_ESTIMATORS
 from hil.controller.metrics import RunSummary
-from hil.controller.plan_file import ProcedurePlan, load_plan
-from hil.errors import HilError
+from hil.controller.plan_file import ProcedurePlan, load_plan, plan_from_dict
+from hil.controller.target_model import TARGET_MODELS
+from hil.errors import HilError, InputFileError
 from hil.log import configure_logging
 from hil.prediction import PREDICTOR_NAMES
 from hil.rigcal.collect import auto_confirm
@@ -126,6 +129,25 @@ def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Pa
             [e for e, ok in zip(s.comp_entry_errors_mm, late, strict=True) if ok])
 
 
+def _with_4d_ct(plan: ProcedurePlan, setup: SetupConfig) -> ProcedurePlan:
+    """``plan`` with this seed's simulated 4D CT (drivers/sim/planning_ct.py) when the surrogate
+    target model needs one and the plan has none; else ``plan``.
+
+    Raises:
+        InputFileError: the simulated patient cannot give a 4D CT (a rigid phantom, a trace-driven
+            body), naming the plan.
+    """
+    if setup.procedure.compensation.target_model != "surrogate" or plan.phases:
+        return plan
+    try:
+        phases = four_d_ct_phases(setup.simulation)
+    except ValueError as exc:
+        raise InputFileError(plan.source, f"no phases for the surrogate target model, and {exc}") from None
+    doc = {"format": "hil-plan", "version": 1, "fiducials_mm": plan.fiducials_mm.tolist(),
+           "entry_mm": plan.entry_mm.tolist(), "target_mm": plan.target_mm.tolist(), "phases": phases}
+    return plan_from_dict(doc, f"{plan.source} + simulated 4D CT (seed {setup.simulation.seed})")
+
+
 def _calibrate_rig(cfg_path: Path, setup: SetupConfig, out: Path) -> dict[str, Any]:
     """``hil rig-calibrate --auto`` of this seed's simulated rig into ``out``; its summary."""
     clock = clock_for(setup)
@@ -149,6 +171,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
         seed = args.first_seed + k
         sim = base.simulation.model_copy(update={"seed": seed, "breathing": breathing})
         setup = base.model_copy(update={"simulation": sim})
+        seed_plan = _with_4d_ct(plan, setup)
         if calibrate:
             rig_path = tmp / f"rig_{seed}.json"
             rc = _calibrate_rig(cfg_path, setup, rig_path)
@@ -156,11 +179,11 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
                                "time_offset_error_ms": rc.get("truth_time_offset_error_ms")})
             cal = setup.calibration.model_copy(update={"rig": rig_path})
             setup = setup.model_copy(update={"calibration": cal})
-        s = run_procedure(cfg_path, setup, plan, auto=True, session_dir=tmp)
+        s = run_procedure(cfg_path, setup, seed_plan, auto=True, session_dir=tmp)
         comp_all += s.comp_errors_mm
         hold_targets += s.lock_target_errors_mm
         if args.follow_s > 0:
-            path_errors, entry_errors = _follow_run(cfg_path, setup, plan, tmp, args.follow_s)
+            path_errors, entry_errors = _follow_run(cfg_path, setup, seed_plan, tmp, args.follow_s)
             follow_all += path_errors
             follow_entry += entry_errors
         runs.append(_run_record(seed, s))
@@ -332,6 +355,10 @@ def _parser() -> argparse.ArgumentParser:
                     help=f"with --rigs: wall-time bound of one rig (default {DEFAULT_RIG_TIMEOUT_S:g} s)")
     ap.add_argument("--predictor", choices=PREDICTOR_NAMES,
                     help="override [procedure.compensation] predictor for this run (docs/prediction.md)")
+    ap.add_argument("--target-model", choices=TARGET_MODELS,
+                    help="override [procedure.compensation] target_model for this run "
+                         "(docs/compensation.md); surrogate with a plan without phases uses each seed's "
+                         "simulated 4D CT")
     ap.add_argument("--json", action="store_true", help="one JSON object on stdout")
     return ap
 
@@ -355,11 +382,13 @@ def main(argv: list[str] | None = None) -> int:
         base = load_setup(cfg_path)
         if args.trace:
             base = with_trace(base, args.trace, args.trace_format)
-        overrides = {k: v for k, v in (("estimator", args.estimator), ("predictor", args.predictor)) if v}
+        overrides = {k: v for k, v in (("estimator", args.estimator), ("predictor", args.predictor),
+                                       ("target_model", args.target_model)) if v}
         if overrides:
             base = _with_compensation(base, **overrides)
         bundled = cfg_path.resolve().parent / "plans" / f"{cfg_path.stem}_plan.json"
         plan = load_plan(Path(args.plan) if args.plan else bundled)
+        _with_4d_ct(plan, base)          # a surrogate model the setup cannot feed: refused here, not per seed
     except HilError as exc:
         print(f"tools/bench accuracy: error: {exc}", file=sys.stderr)
         return 2
@@ -375,6 +404,7 @@ def main(argv: list[str] | None = None) -> int:
     out["trace"] = args.trace
     out["estimator"] = base.procedure.compensation.estimator
     out["predictor"] = base.procedure.compensation.predictor
+    out["target_model"] = base.procedure.compensation.target_model
     if args.json:
         print(json.dumps(out))
     else:
@@ -395,9 +425,9 @@ def _main_rigs(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         ap.error("--workers must be >= 1")
     if args.first_seed < 0:
         ap.error("--first-seed must be >= 0 with --rigs")
-    if args.trace or args.estimator or args.calibrated_only or args.no_rig_calibration:
+    if args.trace or args.estimator or args.target_model or args.calibrated_only or args.no_rig_calibration:
         ap.error("--rigs runs every rig CAD and calibrated on the config as given: no --trace, --estimator, "
-                 "--calibrated-only, --no-rig-calibration")
+                 "--target-model, --calibrated-only, --no-rig-calibration")
     configure_logging(level="error")
     cfg_path = Path(args.config) if args.config else default_setup_path()
     bundled = cfg_path.resolve().parent / "plans" / f"{cfg_path.stem}_plan.json"

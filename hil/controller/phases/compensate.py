@@ -36,6 +36,7 @@ from hil.controller.gate import MovedPatientWatch
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
 from hil.controller.phases.predicted import predicted_setpoint
 from hil.controller.phases.streaming import stream_until_next_pair
+from hil.controller.target_model import TargetSteer
 from hil.geometry.transform import RigidTransform
 
 if TYPE_CHECKING:
@@ -154,7 +155,7 @@ class CompensatePhase(Phase):
             stream_until_next_pair(ctx, frame, sent.now_ns, sent.t_send_ns, ctx.step_servo)
         err = est.guide_error_optical_mm()
         dev = est.gate_deviation_mm()
-        fit = est.change_fit
+        fit, steer = est.change_fit, est.target_steer
         ctx.session.write(ev.COMPENSATION_STEP, exposure_t_ns=frame.left.t_ns,
                           latency_detect_ms=(sent.now_ns - frame.left.t_ns) * 1e-6,
                           latency_command_ms=(sent.t_cmd_ns - frame.left.t_ns) * 1e-6,
@@ -163,7 +164,8 @@ class CompensatePhase(Phase):
                           estimator=None if fit is None else fit.estimator,
                           setpoint_by=self.setpoint_by,
                           change_fre_mm=None if fit is None else fit.rigid_fre_mm,
-                          marker_residuals_mm=None if fit is None else fit.residuals_mm)
+                          marker_residuals_mm=None if fit is None else fit.residuals_mm,
+                          **_steer_fields(steer))
         moved = self._patient_moved(frame.left.t_ns)
         if moved is not None:
             ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=moved)
@@ -254,3 +256,13 @@ class CompensatePhase(Phase):
         f0 = r.initial_speed_fraction
         since_s = (self.ctx.clock.now_ns() - resumed_ns) * 1e-9
         return min(1.0, f0 + (1.0 - f0) * since_s / r.ramp_s)
+
+
+def _steer_fields(steer: TargetSteer | None) -> dict[str, float | str]:
+    """``compensation_step``'s surrogate target model fields (none without the model): the
+    breathing score, the modelled target's shift, the turn added, and why a pair kept the rigid
+    direction ("" when the model steered)."""
+    if steer is None:
+        return {}
+    return {"target_score_mm": steer.score_mm, "target_shift_mm": steer.target_shift_mm,
+            "target_turn_deg": steer.turn_deg, "target_fallback": steer.fallback}

@@ -21,6 +21,7 @@ from hil.controller.registration import (
     register_robot,
     register_robot_via_stereotaxy,
 )
+from hil.controller.target_model import SurrogateTargetModel
 from hil.geometry.transform import RigidTransform
 
 if TYPE_CHECKING:
@@ -116,6 +117,18 @@ class RegisterPhase(Phase):
                           robot_method=rreg.method, robot_residual_mm=rreg.fre_rms_mm,
                           reference_optical_mm=preg.reference_optical_mm,
                           residuals_mm=np.linalg.norm(preg.T_optical_from_image.apply(est.plan.fiducials_mm)
-                                                      - preg.reference_optical_mm, axis=1))
+                                                      - preg.reference_optical_mm, axis=1),
+                          **_target_model_fields(est.target_model))
         return out.fire(Event.REGISTERED,
                         f"FRE {preg.fre_rms_mm:.3f} mm, expected TRE {preg.tre_expected_mm:.3f} mm")
+
+
+def _target_model_fields(model: SurrogateTargetModel | None) -> dict[str, object]:
+    """``registration_done``'s account of the surrogate target model the controller will steer by
+    (none without one): how well it fits the 4D CT, the share of the skin's motion its pattern
+    explains, the score range it was fitted over and the target's mm per mm of score (image frame)."""
+    if model is None:
+        return {}
+    return {"target_model": {"fit_residual_mm": model.fit_residual_mm, "explained": model.explained,
+                             "score_range_mm": [model.score_min_mm, model.score_max_mm],
+                             "target_per_score": model.target_per_score}}
