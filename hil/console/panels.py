@@ -94,6 +94,11 @@ def gate_text(v: ConsoleView) -> Text:
         gate.append(f"\nshape {mm(v.gate_shape_mm)}, farthest marker {mm(v.gate_worst_marker_mm)}")
     if v.change_fre_mm is not None:
         gate.append(f"\nnon-rigid {mm(v.change_fre_mm)} ({v.change_estimator} estimate)")
+    if v.target_fallback:
+        gate.append(f"\ntarget model: rigid direction kept ({v.target_fallback})", style="yellow")
+    elif v.target_shift_mm is not None:
+        gate.append(f"\ntarget model: target {mm(v.target_shift_mm)} from plan, path turned "
+                    f"{v.target_turn_deg or 0.0:.2f} deg")
     return gate
 
 

@@ -87,6 +87,11 @@ class ConsoleView:
     gate_worst_marker_mm: float | None = None
     change_estimator: str | None = None
     change_fre_mm: float | None = None
+    #: the surrogate target model's last pair (snapshot ``target_*``): shift mm, turn deg, why it
+    #: kept the rigid direction; None without the model
+    target_shift_mm: float | None = None
+    target_turn_deg: float | None = None
+    target_fallback: str | None = None
     error: str = ""
     #: markers located in the latest pair: (left image, right image, triangulated); None before
     #: a pair, or a camera's count None when the locator does not say
@@ -206,5 +211,7 @@ def build_view(snap: ControllerSnapshot, vs: ViewSetup, *, breathing_mm: Sequenc
         session_log=session_log, igtl=igtl, ended=ended, error=error,
         gate_shape_mm=snap.gate_shape_mm, gate_worst_marker_mm=_worst(snap.marker_deviations_mm),
         change_estimator=snap.change_estimator, change_fre_mm=snap.change_fre_mm,
+        target_shift_mm=snap.target_shift_mm, target_turn_deg=snap.target_turn_deg,
+        target_fallback=snap.target_fallback,
         located_counts=None if snap.located is None else snap.located.counts,
     )

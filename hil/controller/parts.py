@@ -459,6 +459,10 @@ class ControllerParts(abc.ABC):
             marker_deviations_mm=frozen_array(deviations),
             gate_shape_mm=None if gm is None else _finite(gm.shape_mm),
             gate_ok=None if gm is None else gm.problem(self.cfg.gate) is None,
+            target_model=self.cfg.compensation.target_model,
+            target_shift_mm=None if est.target_steer is None else est.target_steer.target_shift_mm,
+            target_turn_deg=None if est.target_steer is None else est.target_steer.turn_deg,
+            target_fallback=None if est.target_steer is None else est.target_steer.fallback,
             **_predictor_fields(est))
 
     # ------------------------------------------------------------------ summary

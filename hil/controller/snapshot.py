@@ -117,6 +117,14 @@ class ControllerSnapshot:
     predictor_active: bool | None = None
     predictor_fallbacks: int = 0
     predictor_fallback_reason: str | None = None
+    #: the path's direction (``[procedure.compensation] target_model``; docs/compensation.md "The
+    #: direction"): with the surrogate model, the last pair's modelled target shift (mm), the turn
+    #: it added (deg) and why that pair kept the rigid direction ("" when it steered); None without
+    #: the model or before a change was measured
+    target_model: str = "rigid"
+    target_shift_mm: float | None = None
+    target_turn_deg: float | None = None
+    target_fallback: str | None = None
 
 
 def guide_in_image(est: Estimate) -> RigidTransform | None:

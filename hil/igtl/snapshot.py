@@ -67,13 +67,17 @@ def _mm(value: float | None) -> str:
 def deformation_text(snap: ControllerSnapshot) -> str:
     """The ``Deformation`` STRING: ``estimator=<name> change_fre_mm=<x> shape_mm=<x>
     deviations_mm=<m0>,<m1>,... residuals_mm=<m0>,...`` — per-marker lists in the registration's
-    marker order, ``-`` where a value is unknown (before registration, an unseen marker). Empty
-    before the patient is registered."""
+    marker order, ``-`` where a value is unknown (before registration, an unseen marker) — then
+    ``target_model=<rigid|surrogate> target_shift_mm=<x> target_turn_deg=<x>`` (the surrogate
+    model's last pair; ``-`` without it, or when the pair kept the rigid direction). Empty before
+    the patient is registered."""
     if snap.T_optical_from_image is None:
         return ""
     return (f"estimator={snap.change_estimator or '-'} change_fre_mm={_mm(snap.change_fre_mm)} "
             f"shape_mm={_mm(snap.gate_shape_mm)} deviations_mm={_mm_list(snap.marker_deviations_mm)} "
-            f"residuals_mm={_mm_list(snap.marker_residuals_mm)}")
+            f"residuals_mm={_mm_list(snap.marker_residuals_mm)} target_model={snap.target_model} "
+            f"target_shift_mm={_mm(None if snap.target_fallback else snap.target_shift_mm)} "
+            f"target_turn_deg={_mm(None if snap.target_fallback else snap.target_turn_deg)}")
 
 
 def igtl_snapshot(snap: ControllerSnapshot, plan: ProcedurePlan) -> IgtlSnapshot:

@@ -17,8 +17,9 @@ from textual.widgets import DataTable, Static
 
 from hil.console.app import ConfirmScreen, ConsoleApp
 from hil.console.operator import ConsoleOperator
-from hil.console.panels import markers_title
+from hil.console.panels import gate_text, markers_title
 from hil.console.session import ConsoleSession
+from hil.console.view import ConsoleView
 from hil.controller.fsm import Event
 from hil.errors import HilError
 from hil.report import build_report
@@ -416,3 +417,25 @@ async def _early_repeated_and_declined_confirmations(tmp_path: Path, open_sessio
     assert results[:5] == [("key s", "executed"), ("key c", "rejected"), ("prompt not now", "declined"),
                            ("key c", "executed"), ("key c", "rejected")]
     assert _transitions(log)[:3] == ["start", "register_to_plan", "plan_to_approach"]
+
+
+def _gate_view(target_shift_mm: float | None = None, target_turn_deg: float | None = None,
+               target_fallback: str | None = None) -> ConsoleView:
+    return ConsoleView(
+        t_s=0.0, state="compensate", pending=None, pending_reason="", last_reason="", hint="",
+        markers=(), gate_deviation_mm=0.5, gate_tolerance_mm=1.5, gate_dwell_s=0.5, gate_open=True,
+        breathing_mm=(), robot_connected=True, robot_mode="running", robot_safety="normal",
+        robot_speed_mm_s=None, robot_tcp_mm=None, guide_error_mm=None, fre_mm=None, tre_expected_mm=None,
+        robot_fre_mm=None, comp_error_mm=None, faults=(), timeline=(), plan_source="p.json",
+        plan_fiducials=6, plan_entry_mm=(0.0, 0.0, 0.0), plan_target_mm=(0.0, 0.0, -75.0), frames=0,
+        commands_sent=0, commands_refused=0, operator_commands_decided=0, session_log="", igtl="",
+        change_estimator="rigid", change_fre_mm=0.4, target_shift_mm=target_shift_mm,
+        target_turn_deg=target_turn_deg, target_fallback=target_fallback)
+
+
+def test_the_gate_panel_says_what_the_target_model_does() -> None:
+    assert "target model" not in str(gate_text(_gate_view()))              # no model: nothing said
+    steered = str(gate_text(_gate_view(target_shift_mm=6.25, target_turn_deg=3.5, target_fallback="")))
+    assert "\ntarget model: target 6.250 mm from plan, path turned 3.50 deg" in steered
+    kept = str(gate_text(_gate_view(target_shift_mm=0.0, target_turn_deg=0.0, target_fallback="why not")))
+    assert "\ntarget model: rigid direction kept (why not)" in kept

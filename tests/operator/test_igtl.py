@@ -186,9 +186,17 @@ def test_deformation_string_per_marker() -> None:
                                marker_residuals_mm=np.array([0.1, np.nan, 0.3]))
     text = igtl_snapshot(snap, PLAN).deformation  # type: ignore[arg-type]
     assert text == ("estimator=local-tps change_fre_mm=0.43 shape_mm=0.20 deviations_mm=1.00,-,2.35 "
-                    "residuals_mm=0.10,-,0.30")
+                    "residuals_mm=0.10,-,0.30 target_model=rigid target_shift_mm=- target_turn_deg=-")
     assert igtl_snapshot(base, PLAN).deformation == ("estimator=- change_fre_mm=- shape_mm=- "  # type: ignore[arg-type]
-                                                     "deviations_mm=- residuals_mm=-")
+                                                     "deviations_mm=- residuals_mm=- target_model=rigid "
+                                                     "target_shift_mm=- target_turn_deg=-")
+    steered = dataclasses.replace(base, target_model="surrogate", target_shift_mm=6.125, target_turn_deg=2.5,
+                                  target_fallback="")
+    assert igtl_snapshot(steered, PLAN).deformation.endswith(  # type: ignore[arg-type]
+        "target_model=surrogate target_shift_mm=6.12 target_turn_deg=2.50")
+    kept = dataclasses.replace(steered, target_fallback="breathing beyond the 4D CT's range")
+    assert igtl_snapshot(kept, PLAN).deformation.endswith(  # type: ignore[arg-type]
+        "target_model=surrogate target_shift_mm=- target_turn_deg=-")
     assert igtl_snapshot(dataclasses.replace(base, T_optical_from_image=None), PLAN).deformation == ""  # type: ignore[arg-type]
 
 
