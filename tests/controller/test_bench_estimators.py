@@ -1,5 +1,6 @@
-"""``tools/bench estimators``: the JSON's shape (every estimator, its cost beside rigid's); a bad
-argument is one usage error and exit 2. No timing is asserted (a shared machine)."""
+"""``tools/bench estimators``: the JSON's shape (every estimator, alone and followed by the surrogate
+target model, its cost beside rigid's); a bad argument is one usage error and exit 2. No timing is
+asserted (a shared machine)."""
 
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ def test_json_has_every_estimator() -> None:
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
     assert (out["markers"], out["calls"], out["budget_over_rigid_ms"]) == (6, 100, 0.2)
-    assert list(out["estimators"]) == ["rigid", "weighted", "local-tps"]
+    assert list(out["estimators"]) == ["rigid", "weighted", "local-tps", "rigid+surrogate",
+                                       "weighted+surrogate", "local-tps+surrogate"]
     for row in out["estimators"].values():
         assert set(row) == {"p50_ms", "p99_ms", "max_ms", "over_rigid_p50_ms"}
         assert 0.0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
