@@ -80,6 +80,17 @@ def _finite(x: float | None) -> float | None:
     return x if x is not None and math.isfinite(x) else None
 
 
+def _target_fields(est: Estimate) -> dict[str, Any]:
+    """The snapshot's ``target_*`` fields (the rigid direction: the defaults)."""
+    steer = est.target_steer
+    if est.comp_cfg.target_model == "rigid":
+        return {}
+    return {"target_model": est.comp_cfg.target_model,
+            "target_shift_mm": None if steer is None else steer.target_shift_mm,
+            "target_turn_deg": None if steer is None else steer.turn_deg,
+            "target_fallback": None if steer is None else steer.fallback}
+
+
 def _predictor_fields(est: Estimate) -> dict[str, Any]:
     """The snapshot's ``predictor*`` fields (alpha-beta alone: the defaults)."""
     cp = est.filter.predictor
@@ -459,11 +470,7 @@ class ControllerParts(abc.ABC):
             marker_deviations_mm=frozen_array(deviations),
             gate_shape_mm=None if gm is None else _finite(gm.shape_mm),
             gate_ok=None if gm is None else gm.problem(self.cfg.gate) is None,
-            target_model=self.cfg.compensation.target_model,
-            target_shift_mm=None if est.target_steer is None else est.target_steer.target_shift_mm,
-            target_turn_deg=None if est.target_steer is None else est.target_steer.turn_deg,
-            target_fallback=None if est.target_steer is None else est.target_steer.fallback,
-            **_predictor_fields(est))
+            **_target_fields(est), **_predictor_fields(est))
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> RunSummary:
