@@ -54,6 +54,9 @@ class RunSummary:
     faults: list[str]
     session_log: str
     needle_direction_error_deg: float | None = None
+    #: with ``target_model = "surrogate"``: the share of judged pairs that kept the rigid direction
+    #: (docs/compensation.md "The direction"); None without the model
+    target_model_fallback_fraction: float | None = None
     #: the published chain head: SHA-256 of the session log's last line (set once it is closed)
     session_log_sha256: str | None = None
     #: the HTML report built after the run (``hil run``; None when not built)
@@ -112,6 +115,9 @@ class RunMetrics:
     processing_ms: SampleSeries = field(default_factory=samples)   # tick work, wall clock (profiling)
     gate_samples: int = 0
     gate_open_samples: int = 0
+    #: pairs the surrogate target model judged (steered or fell back), and those it fell back on
+    target_model_pairs: int = 0
+    target_model_fallbacks: int = 0
     lock_time_s: float | None = None
     frames: int = 0
     frames_overwritten: int = 0   # prefetched pairs replaced before a tick took them (latest wins)
@@ -122,10 +128,19 @@ class RunMetrics:
         if est.patient_reg is not None and state is not State.REGISTER:
             self.gate_samples += 1
             self.gate_open_samples += int(est.gate_problem() is None)
+        if est.target_steer is not None:
+            self.target_model_pairs += 1
+            self.target_model_fallbacks += int(bool(est.target_steer.fallback))
 
     @property
     def gate_open_fraction(self) -> float | None:
         return (self.gate_open_samples / self.gate_samples) if self.gate_samples else None
+
+    @property
+    def target_model_fallback_fraction(self) -> float | None:
+        """Share of the pairs the surrogate target model judged that kept the rigid direction
+        (None without the model)."""
+        return (self.target_model_fallbacks / self.target_model_pairs) if self.target_model_pairs else None
 
 
 #: a gate open while the true target is farther than this from the guide axis line is a false open

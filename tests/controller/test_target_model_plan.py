@@ -168,8 +168,11 @@ def test_following_free_breathing_the_path_follows_the_modelled_target(tmp_path:
         comp = base.procedure.compensation.model_copy(update={"target_model": model})
         setup = base.model_copy(update={"simulation": sim, "procedure": base.procedure.model_copy(
             update={"compensation": comp})})
-        path, entry = bench._follow_run(CONFIG, setup, plan, tmp_path / model, 12.0)
+        path, entry, fallback = bench._follow_run(CONFIG, setup, plan, tmp_path / model, 12.0)
         assert len(path) > 100
+        assert (fallback is None) == (model == "rigid")
+        if fallback is not None:
+            assert fallback < 0.5           # the model steered most pairs of the free breathing
         figures[model] = (float(np.percentile(path, 95)), float(np.percentile(entry, 95)))
     assert figures["surrogate"][0] < 0.7 * figures["rigid"][0], figures
     assert figures["surrogate"][1] == pytest.approx(figures["rigid"][1], abs=0.3), figures

@@ -93,7 +93,8 @@ def _run_record(seed: int, s: RunSummary) -> dict[str, Any]:
             "target_error_max_mm": s.target_error_max_mm, "entry_axis_error_mm": s.entry_axis_error_mm,
             "body_rigid_residual_mm_p95": s.body_rigid_residual_mm_p95,
             "change_fre_mm_p95": s.change_fre_mm["p95"],
-            "gate_false_open_rate": s.gate_false_open_rate, "gate_open_ticks": s.gate_open_ticks}
+            "gate_false_open_rate": s.gate_false_open_rate, "gate_open_ticks": s.gate_open_ticks,
+            "target_model_fallback_fraction": s.target_model_fallback_fraction}
 
 
 def _false_open(runs: list[dict[str, Any]]) -> float | None:
@@ -108,11 +109,12 @@ def _p95(xs: list[float]) -> float | None:
 
 
 def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Path,
-                follow_s: float) -> tuple[list[float], list[float]]:
+                follow_s: float) -> tuple[list[float], list[float], float | None]:
     """Follow free breathing: the gate opens at once (no breath-hold asked, wide tolerance) and
     compensation runs ``follow_s`` seconds before the run is stopped; returns the truth errors after
     the first 2 s (the catch-up from the stand-off onto the moving path): the guide against the ideal
-    stand-off point on the true path, and the guide axis line against the true entry."""
+    stand-off point on the true path, and the guide axis line against the true entry; and the share
+    of pairs the surrogate target model kept the rigid direction on (None without the model)."""
     p = setup.procedure
     proc = p.model_copy(update={
         "gate": p.gate.model_copy(update={"tolerance_mm": 30.0, "hold_request_s": 0.1,
@@ -126,7 +128,8 @@ def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Pa
                       session_dir=tmp, max_duration_s=6.0 + follow_s)
     late = [age > 2.0 for age in s.comp_error_age_s]
     return ([e for e, ok in zip(s.comp_errors_mm, late, strict=True) if ok],
-            [e for e, ok in zip(s.comp_entry_errors_mm, late, strict=True) if ok])
+            [e for e, ok in zip(s.comp_entry_errors_mm, late, strict=True) if ok],
+            s.target_model_fallback_fraction)
 
 
 def _with_4d_ct(plan: ProcedurePlan, setup: SetupConfig) -> ProcedurePlan:
@@ -166,6 +169,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
     follow_all: list[float] = []
     hold_targets: list[float] = []
     follow_entry: list[float] = []
+    follow_fallbacks: list[float] = []
     rig_errors: list[dict[str, Any]] = []
     for k in range(args.runs):
         seed = args.first_seed + k
@@ -183,9 +187,11 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
         comp_all += s.comp_errors_mm
         hold_targets += s.lock_target_errors_mm
         if args.follow_s > 0:
-            path_errors, entry_errors = _follow_run(cfg_path, setup, seed_plan, tmp, args.follow_s)
+            path_errors, entry_errors, fallback = _follow_run(cfg_path, setup, seed_plan, tmp, args.follow_s)
             follow_all += path_errors
             follow_entry += entry_errors
+            if fallback is not None:
+                follow_fallbacks.append(fallback)
         runs.append(_run_record(seed, s))
         if not args.json:
             print(f"{'calibrated' if calibrate else 'as given'} seed {seed}: {s.final_state}, "
@@ -211,6 +217,8 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
         "comp_err_mm_p95": float(np.percentile(comp_main, 95)) if comp_main else None,
         "comp_err_mm_rms_following": _rms(follow_all),
         "comp_entry_err_mm_p95_following": _p95(follow_entry),
+        "target_model_fallback_fraction_following": statistics.fmean(follow_fallbacks) if follow_fallbacks
+        else None,
         "comp_err_mm_rms_hold": _rms(comp_all),
         "comp_err_mm_p95_hold": float(np.percentile(comp_all, 95)) if comp_all else None,
         "target_err_mm_rms": _rms(targets),
