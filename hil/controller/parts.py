@@ -494,10 +494,9 @@ class ControllerParts(abc.ABC):
             latency_ms={"p50": percentile(lat, 50), "p95": percentile(lat, 95)},
             processing_ms={"p50": percentile(m.processing_ms, 50), "p95": percentile(m.processing_ms, 95)},
             gate_open_fraction=m.gate_open_fraction, time_to_lock_s=m.lock_time_s, duration_s=self.t_s(),
-            target_model_fallback_fraction=m.target_model_fallback_fraction,
-            frames=m.frames, commands_sent=self.safety.commands_sent,
-            commands_refused=self.safety.commands_refused, faults=list(self.faults),
-            session_log=str(self.session.path), comp_errors_mm=list(comp),
+            target_model_fallback_fraction=m.target_model_fallback_fraction, frames=m.frames,
+            commands_sent=self.safety.commands_sent, commands_refused=self.safety.commands_refused,
+            faults=list(self.faults), session_log=str(self.session.path), comp_errors_mm=list(comp),
             comp_error_age_s=list(tm.comp_error_age_s), needle_direction_error_deg=self.needle.summary_deg(),
             tracked_needle=self.roles.tracked_needle, **_body_truth(tm),
         )
