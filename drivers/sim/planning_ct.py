@@ -95,4 +95,5 @@ def four_d_ct_plan(sim: SimulationConfig, phases: int = DEFAULT_PHASES,
     """The phantom's plan document with the 4D CT's ``phases`` (:func:`four_d_ct_phases`)."""
     doc = plan_document(sim.patient)
     doc["phases"] = four_d_ct_phases(sim, phases, noise_mm)
+    doc["phases_period_s"] = sim.breathing.period_s
     return doc

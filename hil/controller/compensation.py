@@ -71,21 +71,42 @@ def deformation_out_of_bounds(fit: ChangeFit | None, cfg: CompensationConfig) ->
 
 def change_out_of_bounds(T_change: RigidTransform, fit: ChangeFit | None,
                          cfg: CompensationConfig) -> str | None:
-    """:func:`correction_out_of_bounds`, then :func:`deformation_out_of_bounds`."""
-    return correction_out_of_bounds(T_change, cfg) or deformation_out_of_bounds(fit, cfg)
+    """:func:`correction_out_of_bounds`, then :func:`deformation_out_of_bounds`.
+
+    With ``target_model = "surrogate"`` the change also carries the model's turn of the path (at
+    most ``target_model_max_turn_deg``, hil/controller/target_model.py), which is not the
+    patient turning: the commanded change's rotation may then reach ``max_correction_deg`` plus
+    that turn, and the patient's own rotation (the estimator's change in ``fit``, before the
+    model; a rotation's angle does not depend on the point it is taken about) is held to
+    ``max_correction_deg``."""
+    if cfg.target_model == "surrogate":
+        why = correction_out_of_bounds(T_change, cfg, cfg.target_model_max_turn_deg)
+        if why is None and fit is not None:
+            a = math.degrees(fit.T_live_from_ref.rotation_angle_rad())
+            if a > cfg.max_correction_deg:
+                why = (f"patient turned {a:.1f} deg from the registered state "
+                       f"(bound {cfg.max_correction_deg} deg)")
+    else:
+        why = correction_out_of_bounds(T_change, cfg)
+    return why or deformation_out_of_bounds(fit, cfg)
 
 
-def correction_out_of_bounds(T_change: RigidTransform, cfg: CompensationConfig) -> str | None:
+def correction_out_of_bounds(T_change: RigidTransform, cfg: CompensationConfig,
+                             turn_allowance_deg: float = 0.0) -> str | None:
     """None when the change is within the correction bounds, else the reason.
 
     ``T_change`` must be expressed about the point that matters (the controller uses the planned
-    entry), so that its translation is that point's displacement.
+    entry), so that its translation is that point's displacement. ``turn_allowance_deg``: a turn
+    of the path the change carries besides the patient's (:func:`change_out_of_bounds`).
     """
     t = T_change.translation_norm()
     a = math.degrees(T_change.rotation_angle_rad())
     if t > cfg.max_correction_mm:
         return f"patient moved {t:.1f} mm from the registered state (bound {cfg.max_correction_mm} mm)"
-    if a > cfg.max_correction_deg:
+    if a > cfg.max_correction_deg + turn_allowance_deg:
+        if turn_allowance_deg:
+            return (f"the path turned {a:.1f} deg from the plan (bound {cfg.max_correction_deg} deg for the "
+                    f"patient + {turn_allowance_deg} deg for the target model)")
         return f"patient turned {a:.1f} deg from the registered state (bound {cfg.max_correction_deg} deg)"
     return None
 

@@ -32,7 +32,7 @@ from hil.controller.gate import BreathHoldGate, GateMeasures, gate_measures, rms
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, RigGeometry
 from hil.controller.registration import PatientRegistration, RobotRegistration
-from hil.controller.target_model import SurrogateTargetModel, TargetSteer, fit_target_model
+from hil.controller.target_model import SurrogateTargetModel, TargetSteer, TargetTracker, fit_target_model
 from hil.errors import ConfigError
 from hil.geometry import native
 from hil.geometry.registration import register_horn
@@ -92,6 +92,8 @@ class Estimate:
         self.target_model: SurrogateTargetModel | None = (
             fit_target_model(plan, c.target_model_residual_mm, c.target_model_max_turn_deg)
             if c.target_model == "surrogate" else None)
+        #: the model in the loop (the score's rate from pair to pair)
+        self.target_tracker = None if self.target_model is None else TargetTracker(self.target_model)
         #: the last pair's use of it (None: no model, or no change measured this pair)
         self.target_steer: TargetSteer | None = None
         #: the last pair's change estimate (estimator, rigid-fit residuals: the deformation monitor)
@@ -119,6 +121,8 @@ class Estimate:
         self.live_mm = None
         self.change_fit = None
         self.target_steer = None
+        if self.target_tracker is not None:
+            self.target_tracker.reset()
         self.filter.reset()
         self.T_bias = RigidTransform.identity()
 
@@ -128,6 +132,8 @@ class Estimate:
         self.T_center = RigidTransform.from_translation(preg.T_optical_from_image.apply(self.plan.entry_mm))
         self.gate = None
         self.live_mm = preg.reference_optical_mm.copy()
+        if self.target_tracker is not None:
+            self.target_tracker.reset()
         self.filter.reset()
 
     def record_robot_state(self, st: RobotState) -> None:

@@ -77,9 +77,9 @@ class MarkerTracker:
         fit = estimate_change(ref, live, est.T_center.t, c.estimator, c.weight_sigma_mm)
         change = None if fit is None else fit.T_live_from_ref
         est.target_steer = None
-        if change is not None and est.target_model is not None:
-            est.target_steer = est.target_model.steer(change, ref, live, est.plan,
-                                                      est.patient_reg.T_optical_from_image)
+        if change is not None and est.target_tracker is not None:
+            est.target_steer = est.target_tracker.steer(change, ref, live, est.plan,
+                                                        est.patient_reg.T_optical_from_image, exposure_t_ns)
             change = est.target_steer.T_live_from_ref
         self.change_cost.add_ns(time.perf_counter_ns() - t0)
         est.change_fit = fit

@@ -6,13 +6,16 @@ Two ways to write a plan:
 
     {"format": "hil-plan", "version": 1, "frame": "image", "units": "mm",
      "fiducials_mm": [[x, y, z], ...], "entry_mm": [x, y, z], "target_mm": [x, y, z],
-     "phases": [{"fiducials_mm": [[x, y, z], ...], "target_mm": [x, y, z]}, ...]}
+     "phases": [{"fiducials_mm": [[x, y, z], ...], "target_mm": [x, y, z]}, ...],
+     "phases_period_s": 4.0}
 
    ``phases`` is optional: the fiducials and the target at other phases of a breathing cycle, as a
    4D CT shows them (same frame, fiducials in the same order). The main ``fiducials_mm`` and
    ``target_mm`` are the phase the procedure registers at (end-exhale). The surrogate target
    model (``[procedure.compensation] target_model = "surrogate"``, hil/controller/target_model.py)
-   is fitted to them.
+   is fitted to them. ``phases_period_s`` (optional, s) says the phases are the equal phase bins of
+   one breath, in order after the registered one, at that mean breathing period (what a 4D CT's
+   respiratory surrogate records): the model then also learns the target's lag from them.
 
 2. A labelled point list, as planning software writes it: a 3D Slicer markups file
    (``.mrk.json``, ``.fcsv``) or a CSV/JSON point file read by :func:`hil.io.read_points`, with one
@@ -56,6 +59,8 @@ class ProcedurePlan:
         target_mm: (3,) target point.
         source: where it came from (file path or ``<memory>``).
         phases: other breathing phases of a 4D CT (module doc); empty when the plan has none.
+        phases_period_s: the 4D CT's mean breathing period when the phases are its equal bins in
+            order (module doc); None when not known.
     """
 
     fiducials_mm: FloatArray
@@ -63,6 +68,7 @@ class ProcedurePlan:
     target_mm: FloatArray
     source: str = "<memory>"
     phases: tuple[PlanPhase, ...] = ()
+    phases_period_s: float | None = None
 
     def __post_init__(self) -> None:
         if self.fiducials_mm.shape[0] < 3:
@@ -100,8 +106,15 @@ def plan_from_dict(doc: Any, source: str = "<memory>") -> ProcedurePlan:
         raise InputFileError(source, f"fiducials_mm: {exc}") from None
     pts = {key: _one_point(doc.get(key, []), key, source) for key in ("entry_mm", "target_mm")}
     phases = _phases(doc.get("phases", []), source)
+    period = doc.get("phases_period_s")
+    if period is not None and (isinstance(period, bool) or not isinstance(period, (int, float))
+                               or not 0.5 <= period <= 30.0):
+        raise InputFileError(source, f"phases_period_s: a breathing period in s, 0.5-30 (got {period!r})")
+    if period is not None and not phases:
+        raise InputFileError(source, "phases_period_s: given without phases")
     try:
-        return ProcedurePlan(fid, pts["entry_mm"], pts["target_mm"], source, phases)
+        return ProcedurePlan(fid, pts["entry_mm"], pts["target_mm"], source, phases,
+                             None if period is None else float(period))
     except GeometryError as exc:
         raise InputFileError(source, str(exc)) from None
 

@@ -16,7 +16,14 @@ breathing phases, hil/controller/plan_file.py). With ``F_0``, ``t_0`` the regist
   breathing pattern of the skin;
 - ``z_k = u . D_k`` (mm): the breathing score of phase k;
 - ``a = argmin sum_k |t_k - t_0 - z_k a|^2`` (3,): the target's displacement per mm of score
-  (least squares through the registered phase).
+  (least squares through the registered phase);
+- when the plan says the phases are one breath's equal bins at a period (``phases_period_s``),
+  the score's rate ``z'_k`` (central differences around the cycle) joins as a second regressor:
+  ``t_k - t_0 = z_k a + z'_k b`` (least squares). ``b`` (mm per mm/s) is the target's lag and
+  hysteresis behind the skin, which a line in ``z`` alone averages away; a state-augmented
+  correlation model of this kind is what the respiratory-tracking literature uses for the
+  phase shift between surrogate and tumour (the inhale and exhale branches of Synchrony's models
+  answer the same effect).
 
 **Live**, each pair: the seen markers' displacements from their registered positions, turned into
 the image frame (``R_image_from_optical (m_i - r_i)``), give the score by least squares on the
@@ -29,19 +36,24 @@ turned about the moved entry so that the path points from the moved entry at the
 (the smallest rotation from the rigidly moved direction). Its translation at the entry, so the
 entry's estimate, is unchanged.
 
+Live, the score's rate comes from pair to pair (:class:`TargetTracker`: an exponential average of
+the differences, gain :data:`RATE_GAIN`, restarted after a gap over :data:`MAX_RATE_GAP_S` or a
+pair the model could not judge, held within 1.5 times the 4D CT's fastest).
+
 **What it assumes, where it fails**: one breathing pattern (the first principal component) and a
-target linear in it; no lag, no hysteresis (the target's loop between inhale and exhale is averaged
-into ``a``); the patient breathes as in the 4D CT; the registration frame holds (no rigid shift of
+target linear in it and its rate (without ``phases_period_s``, in it alone: the target's lag and
+its loop between inhale and exhale are then averaged into ``a``); the patient breathes as in the
+4D CT; the registration frame holds (no rigid shift of
 the patient since registration). It cannot see breath-hold reproducibility (the target's offset
-when a hold ends elsewhere than the CT's). Each pair it falls back to the rigid direction, and
-says why, when:
+when a hold ends elsewhere than the CT's). A pair it cannot vouch for keeps the rigid direction
+(the last turn it could vouch for fading out over :data:`TURN_RAMP_S`), and says why, when:
 
 - the seen markers carry less than a quarter of the pattern (``|u_seen|^2 < 0.25``): too few or
   the wrong markers seen;
 - the markers do not move as the pattern says: the per-marker RMS residual of ``D - z u`` beyond
   ``target_model_residual_mm`` (the patient moved on the table, a cough, a marker swapped);
-- the score is outside the 4D CT's range by more than a quarter of it (breathing deeper than at
-  the CT: the linear model would extrapolate);
+- the score is outside the 4D CT's range by more than half of it (breathing much deeper than at
+  the CT: the linear model would extrapolate far);
 - the model would turn the path by more than ``target_model_max_turn_deg``.
 
 Cost per pair: a few dot products and one Horn fit of the seen markers (docs/compensation.md
@@ -63,20 +75,32 @@ from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["MIN_PATTERN_SHARE", "MIN_PHASES", "MIN_SCORE_RANGE_MM", "TARGET_MODELS", "SurrogateTargetModel",
-           "TargetSteer", "fit_target_model"]
+__all__ = ["MAX_RATE_GAP_S", "MIN_PATTERN_SHARE", "MIN_PHASES", "MIN_PHASES_FOR_RATE", "MIN_SCORE_RANGE_MM",
+           "RATE_GAIN", "TARGET_MODELS", "TURN_RAMP_S", "SurrogateTargetModel", "TargetSteer",
+           "TargetTracker", "fit_target_model"]
 
 #: ``[procedure.compensation] target_model``'s values
 TARGET_MODELS: tuple[str, ...] = ("rigid", "surrogate")
 
 #: the model needs at least this many phases besides the registered one
 MIN_PHASES = 2
+#: the rate term needs a cycle of at least this many bins, the registered one included
+MIN_PHASES_FOR_RATE = 4
 #: a 4D CT whose fiducials move less than this (score range, mm) carries no pattern to correlate
 MIN_SCORE_RANGE_MM = 1.0
 #: the seen markers must carry at least this share of the pattern (``|u_seen|^2``)
 MIN_PATTERN_SHARE = 0.25
-#: the score may leave the 4D CT's range by this share of the range
-_RANGE_MARGIN = 0.25
+#: the score may leave the 4D CT's range by this share of the range (breaths vary 10-30 % in depth
+#: from one to the next; the CT's is an average one)
+_RANGE_MARGIN = 0.5
+#: the live score rate's exponential-average gain per pair
+RATE_GAIN = 0.3
+#: a gap between judged pairs longer than this restarts the rate, s
+MAX_RATE_GAP_S = 0.5
+#: the live rate is held within this multiple of the 4D CT's fastest
+_RATE_MARGIN = 1.5
+#: the model's turn fades in (and out, after a fallback) over this long, s
+TURN_RAMP_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -115,6 +139,9 @@ class SurrogateTargetModel:
     Attributes:
         pattern: ``u``, (N, 3) per fiducial, unit as a whole, image frame.
         target_per_score: ``a``, (3,), mm of target displacement per mm of score, image frame.
+        target_per_rate: ``b``, (3,), mm of target displacement per mm/s of score rate (zeros when
+            the plan gives no ``phases_period_s``).
+        max_rate_mm_s: the 4D CT's fastest score rate, mm/s (inf without a period).
         score_min_mm, score_max_mm: the 4D CT's score range (the registered phase's 0 included).
         fit_residual_mm: RMS of the target's fit over the phases, mm (what the CT says the model
             misses: lag, hysteresis).
@@ -125,6 +152,8 @@ class SurrogateTargetModel:
 
     pattern: FloatArray
     target_per_score: FloatArray
+    target_per_rate: FloatArray
+    max_rate_mm_s: float
     score_min_mm: float
     score_max_mm: float
     fit_residual_mm: float
@@ -163,12 +192,19 @@ class SurrogateTargetModel:
     def steer(self, T_live_from_ref: RigidTransform, reference_mm: FloatArray, live_mm: FloatArray,
               plan: ProcedurePlan, T_optical_from_image: RigidTransform) -> TargetSteer:
         """The estimator's change ``T_live_from_ref`` (optical frame) turned about the moved entry so
-        the path points at the modelled target (module doc). Never raises: a pair the model cannot
-        vouch for keeps the estimator's change and names why in :attr:`TargetSteer.fallback`."""
-        R_oi = T_optical_from_image.R
-        z, why = self.score(reference_mm, live_mm, R_oi.T)
+        the path points at the modelled target at this pair's score, its rate taken as 0 (module
+        doc; :class:`TargetTracker` gives the rate). Never raises: a pair the model cannot vouch for
+        keeps the estimator's change and names why in :attr:`TargetSteer.fallback`."""
+        z, why = self.score(reference_mm, live_mm, T_optical_from_image.R.T)
         if why:
             return TargetSteer(T_live_from_ref, z, 0.0, 0.0, why)
+        return self.steer_at(T_live_from_ref, reference_mm, live_mm, plan, T_optical_from_image, z, 0.0)
+
+    def steer_at(self, T_live_from_ref: RigidTransform, reference_mm: FloatArray, live_mm: FloatArray,
+                 plan: ProcedurePlan, T_optical_from_image: RigidTransform, z: float,
+                 rate_mm_s: float) -> TargetSteer:
+        """:meth:`steer` at a score ``z`` (mm) the caller judged, and its rate (mm/s)."""
+        R_oi = T_optical_from_image.R
         ok = np.isfinite(reference_mm).all(axis=1) & np.isfinite(live_mm).all(axis=1)
         ref = reference_mm[ok]
         try:      # the rigid motion the breathing pattern itself makes at this score
@@ -178,7 +214,7 @@ class SurrogateTargetModel:
             return TargetSteer(T_live_from_ref, z, 0.0, 0.0, why)
         entry_ref = T_optical_from_image.apply(plan.entry_mm).reshape(3)
         target_ref = T_optical_from_image.apply(plan.target_mm).reshape(3)
-        shift_img = z * self.target_per_score
+        shift_img = z * self.target_per_score + rate_mm_s * self.target_per_rate
         # the change less breathing's own rigid part (a shift on the table, drift) moves the target too
         T_other = T_live_from_ref @ T_breath.inverse()
         target_live = T_other.apply(target_ref + R_oi @ shift_img).reshape(3)
@@ -194,6 +230,73 @@ class SurrogateTargetModel:
         R = _turn(d0, d1) @ T_live_from_ref.R
         T = RigidTransform(R, entry_live - R @ entry_ref)
         return TargetSteer(T, z, float(np.linalg.norm(shift_img)), turn)
+
+
+class TargetTracker:
+    """The model in the loop (module doc "Live"): each pair's score, its rate from the pairs
+    before, and the steered change. The model's turn is faded in and out over
+    :data:`TURN_RAMP_S` (a weight from 0 to 1 on the turn's angle) rather than switched: a step
+    of a few degrees in the commanded direction would swing the guide 60 mm out faster than the
+    correction's rate limits let it follow, and the axis would leave the entry meanwhile. While
+    the model cannot vouch for the pairs, the last turn it could vouch for fades out on the
+    estimator's change. One per procedure; :meth:`reset` at a new registration. Never raises; not
+    thread-safe (the controller's thread)."""
+
+    def __init__(self, model: SurrogateTargetModel) -> None:
+        self.model = model
+        self._last: tuple[int, float] | None = None
+        self._t_ns: int | None = None
+        #: the score's rate now, mm/s (0 until two judged pairs)
+        self.rate_mm_s = 0.0
+        #: the share of the model's turn applied now, 0-1
+        self.weight = 0.0
+        self._turn_rotvec = np.zeros(3)
+
+    def reset(self) -> None:
+        self._last, self._t_ns = None, None
+        self.rate_mm_s, self.weight = 0.0, 0.0
+        self._turn_rotvec = np.zeros(3)
+
+    def steer(self, T_live_from_ref: RigidTransform, reference_mm: FloatArray, live_mm: FloatArray,
+              plan: ProcedurePlan, T_optical_from_image: RigidTransform, exposure_t_ns: int) -> TargetSteer:
+        """:meth:`SurrogateTargetModel.steer` with the score's rate and the faded turn at this pair's
+        exposure (controller clock, ns)."""
+        m = self.model
+        step = 0.0 if self._t_ns is None else max(0.0, (exposure_t_ns - self._t_ns) * 1e-9) / TURN_RAMP_S
+        self._t_ns = exposure_t_ns
+        z, why = m.score(reference_mm, live_mm, T_optical_from_image.R.T)
+        full: TargetSteer | None = None
+        if not why:
+            self._update_rate(z, exposure_t_ns)
+            full = m.steer_at(T_live_from_ref, reference_mm, live_mm, plan, T_optical_from_image, z,
+                              self.rate_mm_s)
+            why = full.fallback
+        if why:
+            self._last, self.rate_mm_s = None, 0.0
+            self.weight = max(0.0, self.weight - step)
+        else:
+            assert full is not None
+            self.weight = min(1.0, self.weight + step)
+            turn = full.T_live_from_ref.R @ T_live_from_ref.R.T
+            self._turn_rotvec = RigidTransform(turn, np.zeros(3)).as_rotvec()
+        entry_ref = T_optical_from_image.apply(plan.entry_mm).reshape(3)
+        entry_live = T_live_from_ref.apply(entry_ref).reshape(3)
+        R = rotvec_to_matrix(self.weight * self._turn_rotvec) @ T_live_from_ref.R
+        T = RigidTransform(R, entry_live - R @ entry_ref)
+        turn_deg = math.degrees(self.weight * float(np.linalg.norm(self._turn_rotvec)))
+        shift = 0.0 if full is None or why else full.target_shift_mm
+        return TargetSteer(T, z, shift, turn_deg, why)
+
+    def _update_rate(self, z: float, exposure_t_ns: int) -> None:
+        last = self._last
+        dt_s = None if last is None else (exposure_t_ns - last[0]) * 1e-9
+        if last is None or dt_s is None or not 0.0 < dt_s <= MAX_RATE_GAP_S:
+            self.rate_mm_s = 0.0
+        else:
+            self.rate_mm_s += RATE_GAIN * ((z - last[1]) / dt_s - self.rate_mm_s)
+        bound = _RATE_MARGIN * self.model.max_rate_mm_s
+        self.rate_mm_s = min(max(self.rate_mm_s, -bound), bound)
+        self._last = (exposure_t_ns, z)
 
 
 def fit_target_model(plan: ProcedurePlan, residual_bound_mm: float,
@@ -218,10 +321,24 @@ def fit_target_model(plan: ProcedurePlan, residual_bound_mm: float,
     if span < MIN_SCORE_RANGE_MM:
         raise InputFileError(plan.source, f"phases: the fiducials move {span:.2f} mm over the 4D CT (< "
                              f"{MIN_SCORE_RANGE_MM} mm): no breathing pattern to correlate the target with")
-    a = (z @ Y) / float(z @ z)
-    resid = math.sqrt(float(((Y - np.outer(z, a)) ** 2).sum(axis=1).mean()))
+    if plan.phases_period_s is not None and len(plan.phases) >= MIN_PHASES_FOR_RATE - 1:
+        # the registered phase (score 0, target 0) is bin 0 of the cycle; central differences
+        zc = np.concatenate([[0.0], z])
+        Yc = np.vstack([np.zeros(3), Y])
+        dt = plan.phases_period_s / len(zc)
+        rate = (np.roll(zc, -1) - np.roll(zc, 1)) / (2.0 * dt)
+        coef, *_ = np.linalg.lstsq(np.column_stack([zc, rate]), Yc, rcond=None)
+        a, b = coef[0], coef[1]
+        resid = math.sqrt(float(((Yc - np.outer(zc, a) - np.outer(rate, b)) ** 2).sum(axis=1).mean()))
+        max_rate = float(np.abs(rate).max())
+    else:
+        a = (z @ Y) / float(z @ z)
+        b = np.zeros(3)
+        resid = math.sqrt(float(((Y - np.outer(z, a)) ** 2).sum(axis=1).mean()))
+        max_rate = math.inf
     explained = float(sv[0] ** 2 / (sv**2).sum())
     return SurrogateTargetModel(
-        pattern=u.reshape(-1, 3), target_per_score=a, score_min_mm=float(min(z.min(), 0.0)),
+        pattern=u.reshape(-1, 3), target_per_score=a, target_per_rate=b, max_rate_mm_s=max_rate,
+        score_min_mm=float(min(z.min(), 0.0)),
         score_max_mm=float(max(z.max(), 0.0)), fit_residual_mm=resid, explained=explained,
         residual_bound_mm=residual_bound_mm, max_turn_deg=max_turn_deg)

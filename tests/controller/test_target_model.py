@@ -11,8 +11,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from hil.controller.change_estimate import ChangeFit
+from hil.controller.compensation import change_out_of_bounds
+from hil.controller.config import CompensationConfig
 from hil.controller.plan_file import PlanPhase, ProcedurePlan
-from hil.controller.target_model import SurrogateTargetModel, fit_target_model
+from hil.controller.target_model import SurrogateTargetModel, TargetTracker, fit_target_model
 from hil.errors import InputFileError
 from hil.geometry.registration import register_horn
 from hil.geometry.transform import RigidTransform
@@ -142,3 +145,96 @@ def test_a_4d_ct_whose_skin_does_not_move_is_refused() -> None:
     with pytest.raises(InputFileError,
                        match=r"phases: the fiducials move 0.40 mm over the 4D CT \(< 1.0 mm\)"):
         fit_target_model(still, 2.0, 10.0)
+
+
+def _turned(deg: float) -> RigidTransform:
+    return RigidTransform.from_rotvec(np.array([math.radians(deg), 0.0, 0.0]), np.zeros(3))
+
+
+@pytest.mark.parametrize(("model", "commanded_deg", "patient_deg", "reason"), [
+    ("rigid", 15.0, 15.0, "patient turned 15.0 deg from the registered state (bound 10.0 deg)"),
+    ("surrogate", 15.0, 2.0, None),                       # the model's turn is not the patient's
+    ("surrogate", 21.0, 2.0, "the path turned 21.0 deg from the plan (bound 10.0 deg for the patient + "
+                             "10.0 deg for the target model)"),
+    ("surrogate", 12.0, 12.0, "patient turned 12.0 deg from the registered state (bound 10.0 deg)"),
+])
+def test_the_correction_bound_tells_the_models_turn_from_the_patients(
+        model: str, commanded_deg: float, patient_deg: float, reason: str | None) -> None:
+    cfg = CompensationConfig(target_model=model)  # type: ignore[arg-type]
+    fit = ChangeFit(_turned(patient_deg), "rigid", 0.1, np.zeros(6), 6)
+    assert change_out_of_bounds(_turned(commanded_deg), fit, cfg) == reason
+
+
+B_TRUE = np.array([0.0, -0.12, 0.02])       # mm per mm/s: the target lags the skin
+
+
+def _cycle_plan(period_s: float = 4.0, bins: int = 10) -> ProcedurePlan:
+    """A 4D CT of one breath in ``bins`` equal bins (the registered one first) whose target follows
+    ``z a + z' b`` exactly, ``z'`` the central difference around the cycle."""
+    k = np.arange(bins)
+    z = 8.0 * (1.0 - np.cos(2.0 * np.pi * k / bins))
+    rate = (np.roll(z, -1) - np.roll(z, 1)) / (2.0 * period_s / bins)
+    phases = tuple(PlanPhase(FIDUCIALS + z[i] * UNIT, TARGET + z[i] * A_TRUE + rate[i] * B_TRUE)
+                   for i in range(1, bins))
+    return ProcedurePlan(FIDUCIALS, ENTRY, TARGET, "ct.json", phases, period_s)
+
+
+def test_with_the_ct_period_the_fit_learns_the_targets_lag() -> None:
+    m = fit_target_model(_cycle_plan(), 2.0, 10.0)
+    np.testing.assert_allclose(m.target_per_score, A_TRUE, atol=1e-9)
+    np.testing.assert_allclose(m.target_per_rate, B_TRUE, atol=1e-9)
+    assert m.fit_residual_mm == pytest.approx(0.0, abs=1e-9)
+    # the fastest central difference of 8 (1 - cos) over bins of 0.4 s: around bin 2 (and 3)
+    assert m.max_rate_mm_s == pytest.approx(8.0 * (np.cos(0.2 * np.pi) - np.cos(0.6 * np.pi)) / 0.8, rel=1e-9)
+    without = ProcedurePlan(FIDUCIALS, ENTRY, TARGET, "ct.json", _cycle_plan().phases)
+    m0 = fit_target_model(without, 2.0, 10.0)
+    assert np.array_equal(m0.target_per_rate, np.zeros(3))
+    assert m0.max_rate_mm_s == math.inf
+    assert m0.fit_residual_mm > 0.5                      # the lag the line alone cannot follow
+
+
+def test_the_tracker_learns_the_rate_and_restarts_after_a_gap_or_a_fallback() -> None:
+    plan = _cycle_plan()
+    tracker = TargetTracker(fit_target_model(plan, 2.0, 10.0))
+    T = RigidTransform.identity()
+    t_ns, z = 0, 2.0
+    for _ in range(40):                                  # 15 Hz, the score rising 6 mm/s
+        steer = tracker.steer(T, FIDUCIALS, FIDUCIALS + z * UNIT, plan, T, t_ns)
+        t_ns += 66_666_667
+        z += 6.0 * 0.066666667
+    assert steer.fallback == ""
+    assert tracker.rate_mm_s == pytest.approx(6.0, rel=1e-3)
+    want = np.linalg.norm((z - 6.0 * 0.066666667) * A_TRUE + tracker.rate_mm_s * B_TRUE)
+    assert steer.target_shift_mm == pytest.approx(float(want), rel=1e-6)
+    tracker.steer(T, FIDUCIALS, FIDUCIALS + z * UNIT, plan, T, t_ns + 600_000_000)    # 0.6 s gap
+    assert tracker.rate_mm_s == 0.0
+    tracker.steer(T, FIDUCIALS, FIDUCIALS + 9.0 * UNIT, plan, T, t_ns + 666_666_667)
+    assert tracker.rate_mm_s != 0.0
+    kept = tracker.steer(T, FIDUCIALS, FIDUCIALS + 60.0 * UNIT, plan, T, t_ns + 733_333_334)
+    assert kept.fallback.startswith("breathing beyond the 4D CT's range")
+    assert tracker.rate_mm_s == 0.0
+
+
+def test_the_turn_fades_in_and_out_instead_of_switching() -> None:
+    """From registration the model's turn comes in over TURN_RAMP_S; a pair it cannot vouch for
+    lets the last turn fade on the estimator's change, never a step; the entry stays put."""
+    plan = _cycle_plan()
+    tracker = TargetTracker(fit_target_model(plan, 2.0, 10.0))
+    T = RigidTransform.from_translation(np.array([0.0, 0.0, 0.5]))
+    live = FIDUCIALS + 12.0 * UNIT
+    turns = [tracker.steer(T, FIDUCIALS, live, plan, RigidTransform.identity(), k * 100_000_000).turn_deg
+             for k in range(8)]                      # 10 Hz: the weight goes 0, 0.2, ... 1 over 0.5 s
+    full = turns[-1]
+    assert full > 1.0
+    np.testing.assert_allclose(turns[:6], [w * full for w in (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)], rtol=1e-9)
+    coughing = FIDUCIALS + 12.0 * UNIT + np.array([0.0, 4.0, 0.0])     # beyond the residual bound
+    out = [tracker.steer(T, FIDUCIALS, coughing, plan, RigidTransform.identity(), (8 + k) * 100_000_000)
+           for k in range(6)]
+    assert all(o.fallback.startswith("the markers do not move as in the 4D CT") for o in out)
+    np.testing.assert_allclose([o.turn_deg for o in out], [w * full for w in (0.8, 0.6, 0.4, 0.2, 0.0, 0.0)],
+                               rtol=1e-9, atol=1e-12)
+    entry = np.asarray(ENTRY)
+    for o in out:
+        np.testing.assert_allclose(o.T_live_from_ref.apply(entry).reshape(3), T.apply(entry).reshape(3),
+                                   atol=1e-9)
+    assert out[-1].T_live_from_ref.as_matrix() == pytest.approx(T.as_matrix(), abs=1e-12)

@@ -59,6 +59,20 @@ def test_bad_phases_name_the_phase_and_field(phases: Any, message: str) -> None:
     assert str(info.value).startswith(message)
 
 
+@pytest.mark.parametrize(("period", "with_phases", "message"), [
+    (0.1, True, "p.json: phases_period_s: a breathing period in s, 0.5-30 (got 0.1)"),
+    ("4", True, "p.json: phases_period_s: a breathing period in s, 0.5-30 (got '4')"),
+    (True, True, "p.json: phases_period_s: a breathing period in s, 0.5-30 (got True)"),
+    (4.0, False, "p.json: phases_period_s: given without phases"),
+])
+def test_a_bad_ct_period_is_named(period: Any, with_phases: bool, message: str) -> None:
+    fid = _doc()["fiducials_mm"]
+    phases = [{"fiducials_mm": fid, "target_mm": [0.0, 0.0, 0.0]}] if with_phases else []
+    with pytest.raises(InputFileError) as info:
+        plan_from_dict(_doc(phases=phases, phases_period_s=period), "p.json")
+    assert str(info.value) == message
+
+
 def test_the_simulated_4d_ct_is_the_seeds_and_fits_the_model() -> None:
     sim = load_setup(CONFIG).simulation.model_copy(update={"seed": 4})
     a, b = four_d_ct_phases(sim), four_d_ct_phases(sim)
@@ -68,6 +82,7 @@ def test_the_simulated_4d_ct_is_the_seeds_and_fits_the_model() -> None:
     assert other != a
     plan = plan_from_dict(four_d_ct_plan(sim), "ct")
     m = fit_target_model(plan, 2.0, 10.0)
+    assert plan.phases_period_s == sim.breathing.period_s
     assert m.explained > 0.9                                   # one pattern carries the skin's breathing
     peak = max(float(np.linalg.norm(p.target_mm - plan.target_mm)) for p in plan.phases)
     assert 10.0 < peak < 13.0                                  # [simulation.body.target] amplitude 12 mm
@@ -136,10 +151,11 @@ def test_a_procedure_steers_by_the_model_and_says_so(tmp_path: Path) -> None:
     assert steps
     for r in steps:
         assert {"target_score_mm", "target_shift_mm", "target_turn_deg", "target_fallback"} <= r.keys()
+        assert 0.0 <= r["target_turn_deg"] <= setup.procedure.compensation.target_model_max_turn_deg
         if r["target_fallback"] == "":
             assert math.isfinite(r["target_score_mm"])
         else:
-            assert r["target_turn_deg"] == 0.0
+            assert r["target_shift_mm"] == 0.0
 
 
 def _bench_module() -> Any:

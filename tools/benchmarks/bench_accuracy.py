@@ -147,7 +147,8 @@ def _with_4d_ct(plan: ProcedurePlan, setup: SetupConfig) -> ProcedurePlan:
     except ValueError as exc:
         raise InputFileError(plan.source, f"no phases for the surrogate target model, and {exc}") from None
     doc = {"format": "hil-plan", "version": 1, "fiducials_mm": plan.fiducials_mm.tolist(),
-           "entry_mm": plan.entry_mm.tolist(), "target_mm": plan.target_mm.tolist(), "phases": phases}
+           "entry_mm": plan.entry_mm.tolist(), "target_mm": plan.target_mm.tolist(), "phases": phases,
+           "phases_period_s": setup.simulation.breathing.period_s}
     return plan_from_dict(doc, f"{plan.source} + simulated 4D CT (seed {setup.simulation.seed})")
 
 
