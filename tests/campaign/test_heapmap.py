@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from hil.soak.heapmap import HeapBreakdown, parse_smaps_rss_kb, read_heap_breakdown
+from hil.soak.sampler import rss_mb
 from hil.soak.soak import heap_by_minute
 
 SMAPS = """\
@@ -38,16 +39,20 @@ def test_a_malformed_rss_line_is_named() -> None:
 
 
 def test_the_live_reading_sees_a_held_buffer_in_the_c_heap() -> None:
+    """8 MB held through malloc shows in glibc's in-use figure. Where its pages land (a fresh
+    ``mmap``, the brk heap, or free heap pages that were already resident) depends on glibc's
+    dynamic thresholds and the process's history, so the resident figures are checked against
+    the kernel's own total instead: the kinds add up to the process's RSS."""
     before = read_heap_breakdown()
-    held = np.ones(8 * 2**20 // 8)               # 8 MB through malloc (mmap: above the threshold)
+    held = np.ones(8 * 2**20 // 8)
     during = read_heap_breakdown()
     assert before.c_in_use_mb is not None
     assert during.c_in_use_mb is not None
     assert during.c_in_use_mb - before.c_in_use_mb >= 7.9
-    assert during.anon_rss_mb is not None
-    assert before.anon_rss_mb is not None
-    assert during.anon_rss_mb - before.anon_rss_mb >= 7.9     # touched, so resident
     assert during.python_blocks > 0
+    parts = (during.heap_rss_mb, during.anon_rss_mb, during.file_rss_mb)
+    assert all(p is not None and p >= 0.0 for p in parts)
+    assert sum(p for p in parts if p is not None) == pytest.approx(rss_mb(), abs=2.0)
     del held
 
 
