@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
 from collections.abc import Sequence
 
 import numpy as np
@@ -13,6 +12,7 @@ from numpy.typing import NDArray
 
 from drivers.interfaces.camera import StereoFrame
 from hil.controller.located import LocatedMarkers
+from hil.controller.series import SampleSeries
 from hil.geometry.projective import ProjectiveCorrection
 from hil.vision.beads import BeadAxisMeasurement, measure_bead_axis
 from hil.vision.camera_model import StereoCalibration
@@ -22,10 +22,6 @@ from hil.vision.pipeline import locate_markers
 from hil.vision.tracking import MarkerTracker, TrackingParams
 
 FloatArray = NDArray[np.float64]
-
-
-#: locate-time samples kept for the summary (the newest; ~1 h at 30 pairs/s)
-LOCATE_SAMPLES = 100_000
 
 
 def _centres_px(detections: Sequence[RingDetection]) -> FloatArray:
@@ -43,7 +39,10 @@ class StereoMarkerLocator:
     every pair gets a full-frame search. With ``correction`` (a rig calibration's
     ``optical_correction``) every triangulated point is mapped through it: the stereo calibration's
     error, as the arm's motion measured it, undone (a few microseconds per pair). Either way the
-    time of each call (wall clock, ms) is kept: :meth:`locate_ms` gives its p50 / p95. Calls must
+    time of each call (wall clock, ms) is kept in a :class:`~hil.controller.series.SampleSeries`
+    (its memory allocated here, once: a deque of the newest 100,000 grew the soak's supervisor by
+    one float a pair, ~1.7 MB an hour at 15 Hz; issue 45): :meth:`locate_ms` gives its p50 / p95,
+    exact up to 32,768 calls and a uniform sample of the whole run beyond. Calls must
     not overlap (the controller's thread or the frame prefetcher's, one at a time); a lock makes
     overlapping calls wait rather than corrupt the tracking state.
 
@@ -57,7 +56,7 @@ class StereoMarkerLocator:
         self.correction = correction
         self.tracker = None if tracking is None else MarkerTracker(calibration, tracking)
         self._lock = threading.Lock()
-        self._locate_ms: deque[float] = deque(maxlen=LOCATE_SAMPLES)
+        self._locate_ms = SampleSeries()
 
     def use_tracking(self, tracking: TrackingParams | None) -> None:
         """Switch to region-of-interest tracking with ``tracking`` (None: full-frame searches); the
@@ -86,8 +85,8 @@ class StereoMarkerLocator:
     def locate_ms(self) -> dict[str, float | None]:
         """p50 and p95 of the time per call so far (ms, wall clock; None before the first call)."""
         with self._lock:
-            samples = list(self._locate_ms)
-        if not samples:
+            samples = np.array(self._locate_ms, copy=True)
+        if not samples.size:
             return {"p50": None, "p95": None}
         return {"p50": float(np.percentile(samples, 50)), "p95": float(np.percentile(samples, 95))}
 

@@ -274,3 +274,38 @@ def test_locator_from_alternating_threads_and_its_timing(cal: StereoCalibration)
     assert ms["p50"] is not None
     assert ms["p95"] is not None
     assert 0.0 < ms["p50"] <= ms["p95"]
+
+
+def test_locator_timing_memory_does_not_grow_with_calls(
+    cal: StereoCalibration, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The per-call locate times live in storage allocated once (issue 45: a deque of the newest
+    100,000 grew the soak's supervisor by one float a pair). 5,000 calls of a locator whose search
+    is stubbed out allocate nothing that stays in hil/controller/perception.py (the deque held
+    ~160 kB after them), and the timing figure still covers every call."""
+    import tracemalloc
+    from types import SimpleNamespace
+
+    import hil.controller.perception as perception
+
+    empty = SimpleNamespace(points_mm=np.zeros((0, 3)), detections_left=(), detections_right=())
+    monkeypatch.setattr(perception, "locate_markers", lambda *_a: empty)
+    loc = StereoMarkerLocator(cal)
+    image = np.zeros((cal.image_size[1], cal.image_size[0]), np.uint8)
+    frame = StereoFrame(Frame(image, 0, 0), Frame(image, 0, 0))
+    loc(frame)
+    only_here = [tracemalloc.Filter(True, perception.__file__)]
+    tracemalloc.start()
+    try:
+        before = tracemalloc.take_snapshot().filter_traces(only_here)
+        for _ in range(5000):
+            loc(frame)
+        after = tracemalloc.take_snapshot().filter_traces(only_here)
+    finally:
+        tracemalloc.stop()
+    grown = sum(s.size_diff for s in after.compare_to(before, "filename"))
+    assert grown < 4096, f"{grown} bytes held after 5,000 calls"
+    ms = loc.locate_ms()
+    assert ms["p50"] is not None
+    assert ms["p95"] is not None
+    assert 0.0 <= ms["p50"] <= ms["p95"]
