@@ -246,6 +246,9 @@ def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
     ht = res.heap_trim
     out.write(f"heap trims           {ht.get('trims', 0)} ({ht.get('released', 0)} gave memory back; "
               f"longest {ht.get('max_ms')} ms; [procedure] heap_trim_every_s)\n")
+    out.write(f"cycle collections    {ht.get('collections', 0)} ({ht.get('collected', 0)} objects freed; "
+              f"longest {ht.get('collect_max_ms')} ms; {ht.get('frozen_objects', 0)} start-up objects "
+              "frozen)\n")
     mems = [("memory supervisor", res.rss_mb), ("memory servo proc.", res.servo_rss_mb)]
     if res.perception_rss_mb:
         mems.append(("memory perception", res.perception_rss_mb))

@@ -358,10 +358,11 @@ class ProcedureConfig(BaseModel):
         True, description="on the wall clock only (real time): grab and locate the next stereo pair in a "
         "background thread so the servo stream continues meanwhile; never with the simulated clock")
     heap_trim_every_s: float = Field(
-        10.0, ge=0, le=3600, description="return the free C-heap pages of the supervisor and of the "
-        "perception process to the system at most this often, s, after a tick or pair (glibc "
-        "malloc_trim; hil/heap.py: bounds the resident size after image-sized buffers were freed); "
-        "0: never")
+        10.0, ge=0, le=3600, description="at most this often, s, after a tick or pair, the supervisor "
+        "and the perception process collect reference cycles (walking only what the run created: the "
+        "objects before it are frozen) and return their free C-heap pages to the system (glibc "
+        "malloc_trim; hil/heap.py: a fault's cycles held stereo pairs for minutes, and freed "
+        "image-sized buffers stayed resident); 0: never")
     supervisor_period_ms: float | None = Field(
         None, gt=0, le=1000, description="the longest a control tick waits for a stereo pair; when none "
         "arrived by then the tick still reads the robot and the tracker and checks the watchdogs and the "

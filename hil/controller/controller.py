@@ -143,19 +143,25 @@ class Controller(ControllerParts):
 
     # ------------------------------------------------------------------ the loop
     def run(self, max_duration_s: float | None = None) -> RunSummary:
-        """Tick until the operator says the run is over or the time budget is spent."""
+        """Tick until the operator says the run is over or the time budget is spent. While it
+        runs, the heap policy collects reference cycles and trims (hil/heap.py; started after the
+        pipeline is primed, stopped on every path)."""
         limit = self.cfg.max_duration_s if max_duration_s is None else max_duration_s
         self.prime()
         self.watchdogs.arm(self.clock.now_ns())
-        with self.pipeline.prefetching(self.cfg.camera_prefetch):
-            while not self.operator.finished(self.view()):
-                if self.t_s() > limit:
-                    self.session.write(ev.RUN_TIME_EXCEEDED, limit_s=limit, state=self.state)
-                    if self.state not in HALT_STATES:
-                        self.fire(Event.ABORT_REQUESTED, f"procedure exceeded {limit} s")
-                        self._notify_observers()  # the abort happened outside a tick: show it
-                    break
-                self.tick()
+        self.heap.start()
+        try:
+            with self.pipeline.prefetching(self.cfg.camera_prefetch):
+                while not self.operator.finished(self.view()):
+                    if self.t_s() > limit:
+                        self.session.write(ev.RUN_TIME_EXCEEDED, limit_s=limit, state=self.state)
+                        if self.state not in HALT_STATES:
+                            self.fire(Event.ABORT_REQUESTED, f"procedure exceeded {limit} s")
+                            self._notify_observers()  # the abort happened outside a tick: show it
+                        break
+                    self.tick()
+        finally:
+            self.heap.stop()
         return self.summary()
 
     def prime(self, timeout_s: float = 2.0) -> None:

@@ -138,12 +138,14 @@ def _build(spec: PerceptionSpec) -> tuple[StereoCamera, Any, FollowingWorld | No
 def _run(camera: StereoCamera, locate: Any, ring: MarkerRing, notify_fd: int, parent_pid: int,
          closing: threading.Event, heap: HeapTrimmer) -> None:
     """Grab, locate and publish until closed or orphaned; after each pair's notification the
-    heap trim policy (hil/heap.py: this process renders and searches whole images)."""
+    heap policy (hil/heap.py: this process renders and searches whole images; its cycles are
+    collected each period from the first pair on, until the process exits)."""
     from hil.controller.located import locate_in
 
     timeout_s = max(4.0 / camera.frame_rate_hz, 0.2)
     clock = MonotonicClock()
     pair_seq = 0
+    heap.start()   # this process's objects so far frozen, cycles collected each period (hil/heap.py)
     while not closing.is_set() and os.getppid() == parent_pid:
         try:
             frame = camera.grab(timeout_s=timeout_s)
