@@ -2,7 +2,8 @@
 
 Why (issue 45, docs/benchmarks.md "The hour at 500 Hz"): the supervisor's resident size stepped
 up 4-8 MB at some later faults of an hour and kept the step through every heap trim. RSS alone
-cannot say who holds it. Three owners can:
+cannot say who holds it (it was stereo pairs held by reference cycles through a fault's exceptions,
+which CPython's collector left for minutes: hil/heap.py part 3). Three owners can:
 
 - glibc's heap (``mallinfo2``): bytes in use (``c_in_use_mb``: what the program holds through
   ``malloc``, numpy's buffers included), free inside the heap (``c_free_mb``: what a trim may
