@@ -42,7 +42,7 @@ each says so (:func:`use_one_arena` returns False; :attr:`HeapTrimmer.unavailabl
    timed out during a frame drop, with the dropped pair in a local): cyclic garbage, which only
    CPython's cyclic collector frees. The supervisor allocates so few containers in steady state
    that a generation-0 collection came every ~30 s and a full one almost never (one in four minutes
-   of a soak: the one at start-up), and a full collection of its ~440,000 objects took 49 ms. So
+   of a soak: the one at start-up), and a full collection of its objects took 49 ms. So
    :meth:`HeapTrimmer.start` freezes the objects the process has by then (``gc.freeze``: start-up
    objects, modules, the devices, the plan; they live for the whole run, and the cyclic collector
    no longer walks them) and every period ``gc.collect()`` walks only what the run created since:
