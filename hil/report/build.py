@@ -111,6 +111,8 @@ def compute_numbers(data: SessionData) -> tuple[Number, ...]:
         Number("comp_error_max_mm", "Compensation error max (truth)",
                float(comp.max()) if comp.size else None, "mm"),
         Number("gate_open_fraction", "Gate open fraction (of gate samples)", data.gate_open_fraction(), ""),
+        Number("target_model_fallback_fraction", "Surrogate target model: compensation pairs it fell back on",
+               data.target_model_fallback_fraction(), ""),
         Number("time_to_lock_s", "Time to lock", data.time_to_lock_s(), "s"),
         Number("duration_s", "Session duration", data.duration_s, "s"),
         Number("faults", "Faults", len(data.faults), ""),

@@ -203,6 +203,47 @@ def plot_body_state(data: SessionData) -> Plot:
     return Plot(key, title, _png(fig), True)
 
 
+#: fallback reasons named in the target model plot's legend (the commonest first)
+_FALLBACK_REASONS_SHOWN = 3
+
+
+def plot_target_model(data: SessionData) -> Plot:
+    """The surrogate target model per pair (issue 41, docs/compensation.md "The direction"): the
+    turn it added to the path's direction (deg) and the modelled target's shift from the plan's
+    (mm, right axis), and a red mark at each pair it fell back on (kept the rigid direction), the
+    commonest reasons in the legend with their counts."""
+    fig, ax = _figure()
+    key, title = "target", "Target model: turn, shift and fallbacks"
+    if not len(data.target_turn_deg):
+        _no_data(ax, "the session ran without the surrogate target model")
+        ax.set_title(title)
+        return Plot(key, title, _png(fig), False)
+    t, turn = data.target_turn_deg.arrays()
+    ax.plot(t, turn, "-", color="#3182bd", linewidth=0.9, label="turn added (deg)")
+    ax.set_ylabel("turn (deg)")
+    if len(data.target_shift_mm):
+        right = ax.twinx()
+        ts, shift = data.target_shift_mm.arrays()
+        right.plot(ts, shift, "-", color="#31a354", linewidth=0.8, alpha=0.8, label="target shift (mm)")
+        right.set_ylabel("target shift (mm)")
+        right.legend(loc="upper left", fontsize=7)
+    counts: dict[str, int] = {}
+    for _, why in data.target_fallbacks:
+        counts[why] = counts.get(why, 0) + 1
+    if data.target_fallbacks:
+        tf = [tt for tt, _ in data.target_fallbacks]
+        shown = sorted(counts.items(), key=lambda kv: -kv[1])[:_FALLBACK_REASONS_SHOWN]
+        label = "fell back: " + "; ".join(f"{why[:50]} (x{n})" for why, n in shown)
+        ax.plot(tf, [0.0] * len(tf), "x", color="#de2d26", markersize=5, label=label)
+    _time_axis(ax, data)
+    _mark_faults(ax, data)
+    frac = data.target_model_fallback_fraction()
+    note = f"fell back on {len(data.target_fallbacks)} of {len(turn)} pairs" if frac is not None else ""
+    ax.set_title(f"{title} ({note})")
+    ax.legend(loc="upper right", fontsize=6)
+    return Plot(key, title, _png(fig), True, note)
+
+
 def plot_robot_speed(data: SessionData) -> Plot:
     fig, ax = _figure()
     key, title = "speed", "Robot speed"
@@ -228,5 +269,6 @@ PLOTS: tuple[tuple[str, Callable[[SessionData], Plot]], ...] = (
     ("errors", plot_errors),
     ("residuals", plot_marker_residuals),
     ("body", plot_body_state),
+    ("target", plot_target_model),
     ("speed", plot_robot_speed),
 )

@@ -13,7 +13,8 @@ Events read (names as the controller writes them, :mod:`hil.controller.events`):
 tre_expected_mm, robot_fre_mm, markers, reference_optical_mm, optional residuals_mm),
 ``gate_measured`` (deviation_rms_mm, open, shape_mm, marker_deviations_mm), ``compensation_step``
 and ``lock_measured`` (guide_error_mm, gate_deviation_mm; change_fre_mm; lock: shape_mm,
-marker_deviations_mm), ``approach_measured`` (guide_error_mm), ``truth_error``
+marker_deviations_mm; compensation_step with the surrogate target model: target_turn_deg,
+target_shift_mm, target_fallback), ``approach_measured`` (guide_error_mm), ``truth_error``
 (state, position_mm, direction_deg; simulator only), ``command_sent`` (speed_mm_s),
 ``session_started`` (header; gate and lock tolerances from ``procedure.gate.tolerance_mm`` /
 ``procedure.lock.tolerance_mm`` as ``hil run`` writes them, or top-level ``gate_tolerance_mm`` /
@@ -99,6 +100,11 @@ class SessionData:
     marker_deviations_mm: dict[int, Series] = field(default_factory=dict)
     marker_residuals_mm: dict[int, Series] = field(default_factory=dict)
     registration_residuals_mm: list[float] = field(default_factory=list)
+    #: the surrogate target model per pair (``compensation_step``, issue 41): the turn it added
+    #: (deg), the modelled target's shift (mm), and (t_s, reason) of each pair it fell back on
+    target_turn_deg: Series = field(default_factory=Series)
+    target_shift_mm: Series = field(default_factory=Series)
+    target_fallbacks: list[tuple[float, str]] = field(default_factory=list)
     robot_speed_mm_s: Series = field(default_factory=Series)
     robot_speed_kind: str = ""  # "measured", "commanded" or "" (none)
     fre_mm: float | None = None
@@ -161,6 +167,13 @@ class SessionData:
             if s == "lock":
                 return t
         return None
+
+    def target_model_fallback_fraction(self) -> float | None:
+        """Of the pairs the surrogate target model judged, the share it fell back on (None: the
+        session ran without the model)."""
+        if not len(self.target_turn_deg):
+            return None
+        return len(self.target_fallbacks) / len(self.target_turn_deg)
 
     def gate_open_fraction(self) -> float | None:
         if not self.gate_samples:
@@ -369,6 +382,7 @@ def _read_procedure_event(data: SessionData, ln: _Line, event: str, t: float, st
         data.guide_error_mm.add(t, ln.num("guide_error_mm"))
         data.breathing_mm.add(t, ln.num("gate_deviation_mm"))
         data.change_fre_mm.add(t, ln.num("change_fre_mm"))
+        _read_target_model(data, ln, t)
         if event == "lock_measured":
             data.lock_guide_error_mm.add(t, ln.num("guide_error_mm"))
             _read_body_state(data, ln, t)
@@ -384,6 +398,20 @@ def _read_procedure_event(data: SessionData, ln: _Line, event: str, t: float, st
         elif st == "lock":
             data.lock_truth_mm.add(t, ln.num("position_mm"))
             data.lock_truth_deg.add(t, ln.num("direction_deg"))
+
+
+def _read_target_model(data: SessionData, ln: _Line, t: float) -> None:
+    """The surrogate target model's fields of a ``compensation_step`` (absent without the model:
+    nothing is added). A pair counts when it logged its turn; a non-empty ``target_fallback`` is
+    a pair that kept the rigid direction, with the reason."""
+    turn = ln.num("target_turn_deg")
+    if turn is None:
+        return
+    data.target_turn_deg.add(t, turn)
+    data.target_shift_mm.add(t, ln.num("target_shift_mm"))
+    why = ln.text("target_fallback")
+    if why:
+        data.target_fallbacks.append((t, why))
 
 
 def _read_body_state(data: SessionData, ln: _Line, t: float) -> None:

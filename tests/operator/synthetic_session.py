@@ -17,6 +17,10 @@ TRE_MM = 0.8765
 ROBOT_FRE_MM = 0.2109
 LOCK_ERROR_MM = 0.3456
 FAULT_REASON = "camera: no frame for 0.30 s"
+#: compensation pairs (index -> reason) the surrogate target model fell back on
+TARGET_FALLBACKS = {3: "markers off the pattern by 2.40 mm > 2.00 mm",
+                    4: "markers off the pattern by 2.40 mm > 2.00 mm",
+                    11: "score 9.1 mm outside the CT's range"}
 REFERENCE_MM = np.array([[0.0, 0.0, 1000.0], [80.0, 0.0, 1000.0], [0.0, 80.0, 1010.0],
                          [80.0, 80.0, 990.0], [40.0, 40.0, 1020.0]])
 DT_S = 0.1
@@ -77,7 +81,10 @@ def write_full_session(path: Path) -> Path:
         w.tick()
         log.write("compensation_step", exposure_t_ns=clock.now_ns(), latency_detect_ms=30.0,
                   latency_command_ms=35.0, change_mm=1.0, predicted_s=0.05, command_mm=[0.0, 0.0, 0.0],
-                  guide_error_mm=2.0 / (k + 1), gate_deviation_mm=0.4, change_fre_mm=0.05 * k)
+                  guide_error_mm=2.0 / (k + 1), gate_deviation_mm=0.4, change_fre_mm=0.05 * k,
+                  target_score_mm=0.3 * k, target_shift_mm=0.2 * k,
+                  target_turn_deg=0.0 if k in TARGET_FALLBACKS else 1.5 * math.sin(2 * math.pi * k / 20),
+                  target_fallback=TARGET_FALLBACKS.get(k, ""))
         log.write("command_sent", command="servo", target_mm=[0.0, 0.0, 0.0], period_s=DT_S, speed_mm_s=5.0)
         log.write("truth_error", state="compensate", position_mm=1.0 + 0.1 * k, direction_deg=0.5)
     w.enter("compensate", "lock", "compensate_to_lock")

@@ -20,12 +20,13 @@ from tests.operator.synthetic_session import (
     FRE_MM,
     LOCK_ERROR_MM,
     ROBOT_FRE_MM,
+    TARGET_FALLBACKS,
     TRE_MM,
     write_empty_session,
     write_full_session,
 )
 
-PLOT_KEYS = ["states", "breathing", "errors", "residuals", "body", "speed"]
+PLOT_KEYS = ["states", "breathing", "errors", "residuals", "body", "target", "speed"]
 
 
 def _figures(page: str) -> dict[str, tuple[bool, bytes]]:
@@ -65,6 +66,8 @@ def test_full_session_report_has_every_plot_and_number(tmp_path: Path) -> None:
     assert _number(page, "lock_error_mm") == f"{LOCK_ERROR_MM:.3f}"
     assert _number(page, "lock_truth_error_mm") == "0.520"
     assert _number(page, "faults") == "1"
+    assert _number(page, "target_model_fallback_fraction") == "0.150"
+    assert "fell back on 3 of 20 pairs" in page
     assert _number(page, "final_state") == "done"
     assert FAULT_REASON in page
     nums = {n.key: n.value for n in res.numbers}
@@ -108,6 +111,11 @@ def test_session_data_series(tmp_path: Path) -> None:
     assert len(data.marker_deviations_mm[4]) == 26
     assert data.marker_deviations_mm[4].y[-1] == 0.5
     assert data.change_fre_mm.y == pytest.approx([0.05 * k for k in range(20)], abs=1e-12)
+    # the surrogate target model: every compensation pair, three of which fell back
+    assert len(data.target_turn_deg) == 20
+    assert data.target_shift_mm.y == pytest.approx([0.2 * k for k in range(20)], abs=1e-12)
+    assert [why for _, why in data.target_fallbacks] == list(TARGET_FALLBACKS.values())
+    assert data.target_model_fallback_fraction() == pytest.approx(3 / 20)
 
 
 def test_empty_session_plots_say_no_data(tmp_path: Path) -> None:
@@ -117,9 +125,10 @@ def test_empty_session_plots_say_no_data(tmp_path: Path) -> None:
     assert list(figs) == PLOT_KEYS
     assert {k: v[0] for k, v in figs.items()} == {"states": True, "breathing": False, "errors": False,
                                                   "residuals": False, "body": False,
-                                                  "speed": False}
+                                                  "target": False, "speed": False}
     assert all(len(png) > 1000 for _, png in figs.values())
     assert _number(page, "fre_mm") == "n/a"
+    assert _number(page, "target_model_fallback_fraction") == "n/a"
     assert res.chain.ok
 
 
@@ -153,7 +162,7 @@ def test_cli_valid_log_json_and_progress(tmp_path: Path, capsys: pytest.CaptureF
     assert out["chain"]["head"] == "matched"  # the writer published the chain head on close
     assert out["numbers"]["fre_mm"] == FRE_MM
     assert out["plots"] == dict.fromkeys(PLOT_KEYS, "ok")
-    assert "hil report: plot 6/6: speed" in cap.err
+    assert "hil report: plot 7/7: speed" in cap.err
 
 
 @pytest.mark.parametrize(("content", "line", "what"), [
