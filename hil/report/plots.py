@@ -52,11 +52,14 @@ def _png(fig: Figure) -> bytes:
     return buf.getvalue()
 
 
-def _no_data(ax: Axes, why: str) -> None:
+def _no_data(fig: Figure, ax: Axes, key: str, title: str, why: str) -> Plot:
+    """The plot ``key`` saying "no data" and why (``has_data`` False)."""
     ax.text(0.5, 0.5, f"no data\n{why}", ha="center", va="center", transform=ax.transAxes,
             fontsize=12, color="#666666")
     ax.set_xticks([])
     ax.set_yticks([])
+    ax.set_title(title)
+    return Plot(key, title, _png(fig), False)
 
 
 def _mark_faults(ax: Axes, data: SessionData, label: bool = True) -> None:
@@ -98,9 +101,7 @@ def plot_breathing(data: SessionData) -> Plot:
     fig, ax = _figure()
     key, title = "breathing", "Breathing trace and hold-breath gate"
     if not len(data.breathing_mm):
-        _no_data(ax, "no gate or compensation measurements in this session")
-        ax.set_title(title)
-        return Plot(key, title, _png(fig), False)
+        return _no_data(fig, ax, key, title, "no gate or compensation measurements in this session")
     for i, (a, b) in enumerate(data.gate_open_intervals()):
         ax.axvspan(a, b, color="#74c476", alpha=0.25, label="gate open" if i == 0 else None)
     for i, (a, b) in enumerate(data.gate_closed_intervals()):
@@ -121,9 +122,7 @@ def plot_errors(data: SessionData) -> Plot:
     fig, ax = _figure()
     key, title = "errors", "Guide error and compensation error"
     if not len(data.guide_error_mm) and not len(data.comp_error_mm) and not len(data.lock_truth_mm):
-        _no_data(ax, "the guide never reached the patient in this session")
-        ax.set_title(title)
-        return Plot(key, title, _png(fig), False)
+        return _no_data(fig, ax, key, title, "the guide never reached the patient in this session")
     if len(data.guide_error_mm):
         t, y = data.guide_error_mm.arrays()
         ax.plot(t, y, ".", color="#08519c", markersize=3, label="guide error (optical)")
@@ -170,9 +169,7 @@ def plot_marker_residuals(data: SessionData) -> Plot:
             ax.legend(loc="upper right", fontsize=7)
         ax.set_title(title + " at registration")
         return Plot(key, title, _png(fig), True, "at registration only")
-    _no_data(ax, "the log has no per-marker residuals")
-    ax.set_title(title)
-    return Plot(key, title, _png(fig), False)
+    return _no_data(fig, ax, key, title, "the log has no per-marker residuals")
 
 
 def plot_body_state(data: SessionData) -> Plot:
@@ -183,9 +180,7 @@ def plot_body_state(data: SessionData) -> Plot:
     key, title = "body", "Body state: per-marker deviations and shape"
     deviations = {i: s for i, s in data.marker_deviations_mm.items() if len(s)}
     if not deviations and not len(data.shape_mm) and not len(data.change_fre_mm):
-        _no_data(ax, "the log has no per-marker deviations or shape residuals")
-        ax.set_title(title)
-        return Plot(key, title, _png(fig), False)
+        return _no_data(fig, ax, key, title, "the log has no per-marker deviations or shape residuals")
     for i, s in sorted(deviations.items()):
         t, y = s.arrays()
         ax.plot(t, y, "-", linewidth=0.6, alpha=0.7, label=f"marker {i} deviation")
@@ -215,9 +210,7 @@ def plot_target_model(data: SessionData) -> Plot:
     fig, ax = _figure()
     key, title = "target", "Target model: turn, shift and fallbacks"
     if not len(data.target_turn_deg):
-        _no_data(ax, "the session ran without the surrogate target model")
-        ax.set_title(title)
-        return Plot(key, title, _png(fig), False)
+        return _no_data(fig, ax, key, title, "the session ran without the surrogate target model")
     t, turn = data.target_turn_deg.arrays()
     ax.plot(t, turn, "-", color="#3182bd", linewidth=0.9, label="turn added (deg)")
     ax.set_ylabel("turn (deg)")
@@ -237,8 +230,7 @@ def plot_target_model(data: SessionData) -> Plot:
         ax.plot(tf, [0.0] * len(tf), "x", color="#de2d26", markersize=5, label=label)
     _time_axis(ax, data)
     _mark_faults(ax, data)
-    frac = data.target_model_fallback_fraction()
-    note = f"fell back on {len(data.target_fallbacks)} of {len(turn)} pairs" if frac is not None else ""
+    note = f"fell back on {len(data.target_fallbacks)} of {len(turn)} pairs"
     ax.set_title(f"{title} ({note})")
     ax.legend(loc="upper right", fontsize=6)
     return Plot(key, title, _png(fig), True, note)
@@ -248,9 +240,7 @@ def plot_robot_speed(data: SessionData) -> Plot:
     fig, ax = _figure()
     key, title = "speed", "Robot speed"
     if not len(data.robot_speed_mm_s):
-        _no_data(ax, "no robot speed or motion commands in this session")
-        ax.set_title(title)
-        return Plot(key, title, _png(fig), False)
+        return _no_data(fig, ax, key, title, "no robot speed or motion commands in this session")
     t, y = data.robot_speed_mm_s.arrays()
     ax.plot(t, y, ".-", color="#e6550d", markersize=2, linewidth=0.8,
             label=f"TCP speed ({data.robot_speed_kind})")
