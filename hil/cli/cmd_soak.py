@@ -29,7 +29,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TextIO
 
 from hil.soak.host import STEAL_WINDOW_S
 
@@ -193,6 +193,24 @@ def run(args: argparse.Namespace) -> int:
     return 0 if res.passed() else 1
 
 
+def _print_memory(out: TextIO, res: SoakResult) -> None:
+    """The memory lines of the text output: heap trims, cycle collections, each process's RSS."""
+    ht = res.heap_trim
+    out.write(f"heap trims           {ht.get('trims', 0)} ({ht.get('released', 0)} gave memory back; "
+              f"longest {ht.get('max_ms')} ms; [procedure] heap_trim_every_s)\n")
+    out.write(f"cycle collections    {ht.get('collections', 0)} ({ht.get('collected', 0)} objects freed; "
+              f"longest {ht.get('collect_max_ms')} ms; {ht.get('frozen_objects', 0)} start-up objects "
+              "frozen)\n")
+    mems = [("memory supervisor", res.rss_mb), ("memory servo proc.", res.servo_rss_mb)]
+    if res.perception_rss_mb:
+        mems.append(("memory perception", res.perception_rss_mb))
+    for label, r in mems:
+        out.write(
+            f"{label:<21}{r.get('after_warmup')} -> {r.get('end')} MB, "
+            f"growth {r.get('growth')} MB, slope {r.get('slope_mb_per_min')} MB/min\n"
+        )
+
+
 def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
     """The soak's figures as text lines on stdout (the module doc lists them)."""
     out = sys.stdout
@@ -243,20 +261,7 @@ def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
     loc = " / ".join("n/a" if res.locate_ms.get(k) is None else f"{res.locate_ms[k]:.2f}"
                      for k in ("p50", "p95"))
     out.write(f"locate               {loc} ms (p50/p95, {where})\n")
-    ht = res.heap_trim
-    out.write(f"heap trims           {ht.get('trims', 0)} ({ht.get('released', 0)} gave memory back; "
-              f"longest {ht.get('max_ms')} ms; [procedure] heap_trim_every_s)\n")
-    out.write(f"cycle collections    {ht.get('collections', 0)} ({ht.get('collected', 0)} objects freed; "
-              f"longest {ht.get('collect_max_ms')} ms; {ht.get('frozen_objects', 0)} start-up objects "
-              "frozen)\n")
-    mems = [("memory supervisor", res.rss_mb), ("memory servo proc.", res.servo_rss_mb)]
-    if res.perception_rss_mb:
-        mems.append(("memory perception", res.perception_rss_mb))
-    for label, r in mems:
-        out.write(
-            f"{label:<21}{r.get('after_warmup')} -> {r.get('end')} MB, "
-            f"growth {r.get('growth')} MB, slope {r.get('slope_mb_per_min')} MB/min\n"
-        )
+    _print_memory(out, res)
     out.write(f"refused steps        {res.limit_violations} (the loop's limit check; none reached "
               "the driver)\n")
     out.write(f"following error      peak {res.following_peak_mm:.3f} mm, "

@@ -14,6 +14,7 @@ Documented bounds of the short soak (docs/benchmarks.md), counts only, no timing
 
 from __future__ import annotations
 
+import io
 import json
 import sys
 from pathlib import Path
@@ -24,7 +25,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hil.cli.cmd_soak import _latency_bound
+from hil.cli.cmd_soak import _latency_bound, _print_memory
 from hil.config import default_setup_path, load_setup
 from hil.controller.cost import CostHistogram
 from hil.controller.series import SampleSeries
@@ -520,3 +521,26 @@ def test_soak_setup_asks_for_the_perception_process_on_any_machine(
     assert setup.servo.process == "on"
     assert setup.simulation.real_time is True
     assert setup.robot.control_rate_hz == 500.0
+
+
+def test_the_text_output_s_memory_lines() -> None:
+    """``hil soak``'s memory lines: the trims, the cycle collections and each process's RSS, with
+    the perception process's only when it ran."""
+    res = SoakResult(rate_hz=500.0, minutes=60.0)
+    res.heap_trim = {"trims": 358, "released": 357, "max_ms": 0.83, "collections": 358, "collected": 550,
+                     "collect_max_ms": 0.72, "frozen_objects": 90958}
+    res.rss_mb = {"after_warmup": 233.21, "end": 234.8, "growth": 2.04, "slope_mb_per_min": 0.0186}
+    res.servo_rss_mb = {"after_warmup": 519.79, "end": 519.79, "growth": 0.0, "slope_mb_per_min": 0.0}
+    out = io.StringIO()
+    _print_memory(out, res)
+    assert out.getvalue().splitlines() == [
+        "heap trims           358 (357 gave memory back; longest 0.83 ms; [procedure] heap_trim_every_s)",
+        "cycle collections    358 (550 objects freed; longest 0.72 ms; 90958 start-up objects frozen)",
+        "memory supervisor    233.21 -> 234.8 MB, growth 2.04 MB, slope 0.0186 MB/min",
+        "memory servo proc.   519.79 -> 519.79 MB, growth 0.0 MB, slope 0.0 MB/min",
+    ]
+    res.perception_rss_mb = {"after_warmup": 300.0, "end": 300.5, "growth": 0.5, "slope_mb_per_min": 0.01}
+    out = io.StringIO()
+    _print_memory(out, res)
+    assert out.getvalue().splitlines()[-1] == ("memory perception    300.0 -> 300.5 MB, growth 0.5 MB, "
+                                               "slope 0.01 MB/min")
