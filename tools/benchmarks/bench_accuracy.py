@@ -160,6 +160,50 @@ def _calibrate_rig(cfg_path: Path, setup: SetupConfig, out: Path) -> dict[str, A
     return outcome.summary
 
 
+def _column(runs: list[dict[str, Any]], comp_all: list[float], hold_targets: list[float],
+            follow_all: list[float], follow_entry: list[float],
+            follow_fallbacks: list[float]) -> dict[str, Any]:
+    """One column's figures from its seeds' records and the pooled samples (mm, deg, s; None where
+    no run gave the figure). The compensation p95 is the following run's where one was made."""
+    comp_main = follow_all or comp_all
+    locked = [r for r in runs if r["lock_error_mm"] is not None]
+    lock = [float(r["lock_error_mm"]) for r in locked]
+    dirs = [float(r["lock_direction_error_deg"]) for r in locked]
+    ttl = [float(r["time_to_lock_s"]) for r in runs if r["time_to_lock_s"] is not None]
+    gates = [float(r["gate_open_fraction"]) for r in runs if r["gate_open_fraction"] is not None]
+    targets = [float(r["target_error_mm"]) for r in locked if r["target_error_mm"] is not None]
+    entries = [float(r["entry_axis_error_mm"]) for r in locked if r["entry_axis_error_mm"] is not None]
+    residuals = [float(r["body_rigid_residual_mm_p95"]) for r in runs
+                 if r["body_rigid_residual_mm_p95"] is not None]
+    fres = [float(r["change_fre_mm_p95"]) for r in runs if r["change_fre_mm_p95"] is not None]
+    return {
+        "runs": len(runs),
+        "runs_done": sum(r["final_state"] == "done" for r in runs),
+        "lock_err_mm_mean": statistics.fmean(lock) if lock else None,
+        "lock_err_mm_rms": _rms(lock),
+        "lock_err_mm_max": max(lock) if lock else None,
+        "dir_err_deg_rms": _rms(dirs),
+        "comp_err_mm_p95": float(np.percentile(comp_main, 95)) if comp_main else None,
+        "comp_err_mm_rms_following": _rms(follow_all),
+        "comp_entry_err_mm_p95_following": _p95(follow_entry),
+        "target_model_fallback_fraction_following": statistics.fmean(follow_fallbacks) if follow_fallbacks
+        else None,
+        "comp_err_mm_rms_hold": _rms(comp_all),
+        "comp_err_mm_p95_hold": float(np.percentile(comp_all, 95)) if comp_all else None,
+        "target_err_mm_rms": _rms(targets),
+        "target_err_mm_p95": _p95(targets),
+        "target_err_mm_max": max(targets) if targets else None,
+        "target_err_hold_mm_p95": _p95(hold_targets),
+        "entry_axis_err_mm_rms": _rms(entries),
+        "body_rigid_residual_mm_p95": _p95(residuals),
+        "change_fre_mm_p95": _p95(fres),
+        "gate_false_open_rate": _false_open(runs),
+        "gate_open_fraction_mean": statistics.fmean(gates) if gates else None,
+        "time_to_lock_s_median": statistics.median(ttl) if ttl else None,
+        "per_run": runs,
+    }
+
+
 def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argparse.Namespace, tmp: Path,
            calibrate: bool) -> dict[str, Any]:
     """One column of the table: every seed with the setup as given (CAD layout, no time offsets)
@@ -197,43 +241,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
         if not args.json:
             print(f"{'calibrated' if calibrate else 'as given'} seed {seed}: {s.final_state}, "
                   f"lock {s.lock_error_mm}, dir {s.lock_direction_error_deg}", file=sys.stderr)
-    comp_main = follow_all or comp_all
-    locked = [r for r in runs if r["lock_error_mm"] is not None]
-    lock = [float(r["lock_error_mm"]) for r in locked]
-    dirs = [float(r["lock_direction_error_deg"]) for r in locked]
-    ttl = [float(r["time_to_lock_s"]) for r in runs if r["time_to_lock_s"] is not None]
-    gates = [float(r["gate_open_fraction"]) for r in runs if r["gate_open_fraction"] is not None]
-    targets = [float(r["target_error_mm"]) for r in locked if r["target_error_mm"] is not None]
-    entries = [float(r["entry_axis_error_mm"]) for r in locked if r["entry_axis_error_mm"] is not None]
-    residuals = [float(r["body_rigid_residual_mm_p95"]) for r in runs
-                 if r["body_rigid_residual_mm_p95"] is not None]
-    fres = [float(r["change_fre_mm_p95"]) for r in runs if r["change_fre_mm_p95"] is not None]
-    out: dict[str, Any] = {
-        "runs": len(runs),
-        "runs_done": sum(r["final_state"] == "done" for r in runs),
-        "lock_err_mm_mean": statistics.fmean(lock) if lock else None,
-        "lock_err_mm_rms": _rms(lock),
-        "lock_err_mm_max": max(lock) if lock else None,
-        "dir_err_deg_rms": _rms(dirs),
-        "comp_err_mm_p95": float(np.percentile(comp_main, 95)) if comp_main else None,
-        "comp_err_mm_rms_following": _rms(follow_all),
-        "comp_entry_err_mm_p95_following": _p95(follow_entry),
-        "target_model_fallback_fraction_following": statistics.fmean(follow_fallbacks) if follow_fallbacks
-        else None,
-        "comp_err_mm_rms_hold": _rms(comp_all),
-        "comp_err_mm_p95_hold": float(np.percentile(comp_all, 95)) if comp_all else None,
-        "target_err_mm_rms": _rms(targets),
-        "target_err_mm_p95": _p95(targets),
-        "target_err_mm_max": max(targets) if targets else None,
-        "target_err_hold_mm_p95": _p95(hold_targets),
-        "entry_axis_err_mm_rms": _rms(entries),
-        "body_rigid_residual_mm_p95": _p95(residuals),
-        "change_fre_mm_p95": _p95(fres),
-        "gate_false_open_rate": _false_open(runs),
-        "gate_open_fraction_mean": statistics.fmean(gates) if gates else None,
-        "time_to_lock_s_median": statistics.median(ttl) if ttl else None,
-        "per_run": runs,
-    }
+    out = _column(runs, comp_all, hold_targets, follow_all, follow_entry, follow_fallbacks)
     if calibrate:
         layout = [float(r["layout_mm_rms"]) for r in rig_errors if r["layout_mm_rms"] is not None]
         offs = [abs(float(e)) for r in rig_errors for e in (r["time_offset_error_ms"] or {}).values()]

@@ -1,0 +1,87 @@
+"""``tools/bench accuracy``'s column figures from its seeds' records (``_column``): the arithmetic of
+each figure on two hand-made seeds, one locked and one that faulted, exactly."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _bench() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("bench_accuracy_column",
+                                                  REPO / "tools" / "benchmarks" / "bench_accuracy.py")
+    assert spec is not None
+    assert spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _records() -> list[dict[str, Any]]:
+    locked = {"seed": 1, "final_state": "done", "lock_error_mm": 0.3, "lock_direction_error_deg": 0.1,
+              "time_to_lock_s": 7.0, "gate_open_fraction": 0.5, "target_error_mm": 1.0,
+              "entry_axis_error_mm": 0.2, "body_rigid_residual_mm_p95": 2.0, "change_fre_mm_p95": 0.5,
+              "gate_false_open_rate": 0.25, "gate_open_ticks": 40}
+    faulted = {"seed": 2, "final_state": "fault", "lock_error_mm": None, "lock_direction_error_deg": None,
+               "time_to_lock_s": None, "gate_open_fraction": 0.0, "target_error_mm": None,
+               "entry_axis_error_mm": None, "body_rigid_residual_mm_p95": 3.0, "change_fre_mm_p95": None,
+               "gate_false_open_rate": None, "gate_open_ticks": 0}
+    return [locked, faulted]
+
+
+def test_a_column_from_a_locked_and_a_faulted_seed() -> None:
+    runs = _records()
+    out = _bench()._column(runs, comp_all=[0.1, 0.2], hold_targets=[0.4, 0.6],
+                           follow_all=[1.0, 2.0, 3.0, 4.0], follow_entry=[0.5, 1.5],
+                           follow_fallbacks=[0.1, 0.3])
+    assert out["runs"] == 2
+    assert out["runs_done"] == 1
+    # only the locked seed has lock figures
+    assert out["lock_err_mm_mean"] == pytest.approx(0.3)
+    assert out["lock_err_mm_rms"] == pytest.approx(0.3)
+    assert out["lock_err_mm_max"] == 0.3
+    assert out["dir_err_deg_rms"] == pytest.approx(0.1)
+    assert out["target_err_mm_p95"] == pytest.approx(1.0)
+    assert out["entry_axis_err_mm_rms"] == pytest.approx(0.2)
+    # the following run's samples give the compensation p95; the hold's stand beside it
+    assert out["comp_err_mm_p95"] == pytest.approx(3.85)
+    assert out["comp_err_mm_rms_following"] == pytest.approx(math.sqrt(7.5))
+    assert out["comp_entry_err_mm_p95_following"] == pytest.approx(1.45)
+    assert out["target_model_fallback_fraction_following"] == pytest.approx(0.2)
+    assert out["comp_err_mm_p95_hold"] == pytest.approx(0.195)
+    assert out["target_err_hold_mm_p95"] == pytest.approx(0.59)
+    # every seed with the figure counts: the faulted one's residual too
+    assert out["body_rigid_residual_mm_p95"] == pytest.approx(2.95)
+    assert out["change_fre_mm_p95"] == pytest.approx(0.5)
+    # false opens weigh by open ticks: 10 of 40 (the faulted seed never opened)
+    assert out["gate_false_open_rate"] == pytest.approx(0.25)
+    assert out["gate_open_fraction_mean"] == pytest.approx(0.25)
+    assert out["time_to_lock_s_median"] == 7.0
+    assert out["per_run"] is runs
+
+
+def test_without_a_following_run_the_hold_gives_the_compensation_figure() -> None:
+    out = _bench()._column(_records(), comp_all=[0.1, 0.2], hold_targets=[], follow_all=[],
+                           follow_entry=[], follow_fallbacks=[])
+    assert out["comp_err_mm_p95"] == pytest.approx(0.195)
+    assert out["comp_err_mm_rms_following"] is None
+    assert out["comp_entry_err_mm_p95_following"] is None
+    assert out["target_model_fallback_fraction_following"] is None
+    assert out["target_err_hold_mm_p95"] is None
+
+
+def test_no_seed_locked_leaves_the_lock_figures_empty() -> None:
+    out = _bench()._column(_records()[1:], comp_all=[], hold_targets=[], follow_all=[], follow_entry=[],
+                           follow_fallbacks=[])
+    assert out["runs_done"] == 0
+    for key in ("lock_err_mm_mean", "lock_err_mm_rms", "lock_err_mm_max", "dir_err_deg_rms",
+                "comp_err_mm_p95", "target_err_mm_p95", "target_err_mm_max", "entry_axis_err_mm_rms",
+                "gate_false_open_rate", "time_to_lock_s_median", "change_fre_mm_p95"):
+        assert out[key] is None, key
