@@ -3,25 +3,17 @@ each figure on two hand-made seeds, one locked and one that faulted, exactly."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
+from tests.benchtools import load_bench
 
 
 def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_accuracy_column",
-                                                  REPO / "tools" / "benchmarks" / "bench_accuracy.py")
-    assert spec is not None
-    assert spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("bench_accuracy", "bench_accuracy_column")
 
 
 def _records() -> list[dict[str, Any]]:

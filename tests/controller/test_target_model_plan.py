@@ -4,7 +4,6 @@ its tool, ``hil run`` refusing the model without phases, and a simulated procedu
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import subprocess
@@ -23,6 +22,7 @@ from hil.controller.plan_file import load_plan, plan_from_dict
 from hil.controller.target_model import fit_target_model
 from hil.errors import InputFileError
 from hil.session import read_session_log
+from tests.benchtools import load_bench
 
 CONFIG = Path("configs/sim_patient.toml")
 REPO = Path(__file__).resolve().parents[2]
@@ -159,13 +159,7 @@ def test_a_procedure_steers_by_the_model_and_says_so(tmp_path: Path) -> None:
 
 
 def _bench_module() -> Any:
-    spec = importlib.util.spec_from_file_location("bench_accuracy_for_target_model",
-                                                  REPO / "tools" / "benchmarks" / "bench_accuracy.py")
-    assert spec is not None
-    assert spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("bench_accuracy", "bench_accuracy_for_target_model")
 
 
 @pytest.mark.slow

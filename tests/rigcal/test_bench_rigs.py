@@ -7,7 +7,6 @@ The rigs run a shortened rig calibration (8 poses, 2 temporal cycles) to keep th
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shlex
 from pathlib import Path
@@ -18,9 +17,9 @@ import pytest
 
 from hil.rigcal.draw import RigTolerances, draw_rig
 from hil.rigcal.fleet import execute_rig_task, rig_task, summarize
-from tests.rigcal.conftest import CONFIGS, REPO
+from tests.benchtools import load_bench
+from tests.rigcal.conftest import CONFIGS
 
-BENCH = REPO / "tools" / "benchmarks" / "bench_accuracy.py"
 PLAN = CONFIGS / "plans" / "sim_realistic_plan.json"
 KEYS = {"rigs", "lock_err_mm_p50_calibrated", "lock_err_mm_p95_calibrated", "lock_err_mm_p99_calibrated",
         "lock_err_mm_p50_cad", "lock_err_mm_p95_cad", "lock_err_mm_p99_cad", "refused", "refused_reasons",
@@ -28,12 +27,7 @@ KEYS = {"rigs", "lock_err_mm_p50_calibrated", "lock_err_mm_p95_calibrated", "loc
 
 
 def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_accuracy_under_test", BENCH)
-    assert spec is not None
-    assert spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("bench_accuracy", "bench_accuracy_under_test")
 
 
 def _config(tmp_path: Path, extra: str = "") -> Path:
