@@ -17,6 +17,11 @@ what they assume of the body (docs/compensation.md):
   between markers; needs 4 seen markers not on a line (else it falls back to ``weighted`` and
   says so), and extrapolates affinely outside their hull.
 
+``weighted``'s and ``local-tps``'s per-pair arithmetic after the spline's row (weights, the
+weighted fit, the spline's step) is compiled (hil/geometry/_native.c ``local_change``);
+:func:`weighted_numpy` and :func:`tps_numpy` are its reference and run when the numpy code is
+selected (:mod:`hil.geometry.native`).
+
 Whatever the estimator, the unweighted rigid fit's RMS residual (``rigid_fre_mm``) and per-marker
 residuals are reported: the deformation monitor (how far the body is from the rigid copy the
 registration assumed).
@@ -33,7 +38,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hil.errors import GeometryError
-from hil.geometry.registration import Registration, register_horn
+from hil.geometry import native
+from hil.geometry.registration import Registration, register_horn, register_horn_numpy
 from hil.geometry.thin_plate import thin_plate_weights
 from hil.geometry.transform import RigidTransform
 
@@ -83,14 +89,16 @@ def entry_weights(ref: FloatArray, entry_mm: FloatArray, sigma_mm: float) -> Flo
     return out
 
 
-def _weighted(ref: FloatArray, live: FloatArray, entry_mm: FloatArray,
-              sigma_mm: float) -> Registration | None:
+def weighted_numpy(ref: FloatArray, live: FloatArray, entry_mm: FloatArray,
+                   sigma_mm: float) -> RigidTransform | None:
+    """``weighted``'s fit in numpy (the reference of the compiled ``local_change``): None with fewer
+    than 3 markers keeping a weight or a fit the markers cannot carry."""
     w = entry_weights(ref, entry_mm, sigma_mm)
     keep = w >= _MIN_WEIGHT_SHARE * float(w.max())
     if int(keep.sum()) < 3:
         return None
     try:
-        return register_horn(live[keep], ref[keep], weights=w[keep])
+        return register_horn_numpy(live[keep], ref[keep], weights=w[keep]).T_fixed_from_moving
     except GeometryError:
         return None
 
@@ -119,18 +127,33 @@ def _tps_row(ref_bytes: bytes, entry_bytes: bytes) -> FloatArray:
     return W
 
 
-def _local_tps(ref: FloatArray, live: FloatArray, entry_mm: FloatArray,
-               base: RigidTransform) -> RigidTransform:
+def tps_numpy(row: FloatArray, ref: FloatArray, live: FloatArray, base: RigidTransform) -> RigidTransform:
     """``base`` moved so the entry lands where the thin-plate spline of the markers' residual
-    displacements (live minus ``base``'s prediction) puts it.
-
-    Raises:
-        ValueError: the markers' places cannot carry a spline (collinear, coincident)."""
-    W = _tps_row(np.ascontiguousarray(ref, dtype=np.float64).tobytes(),
-                 np.ascontiguousarray(entry_mm, dtype=np.float64).tobytes())   # (1, n)
-    residual = live - base.apply(ref)
-    delta = (W @ residual)[0]
+    displacements (live minus ``base``'s prediction) puts it; ``row`` (n,) the spline's row at the
+    entry (:func:`_tps_row`). The numpy reference of ``local_change``'s spline step."""
+    delta = row @ (live - base.apply(ref))
     return RigidTransform.from_translation(delta) @ base
+
+
+def _local(ref: FloatArray, live: FloatArray, entry_mm: FloatArray, sigma_mm: float,
+           tps_row: FloatArray | None) -> tuple[RigidTransform, RigidTransform | None] | None:
+    """``weighted``'s change and, with the spline's row at the entry, ``local-tps``'s; None when
+    ``weighted`` has no fit (fewer than 3 markers near the entry, a degenerate set). Compiled
+    (``local_change``) when selected and able, else :func:`weighted_numpy`, :func:`tps_numpy`."""
+    k = native.active()
+    if k is not None:
+        R, t, t_tps = np.empty((3, 3)), np.empty(3), np.empty(3)
+        kept = k.local_change(ref, live, np.ascontiguousarray(entry_mm, dtype=np.float64), sigma_mm,
+                              _MIN_WEIGHT_SHARE, tps_row, R, t, t_tps)
+        if kept == 0:
+            return None
+        if kept > 0:   # Horn's rotation (a unit quaternion's, eq 16), every value finite: proper
+            return (RigidTransform._composed(R, t),
+                    None if tps_row is None else RigidTransform._composed(R.copy(), t_tps))
+    weighted = weighted_numpy(ref, live, entry_mm, sigma_mm)
+    if weighted is None:
+        return None
+    return weighted, None if tps_row is None else tps_numpy(tps_row, ref, live, weighted)
 
 
 def estimate_change(reference_mm: FloatArray, live_mm: FloatArray, entry_mm: FloatArray,
@@ -146,7 +169,8 @@ def estimate_change(reference_mm: FloatArray, live_mm: FloatArray, entry_mm: Flo
     n = int(ok.sum())
     if n < 3:
         return None
-    ref, live = reference_mm[ok], live_mm[ok]
+    ref = reference_mm[ok].astype(np.float64, copy=False)    # fresh C-contiguous rows
+    live = live_mm[ok].astype(np.float64, copy=False)
     rigid = _rigid(ref, live)
     if rigid is None:
         return None
@@ -158,17 +182,21 @@ def estimate_change(reference_mm: FloatArray, live_mm: FloatArray, entry_mm: Flo
 
     if estimator == "rigid":
         return fit(rigid.T_fixed_from_moving, "rigid")
-    weighted = _weighted(ref, live, entry_mm, weight_sigma_mm)
-    if weighted is None:
+    tps_row, tps_why = None, ""
+    if estimator == "local-tps" and n < TPS_MIN_MARKERS:
+        tps_why = f"{n} markers seen: the local spline needs {TPS_MIN_MARKERS}"
+    elif estimator == "local-tps":
+        try:
+            tps_row = _tps_row(ref.tobytes(), np.ascontiguousarray(entry_mm, dtype=np.float64).tobytes())[0]
+        except ValueError as exc:
+            tps_why = f"local spline: {exc}"
+    local = _local(ref, live, entry_mm, weight_sigma_mm, tps_row)
+    if local is None:
         return fit(rigid.T_fixed_from_moving, "rigid",
                    "fewer than 3 markers near the entry: the rigid change of all")
+    weighted, tps = local
     if estimator == "weighted":
-        return fit(weighted.T_fixed_from_moving, "weighted")
-    if n < TPS_MIN_MARKERS:
-        return fit(weighted.T_fixed_from_moving, "weighted",
-                   f"{n} markers seen: the local spline needs {TPS_MIN_MARKERS}")
-    try:
-        T = _local_tps(ref, live, entry_mm, weighted.T_fixed_from_moving)
-    except ValueError as exc:
-        return fit(weighted.T_fixed_from_moving, "weighted", f"local spline: {exc}")
-    return fit(T, "local-tps")
+        return fit(weighted, "weighted")
+    if tps is None:
+        return fit(weighted, "weighted", tps_why)
+    return fit(tps, "local-tps")

@@ -56,21 +56,26 @@ when a hold ends elsewhere than the CT's). A pair it cannot vouch for keeps the 
   the CT: the linear model would extrapolate far);
 - the model would turn the path by more than ``target_model_max_turn_deg``.
 
-Cost per pair: a few dot products and one Horn fit of the seen markers (docs/compensation.md
-"Cost on the pair's path").
+Cost per pair: a few dot products and one Horn fit of the seen markers, compiled
+(hil/geometry/_native.c ``target_score``, ``target_turn``, ``turn_about``; :func:`score_parts_numpy`,
+:func:`turn_numpy` and the numpy branch of :func:`turned_about_entry` are the reference it is
+tested against and what runs when the numpy code is selected, :mod:`hil.geometry.native`):
+docs/compensation.md "Cost on the pair's path".
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hil.controller.plan_file import ProcedurePlan
 from hil.errors import GeometryError, InputFileError
-from hil.geometry.registration import register_horn
+from hil.geometry import native
+from hil.geometry.registration import register_horn_numpy
 from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 
 FloatArray = NDArray[np.float64]
@@ -122,16 +127,6 @@ class TargetSteer:
     fallback: str = ""
 
 
-def _turn(a: FloatArray, b: FloatArray) -> FloatArray:
-    """The smallest rotation taking unit vector ``a`` onto unit vector ``b`` (3x3)."""
-    axis = np.cross(a, b)
-    s = float(np.linalg.norm(axis))
-    c = float(np.clip(a @ b, -1.0, 1.0))
-    if s < 1e-12:
-        return np.eye(3)
-    return rotvec_to_matrix(axis / s * math.atan2(s, c))
-
-
 @dataclass(frozen=True)
 class SurrogateTargetModel:
     """The fitted model (module doc). Build it with :func:`fit_target_model`.
@@ -167,18 +162,25 @@ class SurrogateTargetModel:
         return out
 
     def score(self, reference_mm: FloatArray, live_mm: FloatArray,
-              R_image_from_optical: FloatArray) -> tuple[float, str]:
+              T_optical_from_image: RigidTransform) -> tuple[float, str]:
         """(score mm, "") from corresponding marker rows (optical frame, NaN = not seen), or
-        (NaN, why not) (module doc's first two fallbacks)."""
-        ok = np.isfinite(reference_mm).all(axis=1) & np.isfinite(live_mm).all(axis=1)
-        u = self.pattern[ok]
-        share = float((u * u).sum())
+        (NaN, why not) (module doc's first three fallbacks). The compiled kernel computes it when
+        selected (:mod:`hil.geometry.native`), else :func:`score_parts_numpy`."""
+        k = native.active()
+        if k is not None:
+            out = np.empty(3)
+            seen = k.target_score(_c64(reference_mm), _c64(live_mm), self.pattern,
+                                  T_optical_from_image.R, out)
+            z, share, resid = out.tolist()
+        else:
+            z, share, resid, seen = score_parts_numpy(self.pattern, reference_mm, live_mm,
+                                                      T_optical_from_image.R)
+        return self._judge(z, share, resid, seen)
+
+    def _judge(self, z: float, share: float, resid: float, seen: int) -> tuple[float, str]:
         if share < MIN_PATTERN_SHARE:
             return math.nan, (f"the seen markers carry {share:.0%} of the 4D CT's breathing pattern "
                               f"(need {MIN_PATTERN_SHARE:.0%})")
-        d = (live_mm[ok] - reference_mm[ok]) @ R_image_from_optical.T
-        z = float((u * d).sum()) / share
-        resid = math.sqrt(float(((d - z * u) ** 2).sum()) / int(ok.sum()))
         if resid > self.residual_bound_mm:
             return math.nan, (f"the markers do not move as in the 4D CT: residual {resid:.1f} mm beyond "
                               f"{self.residual_bound_mm} mm (patient moved, a cough, a marker swapped)")
@@ -195,7 +197,7 @@ class SurrogateTargetModel:
         the path points at the modelled target at this pair's score, its rate taken as 0 (module
         doc; :class:`TargetTracker` gives the rate). Never raises: a pair the model cannot vouch for
         keeps the estimator's change and names why in :attr:`TargetSteer.fallback`."""
-        z, why = self.score(reference_mm, live_mm, T_optical_from_image.R.T)
+        z, why = self.score(reference_mm, live_mm, T_optical_from_image)
         if why:
             return TargetSteer(T_live_from_ref, z, 0.0, 0.0, why)
         return self.steer_at(T_live_from_ref, reference_mm, live_mm, plan, T_optical_from_image, z, 0.0)
@@ -204,32 +206,127 @@ class SurrogateTargetModel:
                  plan: ProcedurePlan, T_optical_from_image: RigidTransform, z: float,
                  rate_mm_s: float) -> TargetSteer:
         """:meth:`steer` at a score ``z`` (mm) the caller judged, and its rate (mm/s)."""
-        R_oi = T_optical_from_image.R
-        ok = np.isfinite(reference_mm).all(axis=1) & np.isfinite(live_mm).all(axis=1)
-        ref = reference_mm[ok]
-        try:      # the rigid motion the breathing pattern itself makes at this score
-            T_breath = register_horn(ref + z * (self.pattern[ok] @ R_oi.T), ref).T_fixed_from_moving
-        except GeometryError as exc:
-            why = f"the seen markers cannot carry a rigid fit: {exc}"
-            return TargetSteer(T_live_from_ref, z, 0.0, 0.0, why)
-        entry_ref = T_optical_from_image.apply(plan.entry_mm).reshape(3)
-        target_ref = T_optical_from_image.apply(plan.target_mm).reshape(3)
-        shift_img = z * self.target_per_score + rate_mm_s * self.target_per_rate
-        # the change less breathing's own rigid part (a shift on the table, drift) moves the target too
-        T_other = T_live_from_ref @ T_breath.inverse()
-        target_live = T_other.apply(target_ref + R_oi @ shift_img).reshape(3)
+        turn = self.turn_at(T_live_from_ref, reference_mm, live_mm, plan, T_optical_from_image, z, rate_mm_s)
+        if isinstance(turn, str):
+            return TargetSteer(T_live_from_ref, z, 0.0, 0.0, turn)
+        T = turned_about_entry(T_live_from_ref, turn.rotvec, 1.0, T_optical_from_image, plan.entry_mm)
+        return TargetSteer(T, z, turn.shift_mm, turn.deg)
+
+    def turn_at(self, T_live_from_ref: RigidTransform, reference_mm: FloatArray, live_mm: FloatArray,
+                plan: ProcedurePlan, T_optical_from_image: RigidTransform, z: float,
+                rate_mm_s: float) -> PathTurn | str:
+        """The rotation that turns the changed path at the modelled target (module doc "Live"), or
+        why the model cannot vouch for it (the breathing pattern's rigid fit refused, a turn beyond
+        ``max_turn_deg``). The compiled kernel computes it when selected and able (it leaves a
+        refused fit to the numpy code, which names why), else :func:`turn_numpy`."""
+        k = native.active()
+        turn: PathTurn | str | None = None
+        if k is not None:
+            out = np.empty(5)
+            T_oi, T = T_optical_from_image, T_live_from_ref
+            if k.target_turn(_c64(reference_mm), _c64(live_mm), self.pattern, T_oi.R, T_oi.t,
+                             _c64(plan.entry_mm), _c64(plan.target_mm), self.target_per_score,
+                             self.target_per_rate, T.R, T.t, z, rate_mm_s, out) == 0:
+                turn = PathTurn(out[:3], float(out[3]), float(out[4]))
+        if turn is None:
+            turn = turn_numpy(self, T_live_from_ref, reference_mm, live_mm, plan, T_optical_from_image, z,
+                              rate_mm_s)
+        if isinstance(turn, PathTurn) and turn.deg > self.max_turn_deg:
+            return f"the model would turn the path {turn.deg:.1f} deg (bound {self.max_turn_deg} deg)"
+        return turn
+
+
+class PathTurn(NamedTuple):
+    """The model's turn of the changed path at one pair.
+
+    Attributes:
+        rotvec: the smallest rotation taking the changed planned direction onto the direction from
+            the changed entry to the modelled target (axis * angle, rad, optical frame).
+        deg: its angle, deg.
+        shift_mm: the modelled target's displacement from the plan's, mm.
+    """
+
+    rotvec: FloatArray
+    deg: float
+    shift_mm: float
+
+
+def _c64(a: FloatArray) -> FloatArray:
+    """``a`` as the compiled kernels take it (float64, C-contiguous; no copy when it already is)."""
+    out: FloatArray = np.ascontiguousarray(a, dtype=np.float64)
+    return out
+
+
+def score_parts_numpy(pattern: FloatArray, reference_mm: FloatArray, live_mm: FloatArray,
+                      R_optical_from_image: FloatArray) -> tuple[float, float, float, int]:
+    """The numpy reference of the compiled ``target_score``: (z mm, share ``|u_seen|^2``, per-marker
+    RMS residual of ``d - z u`` mm, seen rows) with ``d_i = R_oi^T (m_i - r_i)`` (module doc);
+    z and the residual NaN when no share is seen."""
+    ok = np.isfinite(reference_mm).all(axis=1) & np.isfinite(live_mm).all(axis=1)
+    u = pattern[ok]
+    share = float((u * u).sum())
+    seen = int(ok.sum())
+    if not share > 0.0:
+        return math.nan, share, math.nan, seen
+    d = (live_mm[ok] - reference_mm[ok]) @ R_optical_from_image
+    z = float((u * d).sum()) / share
+    resid = math.sqrt(float(((d - z * u) ** 2).sum()) / seen)
+    return z, share, resid, seen
+
+
+def turn_numpy(model: SurrogateTargetModel, T_live_from_ref: RigidTransform, reference_mm: FloatArray,
+               live_mm: FloatArray, plan: ProcedurePlan, T_optical_from_image: RigidTransform, z: float,
+               rate_mm_s: float) -> PathTurn | str:
+    """The numpy reference of the compiled ``target_turn`` (:meth:`SurrogateTargetModel.turn_at`
+    without the turn's bound): the turn, or why the breathing pattern's rigid fit was refused."""
+    R_oi = T_optical_from_image.R
+    ok = np.isfinite(reference_mm).all(axis=1) & np.isfinite(live_mm).all(axis=1)
+    ref = reference_mm[ok]
+    try:      # the rigid motion the breathing pattern itself makes at this score
+        T_breath = register_horn_numpy(ref + z * (model.pattern[ok] @ R_oi.T), ref).T_fixed_from_moving
+    except GeometryError as exc:
+        return f"the seen markers cannot carry a rigid fit: {exc}"
+    entry_ref = T_optical_from_image.apply(plan.entry_mm).reshape(3)
+    target_ref = T_optical_from_image.apply(plan.target_mm).reshape(3)
+    shift_img = z * model.target_per_score + rate_mm_s * model.target_per_rate
+    # the change less breathing's own rigid part (a shift on the table, drift) moves the target too
+    T_other = T_live_from_ref @ T_breath.inverse()
+    target_live = T_other.apply(target_ref + R_oi @ shift_img).reshape(3)
+    entry_live = T_live_from_ref.apply(entry_ref).reshape(3)
+    d0 = T_live_from_ref.R @ (target_ref - entry_ref)
+    d1 = target_live - entry_live
+    d0 /= np.linalg.norm(d0)
+    d1 /= np.linalg.norm(d1)
+    c = float(np.clip(d0 @ d1, -1.0, 1.0))
+    axis = np.cross(d0, d1)
+    s = float(np.linalg.norm(axis))
+    angle = math.atan2(s, c)      # exact near 0, where acos(c) loses half the digits
+    rotvec = np.zeros(3) if s < 1e-12 else axis / s * angle
+    return PathTurn(rotvec, math.degrees(angle), float(np.linalg.norm(shift_img)))
+
+
+def turned_about_entry(T_live_from_ref: RigidTransform, rotvec: FloatArray, weight: float,
+                       T_optical_from_image: RigidTransform, entry_image_mm: FloatArray) -> RigidTransform:
+    """``T_live_from_ref`` turned by ``weight * rotvec`` (rad, optical frame) about where it puts
+    the entry (``entry_image_mm``, image frame, through ``T_optical_from_image``): the entry's
+    estimate is unchanged. Compiled (``turn_about``) when selected.
+
+    Raises:
+        GeometryError: a weighted rotation vector that is not finite."""
+    k = native.active()
+    if k is None:
+        entry_ref = T_optical_from_image.apply(entry_image_mm).reshape(3)
         entry_live = T_live_from_ref.apply(entry_ref).reshape(3)
-        d0 = T_live_from_ref.R @ (target_ref - entry_ref)
-        d1 = target_live - entry_live
-        d0 /= np.linalg.norm(d0)
-        d1 /= np.linalg.norm(d1)
-        turn = math.degrees(math.acos(float(np.clip(d0 @ d1, -1.0, 1.0))))
-        if turn > self.max_turn_deg:
-            why = f"the model would turn the path {turn:.1f} deg (bound {self.max_turn_deg} deg)"
-            return TargetSteer(T_live_from_ref, z, 0.0, 0.0, why)
-        R = _turn(d0, d1) @ T_live_from_ref.R
-        T = RigidTransform(R, entry_live - R @ entry_ref)
-        return TargetSteer(T, z, float(np.linalg.norm(shift_img)), turn)
+        R = rotvec_to_matrix(weight * rotvec) @ T_live_from_ref.R
+        return RigidTransform(R, entry_live - R @ entry_ref)
+    R, t = np.empty((3, 3)), np.empty(3)
+    try:
+        k.turn_about(_c64(rotvec), weight, T_live_from_ref.R, T_live_from_ref.t, T_optical_from_image.R,
+                     T_optical_from_image.t, _c64(entry_image_mm), R, t)
+    except ValueError as exc:
+        raise GeometryError(f"the model's turn: {exc}") from None
+    # a Rodrigues rotation times a proper one, every value finite: proper by construction
+    return RigidTransform._composed(R, t)
 
 
 class TargetTracker:
@@ -264,27 +361,23 @@ class TargetTracker:
         m = self.model
         step = 0.0 if self._t_ns is None else max(0.0, (exposure_t_ns - self._t_ns) * 1e-9) / TURN_RAMP_S
         self._t_ns = exposure_t_ns
-        z, why = m.score(reference_mm, live_mm, T_optical_from_image.R.T)
-        full: TargetSteer | None = None
+        z, why = m.score(reference_mm, live_mm, T_optical_from_image)
+        turn: PathTurn | str = why
         if not why:
             self._update_rate(z, exposure_t_ns)
-            full = m.steer_at(T_live_from_ref, reference_mm, live_mm, plan, T_optical_from_image, z,
-                              self.rate_mm_s)
-            why = full.fallback
-        if why:
+            turn = m.turn_at(T_live_from_ref, reference_mm, live_mm, plan, T_optical_from_image, z,
+                             self.rate_mm_s)
+        if isinstance(turn, str):
+            why = turn
             self._last, self.rate_mm_s = None, 0.0
             self.weight = max(0.0, self.weight - step)
         else:
-            assert full is not None
             self.weight = min(1.0, self.weight + step)
-            turn = full.T_live_from_ref.R @ T_live_from_ref.R.T
-            self._turn_rotvec = RigidTransform(turn, np.zeros(3)).as_rotvec()
-        entry_ref = T_optical_from_image.apply(plan.entry_mm).reshape(3)
-        entry_live = T_live_from_ref.apply(entry_ref).reshape(3)
-        R = rotvec_to_matrix(self.weight * self._turn_rotvec) @ T_live_from_ref.R
-        T = RigidTransform(R, entry_live - R @ entry_ref)
+            self._turn_rotvec = turn.rotvec
+        T = turned_about_entry(T_live_from_ref, self._turn_rotvec, self.weight, T_optical_from_image,
+                               plan.entry_mm)
         turn_deg = math.degrees(self.weight * float(np.linalg.norm(self._turn_rotvec)))
-        shift = 0.0 if full is None or why else full.target_shift_mm
+        shift = 0.0 if isinstance(turn, str) else turn.shift_mm
         return TargetSteer(T, z, shift, turn_deg, why)
 
     def _update_rate(self, z: float, exposure_t_ns: int) -> None:
@@ -338,7 +431,8 @@ def fit_target_model(plan: ProcedurePlan, residual_bound_mm: float,
         max_rate = math.inf
     explained = float(sv[0] ** 2 / (sv**2).sum())
     return SurrogateTargetModel(
-        pattern=u.reshape(-1, 3), target_per_score=a, target_per_rate=b, max_rate_mm_s=max_rate,
+        pattern=np.ascontiguousarray(u.reshape(-1, 3)), target_per_score=np.ascontiguousarray(a),
+        target_per_rate=np.ascontiguousarray(b), max_rate_mm_s=max_rate,
         score_min_mm=float(min(z.min(), 0.0)),
         score_max_mm=float(max(z.max(), 0.0)), fit_residual_mm=resid, explained=explained,
         residual_bound_mm=residual_bound_mm, max_turn_deg=max_turn_deg)

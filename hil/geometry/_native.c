@@ -10,7 +10,12 @@
  *          filter's step and pose (hil.controller.compensation.MotionFilter) and the tracking
  *          setpoint with its velocity (hil.controller.estimate.Estimate.tracking_setpoint);
  *   ar_feed, ar_forecast: the loop's "ar-ls" predictor (hil.prediction.ar.ArModel): its update
- *          and forecast, once and twice per pair in COMPENSATE.
+ *          and forecast, once and twice per pair in COMPENSATE;
+ *   local_change: the 'weighted' and 'local-tps' change estimators' per-pair fit (hil.controller.
+ *          change_estimate), once per pair when the estimator is not 'rigid';
+ *   target_score, target_turn, turn_about: the surrogate target model's per-pair steering
+ *          (hil.controller.target_model: the breathing score, the path's turn at the modelled
+ *          target, the faded turn about the entry), once per pair when target_model = "surrogate".
  *
  * Why: horn, track and the control law run for every stereo pair on the path from the exposure
  * to the servo setpoint, ur_newton in every servo period between the setpoint and the command. On a
@@ -296,41 +301,16 @@ static int weights_ok(const double *w, Py_ssize_t n)
     return positive >= 3 && isfinite(sum);
 }
 
-static PyObject *k_horn(PyObject *self, PyObject *args)
+/* Horn's registration of moving (n x 3) onto fixed (n x 3), weights w (n, or NULL: unit): writes
+ * R (row-major 3 x 3), t (3) and the residuals res (n); returns the FRE (mm), or -1.0 for every
+ * input registration.py refuses or might refuse (k_horn's doc). */
+static double horn_solve(const double *f, const double *m, const double *w, Py_ssize_t n, double *R,
+                         double *t, double *res)
 {
-    PyObject *o_f, *o_m, *o_R, *o_t, *o_res, *o_w = Py_None;
-    if (!PyArg_ParseTuple(args, "OOOOO|O", &o_f, &o_m, &o_R, &o_t, &o_res, &o_w)) {
-        return NULL;
-    }
-    Py_buffer views[6];
-    memset(views, 0, sizeof(views));
-    PyObject *result = NULL;
-    const Py_ssize_t any3[2] = {-1, 3};
-    const Py_ssize_t s33[2] = {3, 3};
-    const Py_ssize_t s3[1] = {3};
-    const double *f = get_f64(o_f, &views[0], "fixed", 2, any3, 0);
-    if (f == NULL) {
-        goto done;
-    }
-    Py_ssize_t n = views[0].shape[0];
-    const Py_ssize_t n3[2] = {n, 3};
-    const Py_ssize_t sn[1] = {n};
-    const double *m = get_f64(o_m, &views[1], "moving", 2, n3, 0);
-    double *R = m == NULL ? NULL : get_f64(o_R, &views[2], "R", 2, s33, 1);
-    double *t = R == NULL ? NULL : get_f64(o_t, &views[3], "t", 1, s3, 1);
-    double *res = t == NULL ? NULL : get_f64(o_res, &views[4], "residuals", 1, sn, 1);
-    if (res == NULL) {
-        goto done;
-    }
-    const double *w = NULL;
-    if (o_w != Py_None && (w = get_f64(o_w, &views[5], "weights", 1, sn, 0)) == NULL) {
-        goto done;
-    }
     if (n < 3 || !all_within(f, 3 * n, MAX_COORDINATE_MM) || !all_within(m, 3 * n, MAX_COORDINATE_MM)
         || (w != NULL && !weights_ok(w, n))
         || configuration_ok(f, n, w) != 0 || configuration_ok(m, n, w) != 0) {
-        result = PyFloat_FromDouble(-1.0);
-        goto done;
+        return -1.0;
     }
     /* eq 17 with wn_i = w_i / sum w (1/N without weights): centroids and
      * A = sum wn_i (m_i - m_bar)(f_i - f_bar)^T, in the numpy code's order of operations */
@@ -370,8 +350,7 @@ static PyObject *k_horn(PyObject *self, PyObject *args)
         }
     }
     if (jacobi_sym(4, C, V) != 0) {
-        result = PyFloat_FromDouble(-1.0);
-        goto done;
+        return -1.0;
     }
     int best = 0;   /* eq 21: the eigenvector of the largest eigenvalue */
     for (int i = 1; i < 4; i++) {
@@ -382,8 +361,7 @@ static PyObject *k_horn(PyObject *self, PyObject *args)
     double q[4] = {V[0][best], V[1][best], V[2][best], V[3][best]};
     double qn = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
     if (!(qn >= 1e-12)) {
-        result = PyFloat_FromDouble(-1.0);
-        goto done;
+        return -1.0;
     }
     double q0 = q[0] / qn, q1 = q[1] / qn, q2 = q[2] / qn, q3 = q[3] / qn;
     /* eq 16 (hil.geometry.transform.quaternion_to_matrix) */
@@ -413,8 +391,40 @@ static PyObject *k_horn(PyObject *self, PyObject *args)
 #undef WN
     double fre = sqrt(sum_r2 / (w == NULL ? (double)n : w_sum));
     /* coordinates so large that a square overflows: never a non-finite transform (numpy decides) */
-    result = PyFloat_FromDouble(all_finite(R, 9) && all_finite(t, 3) && all_finite(res, n) && isfinite(fre)
-                                ? fre : -1.0);
+    return all_finite(R, 9) && all_finite(t, 3) && all_finite(res, n) && isfinite(fre) ? fre : -1.0;
+}
+
+static PyObject *k_horn(PyObject *self, PyObject *args)
+{
+    PyObject *o_f, *o_m, *o_R, *o_t, *o_res, *o_w = Py_None;
+    if (!PyArg_ParseTuple(args, "OOOOO|O", &o_f, &o_m, &o_R, &o_t, &o_res, &o_w)) {
+        return NULL;
+    }
+    Py_buffer views[6];
+    memset(views, 0, sizeof(views));
+    PyObject *result = NULL;
+    const Py_ssize_t any3[2] = {-1, 3};
+    const Py_ssize_t s33[2] = {3, 3};
+    const Py_ssize_t s3[1] = {3};
+    const double *f = get_f64(o_f, &views[0], "fixed", 2, any3, 0);
+    if (f == NULL) {
+        goto done;
+    }
+    Py_ssize_t n = views[0].shape[0];
+    const Py_ssize_t n3[2] = {n, 3};
+    const Py_ssize_t sn[1] = {n};
+    const double *m = get_f64(o_m, &views[1], "moving", 2, n3, 0);
+    double *R = m == NULL ? NULL : get_f64(o_R, &views[2], "R", 2, s33, 1);
+    double *t = R == NULL ? NULL : get_f64(o_t, &views[3], "t", 1, s3, 1);
+    double *res = t == NULL ? NULL : get_f64(o_res, &views[4], "residuals", 1, sn, 1);
+    if (res == NULL) {
+        goto done;
+    }
+    const double *w = NULL;
+    if (o_w != Py_None && (w = get_f64(o_w, &views[5], "weights", 1, sn, 0)) == NULL) {
+        goto done;
+    }
+    result = PyFloat_FromDouble(horn_solve(f, m, w, n, R, t, res));
 done:
     release(views, 6);
     return result;
@@ -1144,6 +1154,385 @@ static PyObject *k_ar_forecast(PyObject *self, PyObject *args)
     return result;
 }
 
+/* ---- the surrogate target model ------------------------------------------------------------- */
+
+#define TARGET_MAX_MARKERS 64   /* more seen markers go the numpy way */
+
+/* y = M x, M row-major 3 x 3 */
+static void mat3_vec(const double *M, const double *x, double *y)
+{
+    for (int j = 0; j < 3; j++) {
+        y[j] = M[3 * j] * x[0] + M[3 * j + 1] * x[1] + M[3 * j + 2] * x[2];
+    }
+}
+
+/* y = M^T x, M row-major 3 x 3 */
+static void mat3t_vec(const double *M, const double *x, double *y)
+{
+    for (int j = 0; j < 3; j++) {
+        y[j] = M[j] * x[0] + M[3 + j] * x[1] + M[6 + j] * x[2];
+    }
+}
+
+/* Whether rows i of a and b (n x 3) are both finite: the marker was registered and is seen. */
+static int row_seen(const double *a, const double *b, Py_ssize_t i)
+{
+    for (int j = 0; j < 3; j++) {
+        if (!isfinite(a[3 * i + j]) || !isfinite(b[3 * i + j])) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+/* The (N, 3) arrays of a target call after the first: the same N rows as the first. */
+static int same_rows(Py_buffer *views, int first, int count, const char *call)
+{
+    for (int i = first; i < first + count; i++) {
+        if (views[i].shape[0] != views[0].shape[0]) {
+            PyErr_Format(PyExc_ValueError, "%s: argument %d has %zd rows, the reference %zd", call, i + 1,
+                         views[i].shape[0], views[0].shape[0]);
+            return -1;
+        }
+    }
+    return 0;
+}
+
+PyDoc_STRVAR(target_score_doc,
+"target_score(reference, live, pattern, R_oi, out) -> int\n\n"
+"The surrogate target model's breathing score (hil.controller.target_model, the numpy reference\n"
+"SurrogateTargetModel.score): reference, live (N, 3) optical frame mm, NaN rows not seen;\n"
+"pattern (N, 3) the model's unit pattern u (image frame); R_oi (3, 3) R_optical_from_image.\n"
+"With d_i = R_oi^T (live_i - reference_i) over the seen rows: writes out (3,) = [z = u.d / share\n"
+"(mm), share = |u_seen|^2, sqrt(|d - z u|^2 / seen) (mm)], z and the residual NaN when share is\n"
+"0. Returns the number of seen rows. TypeError / ValueError for a bad buffer.");
+
+static PyObject *k_target_score(PyObject *self, PyObject *args)
+{
+    static const BufSpec spec[5] = {{"reference", 2, {-1, 3}, 0}, {"live", 2, {-1, 3}, 0},
+                                    {"pattern", 2, {-1, 3}, 0}, {"R_oi", 2, {3, 3}, 0}, {"out", 1, {3}, 1}};
+    PyObject *o[5];
+    double *q[5];
+    if (!PyArg_ParseTuple(args, "OOOOO", &o[0], &o[1], &o[2], &o[3], &o[4])) {
+        return NULL;
+    }
+    Py_buffer views[5];
+    PyObject *result = NULL;
+    if (get_all(o, spec, 5, views, q) == 0 && same_rows(views, 1, 2, "target_score") == 0) {
+        const double *ref = q[0], *live = q[1], *u = q[2], *R_oi = q[3];
+        Py_ssize_t n = views[0].shape[0], seen = 0;
+        double share = 0.0, ud = 0.0;
+        for (Py_ssize_t i = 0; i < n; i++) {   /* share and u . d in index order, as numpy's sums */
+            if (!row_seen(ref, live, i)) {
+                continue;
+            }
+            seen++;
+            double m[3] = {live[3 * i] - ref[3 * i], live[3 * i + 1] - ref[3 * i + 1],
+                           live[3 * i + 2] - ref[3 * i + 2]}, d[3];
+            mat3t_vec(R_oi, m, d);
+            for (int j = 0; j < 3; j++) {
+                share += u[3 * i + j] * u[3 * i + j];
+                ud += u[3 * i + j] * d[j];
+            }
+        }
+        double z = share > 0.0 ? ud / share : NAN, r2 = 0.0;
+        for (Py_ssize_t i = 0; i < n && share > 0.0; i++) {
+            if (!row_seen(ref, live, i)) {
+                continue;
+            }
+            double m[3] = {live[3 * i] - ref[3 * i], live[3 * i + 1] - ref[3 * i + 1],
+                           live[3 * i + 2] - ref[3 * i + 2]}, d[3];
+            mat3t_vec(R_oi, m, d);
+            for (int j = 0; j < 3; j++) {
+                double e = d[j] - z * u[3 * i + j];
+                r2 += e * e;
+            }
+        }
+        q[4][0] = z;
+        q[4][1] = share;
+        q[4][2] = share > 0.0 ? sqrt(r2 / (double)seen) : NAN;
+        result = PyLong_FromSsize_t(seen);
+    }
+    release(views, 5);
+    return result;
+}
+
+PyDoc_STRVAR(target_turn_doc,
+"target_turn(reference, live, pattern, R_oi, t_oi, entry, target, a, b, R_change, t_change, z,\n"
+"            rate, out) -> int\n\n"
+"The path's turn at the modelled target (hil.controller.target_model, the numpy reference\n"
+"turn_numpy). reference, live, pattern (N, 3) as target_score; R_oi (3, 3), t_oi (3,)\n"
+"T_optical_from_image; entry, target (3,) the plan's (image frame, mm); a, b (3,) the target per\n"
+"mm of score and per mm/s of rate; R_change (3, 3), t_change (3,) the estimator's\n"
+"T_live_from_ref; z (mm), rate (mm/s). T_breath is Horn's fit of the seen reference rows onto\n"
+"themselves displaced by z R_oi u; the target z a + rate b from the plan's, moved by\n"
+"T_change T_breath^-1; d0 the changed planned direction, d1 from the changed entry to the moved\n"
+"target. Writes out (5,) = [rotation vector of the smallest rotation taking d0 onto d1 (3, rad),\n"
+"its angle atan2(|d0 x d1|, d0 . d1) (deg), |z a + rate b| (mm)]. Returns 0; -1 (out undefined)\n"
+"when the numpy code must decide: more than 64 seen rows, the breathing fit refused (fewer than\n"
+"3 seen, a degenerate set: the numpy code names why), z or rate not finite, or a direction of\n"
+"zero length. TypeError / ValueError for a bad buffer.");
+
+static PyObject *k_target_turn(PyObject *self, PyObject *args)
+{
+    static const BufSpec spec[12] = {
+        {"reference", 2, {-1, 3}, 0}, {"live", 2, {-1, 3}, 0}, {"pattern", 2, {-1, 3}, 0},
+        {"R_oi", 2, {3, 3}, 0}, {"t_oi", 1, {3}, 0}, {"entry", 1, {3}, 0}, {"target", 1, {3}, 0},
+        {"a", 1, {3}, 0}, {"b", 1, {3}, 0}, {"R_change", 2, {3, 3}, 0}, {"t_change", 1, {3}, 0},
+        {"out", 1, {5}, 1}};
+    PyObject *o[12];
+    double *q[12], z, rate;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOddO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7],
+                          &o[8], &o[9], &o[10], &z, &rate, &o[11])) {
+        return NULL;
+    }
+    Py_buffer views[12];
+    PyObject *result = NULL;
+    if (get_all(o, spec, 12, views, q) != 0 || same_rows(views, 1, 2, "target_turn") != 0) {
+        goto done;
+    }
+    const double *ref = q[0], *live = q[1], *u = q[2], *R_oi = q[3], *t_oi = q[4];
+    const double *Rc = q[9], *tc = q[10];
+    double *out = q[11];
+    Py_ssize_t n = views[0].shape[0], k = 0;
+    double fixed[3 * TARGET_MAX_MARKERS], moving[3 * TARGET_MAX_MARKERS], res[TARGET_MAX_MARKERS];
+    for (Py_ssize_t i = 0; i < n; i++) {   /* the seen rows, and the pattern's displacement of them */
+        if (!row_seen(ref, live, i)) {
+            continue;
+        }
+        if (k == TARGET_MAX_MARKERS) {
+            result = PyLong_FromLong(-1);
+            goto done;
+        }
+        double du[3];
+        mat3_vec(R_oi, u + 3 * i, du);
+        for (int j = 0; j < 3; j++) {
+            moving[3 * k + j] = ref[3 * i + j];
+            fixed[3 * k + j] = ref[3 * i + j] + z * du[j];
+        }
+        k++;
+    }
+    double Rb[9], tb[3];
+    if (!isfinite(z) || !isfinite(rate) || horn_solve(fixed, moving, NULL, k, Rb, tb, res) < 0.0) {
+        result = PyLong_FromLong(-1);
+        goto done;
+    }
+    double entry_ref[3], target_ref[3], shift[3], shift_o[3], p[3], qv[3], target_live[3], entry_live[3];
+    mat3_vec(R_oi, q[5], entry_ref);
+    mat3_vec(R_oi, q[6], target_ref);
+    for (int j = 0; j < 3; j++) {
+        entry_ref[j] += t_oi[j];
+        target_ref[j] += t_oi[j];
+        shift[j] = z * q[7][j] + rate * q[8][j];
+    }
+    mat3_vec(R_oi, shift, shift_o);
+    for (int j = 0; j < 3; j++) {   /* T_breath^-1 (target_ref + R_oi shift) */
+        p[j] = target_ref[j] + shift_o[j] - tb[j];
+    }
+    mat3t_vec(Rb, p, qv);
+    mat3_vec(Rc, qv, target_live);
+    mat3_vec(Rc, entry_ref, entry_live);
+    double planned[3], d0[3], d1[3];
+    for (int j = 0; j < 3; j++) {
+        target_live[j] += tc[j];
+        entry_live[j] += tc[j];
+        planned[j] = target_ref[j] - entry_ref[j];
+    }
+    mat3_vec(Rc, planned, d0);
+    for (int j = 0; j < 3; j++) {
+        d1[j] = target_live[j] - entry_live[j];
+    }
+    double n0 = sqrt(d0[0] * d0[0] + d0[1] * d0[1] + d0[2] * d0[2]);
+    double n1 = sqrt(d1[0] * d1[0] + d1[1] * d1[1] + d1[2] * d1[2]);
+    if (!(n0 > 0.0) || !(n1 > 0.0) || !isfinite(n0) || !isfinite(n1)) {
+        result = PyLong_FromLong(-1);
+        goto done;
+    }
+    for (int j = 0; j < 3; j++) {
+        d0[j] /= n0;
+        d1[j] /= n1;
+    }
+    double c = d0[0] * d1[0] + d0[1] * d1[1] + d0[2] * d1[2];
+    c = c < -1.0 ? -1.0 : (c > 1.0 ? 1.0 : c);
+    double axis[3] = {d0[1] * d1[2] - d0[2] * d1[1], d0[2] * d1[0] - d0[0] * d1[2],
+                      d0[0] * d1[1] - d0[1] * d1[0]};
+    double s = sqrt(axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2]);
+    double angle = atan2(s, c);
+    for (int j = 0; j < 3; j++) {
+        out[j] = s < 1e-12 ? 0.0 : axis[j] / s * angle;
+    }
+    out[3] = angle * (180.0 / 3.14159265358979323846);   /* atan2: exact near 0, unlike acos */
+    out[4] = sqrt(shift[0] * shift[0] + shift[1] * shift[1] + shift[2] * shift[2]);
+    result = PyLong_FromLong(0);
+done:
+    release(views, 12);
+    return result;
+}
+
+PyDoc_STRVAR(turn_about_doc,
+"turn_about(rotvec, weight, R_change, t_change, R_oi, t_oi, entry, R_out, t_out) -> None\n\n"
+"The change T_live_from_ref (R_change (3, 3), t_change (3,)) turned by weight * rotvec (rad,\n"
+"(3,)) about the changed entry (hil.controller.target_model.TargetTracker.steer): R = exp(weight\n"
+"rotvec) R_change (Rodrigues, as hil.geometry.transform.rotvec_to_matrix), and t such that the\n"
+"entry (3,) image frame, through R_oi (3, 3), t_oi (3,) T_optical_from_image, lands where the\n"
+"change puts it. Writes R_out (3, 3), t_out (3,). ValueError for a weight or rotation vector\n"
+"that is not finite; TypeError / ValueError for a bad buffer.");
+
+static PyObject *k_turn_about(PyObject *self, PyObject *args)
+{
+    static const BufSpec spec[8] = {
+        {"rotvec", 1, {3}, 0}, {"R_change", 2, {3, 3}, 0}, {"t_change", 1, {3}, 0}, {"R_oi", 2, {3, 3}, 0},
+        {"t_oi", 1, {3}, 0}, {"entry", 1, {3}, 0}, {"R_out", 2, {3, 3}, 1}, {"t_out", 1, {3}, 1}};
+    PyObject *o[8];
+    double *q[8], weight;
+    if (!PyArg_ParseTuple(args, "OdOOOOOOO", &o[0], &weight, &o[1], &o[2], &o[3], &o[4], &o[5], &o[6],
+                          &o[7])) {
+        return NULL;
+    }
+    Py_buffer views[8];
+    PyObject *result = NULL;
+    if (get_all(o, spec, 8, views, q) != 0) {
+        goto done;
+    }
+    double v[3] = {weight * q[0][0], weight * q[0][1], weight * q[0][2]};
+    if (!isfinite(v[0]) || !isfinite(v[1]) || !isfinite(v[2])) {
+        PyErr_SetString(PyExc_ValueError, "turn_about: the weighted rotation vector is not finite");
+        goto done;
+    }
+    double theta = hypot(hypot(v[0], v[1]), v[2]);
+    double Rt[9] = {1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0};
+    if (theta >= 1e-12) {   /* I + sin(theta) K + (1 - cos(theta)) K^2, K = skew(v / theta) */
+        double kx = v[0] / theta, ky = v[1] / theta, kz = v[2] / theta;
+        double K[9] = {0.0, -kz, ky, kz, 0.0, -kx, -ky, kx, 0.0};
+        double sn = sin(theta), cs = 1.0 - cos(theta);
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) {
+                double kk = K[3 * i] * K[j] + K[3 * i + 1] * K[3 + j] + K[3 * i + 2] * K[6 + j];
+                Rt[3 * i + j] += sn * K[3 * i + j] + cs * kk;
+            }
+        }
+    }
+    const double *Rc = q[1], *tc = q[2];
+    double *R = q[6], *t = q[7];
+    for (int i = 0; i < 3; i++) {
+        for (int j = 0; j < 3; j++) {
+            R[3 * i + j] = Rt[3 * i] * Rc[j] + Rt[3 * i + 1] * Rc[3 + j] + Rt[3 * i + 2] * Rc[6 + j];
+        }
+    }
+    double entry_ref[3], entry_live[3], Re[3];
+    mat3_vec(q[3], q[5], entry_ref);
+    for (int j = 0; j < 3; j++) {
+        entry_ref[j] += q[4][j];
+    }
+    mat3_vec(Rc, entry_ref, entry_live);
+    mat3_vec(R, entry_ref, Re);
+    for (int j = 0; j < 3; j++) {   /* t = entry_live - R entry_ref */
+        t[j] = entry_live[j] + tc[j] - Re[j];
+    }
+    Py_INCREF(Py_None);
+    result = Py_None;
+done:
+    release(views, 8);
+    return result;
+}
+
+/* ---- the local change estimators ------------------------------------------------------------ */
+
+PyDoc_STRVAR(local_change_doc,
+"local_change(reference, live, entry, sigma_mm, min_share, tps_row, R_out, t_out, t_tps_out) -> int\n\n"
+"The 'weighted' change estimator and, with a spline row, 'local-tps' (hil.controller.\n"
+"change_estimate, the numpy reference weighted_numpy and tps_numpy): reference, live (N, 3) the\n"
+"seen markers (optical frame, mm); entry (3,) mm. Weights w_i = exp(-(|r_i - entry| / sigma)^2),\n"
+"those below min_share times the largest set to 0; Horn's fit of the reference onto the live\n"
+"markers with those weights writes R_out (3, 3), t_out (3,). tps_row (N,) float64 or None: the\n"
+"thin-plate spline's row at the entry; with it, t_tps_out (3,) = t_out + sum_i tps_row_i (live_i\n"
+"- R reference_i - t) (the same rotation; 'local-tps'), else t_tps_out is untouched. Returns the\n"
+"markers kept (>= 3); 0 when fewer than 3 keep a weight; -1 (outputs undefined) when the fit\n"
+"declines (registration.py's checks, horn's doc): the numpy code decides. sigma_mm must be\n"
+"positive. TypeError / ValueError for a bad buffer.");
+
+static PyObject *k_local_change(PyObject *self, PyObject *args)
+{
+    static const BufSpec spec[6] = {
+        {"reference", 2, {-1, 3}, 0}, {"live", 2, {-1, 3}, 0}, {"entry", 1, {3}, 0},
+        {"R_out", 2, {3, 3}, 1}, {"t_out", 1, {3}, 1}, {"t_tps_out", 1, {3}, 1}};
+    PyObject *o[6], *o_row;
+    double *q[6], sigma, min_share;
+    if (!PyArg_ParseTuple(args, "OOOddOOOO", &o[0], &o[1], &o[2], &sigma, &min_share, &o_row, &o[3], &o[4],
+                          &o[5])) {
+        return NULL;
+    }
+    Py_buffer views[7];
+    PyObject *result = NULL;
+    memset(&views[6], 0, sizeof(Py_buffer));
+    if (get_all(o, spec, 6, views, q) != 0 || same_rows(views, 1, 1, "local_change") != 0) {
+        goto done;
+    }
+    Py_ssize_t n = views[0].shape[0];
+    const Py_ssize_t sn[1] = {n};
+    const double *row = NULL;
+    if (o_row != Py_None && (row = get_f64(o_row, &views[6], "tps_row", 1, sn, 0)) == NULL) {
+        goto done;
+    }
+    if (!(sigma > 0.0) || !isfinite(sigma) || n > TARGET_MAX_MARKERS) {
+        if (!(sigma > 0.0) || !isfinite(sigma)) {
+            PyErr_SetString(PyExc_ValueError, "local_change: sigma_mm must be positive and finite");
+        } else {
+            result = PyLong_FromLong(-1);
+        }
+        goto done;
+    }
+    const double *ref = q[0], *live = q[1], *entry = q[2];
+    double w[TARGET_MAX_MARKERS], res[TARGET_MAX_MARKERS], w_max = 0.0;
+    for (Py_ssize_t i = 0; i < n; i++) {   /* entry_weights */
+        double d2 = 0.0;
+        for (int j = 0; j < 3; j++) {
+            double d = ref[3 * i + j] - entry[j];
+            d2 += d * d;
+        }
+        w[i] = exp(-d2 / (sigma * sigma));
+        w_max = w[i] > w_max ? w[i] : w_max;
+    }
+    Py_ssize_t kept = 0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (w[i] >= min_share * w_max && isfinite(w[i])) {
+            kept++;
+        } else {
+            w[i] = 0.0;
+        }
+    }
+    if (kept < 3) {
+        result = PyLong_FromLong(0);
+        goto done;
+    }
+    double *R = q[3], *t = q[4];
+    if (horn_solve(live, ref, w, n, R, t, res) < 0.0) {
+        result = PyLong_FromLong(-1);
+        goto done;
+    }
+    if (row != NULL) {
+        double delta[3] = {0.0, 0.0, 0.0};
+        for (Py_ssize_t i = 0; i < n; i++) {
+            double pred[3];
+            mat3_vec(R, ref + 3 * i, pred);
+            for (int j = 0; j < 3; j++) {
+                delta[j] += row[i] * (live[3 * i + j] - (pred[j] + t[j]));
+            }
+        }
+        for (int j = 0; j < 3; j++) {
+            q[5][j] = t[j] + delta[j];
+        }
+        if (!all_finite(q[5], 3)) {
+            result = PyLong_FromLong(-1);
+            goto done;
+        }
+    }
+    result = PyLong_FromSsize_t(kept);
+done:
+    release(views, 7);
+    return result;
+}
+
 /* ---- module --------------------------------------------------------------------------------- */
 
 static PyMethodDef native_methods[] = {
@@ -1155,6 +1544,10 @@ static PyMethodDef native_methods[] = {
     {"tcp_setpoint", k_tcp_setpoint, METH_VARARGS, tcp_setpoint_doc},
     {"ar_feed", k_ar_feed, METH_VARARGS, ar_feed_doc},
     {"ar_forecast", k_ar_forecast, METH_VARARGS, ar_forecast_doc},
+    {"target_score", k_target_score, METH_VARARGS, target_score_doc},
+    {"target_turn", k_target_turn, METH_VARARGS, target_turn_doc},
+    {"turn_about", k_turn_about, METH_VARARGS, turn_about_doc},
+    {"local_change", k_local_change, METH_VARARGS, local_change_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -2,8 +2,9 @@
 numpy reference code: :func:`hil.geometry.registration.register_horn` (unit weights),
 :func:`hil.controller.registration.track`, COMPENSATE's control law
 (:meth:`hil.controller.compensation.MotionFilter.update_about` and ``estimate``,
-:meth:`hil.controller.estimate.Estimate.tracking_setpoint`) and
-:func:`hil.kinematics.ur.ur_newton_ik`.
+:meth:`hil.controller.estimate.Estimate.tracking_setpoint`), the local change estimators' fit
+(:mod:`hil.controller.change_estimate`), the surrogate target model's steering
+(:mod:`hil.controller.target_model`) and :func:`hil.kinematics.ur.ur_newton_ik`.
 
 All but the last run for every stereo pair between the exposure and the servo setpoint, the last
 (the simulated arm's servo command) in every servo period. On a shared host,

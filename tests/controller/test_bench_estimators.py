@@ -1,6 +1,6 @@
 """``tools/bench estimators``: the JSON's shape (every estimator, alone and followed by the surrogate
-target model, its cost beside rigid's); a bad argument is one usage error and exit 2. No timing is
-asserted (a shared machine)."""
+target model, its cost beside rigid's, the kernel that ran); a bad argument is one usage error and
+exit 2. No timing is asserted (a shared machine)."""
 
 from __future__ import annotations
 
@@ -28,6 +28,15 @@ def test_json_has_every_estimator() -> None:
         assert set(row) == {"p50_ms", "p99_ms", "max_ms", "over_rigid_p50_ms"}
         assert 0.0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
     assert out["estimators"]["rigid"]["over_rigid_p50_ms"] == 0.0
+    assert out["kernel"] == "compiled kernel"
+
+
+def test_numpy_times_the_reference_code() -> None:
+    proc = _run("--calls", "100", "--json", "--numpy")
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["kernel"] == "numpy (--numpy)"
+    assert len(out["estimators"]) == 6
 
 
 def test_too_few_markers_is_a_usage_error() -> None:

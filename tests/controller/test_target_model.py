@@ -72,7 +72,7 @@ def test_the_score_is_the_same_in_any_registration(T_oi: RigidTransform, z: floa
     live = T_oi.apply(FIDUCIALS + z * UNIT)
     if shift:                                      # a marker not seen: the others still tell
         live[2] = np.nan
-    got, why = m.score(ref, live, T_oi.R.T)
+    got, why = m.score(ref, live, T_oi)
     assert why == ""
     assert got == pytest.approx(z, abs=1e-9)
 

@@ -1,17 +1,20 @@
 """Per-pair cost of the change estimators (issue 41: the pair's path must not grow by more than
 0.2 ms p99 at 500 Hz).
 
-Run: ``tools/bench estimators [--json] [--markers N] [--calls N] [--seed S]``
+Run: ``tools/bench estimators [--json] [--markers N] [--calls N] [--seed S] [--numpy]``
 
 Times :func:`hil.controller.change_estimate.estimate_change` for each estimator on one synthetic
 skin (N markers on a gently curved patch, a small rigid change plus 0.5 mm of non-rigid noise),
 as the controller calls it once per registered pair, and each estimator followed by the surrogate
-target model's steering (``<estimator>+surrogate``: hil/controller/target_model.py, fitted to a
-synthetic 10-phase 4D CT of the same skin). Prints p50 / p99 / max per row (ms) and each one's p50
-beyond ``rigid``'s (the compiled Horn fit the default runs). The machine's
-load shows in p99 and max: read them beside the host's state (``uptime``), or run on an idle
-machine. The in-situ figure is ``hil soak``'s frame -> command latency with the estimator set in
-the config.
+target model's steering as the loop runs it (``<estimator>+surrogate``: the score, its rate and
+the faded turn of hil/controller/target_model.py's ``TargetTracker``, fitted to a synthetic
+10-phase 4D CT of the same skin). ``--numpy`` times the numpy reference code instead of the
+compiled kernels (hil/geometry/_native.c), as ``HIL_GEOMETRY_KERNEL=numpy`` does. Prints p50 /
+p99 / max per row (ms) and each one's p50 beyond ``rigid``'s (the compiled Horn fit the default
+runs). The machine's load shows in p99 and max: read them beside the host's state (``uptime``),
+or run on an idle machine. The in-situ figures are ``hil soak``'s ``change_fit_us`` (this call in
+the loop, where its code runs cold once a camera period) and frame -> command latency, with the
+estimator and target model set in the config.
 """
 
 from __future__ import annotations
@@ -24,7 +27,8 @@ import numpy as np
 
 from hil.controller.change_estimate import CHANGE_ESTIMATORS, ChangeFit, estimate_change
 from hil.controller.plan_file import PlanPhase, ProcedurePlan
-from hil.controller.target_model import SurrogateTargetModel, fit_target_model
+from hil.controller.target_model import SurrogateTargetModel, TargetTracker, fit_target_model
+from hil.geometry import native
 from hil.geometry.transform import RigidTransform
 
 WARMUP_CALLS = 200
@@ -62,10 +66,14 @@ def bench(markers: int, calls: int, seed: int) -> dict[str, dict[str, float]]:
     ref, live, entry = _skin(markers, seed)
     model, plan, breathing = _model(ref, entry, seed)
     identity = RigidTransform.identity()
+    tracker = TargetTracker(model)
+    exposure_ns = [0]
 
     def steered(name: str) -> None:
+        exposure_ns[0] += 33_333_333                 # a pair every camera period at 30 Hz
         fit: ChangeFit | None = estimate_change(ref, breathing, entry, name, 40.0)  # type: ignore[arg-type]
-        if fit is None or model.steer(fit.T_live_from_ref, ref, breathing, plan, identity).fallback:
+        if fit is None or tracker.steer(fit.T_live_from_ref, ref, breathing, plan, identity,
+                                        exposure_ns[0]).fallback:
             raise RuntimeError("the bench's breathing skin fell back: it would time the wrong path")
 
     rows = {name: (lambda n=name: estimate_change(ref, live, entry, n, 40.0))  # type: ignore[misc]
@@ -95,14 +103,22 @@ def main(argv: list[str] | None = None) -> int:
                     help="skin markers (default 6, as configs/sim_patient.toml)")
     ap.add_argument("--calls", type=int, default=3000, help="timed calls per estimator (default 3000)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--numpy", action="store_true",
+                    help="time the numpy reference code instead of the compiled kernels")
     args = ap.parse_args(argv)
     if args.markers < 4 or args.calls < 100:
         ap.error("--markers must be >= 4 (the local spline needs 4) and --calls >= 100")
-    res = bench(args.markers, args.calls, args.seed)
-    doc = {"markers": args.markers, "calls": args.calls, "budget_over_rigid_ms": 0.2, "estimators": res}
+    previous = native.use_native(not args.numpy)
+    try:
+        res = bench(args.markers, args.calls, args.seed)
+    finally:
+        native.use_native(previous)
+    doc = {"markers": args.markers, "calls": args.calls, "budget_over_rigid_ms": 0.2,
+           "kernel": native.native_status() if not args.numpy else "numpy (--numpy)", "estimators": res}
     if args.json:
         print(json.dumps(doc, indent=2))
     else:
+        print(f"kernel: {doc['kernel']}")
         print(f"{'estimator':<20} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'p50 over rigid':>15}")
         for name, r in res.items():
             print(f"{name:<20} {r['p50_ms']:>8.3f} {r['p99_ms']:>8.3f} {r['max_ms']:>8.3f} "
