@@ -54,7 +54,8 @@ when a hold ends elsewhere than the CT's). A pair it cannot vouch for keeps the 
   ``target_model_residual_mm`` (the patient moved on the table, a cough, a marker swapped);
 - the score is outside the 4D CT's range by more than half of it (breathing much deeper than at
   the CT: the linear model would extrapolate far);
-- the model would turn the path by more than ``target_model_max_turn_deg``.
+- the model would turn the path by more than ``target_model_max_turn_deg``;
+- the modelled target comes within :data:`MIN_PATH_MM` of the entry (no direction to trust).
 
 Cost per pair: a few dot products and one Horn fit of the seen markers, compiled
 (hil/geometry/_native.c ``target_score``, ``target_turn``, ``turn_about``; :func:`score_parts_numpy`,
@@ -80,9 +81,10 @@ from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["MAX_RATE_GAP_S", "MIN_PATTERN_SHARE", "MIN_PHASES", "MIN_PHASES_FOR_RATE", "MIN_SCORE_RANGE_MM",
-           "RATE_GAIN", "TARGET_MODELS", "TURN_RAMP_S", "SurrogateTargetModel", "TargetSteer",
-           "TargetTracker", "fit_target_model"]
+__all__ = ["MAX_RATE_GAP_S", "MIN_PATH_MM", "MIN_PATTERN_SHARE", "MIN_PHASES", "MIN_PHASES_FOR_RATE",
+           "MIN_SCORE_RANGE_MM", "RATE_GAIN", "TARGET_MODELS", "TURN_RAMP_S", "PathTurn",
+           "SurrogateTargetModel", "TargetSteer", "TargetTracker", "fit_target_model", "score_parts_numpy",
+           "turn_numpy", "turned_about_entry"]
 
 #: ``[procedure.compensation] target_model``'s values
 TARGET_MODELS: tuple[str, ...] = ("rigid", "surrogate")
@@ -106,6 +108,9 @@ MAX_RATE_GAP_S = 0.5
 _RATE_MARGIN = 1.5
 #: the model's turn fades in (and out, after a fallback) over this long, s
 TURN_RAMP_S = 0.5
+#: a path from the entry to the (modelled) target shorter than this has no direction to trust, mm
+#: (hil/geometry/_native.c ``MIN_PATH_MM``)
+MIN_PATH_MM = 1.0
 
 
 @dataclass(frozen=True)
@@ -156,6 +161,10 @@ class SurrogateTargetModel:
     residual_bound_mm: float
     max_turn_deg: float
 
+    def __post_init__(self) -> None:
+        for name in ("pattern", "target_per_score", "target_per_rate"):   # as the kernels take them
+            object.__setattr__(self, name, _c64(getattr(self, name)))
+
     def target_image_mm(self, plan_target_mm: FloatArray, score_mm: float) -> FloatArray:
         """The modelled target at ``score_mm`` (image frame, mm)."""
         out: FloatArray = plan_target_mm + score_mm * self.target_per_score
@@ -169,15 +178,14 @@ class SurrogateTargetModel:
         k = native.active()
         if k is not None:
             out = np.empty(3)
-            seen = k.target_score(_c64(reference_mm), _c64(live_mm), self.pattern,
-                                  T_optical_from_image.R, out)
+            k.target_score(_c64(reference_mm), _c64(live_mm), self.pattern, T_optical_from_image.R, out)
             z, share, resid = out.tolist()
         else:
-            z, share, resid, seen = score_parts_numpy(self.pattern, reference_mm, live_mm,
+            z, share, resid, _ = score_parts_numpy(self.pattern, reference_mm, live_mm,
                                                       T_optical_from_image.R)
-        return self._judge(z, share, resid, seen)
+        return self._judge(z, share, resid)
 
-    def _judge(self, z: float, share: float, resid: float, seen: int) -> tuple[float, str]:
+    def _judge(self, z: float, share: float, resid: float) -> tuple[float, str]:
         if share < MIN_PATTERN_SHARE:
             return math.nan, (f"the seen markers carry {share:.0%} of the 4D CT's breathing pattern "
                               f"(need {MIN_PATTERN_SHARE:.0%})")
@@ -278,7 +286,8 @@ def turn_numpy(model: SurrogateTargetModel, T_live_from_ref: RigidTransform, ref
                live_mm: FloatArray, plan: ProcedurePlan, T_optical_from_image: RigidTransform, z: float,
                rate_mm_s: float) -> PathTurn | str:
     """The numpy reference of the compiled ``target_turn`` (:meth:`SurrogateTargetModel.turn_at`
-    without the turn's bound): the turn, or why the breathing pattern's rigid fit was refused."""
+    without the turn's bound): the turn, or why there is none (the breathing pattern's rigid fit
+    refused, a modelled target at the entry)."""
     R_oi = T_optical_from_image.R
     ok = np.isfinite(reference_mm).all(axis=1) & np.isfinite(live_mm).all(axis=1)
     ref = reference_mm[ok]
@@ -295,8 +304,12 @@ def turn_numpy(model: SurrogateTargetModel, T_live_from_ref: RigidTransform, ref
     entry_live = T_live_from_ref.apply(entry_ref).reshape(3)
     d0 = T_live_from_ref.R @ (target_ref - entry_ref)
     d1 = target_live - entry_live
-    d0 /= np.linalg.norm(d0)
-    d1 /= np.linalg.norm(d1)
+    n0, n1 = float(np.linalg.norm(d0)), float(np.linalg.norm(d1))
+    if not (MIN_PATH_MM <= n0 < math.inf and MIN_PATH_MM <= n1 < math.inf):
+        return (f"the modelled target is {n1:.2g} mm from the entry (under {MIN_PATH_MM} mm): "
+                "the path has no direction to trust")
+    d0 /= n0
+    d1 /= n1
     c = float(np.clip(d0 @ d1, -1.0, 1.0))
     axis = np.cross(d0, d1)
     s = float(np.linalg.norm(axis))
@@ -431,8 +444,7 @@ def fit_target_model(plan: ProcedurePlan, residual_bound_mm: float,
         max_rate = math.inf
     explained = float(sv[0] ** 2 / (sv**2).sum())
     return SurrogateTargetModel(
-        pattern=np.ascontiguousarray(u.reshape(-1, 3)), target_per_score=np.ascontiguousarray(a),
-        target_per_rate=np.ascontiguousarray(b), max_rate_mm_s=max_rate,
+        pattern=u.reshape(-1, 3), target_per_score=a, target_per_rate=b, max_rate_mm_s=max_rate,
         score_min_mm=float(min(z.min(), 0.0)),
         score_max_mm=float(max(z.max(), 0.0)), fit_residual_mm=resid, explained=explained,
         residual_bound_mm=residual_bound_mm, max_turn_deg=max_turn_deg)

@@ -1157,6 +1157,7 @@ static PyObject *k_ar_forecast(PyObject *self, PyObject *args)
 /* ---- the surrogate target model ------------------------------------------------------------- */
 
 #define TARGET_MAX_MARKERS 64   /* more seen markers go the numpy way */
+#define MIN_PATH_MM 1.0          /* hil.controller.target_model.MIN_PATH_MM: a shorter path has no direction */
 
 /* y = M x, M row-major 3 x 3 */
 static void mat3_vec(const double *M, const double *x, double *y)
@@ -1270,8 +1271,9 @@ PyDoc_STRVAR(target_turn_doc,
 "target. Writes out (5,) = [rotation vector of the smallest rotation taking d0 onto d1 (3, rad),\n"
 "its angle atan2(|d0 x d1|, d0 . d1) (deg), |z a + rate b| (mm)]. Returns 0; -1 (out undefined)\n"
 "when the numpy code must decide: more than 64 seen rows, the breathing fit refused (fewer than\n"
-"3 seen, a degenerate set: the numpy code names why), z or rate not finite, or a direction of\n"
-"zero length. TypeError / ValueError for a bad buffer.");
+"3 seen, a degenerate set: the numpy code names why), z or rate not finite, or a path shorter\n"
+"than 1 mm (from the entry to the target, planned or modelled). TypeError / ValueError for a bad\n"
+"buffer.");
 
 static PyObject *k_target_turn(PyObject *self, PyObject *args)
 {
@@ -1344,7 +1346,7 @@ static PyObject *k_target_turn(PyObject *self, PyObject *args)
     }
     double n0 = sqrt(d0[0] * d0[0] + d0[1] * d0[1] + d0[2] * d0[2]);
     double n1 = sqrt(d1[0] * d1[0] + d1[1] * d1[1] + d1[2] * d1[2]);
-    if (!(n0 > 0.0) || !(n1 > 0.0) || !isfinite(n0) || !isfinite(n1)) {
+    if (!(n0 >= MIN_PATH_MM) || !(n1 >= MIN_PATH_MM) || !isfinite(n0) || !isfinite(n1)) {
         result = PyLong_FromLong(-1);
         goto done;
     }

@@ -175,6 +175,24 @@ def test_a_degenerate_seen_set_gets_the_numpy_codes_words_either_way() -> None:
     assert got == want
 
 
+def test_a_modelled_target_at_the_entry_is_a_fallback_not_an_error() -> None:
+    """A model that puts the target where the change puts the entry leaves the path no direction
+    (without the check, rounding's direction would be steered at): the kernel declines, the numpy
+    code names why, and the tracker keeps the estimator's change."""
+    _, plan, fid, _ = _case(6, 4)
+    up = np.tile([0.0, 0.0, 1.0 / math.sqrt(6.0)], (6, 1))      # breathing = a pure translation
+    change = RigidTransform.from_translation(5.0 * up[0])          # = breathing's own rigid part
+    model = SurrogateTargetModel(up, (ENTRY + change.t - TARGET) / 5.0, np.zeros(3), 20.0, 0.0, 16.0, 0.5,
+                                 0.9, 2.0, 45.0)
+    live = fid + 5.0 * up
+    steers = _both(lambda: TargetTracker(model).steer(change, fid, live, plan, RigidTransform.identity(), 0))
+    for steer in steers:
+        assert steer.fallback.startswith("the modelled target is ")
+        assert steer.fallback.endswith(" mm from the entry (under 1.0 mm): the path has no direction "
+                                       "to trust")
+        assert steer.T_live_from_ref.is_close(change, atol_mm=1e-12, atol_rad=1e-15)
+
+
 def test_more_rows_than_the_kernel_holds_go_the_numpy_way() -> None:
     model, plan, fid, noise = _case(70, 7)
     live = fid + 6.0 * model.pattern + noise
