@@ -1157,7 +1157,7 @@ static PyObject *k_ar_forecast(PyObject *self, PyObject *args)
 /* ---- the surrogate target model ------------------------------------------------------------- */
 
 #define TARGET_MAX_MARKERS 64   /* more seen markers go the numpy way */
-#define MIN_PATH_MM 1.0          /* hil.controller.target_model.MIN_PATH_MM: a shorter path has no direction */
+#define MIN_PATH_MM 1.0          /* hil.controller.target_model.MIN_PATH_MM */
 
 /* y = M x, M row-major 3 x 3 */
 static void mat3_vec(const double *M, const double *x, double *y)
@@ -1202,7 +1202,7 @@ static int same_rows(Py_buffer *views, int first, int count, const char *call)
 PyDoc_STRVAR(target_score_doc,
 "target_score(reference, live, pattern, R_oi, out) -> int\n\n"
 "The surrogate target model's breathing score (hil.controller.target_model, the numpy reference\n"
-"SurrogateTargetModel.score): reference, live (N, 3) optical frame mm, NaN rows not seen;\n"
+"score_parts_numpy): reference, live (N, 3) optical frame mm, NaN rows not seen;\n"
 "pattern (N, 3) the model's unit pattern u (image frame); R_oi (3, 3) R_optical_from_image.\n"
 "With d_i = R_oi^T (live_i - reference_i) over the seen rows: writes out (3,) = [z = u.d / share\n"
 "(mm), share = |u_seen|^2, sqrt(|d - z u|^2 / seen) (mm)], z and the residual NaN when share is\n"
@@ -1223,7 +1223,7 @@ static PyObject *k_target_score(PyObject *self, PyObject *args)
         const double *ref = q[0], *live = q[1], *u = q[2], *R_oi = q[3];
         Py_ssize_t n = views[0].shape[0], seen = 0;
         double share = 0.0, ud = 0.0;
-        for (Py_ssize_t i = 0; i < n; i++) {   /* share and u . d in index order, as numpy's sums */
+        for (Py_ssize_t i = 0; i < n; i++) {   /* share, u . d: index order (numpy: to rounding) */
             if (!row_seen(ref, live, i)) {
                 continue;
             }
