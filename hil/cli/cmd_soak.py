@@ -209,6 +209,10 @@ def _print_memory(out: TextIO, res: SoakResult) -> None:
             f"{label:<21}{r.get('after_warmup')} -> {r.get('end')} MB, "
             f"growth {r.get('growth')} MB, slope {r.get('slope_mb_per_min')} MB/min\n"
         )
+    if res.file_rss_growth:
+        grown = ", ".join(f"{Path(str(row['file'])).name} +{row['kb']} kB (minute {row['first_grew_min']})"
+                          for row in res.file_rss_growth[:4])
+        out.write(f"file pages grown     {grown}\n")
 
 
 def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:

@@ -19,6 +19,10 @@ A step that is in ``c_in_use_mb`` is held by the program (a cache, a buffer kept
 neither is CPython's arenas (or an ``mmap`` outside malloc). Linux with glibc only: elsewhere
 each unreadable figure is None, never guessed.
 
+File-backed pages are also kept per file (``file_rss_kb_by_path``): a step there is code or data
+of a library paged in for the first time (the first fault's path), which :func:`file_growth`
+names.
+
 Reading ``smaps`` walks every mapping (~20 ms for the supervisor, most of it parsing under the
 GIL): once a minute, from the soak's operator thread, never the servo loop.
 """
@@ -30,7 +34,8 @@ import ctypes.util
 import sys
 from dataclasses import asdict, dataclass
 
-__all__ = ["HeapBreakdown", "parse_smaps_rss_kb", "read_heap_breakdown"]
+__all__ = ["HeapBreakdown", "file_growth", "parse_smaps_file_rss_kb", "parse_smaps_rss_kb",
+           "read_heap_breakdown"]
 
 _MB = 2.0**20
 
@@ -70,6 +75,8 @@ class HeapBreakdown:
         anon_rss_mb: resident size of anonymous mappings (CPython's arenas, ``mmap`` chunks,
             thread stacks, other arenas).
         file_rss_mb: resident size of file-backed mappings (code, shared memory).
+        file_rss_kb_by_path: resident kB of each mapped file, path-sorted (None when smaps could
+            not be read); not in :meth:`to_dict` (a few hundred files).
     """
 
     c_in_use_mb: float | None
@@ -79,9 +86,11 @@ class HeapBreakdown:
     heap_rss_mb: float | None
     anon_rss_mb: float | None
     file_rss_mb: float | None
+    file_rss_kb_by_path: tuple[tuple[str, int], ...] | None = None
 
     def to_dict(self) -> dict[str, float | int | None]:
-        return {k: (round(v, 2) if isinstance(v, float) else v) for k, v in asdict(self).items()}
+        return {k: (round(v, 2) if isinstance(v, float) else v) for k, v in asdict(self).items()
+                if k != "file_rss_kb_by_path"}
 
 
 def parse_smaps_rss_kb(text: str) -> dict[str, int]:
@@ -106,14 +115,57 @@ def parse_smaps_rss_kb(text: str) -> dict[str, int]:
     return out
 
 
+def parse_smaps_file_rss_kb(text: str) -> dict[str, int]:
+    """Resident kB of each file-backed mapping's file (a path; the mappings of one file summed)
+    in ``/proc/<pid>/smaps`` text. A malformed ``Rss:`` line raises ValueError naming it."""
+    out: dict[str, int] = {}
+    path = ""
+    for line in text.splitlines():
+        head = line.split(maxsplit=5)
+        if not head:
+            continue
+        if "-" in head[0] and ":" not in head[0]:
+            path = head[5].strip() if len(head) == 6 else ""
+        elif head[0] == "Rss:" and path.startswith("/"):
+            if len(head) < 2 or not head[1].isdigit():
+                raise ValueError(f"smaps: unreadable Rss line {line!r}")
+            out[path] = out.get(path, 0) + int(head[1])
+    return out
+
+
+def file_growth(readings: list[tuple[float, HeapBreakdown]], t_from: float, t0: float,
+                min_kb: int = 64, top: int = 12) -> list[dict[str, str | int | float]]:
+    """The files whose resident pages grew by ``min_kb`` or more from the first reading at or
+    after ``t_from`` to the last (monotonic s), largest first, at most ``top``: ``file``, ``kb``
+    (the growth) and ``first_grew_min`` (minutes from ``t0`` of the first reading at which it had
+    grown). Readings without the per-file figure are skipped; fewer than two: an empty list."""
+    usable = [(t, dict(b.file_rss_kb_by_path)) for t, b in readings
+              if b.file_rss_kb_by_path is not None and t >= t_from]
+    if len(usable) < 2:
+        return []
+    base, last = usable[0][1], usable[-1][1]
+    out: list[dict[str, str | int | float]] = []
+    for path, kb in last.items():
+        grown = kb - base.get(path, 0)
+        if grown < min_kb:
+            continue
+        first = next(t for t, files in usable[1:] if files.get(path, 0) - base.get(path, 0) > 0)
+        out.append({"file": path, "kb": grown, "first_grew_min": round((first - t0) / 60.0, 2)})
+    out.sort(key=lambda row: (-int(row["kb"]), str(row["file"])))
+    return out[:top]
+
+
 def read_heap_breakdown(smaps_path: str = "/proc/self/smaps") -> HeapBreakdown:
     """This process's breakdown now (module doc). Never raises; what it cannot read is None."""
     info = _mallinfo2()
+    by_path: tuple[tuple[str, int], ...] | None
     try:
         with open(smaps_path) as fh:
-            kb: dict[str, int] | None = parse_smaps_rss_kb(fh.read())
+            text = fh.read()
+        kb: dict[str, int] | None = parse_smaps_rss_kb(text)
+        by_path = tuple(sorted(parse_smaps_file_rss_kb(text).items()))
     except (OSError, ValueError):
-        kb = None
+        kb, by_path = None, None
     return HeapBreakdown(
         c_in_use_mb=None if info is None else (info.uordblks + info.hblkhd) / _MB,
         c_free_mb=None if info is None else info.fordblks / _MB,
@@ -121,4 +173,5 @@ def read_heap_breakdown(smaps_path: str = "/proc/self/smaps") -> HeapBreakdown:
         python_blocks=sys.getallocatedblocks(),
         heap_rss_mb=None if kb is None else kb["heap"] / 1024.0,
         anon_rss_mb=None if kb is None else kb["anon"] / 1024.0,
-        file_rss_mb=None if kb is None else kb["file"] / 1024.0)
+        file_rss_mb=None if kb is None else kb["file"] / 1024.0,
+        file_rss_kb_by_path=by_path)

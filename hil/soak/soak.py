@@ -23,7 +23,9 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
   or a quarter of the compensation time when shorter. Medians, because the heap trim
   (hil/heap.py, every 10 s) makes the resident size a saw-tooth around what is really held: a
   single sample catches a tooth. ``end`` - ``after_warmup`` are the raw samples; the
-  least-squares slope over everything after the warm-up.
+  least-squares slope over everything after the warm-up. ``heap_by_minute`` says where the
+  supervisor's memory is (glibc, CPython, mappings by kind), ``file_rss_growth`` which mapped files'
+  resident pages grew after the warm-up (code paged in for the first time: hil/soak/heapmap.py).
 - ``locate_ms``: p50 / p95 of the time to locate one pair's markers (where it ran).
 - ``camera_latency_ms``: p50 / p99 of the camera's own latency, the left exposure -> the camera
   handed the pair over (measured in the perception process; empty when perception ran in the
@@ -101,7 +103,7 @@ from hil.servo.client import ServoRobot
 from hil.servo.figures import LoopFigures, loop_figures
 from hil.session.log import SessionLog
 from hil.soak.attribution import fault_outcomes, unexplained_faults
-from hil.soak.heapmap import HeapBreakdown
+from hil.soak.heapmap import HeapBreakdown, file_growth
 from hil.soak.pendant import Pendant, RobotPendant
 from hil.soak.sampler import Sampler
 from hil.soak.viewer import check_viewer_target, close_soak_viewer, follow_truth, open_devices_and_viewer
@@ -231,6 +233,10 @@ class SoakResult:
     #: where the supervisor's memory is, once a minute (hil/soak/heapmap.py ``HeapBreakdown``
     #: fields, MB, plus ``t_min``: minutes from compensation's first start, negative before it)
     heap_by_minute: list[dict[str, float | int | None]] = field(default_factory=list)
+    #: the supervisor's mapped files whose resident pages grew by 64 kB or more after the warm-up
+    #: (hil/soak/heapmap.py ``file_growth``: ``file``, ``kb``, ``first_grew_min``): library code
+    #: paged in for the first time shows here, not in the heap's figures
+    file_rss_growth: list[dict[str, str | int | float]] = field(default_factory=list)
     #: the camera was grabbed, rendered and located in the perception process (else in the
     #: supervisor)
     perception_process: bool = False
@@ -606,6 +612,9 @@ def _add_process_figures(res: SoakResult, robot: ServoRobot, feed: PerceptionPro
     res.perception_process = feed is not None
     res.perception_rss_mb_by_minute = rss_by_minute(sampler.perception_rss, operator.t_comp)
     res.heap_by_minute = heap_by_minute(sampler.heap, operator.t_comp)
+    t_comp = operator.t_comp
+    if t_comp is not None:
+        res.file_rss_growth = file_growth(sampler.heap, _warm_until(t_comp, minutes), t_comp)
     if feed is not None:
         res.locate_ms = feed.locate_figures()
         res.camera_latency_ms = feed.delivery_figures()
@@ -626,12 +635,18 @@ def latency_bound(camera_ms: dict[str, float | None], locate_ms: dict[str, float
     return {"p50": round(p50, 3), "p99": round(p50 + LATENCY_P99_MARGIN_MS, 3)}
 
 
+def _warm_until(t0: float, minutes: float) -> float:
+    """The end of the memory figures' warm-up (monotonic s): the first quarter of the compensation
+    time from ``t0``, at most 30 s (module doc)."""
+    return t0 + min(30.0, 0.25 * minutes * 60.0)
+
+
 def _rss_figures(rss: list[tuple[float, float]], t_comp: float | None,
                  minutes: float) -> dict[str, float | None]:
     if not rss:
         return {}
     t0 = t_comp or rss[0][0]
-    warm = t0 + min(30.0, 0.25 * minutes * 60.0)
+    warm = _warm_until(t0, minutes)
     after = [(t, m) for t, m in rss if t >= warm] or rss[-1:]
     slope = None
     if len(after) >= 3:

@@ -544,3 +544,9 @@ def test_the_text_output_s_memory_lines() -> None:
     _print_memory(out, res)
     assert out.getvalue().splitlines()[-1] == ("memory perception    300.0 -> 300.5 MB, growth 0.5 MB, "
                                                "slope 0.01 MB/min")
+    res.file_rss_growth = [{"file": "/usr/lib/libpython3.11.so.1.0", "kb": 1536, "first_grew_min": 4.9},
+                           {"file": "/venv/cv2/cv2.abi3.so", "kb": 512, "first_grew_min": 4.9}]
+    out = io.StringIO()
+    _print_memory(out, res)
+    assert out.getvalue().splitlines()[-1] == ("file pages grown     libpython3.11.so.1.0 +1536 kB "
+                                               "(minute 4.9), cv2.abi3.so +512 kB (minute 4.9)")
