@@ -101,6 +101,9 @@ class Estimate:
         self.live_mm: FloatArray | None = None      # skin markers, reference order
         self.flange_mm: FloatArray | None = None    # flange markers, layout order
         self.T_change_meas: RigidTransform | None = None
+        #: when what :attr:`T_change_meas` was measured on was taken: the pair's exposure, or the
+        #: reference sensor's sample standing in (controller clock, ns; None before a change)
+        self.change_t_ns: int | None = None
         self.last_frame: StereoFrame | None = None
         self.last_state: RobotState | None = None
         self.state_history: deque[RobotState] = deque(maxlen=STATE_HISTORY)

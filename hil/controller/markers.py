@@ -84,6 +84,7 @@ class MarkerTracker:
         self.change_cost.add_ns(time.perf_counter_ns() - t0)
         est.change_fit = fit
         est.T_change_meas = change
+        est.change_t_ns = None if change is None else exposure_t_ns
         if reference_hook is not None:
             reference_hook()
         if est.T_change_meas is not None:

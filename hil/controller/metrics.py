@@ -88,13 +88,30 @@ class RunSummary:
     comp_error_age_s: list[float] = field(default_factory=list, repr=False)
     lock_target_errors_mm: list[float] = field(default_factory=list, repr=False)
     comp_entry_errors_mm: list[float] = field(default_factory=list, repr=False)
+    #: simulation only, while compensating: the path the controller follows against the true body
+    #: (:class:`PathSample`), p95 mm: its stand-off point against the ideal one when its pair was
+    #: taken, and now
+    comp_path_error_p95_mm: float | None = None
+    comp_path_now_error_p95_mm: float | None = None
+    #: per COMPENSATE sample, aligned with ``comp_errors_mm`` (NaN: no path yet): the
+    #: :class:`PathSample` fields
+    comp_path_errors_mm: list[float] = field(default_factory=list, repr=False)
+    comp_path_now_errors_mm: list[float] = field(default_factory=list, repr=False)
+    comp_path_entry_errors_mm: list[float] = field(default_factory=list, repr=False)
+    comp_path_direction_errors_deg: list[float] = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON summary (docs/run.md); the per-tick error series are left out."""
         d = dict(self.__dict__)
-        for series in ("comp_errors_mm", "comp_error_age_s", "lock_target_errors_mm", "comp_entry_errors_mm"):
+        for series in _SERIES_FIELDS:
             d.pop(series)
         return d
+
+
+#: :class:`RunSummary`'s per-tick series, left out of its JSON
+_SERIES_FIELDS: Final = ("comp_errors_mm", "comp_error_age_s", "lock_target_errors_mm",
+                         "comp_entry_errors_mm", "comp_path_errors_mm", "comp_path_now_errors_mm",
+                         "comp_path_entry_errors_mm", "comp_path_direction_errors_deg")
 
 
 def percentile(values: Sequence[float] | SampleSeries, q: float) -> float | None:
@@ -178,6 +195,34 @@ class TruthSample:
     entry_mm: float
 
 
+@dataclass(frozen=True)
+class PathSample:
+    """The path the controller follows (``ControllerSnapshot.path_optical_mm``) against the true
+    body, at one snapshot (simulation only). It splits the guide's following error
+    (:attr:`TruthSample.position_mm`) into what the estimate got wrong at its own pair and what the
+    time since then added; the rest is the filter, the prediction and the arm.
+
+    Attributes:
+        standoff_at_pair_mm: the path's stand-off point against the ideal one on the true path when
+            the pair was taken (as stamped): the estimator, the target model and the sensing (the
+            camera's noise, the rig's calibration, the clocks).
+        entry_at_pair_mm: the path's entry against the true entry then.
+        direction_at_pair_deg: the path's direction against the true entry -> target direction then.
+        standoff_now_mm: the same stand-off point against the ideal one now: adds the body's motion
+            since the pair (what the prediction over the latency is for).
+    """
+
+    standoff_at_pair_mm: float
+    entry_at_pair_mm: float
+    direction_at_pair_deg: float
+    standoff_now_mm: float
+
+
+def _angle_deg(a: FloatArray, b: FloatArray) -> float:
+    """The angle between unit vectors ``a`` and ``b``, degrees (atan2: exact near 0)."""
+    return math.degrees(math.atan2(float(np.linalg.norm(np.cross(a, b))), float(a @ b)))
+
+
 def line_distance_mm(origin: FloatArray, axis: FloatArray, point: FloatArray) -> float:
     """Distance (mm) from ``point`` to the line through ``origin`` along the unit ``axis``."""
     d = point - origin
@@ -198,6 +243,11 @@ class TruthMeter:
         self.comp_error_age_s = samples()   # time since COMPENSATE was entered, per sample
         self.comp_target_errors_mm = samples()
         self.comp_entry_errors_mm = samples()   # the guide axis line to the true entry, per sample
+        #: the controller's path against the truth (:class:`PathSample`), per sample (NaN: no path)
+        self.comp_path_errors_mm = samples()
+        self.comp_path_now_errors_mm = samples()
+        self.comp_path_entry_errors_mm = samples()
+        self.comp_path_direction_errors_deg = samples()
         self.lock_errors: list[tuple[float, float]] = []
         self.lock_samples: list[TruthSample] = []
         self.rigid_residuals_mm = samples()
@@ -230,9 +280,7 @@ class TruthMeter:
         # a simulator with a real rig's errors knows the real arm, not only its (late, imprecise) report
         if (T_of := self.truth.T_optical_from_flange(now := snap.t_ns)) is not None:
             T_guide = T_of @ self.rig.T_flange_from_guide
-        entry = np.asarray(self.truth.entry_optical(now), dtype=np.float64)
-        target = np.asarray(self.truth.target_optical(now), dtype=np.float64)
-        u = (target - entry) / np.linalg.norm(target - entry)
+        entry, target, u = self._true_path(now)
         ideal = entry - standoff_mm * u
         pos = float(np.linalg.norm(T_guide.t - ideal))
         axis = T_guide.R[:, 2]
@@ -240,6 +288,29 @@ class TruthMeter:
         return TruthSample(position_mm=pos, direction_deg=math.degrees(math.acos(cosang)),
                            target_mm=line_distance_mm(T_guide.t, axis, target),
                            entry_mm=line_distance_mm(T_guide.t, axis, entry))
+
+    def _true_path(self, t_ns: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The true entry, target (optical, mm) and the unit entry -> target direction at ``t_ns``."""
+        assert self.truth is not None
+        entry = np.asarray(self.truth.entry_optical(t_ns), dtype=np.float64)
+        target = np.asarray(self.truth.target_optical(t_ns), dtype=np.float64)
+        return entry, target, (target - entry) / np.linalg.norm(target - entry)
+
+    def path_sample(self, snap: ControllerSnapshot) -> PathSample | None:
+        """The controller's path at the snapshot against the true body (:class:`PathSample`), or
+        None without a path, a stand-off or a truth."""
+        path, t_pair, standoff_mm = snap.path_optical_mm, snap.path_t_ns, snap.standoff_mm
+        if self.truth is None or path is None or t_pair is None or standoff_mm is None:
+            return None
+        d = path[1] - path[0]
+        u_path = d / np.linalg.norm(d)
+        point = path[0] - standoff_mm * u_path
+        entry, _target, u = self._true_path(t_pair)
+        entry_now, _target_now, u_now = self._true_path(snap.t_ns)
+        return PathSample(standoff_at_pair_mm=float(np.linalg.norm(point - (entry - standoff_mm * u))),
+                          entry_at_pair_mm=float(np.linalg.norm(path[0] - entry)),
+                          direction_at_pair_deg=_angle_deg(u_path, u),
+                          standoff_now_mm=float(np.linalg.norm(point - (entry_now - standoff_mm * u_now))))
 
     def positions(self, t_ns: int) -> dict[str, Any]:
         """The true positions at ``t_ns`` (optical frame, mm), as the ``truth_positions`` record's
@@ -288,9 +359,19 @@ class TruthMeter:
             self.comp_error_age_s.append(snap.t_s - entered_s)
             self.comp_target_errors_mm.append(sample.target_mm)
             self.comp_entry_errors_mm.append(sample.entry_mm)
+            self._append_path(self.path_sample(snap))
         else:
             self.lock_errors.append((sample.position_mm, sample.direction_deg))
             self.lock_samples.append(sample)
         self.session.write(ev.TRUTH_ERROR, state=state, position_mm=sample.position_mm,
                            direction_deg=sample.direction_deg, target_mm=sample.target_mm,
                            entry_axis_mm=sample.entry_mm, body_rigid_residual_mm=residual)
+
+    def _append_path(self, p: PathSample | None) -> None:
+        """One COMPENSATE sample's path figures (NaN without a path: the series stay aligned
+        with ``comp_errors_mm``)."""
+        nan = math.nan
+        self.comp_path_errors_mm.append(nan if p is None else p.standoff_at_pair_mm)
+        self.comp_path_now_errors_mm.append(nan if p is None else p.standoff_now_mm)
+        self.comp_path_entry_errors_mm.append(nan if p is None else p.entry_at_pair_mm)
+        self.comp_path_direction_errors_deg.append(nan if p is None else p.direction_at_pair_deg)

@@ -91,6 +91,15 @@ def _target_fields(est: Estimate) -> dict[str, Any]:
             "target_fallback": None if steer is None else steer.fallback}
 
 
+def _path_fields(est: Estimate) -> dict[str, Any]:
+    """The snapshot's ``path_*`` fields (none before a change was measured)."""
+    preg, change, t_ns = est.patient_reg, est.T_change_meas, est.change_t_ns
+    if preg is None or change is None or t_ns is None:
+        return {}
+    planned = preg.T_optical_from_image.apply(np.vstack([est.plan.entry_mm, est.plan.target_mm]))
+    return {"path_optical_mm": frozen_array(change.apply(planned)), "path_t_ns": t_ns}
+
+
 def _predictor_fields(est: Estimate) -> dict[str, Any]:
     """The snapshot's ``predictor*`` fields (alpha-beta alone: the defaults)."""
     cp = est.filter.predictor
@@ -470,7 +479,7 @@ class ControllerParts(abc.ABC):
             marker_deviations_mm=frozen_array(deviations),
             gate_shape_mm=None if gm is None else _finite(gm.shape_mm),
             gate_ok=None if gm is None else gm.problem(self.cfg.gate) is None,
-            **_target_fields(est), **_predictor_fields(est))
+            **_target_fields(est), **_predictor_fields(est), **_path_fields(est))
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> RunSummary:
@@ -517,8 +526,20 @@ def _body_truth(tm: TruthMeter) -> dict[str, Any]:
         "comp_target_error_p95_mm": percentile(tm.comp_target_errors_mm, 95),
         "comp_entry_error_p95_mm": percentile(tm.comp_entry_errors_mm, 95),
         "comp_entry_errors_mm": list(tm.comp_entry_errors_mm),
+        "comp_path_error_p95_mm": _finite_p95(tm.comp_path_errors_mm),
+        "comp_path_now_error_p95_mm": _finite_p95(tm.comp_path_now_errors_mm),
+        "comp_path_errors_mm": list(tm.comp_path_errors_mm),
+        "comp_path_now_errors_mm": list(tm.comp_path_now_errors_mm),
+        "comp_path_entry_errors_mm": list(tm.comp_path_entry_errors_mm),
+        "comp_path_direction_errors_deg": list(tm.comp_path_direction_errors_deg),
         "change_fre_mm": {"p50": percentile(tm.change_fre_mm, 50), "p95": percentile(tm.change_fre_mm, 95)},
         "lock_target_errors_mm": targets,
         "gate_false_open_rate": tm.gate_false_open_ticks / tm.gate_open_ticks if tm.gate_open_ticks else None,
         "gate_open_ticks": tm.gate_open_ticks,
     }
+
+
+def _finite_p95(series: Sequence[float] | SampleSeries) -> float | None:
+    """The p95 of a series' finite samples (None when it has none)."""
+    xs = [x for x in series if math.isfinite(x)]
+    return percentile(xs, 95)

@@ -125,6 +125,13 @@ class ControllerSnapshot:
     target_shift_mm: float | None = None
     target_turn_deg: float | None = None
     target_fallback: str | None = None
+    #: the path the controller follows for the last measured change: the planned entry and target
+    #: (rows, optical frame, mm) moved by the change (the estimator's, steered by the target model
+    #: when there is one), and when what it was measured on was taken (``Estimate.change_t_ns``,
+    #: controller clock); None before a change was measured. What the arm is sent toward, before
+    #: the filter, the prediction over the latency and the servo loop.
+    path_optical_mm: FloatArray | None = None
+    path_t_ns: int | None = None
 
 
 def guide_in_image(est: Estimate) -> RigidTransform | None:

@@ -47,7 +47,7 @@ class TrackerRoles:
         entry = est.patient_reg.T_optical_from_image.apply(est.plan.entry_mm).reshape(3)
         if est.T_change_meas is None:
             if tu.cfg.reference_backup:
-                est.T_change_meas = M
+                est.T_change_meas, est.change_t_ns = M, t_ns
                 if not self._reference_in_use:
                     self.session.write(ev.REFERENCE_IN_USE, sensor=tu.cfg.reference_sensor, state=state,
                                        reason="skin markers give no rigid change", sample_t_ns=t_ns)

@@ -28,10 +28,20 @@ def _records() -> list[dict[str, Any]]:
     return [locked, faulted]
 
 
+def _follow(guide: list[float], axis_entry: list[float], **path: list[float]) -> dict[str, list[float]]:
+    """The following run's series (``FOLLOW_SERIES``): the given ones, the rest empty."""
+    out: dict[str, list[float]] = {name: [] for name in _bench().FOLLOW_SERIES}
+    out.update(guide=guide, axis_entry=axis_entry, **path)
+    return out
+
+
 def test_a_column_from_a_locked_and_a_faulted_seed() -> None:
     runs = _records()
-    out = _bench()._column(runs, comp_all=[0.1, 0.2], hold_targets=[0.4, 0.6],
-                           follow_all=[1.0, 2.0, 3.0, 4.0], follow_entry=[0.5, 1.5],
+    nan = math.nan
+    follow = _follow([1.0, 2.0, 3.0, 4.0], [0.5, 1.5], path_pair=[nan, 1.0, 2.0, 3.0],
+                     path_now=[nan, 2.0, 3.0, 4.0], path_entry=[nan, 0.1, 0.2, 0.3],
+                     path_direction=[nan, 1.0, 1.0, 1.0])
+    out = _bench()._column(runs, comp_all=[0.1, 0.2], hold_targets=[0.4, 0.6], follow=follow,
                            follow_fallbacks=[0.1, 0.3])
     assert out["runs"] == 2
     assert out["runs_done"] == 1
@@ -46,6 +56,11 @@ def test_a_column_from_a_locked_and_a_faulted_seed() -> None:
     assert out["comp_err_mm_p95"] == pytest.approx(3.85)
     assert out["comp_err_mm_rms_following"] == pytest.approx(math.sqrt(7.5))
     assert out["comp_entry_err_mm_p95_following"] == pytest.approx(1.45)
+    # the path's split: p95 over the samples that had a path (NaN: none yet)
+    assert out["follow_path_pair_mm_p95"] == pytest.approx(2.9)
+    assert out["follow_path_now_mm_p95"] == pytest.approx(3.9)
+    assert out["follow_path_entry_mm_p95"] == pytest.approx(0.29)
+    assert out["follow_path_direction_deg_p95"] == pytest.approx(1.0)
     assert out["target_model_fallback_fraction_following"] == pytest.approx(0.2)
     assert out["comp_err_mm_p95_hold"] == pytest.approx(0.195)
     assert out["target_err_hold_mm_p95"] == pytest.approx(0.59)
@@ -60,17 +75,18 @@ def test_a_column_from_a_locked_and_a_faulted_seed() -> None:
 
 
 def test_without_a_following_run_the_hold_gives_the_compensation_figure() -> None:
-    out = _bench()._column(_records(), comp_all=[0.1, 0.2], hold_targets=[], follow_all=[],
-                           follow_entry=[], follow_fallbacks=[])
+    out = _bench()._column(_records(), comp_all=[0.1, 0.2], hold_targets=[], follow=_follow([], []),
+                           follow_fallbacks=[])
     assert out["comp_err_mm_p95"] == pytest.approx(0.195)
     assert out["comp_err_mm_rms_following"] is None
     assert out["comp_entry_err_mm_p95_following"] is None
     assert out["target_model_fallback_fraction_following"] is None
+    assert out["follow_path_pair_mm_p95"] is None
     assert out["target_err_hold_mm_p95"] is None
 
 
 def test_no_seed_locked_leaves_the_lock_figures_empty() -> None:
-    out = _bench()._column(_records()[1:], comp_all=[], hold_targets=[], follow_all=[], follow_entry=[],
+    out = _bench()._column(_records()[1:], comp_all=[], hold_targets=[], follow=_follow([], []),
                            follow_fallbacks=[])
     assert out["runs_done"] == 0
     for key in ("lock_err_mm_mean", "lock_err_mm_rms", "lock_err_mm_max", "dir_err_deg_rms",

@@ -24,7 +24,10 @@ Two compensation figures: the normal procedure compensates during the requested 
 and follows free breathing, and its errors after a 2 s catch-up give ``comp_err_mm_p95`` (the
 hold-only figure when ``--follow-s 0``). On a deformable patient the true path turns with the
 target's own motion, which no skin marker shows; ``comp_entry_err_mm_p95_following`` is the part
-the markers can tell (the guide axis line to the true entry while following).
+the markers can tell (the guide axis line to the true entry while following). The ``follow_path_*``
+fields split the following error further (``hil.controller.metrics.PathSample``): the path the
+controller follows (its change, steered by the target model, applied to the plan) against the truth
+when its pair was taken (the estimate: estimator, model, sensing) and now (plus the motion since).
 
 With a config whose simulated rig has errors (``[simulation.rig_errors]``, e.g.
 ``configs/sim_realistic.toml``) every seed is run twice, side by side: with the setup as given
@@ -108,13 +111,20 @@ def _p95(xs: list[float]) -> float | None:
     return float(np.percentile(xs, 95)) if xs else None
 
 
+#: the following run's per-sample series (:func:`_follow_run`): the guide against the ideal
+#: stand-off point, the guide axis line against the true entry, and the controller's path against
+#: the truth (``hil.controller.metrics.PathSample``: its stand-off point when its pair was taken and
+#: now, its entry, its direction in deg)
+FOLLOW_SERIES = ("guide", "axis_entry", "path_pair", "path_now", "path_entry", "path_direction")
+
+
 def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Path,
-                follow_s: float) -> tuple[list[float], list[float], float | None]:
+                follow_s: float) -> tuple[dict[str, list[float]], float | None]:
     """Follow free breathing: the gate opens at once (no breath-hold asked, wide tolerance) and
     compensation runs ``follow_s`` seconds before the run is stopped; returns the truth errors after
-    the first 2 s (the catch-up from the stand-off onto the moving path): the guide against the ideal
-    stand-off point on the true path, and the guide axis line against the true entry; and the share
-    of pairs the surrogate target model kept the rigid direction on (None without the model)."""
+    the first 2 s (the catch-up from the stand-off onto the moving path), by :data:`FOLLOW_SERIES`
+    (NaN where the controller had no path yet), and the share of pairs the surrogate target model
+    kept the rigid direction on (None without the model)."""
     p = setup.procedure
     proc = p.model_copy(update={
         "gate": p.gate.model_copy(update={"tolerance_mm": 30.0, "hold_request_s": 0.1,
@@ -127,9 +137,11 @@ def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Pa
     s = run_procedure(cfg_path, setup.model_copy(update={"procedure": proc}), plan, auto=True,
                       session_dir=tmp, max_duration_s=6.0 + follow_s)
     late = [age > 2.0 for age in s.comp_error_age_s]
-    return ([e for e, ok in zip(s.comp_errors_mm, late, strict=True) if ok],
-            [e for e, ok in zip(s.comp_entry_errors_mm, late, strict=True) if ok],
-            s.target_model_fallback_fraction)
+    series = (s.comp_errors_mm, s.comp_entry_errors_mm, s.comp_path_errors_mm, s.comp_path_now_errors_mm,
+              s.comp_path_entry_errors_mm, s.comp_path_direction_errors_deg)
+    kept = {name: [e for e, ok in zip(xs, late, strict=True) if ok]
+            for name, xs in zip(FOLLOW_SERIES, series, strict=True)}
+    return kept, s.target_model_fallback_fraction
 
 
 def _with_4d_ct(plan: ProcedurePlan, setup: SetupConfig) -> ProcedurePlan:
@@ -161,10 +173,10 @@ def _calibrate_rig(cfg_path: Path, setup: SetupConfig, out: Path) -> dict[str, A
 
 
 def _column(runs: list[dict[str, Any]], comp_all: list[float], hold_targets: list[float],
-            follow_all: list[float], follow_entry: list[float],
-            follow_fallbacks: list[float]) -> dict[str, Any]:
+            follow: dict[str, list[float]], follow_fallbacks: list[float]) -> dict[str, Any]:
     """One column's figures from its seeds' records and the pooled samples (mm, deg, s; None where
     no run gave the figure). The compensation p95 is the following run's where one was made."""
+    follow_all = follow["guide"]
     comp_main = follow_all or comp_all
     locked = [r for r in runs if r["lock_error_mm"] is not None]
     lock = [float(r["lock_error_mm"]) for r in locked]
@@ -185,7 +197,8 @@ def _column(runs: list[dict[str, Any]], comp_all: list[float], hold_targets: lis
         "dir_err_deg_rms": _rms(dirs),
         "comp_err_mm_p95": float(np.percentile(comp_main, 95)) if comp_main else None,
         "comp_err_mm_rms_following": _rms(follow_all),
-        "comp_entry_err_mm_p95_following": _p95(follow_entry),
+        "comp_entry_err_mm_p95_following": _p95(follow["axis_entry"]),
+        **_following_split(follow),
         "target_model_fallback_fraction_following": statistics.fmean(follow_fallbacks) if follow_fallbacks
         else None,
         "comp_err_mm_rms_hold": _rms(comp_all),
@@ -204,6 +217,19 @@ def _column(runs: list[dict[str, Any]], comp_all: list[float], hold_targets: lis
     }
 
 
+def _following_split(follow: dict[str, list[float]]) -> dict[str, Any]:
+    """Where the following error comes from (docs/benchmarks.md, issue 41): the controller's path
+    against the truth, p95 (mm, deg) over the samples that had a path: its stand-off point when
+    its pair was taken (the estimate: estimator, target model, sensing) and now (plus the body's
+    motion since the pair), its entry and its direction when its pair was taken."""
+    def finite(name: str) -> list[float]:
+        return [x for x in follow[name] if np.isfinite(x)]
+    return {"follow_path_pair_mm_p95": _p95(finite("path_pair")),
+            "follow_path_now_mm_p95": _p95(finite("path_now")),
+            "follow_path_entry_mm_p95": _p95(finite("path_entry")),
+            "follow_path_direction_deg_p95": _p95(finite("path_direction"))}
+
+
 def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argparse.Namespace, tmp: Path,
            calibrate: bool) -> dict[str, Any]:
     """One column of the table: every seed with the setup as given (CAD layout, no time offsets)
@@ -211,9 +237,8 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
     breathing = base.simulation.breathing.model_copy(update=BENCH_BREATHING)
     runs: list[dict[str, Any]] = []
     comp_all: list[float] = []
-    follow_all: list[float] = []
+    follow: dict[str, list[float]] = {name: [] for name in FOLLOW_SERIES}
     hold_targets: list[float] = []
-    follow_entry: list[float] = []
     follow_fallbacks: list[float] = []
     rig_errors: list[dict[str, Any]] = []
     for k in range(args.runs):
@@ -232,16 +257,16 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
         comp_all += s.comp_errors_mm
         hold_targets += s.lock_target_errors_mm
         if args.follow_s > 0:
-            path_errors, entry_errors, fallback = _follow_run(cfg_path, setup, seed_plan, tmp, args.follow_s)
-            follow_all += path_errors
-            follow_entry += entry_errors
+            got, fallback = _follow_run(cfg_path, setup, seed_plan, tmp, args.follow_s)
+            for name in FOLLOW_SERIES:
+                follow[name] += got[name]
             if fallback is not None:
                 follow_fallbacks.append(fallback)
         runs.append(_run_record(seed, s))
         if not args.json:
             print(f"{'calibrated' if calibrate else 'as given'} seed {seed}: {s.final_state}, "
                   f"lock {s.lock_error_mm}, dir {s.lock_direction_error_deg}", file=sys.stderr)
-    out = _column(runs, comp_all, hold_targets, follow_all, follow_entry, follow_fallbacks)
+    out = _column(runs, comp_all, hold_targets, follow, follow_fallbacks)
     if calibrate:
         layout = [float(r["layout_mm_rms"]) for r in rig_errors if r["layout_mm_rms"] is not None]
         offs = [abs(float(e)) for r in rig_errors for e in (r["time_offset_error_ms"] or {}).values()]
@@ -316,6 +341,10 @@ def _print(cols: dict[str, dict[str, Any]]) -> None:
             ("comp. following p95", lambda o: f(o["comp_err_mm_p95"], "mm")),
             ("comp. following RMS", lambda o: f(o["comp_err_mm_rms_following"], "mm")),
             ("axis to entry, follow p95", lambda o: f(o["comp_entry_err_mm_p95_following"], "mm")),
+            ("path at its pair p95", lambda o: f(o["follow_path_pair_mm_p95"], "mm")),
+            ("path now p95", lambda o: f(o["follow_path_now_mm_p95"], "mm")),
+            ("path entry at pair p95", lambda o: f(o["follow_path_entry_mm_p95"], "mm")),
+            ("path dir. at pair p95", lambda o: f(o["follow_path_direction_deg_p95"], "deg")),
             ("comp. breath-hold p95", lambda o: f(o["comp_err_mm_p95_hold"], "mm")),
             ("target error RMS", lambda o: f(o["target_err_mm_rms"], "mm")),
             ("target error p95", lambda o: f(o["target_err_mm_p95"], "mm")),
