@@ -12,21 +12,21 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hil.controller.change_estimate import ChangeFit, estimate_change
+from hil.controller.change_estimate import ChangeEstimator, ChangeFit, estimate_change
 from hil.geometry import native
 from hil.geometry.transform import RigidTransform
 from tests.geometry.strategies import rigid_transforms
 
 
-def _both(reference: np.ndarray, live: np.ndarray, entry: np.ndarray, estimator: str,
+def _both(reference: np.ndarray, live: np.ndarray, entry: np.ndarray, estimator: ChangeEstimator,
           sigma_mm: float) -> tuple[ChangeFit | None, ChangeFit | None]:
     """The estimate with the compiled code selected, then with the numpy code."""
     assert native.is_built(), native.native_status()
     previous = native.use_native(True)
     try:
-        got = estimate_change(reference, live, entry, estimator, sigma_mm)  # type: ignore[arg-type]
+        got = estimate_change(reference, live, entry, estimator, sigma_mm)
         native.use_native(False)
-        want = estimate_change(reference, live, entry, estimator, sigma_mm)  # type: ignore[arg-type]
+        want = estimate_change(reference, live, entry, estimator, sigma_mm)
     finally:
         native.use_native(previous)
     return got, want
@@ -42,11 +42,15 @@ def _same(got: ChangeFit | None, want: ChangeFit | None) -> None:
     assert got.rigid_fre_mm == pytest.approx(want.rigid_fre_mm, rel=1e-9, abs=1e-12)
 
 
+#: the estimators the kernel compiles
+_LOCAL: tuple[ChangeEstimator, ...] = ("weighted", "local-tps")
+
+
 @settings(max_examples=200, deadline=None)
 @given(n=st.integers(3, 14), seed=st.integers(0, 2**32 - 1), T=rigid_transforms(100.0),
-       estimator=st.sampled_from(["weighted", "local-tps"]), sigma_mm=st.floats(5.0, 200.0),
+       estimator=st.sampled_from(_LOCAL), sigma_mm=st.floats(5.0, 200.0),
        unseen=st.sets(st.integers(0, 13), max_size=3), bend=st.floats(0.0, 0.05))
-def test_every_estimator_agrees_with_numpy(n: int, seed: int, T: RigidTransform, estimator: str,
+def test_every_estimator_agrees_with_numpy(n: int, seed: int, T: RigidTransform, estimator: ChangeEstimator,
                                            sigma_mm: float, unseen: set[int], bend: float) -> None:
     rng = np.random.default_rng(seed)
     ref = rng.uniform(-90.0, 90.0, size=(n, 3))
