@@ -4,12 +4,16 @@ each figure on two hand-made seeds, one locked and one that faulted, exactly."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import pytest
 
 from tests.benchtools import load_bench
+
+CONFIG = Path("configs/sim.toml")
+PLAN = Path("configs/plans/sim_plan.json").resolve()
 
 
 def _bench() -> ModuleType:
@@ -93,3 +97,17 @@ def test_no_seed_locked_leaves_the_lock_figures_empty() -> None:
                 "comp_err_mm_p95", "target_err_mm_p95", "target_err_mm_max", "entry_axis_err_mm_rms",
                 "gate_false_open_rate", "time_to_lock_s_median", "change_fre_mm_p95"):
         assert out[key] is None, key
+
+
+def test_a_calibration_file_missing_is_one_line_not_a_traceback(tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """The stereo calibration is read when the devices open (the first seed's), after the setup
+    and the plan were read: still one line naming the file, exit 2."""
+    cfg = tmp_path / "sim.toml"
+    cfg.write_text(CONFIG.read_text())        # configs/sim.toml beside no calibration/ directory
+    code = _bench().main(["--config", str(cfg), "--plan", str(PLAN), "--runs", "1", "--follow-s", "0",
+                          "--json"])
+    err = capsys.readouterr().err
+    assert code == 2
+    missing = tmp_path / "calibration" / "sim_stereo.json"
+    assert err == f"tools/bench accuracy: error: {missing}: calibration file not found\n"

@@ -441,10 +441,17 @@ def main(argv: list[str] | None = None) -> int:
     side_by_side = base.simulation.rig_errors != RigErrorsConfig() and not args.no_rig_calibration
     t0 = time.perf_counter()
     only_calibrated = side_by_side and args.calibrated_only
-    with tempfile.TemporaryDirectory(prefix="bench_accuracy_") as tmp:
-        out = _bench(cfg_path, base, plan, args, Path(tmp), calibrate=only_calibrated)
-        if side_by_side and not only_calibrated:
-            out["calibrated"] = _bench(cfg_path, base, plan, args, Path(tmp), calibrate=True)
+    try:
+        with tempfile.TemporaryDirectory(prefix="bench_accuracy_") as tmp:
+            out = _bench(cfg_path, base, plan, args, Path(tmp), calibrate=only_calibrated)
+            if side_by_side and not only_calibrated:
+                out["calibrated"] = _bench(cfg_path, base, plan, args, Path(tmp), calibrate=True)
+    except HilError as exc:   # what only opening the devices finds (a calibration file, a trace)
+        print(f"tools/bench accuracy: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("tools/bench accuracy: interrupted", file=sys.stderr)
+        return 130
     out["wall_s"] = round(time.perf_counter() - t0, 1)
     out["config"] = str(cfg_path)
     out["trace"] = args.trace
