@@ -1,4 +1,4 @@
-"""The simulated planning 4D CT: the phantom's fiducials and target at the phases of one breath.
+"""The simulated planning 4D CT: the phantom's fiducials, entry and target at the phases of one breath.
 
 A 4D CT sorts many breaths into phase bins; each bin is the body at that phase of an average
 breath. Here the average breath is the body model's (``[simulation.body]``) driven by a regular
@@ -11,7 +11,10 @@ voxels and segmentation do; the registered phase (end-exhale, the plan's own poi
 the bundled plans are.
 
 The CT frame holds no rigid motion of the patient (drift, tremor, shifts are the world's, after
-the CT). A body driven by a recorded trace has no model cycle: :func:`four_d_ct_phases` refuses it.
+the CT). The skin entry of each phase is where the skin field moves it (a CT's skin surface shows
+it); its error is drawn from its own stream (``planning_ct_entry``), so the fiducials' and the
+target's are those of a 4D CT without it. A body driven by a recorded trace has no model cycle:
+:func:`four_d_ct_phases` refuses it.
 """
 
 from __future__ import annotations
@@ -81,12 +84,15 @@ def four_d_ct_phases(sim: SimulationConfig, phases: int = DEFAULT_PHASES,
                           sim.patient.torso_radius_mm, RegularBreath(sim.breathing))
     period = sim.breathing.period_s
     rng = stream_rng(sim.seed, "planning_ct")
+    rng_entry = stream_rng(sim.seed, "planning_ct_entry")   # its own: the other points' draws stay
     out: list[dict[str, Any]] = []
     for k in range(1, phases):
         state = body.state(period * (1.0 + k / phases))     # one period in: the lags are settled
         fid = state.markers_mm + rng.normal(scale=noise_mm, size=state.markers_mm.shape)
         target = state.target_mm + rng.normal(scale=noise_mm, size=3)
-        out.append({"fiducials_mm": np.round(fid, 4).tolist(), "target_mm": np.round(target, 4).tolist()})
+        entry = state.entry_mm + rng_entry.normal(scale=noise_mm, size=3)
+        out.append({"fiducials_mm": np.round(fid, 4).tolist(), "target_mm": np.round(target, 4).tolist(),
+                    "entry_mm": np.round(entry, 4).tolist()})
     return out
 
 

@@ -6,7 +6,7 @@ Two ways to write a plan:
 
     {"format": "hil-plan", "version": 1, "frame": "image", "units": "mm",
      "fiducials_mm": [[x, y, z], ...], "entry_mm": [x, y, z], "target_mm": [x, y, z],
-     "phases": [{"fiducials_mm": [[x, y, z], ...], "target_mm": [x, y, z]}, ...],
+     "phases": [{"fiducials_mm": [[x, y, z], ...], "target_mm": [x, y, z], "entry_mm": [x, y, z]}, ...],
      "phases_period_s": 4.0}
 
    ``phases`` is optional: the fiducials and the target at other phases of a breathing cycle, as a
@@ -16,6 +16,10 @@ Two ways to write a plan:
    is fitted to them. ``phases_period_s`` (optional, s) says the phases are the equal phase bins of
    one breath, in order after the registered one, at that mean breathing period (what a 4D CT's
    respiratory surrogate records): the model then also learns the target's lag from them.
+   A phase's ``entry_mm`` (optional; in every phase or in none) is where the skin entry sits at
+   that phase, as the CT's skin surface shows it: the ``pattern`` change estimator
+   (``[procedure.compensation] estimator = "pattern"``, hil/controller/entry_pattern.py) is fitted
+   to the fiducials and the entry.
 
 2. A labelled point list, as planning software writes it: a 3D Slicer markups file
    (``.mrk.json``, ``.fcsv``) or a CSV/JSON point file read by :func:`hil.io.read_points`, with one
@@ -43,10 +47,11 @@ FloatArray = NDArray[np.float64]
 @dataclass(frozen=True)
 class PlanPhase:
     """One breathing phase of a 4D CT (image frame, mm): the fiducials in the plan's order, (N, 3),
-    and the target, (3,)."""
+    the target, (3,), and the skin entry, (3,) (None when the plan does not give it)."""
 
     fiducials_mm: FloatArray
     target_mm: FloatArray
+    entry_mm: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -136,15 +141,25 @@ def _phases(doc: Any, source: str) -> tuple[PlanPhase, ...]:
         raise InputFileError(source, "phases: must be a list of {fiducials_mm, target_mm}")
     out: list[PlanPhase] = []
     for k, ph in enumerate(doc):
-        if not isinstance(ph, dict) or set(ph) != {"fiducials_mm", "target_mm"}:
-            raise InputFileError(source,
-                                 f"phases[{k}]: must be an object with exactly fiducials_mm and target_mm")
+        if not isinstance(ph, dict) or not {"fiducials_mm", "target_mm"} <= set(ph) <= _PHASE_KEYS:
+            raise InputFileError(source, f"phases[{k}]: must be an object with fiducials_mm, target_mm "
+                                         "and optionally entry_mm")
         try:
             fid = as_points(ph["fiducials_mm"], f"phases[{k}].fiducials_mm")
         except (GeometryError, TypeError, ValueError) as exc:
             raise InputFileError(source, f"phases[{k}].fiducials_mm: {exc}") from None
-        out.append(PlanPhase(fid, _one_point(ph["target_mm"], f"phases[{k}].target_mm", source)))
+        entry = _one_point(ph["entry_mm"], f"phases[{k}].entry_mm", source) if "entry_mm" in ph else None
+        out.append(PlanPhase(fid, _one_point(ph["target_mm"], f"phases[{k}].target_mm", source), entry))
+    with_entry = [ph.entry_mm is not None for ph in out]
+    if any(with_entry) and not all(with_entry):
+        k = with_entry.index(False)
+        raise InputFileError(source, f"phases[{k}]: no entry_mm, where other phases give one (in every "
+                                     "phase or in none)")
     return tuple(out)
+
+
+#: the keys a phase may have
+_PHASE_KEYS = frozenset({"fiducials_mm", "target_mm", "entry_mm"})
 
 
 def plan_from_points(points: PointSet, source: str) -> ProcedurePlan:

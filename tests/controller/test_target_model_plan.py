@@ -41,13 +41,29 @@ def test_a_plan_with_phases_reads_them_in_order() -> None:
     assert len(plan.phases) == 2
     np.testing.assert_array_equal(plan.phases[1].fiducials_mm, fid + 2)
     np.testing.assert_array_equal(plan.phases[1].target_mm, [2.0, 2.0, 3.0])
+    assert plan.phases[1].entry_mm is None
     assert plan_from_dict(_doc(), "p.json").phases == ()
+
+
+def test_a_phase_may_give_the_entry() -> None:
+    fid = np.asarray(_doc()["fiducials_mm"])
+    phases = [{"fiducials_mm": (fid + k).tolist(), "target_mm": [1.0 * k, 2.0, 3.0],
+               "entry_mm": [0.5 * k, 0.0, 1.0]} for k in (1, 2)]
+    plan = plan_from_dict(_doc(phases=phases), "p.json")
+    entry = plan.phases[1].entry_mm
+    assert entry is not None
+    np.testing.assert_array_equal(entry, [1.0, 0.0, 1.0])
 
 
 @pytest.mark.parametrize(("phases", "message"), [
     ({"a": 1}, "p.json: phases: must be a list of {fiducials_mm, target_mm}"),
     ([{"fiducials_mm": [[0, 0, 0]] * 6}],
-     "p.json: phases[0]: must be an object with exactly fiducials_mm and target_mm"),
+     "p.json: phases[0]: must be an object with fiducials_mm, target_mm and optionally entry_mm"),
+    ([{"fiducials_mm": [[0, 0, 0]] * 6, "target_mm": [0, 0, 0], "entry_mm": [0, 0]}],
+     "p.json: phases[0].entry_mm: "),
+    ([{"fiducials_mm": [[0, 0, 0]] * 6, "target_mm": [0, 0, 0], "entry_mm": [0, 0, 0]},
+      {"fiducials_mm": [[0, 0, 0]] * 6, "target_mm": [0, 0, 0]}],
+     "p.json: phases[1]: no entry_mm, where other phases give one (in every phase or in none)"),
     ([{"fiducials_mm": [[0, 0, 0]] * 5, "target_mm": [0, 0, 0]}],
      "p.json: phases[0].fiducials_mm: 5 points, the plan has 6 fiducials"),
     ([{"fiducials_mm": [[0, 0, 0]] * 6, "target_mm": [0, 0]}], "p.json: phases[0].target_mm: "),
@@ -178,7 +194,8 @@ def test_following_free_breathing_the_path_follows_the_modelled_target(tmp_path:
         comp = base.procedure.compensation.model_copy(update={"target_model": model})
         setup = base.model_copy(update={"simulation": sim, "procedure": base.procedure.model_copy(
             update={"compensation": comp})})
-        path, entry, fallback = bench._follow_run(CONFIG, setup, plan, tmp_path / model, 12.0)
+        follow, fallback = bench._follow_run(CONFIG, setup, plan, tmp_path / model, 12.0)
+        path, entry = follow["guide"], follow["axis_entry"]
         assert len(path) > 100
         assert (fallback is None) == (model == "rigid")
         if fallback is not None:

@@ -1,8 +1,9 @@
 """``tools/sim4dct CONFIG --out PLAN.json [--seed S] [--phases K] [--noise-mm X]``: the plan of the
 simulated patient of CONFIG (its ``[simulation.patient]`` phantom and ``[simulation.body]``) with
-its planning 4D CT (drivers/sim/planning_ct.py): the fiducials and the target at K phases of one
-breath, each with the CT's localisation error. ``hil run CONFIG --plan PLAN.json --seed S`` with
-``[procedure.compensation] target_model = "surrogate"`` then steers by it. The seed must be the
+its planning 4D CT (drivers/sim/planning_ct.py): the fiducials, the skin entry and the target at K
+phases of one breath, each with the CT's localisation error. ``hil run CONFIG --plan PLAN.json
+--seed S`` with ``[procedure.compensation] target_model = "surrogate"`` then steers by it, and with
+``estimator = "pattern"`` follows the entry by it. The seed must be the
 run's: the skin field and the target's motion are drawn from it.
 
 Exit 0 with the file written and one line saying what it holds; exit 2 with one line for bad
