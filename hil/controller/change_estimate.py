@@ -16,6 +16,12 @@ what they assume of the body (docs/compensation.md):
   own displacement, exact where a marker sits on it. Assumes the skin's displacement is smooth
   between markers; needs 4 seen markers not on a line (else it falls back to ``weighted`` and
   says so), and extrapolates affinely outside their hull.
+- ``pattern`` — the entry moved by how the 4D CT shows it moving with the markers
+  (hil/controller/entry_pattern.py): the markers' displacements mapped to the entry's through the
+  CT's breathing patterns and the linearised rigid motions; the rotation is the weighted fit's. Assumes the
+  patient breathes with the CT's patterns; needs the entry at every phase of the plan's 4D CT and
+  4 seen markers that carry the patterns (else it falls back to ``local-tps``, then ``weighted``,
+  and says why).
 
 ``weighted``'s and ``local-tps``'s per-pair arithmetic after the spline's row (weights, the
 weighted fit, the spline's step) is compiled (hil/geometry/_native.c ``local_change``);
@@ -37,6 +43,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from hil.controller.entry_pattern import EntryRows
 from hil.errors import GeometryError
 from hil.geometry import native
 from hil.geometry.registration import Registration, register_horn, register_horn_numpy
@@ -44,8 +51,8 @@ from hil.geometry.thin_plate import thin_plate_weights
 from hil.geometry.transform import RigidTransform
 
 FloatArray = NDArray[np.float64]
-ChangeEstimator = Literal["rigid", "weighted", "local-tps"]
-CHANGE_ESTIMATORS: tuple[str, ...] = ("rigid", "weighted", "local-tps")
+ChangeEstimator = Literal["rigid", "weighted", "local-tps", "pattern"]
+CHANGE_ESTIMATORS: tuple[str, ...] = ("rigid", "weighted", "local-tps", "pattern")
 
 #: a marker whose weight is below this share of the largest counts as absent for ``weighted``
 _MIN_WEIGHT_SHARE = 1e-3
@@ -157,15 +164,17 @@ def _local(ref: FloatArray, live: FloatArray, entry_mm: FloatArray, sigma_mm: fl
 
 
 def estimate_change(reference_mm: FloatArray, live_mm: FloatArray, entry_mm: FloatArray,
-                    estimator: ChangeEstimator, weight_sigma_mm: float) -> ChangeFit | None:
+                    estimator: ChangeEstimator, weight_sigma_mm: float,
+                    pattern: EntryRows | None = None) -> ChangeFit | None:
     """``T_live_from_ref`` from corresponding marker rows (NaN rows = not seen) by ``estimator``
-    (module doc), about the entry at registration ``entry_mm`` (optical frame, mm).
+    (module doc), about the entry at registration ``entry_mm`` (optical frame, mm). ``pattern``:
+    the ``pattern`` estimator's model for this registration (hil/controller/entry_pattern.py).
 
     Returns None with fewer than 3 usable, non-degenerate markers (the change is then unknown:
     the controller holds). Never raises for marker geometry: a degenerate layout is a None or a
     fallback named in :attr:`ChangeFit.fallback`.
     """
-    ok = np.isfinite(reference_mm).all(axis=1) & np.isfinite(live_mm).all(axis=1)
+    ok = np.asarray(np.isfinite(reference_mm).all(axis=1) & np.isfinite(live_mm).all(axis=1), dtype=np.bool_)
     n = int(ok.sum())
     if n < 3:
         return None
@@ -182,14 +191,18 @@ def estimate_change(reference_mm: FloatArray, live_mm: FloatArray, entry_mm: Flo
 
     if estimator == "rigid":
         return fit(rigid.T_fixed_from_moving, "rigid")
+    entry_now, pattern_why = None, ""
+    if estimator == "pattern":
+        if pattern is None:
+            pattern_why = "no breathing pattern for this registration"
+        else:
+            try:
+                entry_now = pattern.entry_mm(ok, ref, live, entry_mm)
+            except ValueError as exc:
+                pattern_why = f"breathing pattern: {exc}"
     tps_row, tps_why = None, ""
-    if estimator == "local-tps" and n < TPS_MIN_MARKERS:
-        tps_why = f"{n} markers seen: the local spline needs {TPS_MIN_MARKERS}"
-    elif estimator == "local-tps":
-        try:
-            tps_row = _tps_row(ref.tobytes(), np.ascontiguousarray(entry_mm, dtype=np.float64).tobytes())[0]
-        except ValueError as exc:
-            tps_why = f"local spline: {exc}"
+    if estimator == "local-tps" or (estimator == "pattern" and entry_now is None):
+        tps_row, tps_why = _spline_row(ref, entry_mm)
     local = _local(ref, live, entry_mm, weight_sigma_mm, tps_row)
     if local is None:
         return fit(rigid.T_fixed_from_moving, "rigid",
@@ -197,6 +210,19 @@ def estimate_change(reference_mm: FloatArray, live_mm: FloatArray, entry_mm: Flo
     weighted, tps = local
     if estimator == "weighted":
         return fit(weighted, "weighted")
+    if entry_now is not None:   # the entry where the patterns put it, the weighted fit's rotation
+        moved = RigidTransform.from_translation(entry_now - weighted.apply(entry_mm)) @ weighted
+        return fit(moved, "pattern")
     if tps is None:
-        return fit(weighted, "weighted", tps_why)
-    return fit(tps, "local-tps")
+        return fit(weighted, "weighted", "; ".join(w for w in (pattern_why, tps_why) if w))
+    return fit(tps, "local-tps", pattern_why)
+
+
+def _spline_row(ref: FloatArray, entry_mm: FloatArray) -> tuple[FloatArray | None, str]:
+    """``local-tps``'s row at the entry for the seen reference markers, or None and why not."""
+    if len(ref) < TPS_MIN_MARKERS:
+        return None, f"{len(ref)} markers seen: the local spline needs {TPS_MIN_MARKERS}"
+    try:
+        return _tps_row(ref.tobytes(), np.ascontiguousarray(entry_mm, dtype=np.float64).tobytes())[0], ""
+    except ValueError as exc:
+        return None, f"local spline: {exc}"

@@ -188,13 +188,18 @@ class CompensationConfig(BaseModel):
     bias_max_speed_mm_s: float = Field(3.0, gt=0, description="update the optical bias only slower than this")
     settle_s: float = Field(0.3, ge=0, description="error must stay under lock tolerance this long")
     timeout_s: float = Field(60.0, gt=0)
-    estimator: Literal["rigid", "weighted", "local-tps"] = Field(
+    estimator: Literal["rigid", "weighted", "local-tps", "pattern"] = Field(
         "rigid", description="how the change is estimated from the skin markers (docs/compensation.md): "
                              "rigid (all markers), weighted (markers near the entry), local-tps (the "
-                             "entry's own displacement by a thin-plate spline)")
+                             "entry's own displacement by a thin-plate spline), pattern (the entry's "
+                             "displacement by the 4D CT's breathing patterns; needs the entry in the "
+                             "plan's phases)")
     weight_sigma_mm: float = Field(
-        60.0, gt=0, le=1000, description="weighted / local-tps: a marker's weight is exp(-(d/sigma)^2), "
-                                         "d its distance from the entry")
+        60.0, gt=0, le=1000, description="weighted / local-tps / pattern: a marker's weight is "
+                                         "exp(-(d/sigma)^2), d its distance from the entry")
+    pattern_residual_mm: float = Field(
+        2.0, gt=0, description="pattern: per-marker RMS residual of the markers from the 4D CT's breathing "
+                               "patterns beyond which a pair falls back to local-tps")
     deformation_bound_mm: float = Field(
         4.0, gt=0, description="rigid-fit residual of the skin markers beyond which the body no longer moves "
                                "as the model explains: pause, ask the operator")

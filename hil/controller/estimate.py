@@ -28,6 +28,7 @@ from drivers.interfaces.tracker import TrackerSample
 from hil.controller.change_estimate import ChangeFit
 from hil.controller.compensation import ChangePredictor, MotionFilter, interpolate_pose
 from hil.controller.config import ProcedureConfig
+from hil.controller.entry_pattern import EntryPattern, EntryRows, fit_entry_pattern
 from hil.controller.gate import BreathHoldGate, GateMeasures, gate_measures, rms_deviation_mm
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, RigGeometry
@@ -66,7 +67,8 @@ class Estimate:
         ConfigError: a predictor other than alpha-beta without a camera rate.
         PredictionError: a camera rate that is not a finite number > 0 for it.
         InputFileError: ``target_model = "surrogate"`` with a plan whose 4D CT cannot carry the
-            model (hil/controller/target_model.py :func:`fit_target_model`).
+            model (hil/controller/target_model.py :func:`fit_target_model`); ``estimator =
+            "pattern"`` with one that cannot carry that (hil/controller/entry_pattern.py).
     """
 
     def __init__(self, plan: ProcedurePlan, rig: RigGeometry, cfg: ProcedureConfig,
@@ -92,6 +94,11 @@ class Estimate:
         self.target_model: SurrogateTargetModel | None = (
             fit_target_model(plan, c.target_model_residual_mm, c.target_model_max_turn_deg)
             if c.target_model == "surrogate" else None)
+        #: the ``pattern`` estimator's model (hil/controller/entry_pattern.py), fitted to the plan's
+        #: 4D CT, and its rows for the current registration (:meth:`accept_registration`)
+        self.entry_pattern: EntryPattern | None = (fit_entry_pattern(plan) if c.estimator == "pattern"
+                                                   else None)
+        self.entry_rows: EntryRows | None = None
         #: the model in the loop (the score's rate from pair to pair)
         self.target_tracker = None if self.target_model is None else TargetTracker(self.target_model)
         #: the last pair's use of it (None: no model, or no change measured this pair)
@@ -133,6 +140,10 @@ class Estimate:
         """A new registration: the live set starts at the reference, the gate is rebuilt."""
         self.patient_reg, self.robot_reg = preg, rreg
         self.T_center = RigidTransform.from_translation(preg.T_optical_from_image.apply(self.plan.entry_mm))
+        if self.entry_pattern is not None:
+            self.entry_rows = self.entry_pattern.registered(
+                preg.T_optical_from_image, preg.reference_optical_mm, self.T_center.t,
+                self.comp_cfg.pattern_residual_mm)
         self.gate = None
         self.live_mm = preg.reference_optical_mm.copy()
         if self.target_tracker is not None:

@@ -74,7 +74,7 @@ class MarkerTracker:
         est.live_mm = live
         c = est.comp_cfg
         t0 = time.perf_counter_ns()   # the estimator's cost (hil/controller/cost.py), not control
-        fit = estimate_change(ref, live, est.T_center.t, c.estimator, c.weight_sigma_mm)
+        fit = estimate_change(ref, live, est.T_center.t, c.estimator, c.weight_sigma_mm, est.entry_rows)
         change = None if fit is None else fit.T_live_from_ref
         est.target_steer = None
         if change is not None and est.target_tracker is not None:

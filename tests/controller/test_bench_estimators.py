@@ -22,8 +22,8 @@ def test_json_has_every_estimator() -> None:
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
     assert (out["markers"], out["calls"], out["budget_over_rigid_ms"]) == (6, 100, 0.2)
-    assert list(out["estimators"]) == ["rigid", "weighted", "local-tps", "rigid+surrogate",
-                                       "weighted+surrogate", "local-tps+surrogate"]
+    assert list(out["estimators"]) == ["rigid", "weighted", "local-tps", "pattern", "rigid+surrogate",
+                                       "weighted+surrogate", "local-tps+surrogate", "pattern+surrogate"]
     for row in out["estimators"].values():
         assert set(row) == {"p50_ms", "p99_ms", "max_ms", "over_rigid_p50_ms"}
         assert 0.0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"]
@@ -36,7 +36,7 @@ def test_numpy_times_the_reference_code() -> None:
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
     assert out["kernel"] == "numpy (--numpy)"
-    assert len(out["estimators"]) == 6
+    assert len(out["estimators"]) == 8
 
 
 def test_too_few_markers_is_a_usage_error() -> None:

@@ -3,17 +3,22 @@ lock; a body that no longer moves as one pauses for the operator and the arm is 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from drivers.sim.planning_ct import four_d_ct_plan
+from hil.cli import main
 from hil.cli.cmd_run import run_procedure
 from hil.config import load_setup
 from hil.config.faults import FaultKind, FaultSpec
 from hil.config.setup import SetupConfig
 from hil.controller.metrics import RunSummary
-from hil.controller.plan_file import load_plan
+from hil.controller.plan_file import load_plan, plan_from_dict
 from hil.session import read_session_log
+from tests.benchtools import load_bench
 
 CONFIG = Path("configs/sim_patient.toml")
 PLAN = load_plan("configs/plans/sim_patient_plan.json")
@@ -126,3 +131,46 @@ def test_a_hold_budget_longer_than_the_hold_is_refused() -> None:
     with pytest.raises(ValidationError, match=r"min_hold_left_s \(8.0 s\) must be shorter than"):
         GateConfig(hold_request_s=8.0, min_hold_left_s=8.0)
     assert GateConfig(hold_request_s=3.0, min_hold_left_s=None).min_hold_left_s is None
+
+
+@pytest.mark.slow
+def test_following_free_breathing_the_pattern_puts_the_entry_nearer(tmp_path: Path) -> None:
+    """tools/bench accuracy's free-breathing run (the gate opens at once, 12 s of compensation) on
+    one seed and its 4D CT (the entry at every phase): ``pattern`` says so on every pair and puts the
+    path's entry (``PathSample.entry_at_pair_mm``: the estimate against the truth when its pair was
+    taken, before the rig's and the arm's errors) nearer the true entry than ``local-tps`` (issue 41
+    point 1; docs/compensation.md "The entry")."""
+    bench = load_bench("bench_accuracy", "bench_accuracy_for_pattern")
+    entry_p95: dict[str, float] = {}
+    for estimator in ("local-tps", "pattern"):
+        setup = _setup(estimator)
+        sim = setup.simulation.model_copy(update={"breathing": setup.simulation.breathing.model_copy(
+            update=bench.BENCH_BREATHING)})
+        setup = setup.model_copy(update={"simulation": sim})
+        plan = plan_from_dict(four_d_ct_plan(sim), "ct")
+        follow, _ = bench._follow_run(CONFIG, setup, plan, tmp_path / estimator, 12.0)
+        path_entry = [x for x in follow["path_entry"] if np.isfinite(x)]
+        assert len(path_entry) > 100
+        entry_p95[estimator] = float(np.percentile(path_entry, 95))
+        log = max((tmp_path / estimator).glob("*.jsonl"), key=lambda p: p.stat().st_mtime)
+        steps = [r for r in read_session_log(log) if r["event"] == "compensation_step"]
+        assert {r["estimator"] for r in steps} == {estimator}
+    assert entry_p95["pattern"] < 0.5 * entry_p95["local-tps"], entry_p95
+
+
+def test_hil_run_refuses_the_pattern_without_the_entry_in_the_4d_ct(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cal = (Path("configs") / "calibration" / "sim_stereo.json").resolve()
+    cfg = tmp_path / "pattern.toml"
+    cfg.write_text(CONFIG.read_text().replace('stereo = "calibration/sim_stereo.json"', f'stereo = "{cal}"')
+                   + '\n[procedure.compensation]\nestimator = "pattern"\n')
+    doc = four_d_ct_plan(_setup().simulation)
+    for phase in doc["phases"]:
+        del phase["entry_mm"]
+    plan = tmp_path / "ct.json"
+    plan.write_text(json.dumps(doc))
+    code = main(["run", str(cfg), "--plan", str(plan), "--auto", "--session-dir", str(tmp_path / "s")])
+    assert code == 2
+    want = (f"hil run: error: {plan}: the pattern estimator needs the entry at every phase of the 4D CT "
+            "('entry_mm' in each of the plan's 'phases')\n")
+    assert capsys.readouterr().err == want

@@ -146,18 +146,20 @@ def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Pa
 
 def _with_4d_ct(plan: ProcedurePlan, setup: SetupConfig) -> ProcedurePlan:
     """``plan`` with this seed's simulated 4D CT (drivers/sim/planning_ct.py) when the surrogate
-    target model needs one and the plan has none; else ``plan``.
+    target model or the pattern estimator needs one and the plan has none; else ``plan``.
 
     Raises:
         InputFileError: the simulated patient cannot give a 4D CT (a rigid phantom, a trace-driven
             body), naming the plan.
     """
-    if setup.procedure.compensation.target_model != "surrogate" or plan.phases:
+    c = setup.procedure.compensation
+    if (c.target_model != "surrogate" and c.estimator != "pattern") or plan.phases:
         return plan
     try:
         phases = four_d_ct_phases(setup.simulation)
     except ValueError as exc:
-        raise InputFileError(plan.source, f"no phases for the surrogate target model, and {exc}") from None
+        raise InputFileError(plan.source, f"no phases for the surrogate target model or the pattern "
+                                          f"estimator, and {exc}") from None
     doc = {"format": "hil-plan", "version": 1, "fiducials_mm": plan.fiducials_mm.tolist(),
            "entry_mm": plan.entry_mm.tolist(), "target_mm": plan.target_mm.tolist(), "phases": phases,
            "phases_period_s": setup.simulation.breathing.period_s}

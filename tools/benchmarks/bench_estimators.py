@@ -5,7 +5,8 @@ Run: ``tools/bench estimators [--json] [--markers N] [--calls N] [--seed S] [--n
 
 Times :func:`hil.controller.change_estimate.estimate_change` for each estimator on one synthetic
 skin (N markers on a gently curved patch, a small rigid change plus 0.5 mm of non-rigid noise),
-as the controller calls it once per registered pair, and each estimator followed by the surrogate
+as the controller calls it once per registered pair (``pattern`` with its rows fitted to the 4D CT
+below), and each estimator followed by the surrogate
 target model's steering as the loop runs it (``<estimator>+surrogate``: the score, its rate and
 the faded turn of hil/controller/target_model.py's ``TargetTracker``, fitted to a synthetic
 10-phase 4D CT of the same skin). ``--numpy`` times the numpy reference code instead of the
@@ -20,12 +21,15 @@ estimator and target model set in the config.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
+from collections.abc import Callable
 
 import numpy as np
 
-from hil.controller.change_estimate import CHANGE_ESTIMATORS, ChangeFit, estimate_change
+from hil.controller.change_estimate import ChangeEstimator, ChangeFit, estimate_change
+from hil.controller.entry_pattern import EntryRows, fit_entry_pattern
 from hil.controller.plan_file import PlanPhase, ProcedurePlan
 from hil.controller.target_model import SurrogateTargetModel, TargetTracker, fit_target_model
 from hil.geometry import native
@@ -45,40 +49,48 @@ def _skin(markers: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _model(ref: np.ndarray, entry: np.ndarray,
-           seed: int) -> tuple[SurrogateTargetModel, ProcedurePlan, np.ndarray]:
-    """A surrogate model fitted to a 10-phase 4D CT of the skin ``ref`` (image = optical frame):
-    the markers move anteriorly 0-12 mm with a pattern varying over the skin, the target 0.65 mm
-    superior-inferior per mm of score; and live markers mid-breath on that pattern (0.3 mm noise),
-    so the timed steering takes the model's path, not a fallback."""
+           seed: int) -> tuple[SurrogateTargetModel, EntryRows, ProcedurePlan, np.ndarray]:
+    """A surrogate model and the ``pattern`` estimator's rows fitted to a 10-phase 4D CT of the skin
+    ``ref`` (image = optical frame): the markers move anteriorly 0-12 mm with a pattern varying over
+    the skin, the entry 0.9 mm and the target 0.65 mm superior-inferior per mm of score; and live
+    markers mid-breath on that pattern (0.3 mm noise), so the timed steering takes the model's path,
+    not a fallback."""
     rng = np.random.default_rng(seed + 1)
     pattern = np.column_stack([0.1 * rng.normal(size=len(ref)), 0.2 * rng.normal(size=len(ref)),
                                1.0 + 0.3 * rng.normal(size=len(ref))])
     target = entry + np.array([10.0, 8.0, -75.0])
-    phases = tuple(PlanPhase(ref + s * pattern, target + s * np.array([0.0, -0.65, 0.1]) * 1.2)
+    phases = tuple(PlanPhase(ref + s * pattern, target + s * np.array([0.0, -0.65, 0.1]) * 1.2,
+                             entry + s * np.array([0.0, 0.1, 0.9]))
                    for s in 12.0 * np.sin(np.linspace(0.3, np.pi - 0.3, 9)) ** 2)
     plan = ProcedurePlan(ref, entry, target, "<bench>", phases)
     live = ref + 6.0 * pattern + rng.normal(0.0, 0.3, size=ref.shape)
-    return fit_target_model(plan, 2.0, 10.0), plan, live
+    rows = fit_entry_pattern(plan).registered(RigidTransform.identity(), ref, entry)
+    return fit_target_model(plan, 2.0, 10.0), rows, plan, live
 
 
 def bench(markers: int, calls: int, seed: int) -> dict[str, dict[str, float]]:
     """Per row: ``p50_ms``, ``p99_ms``, ``max_ms`` of one call, and ``over_rigid_p50_ms``."""
     ref, live, entry = _skin(markers, seed)
-    model, plan, breathing = _model(ref, entry, seed)
+    model, rows_model, plan, breathing = _model(ref, entry, seed)
     identity = RigidTransform.identity()
     tracker = TargetTracker(model)
     exposure_ns = [0]
 
-    def steered(name: str) -> None:
+    def steered(name: ChangeEstimator) -> None:
         exposure_ns[0] += 33_333_333                 # a pair every camera period at 30 Hz
-        fit: ChangeFit | None = estimate_change(ref, breathing, entry, name, 40.0)  # type: ignore[arg-type]
-        if fit is None or tracker.steer(fit.T_live_from_ref, ref, breathing, plan, identity,
-                                        exposure_ns[0]).fallback:
+        fit: ChangeFit | None = estimate_change(ref, breathing, entry, name, 40.0, rows_model)
+        if fit is None or fit.fallback or tracker.steer(fit.T_live_from_ref, ref, breathing, plan, identity,
+                                                        exposure_ns[0]).fallback:
             raise RuntimeError("the bench's breathing skin fell back: it would time the wrong path")
 
-    rows = {name: (lambda n=name: estimate_change(ref, live, entry, n, 40.0))  # type: ignore[misc]
-            for name in CHANGE_ESTIMATORS}
-    rows |= {f"{name}+surrogate": (lambda n=name: steered(n)) for name in CHANGE_ESTIMATORS}
+    def alone(name: ChangeEstimator) -> None:
+        fit = estimate_change(ref, live, entry, name, 40.0, rows_model)
+        if fit is None or fit.fallback:
+            raise RuntimeError(f"{name} fell back on the bench's skin: it would time the wrong path")
+
+    names: tuple[ChangeEstimator, ...] = ("rigid", "weighted", "local-tps", "pattern")
+    rows: dict[str, Callable[[], None]] = {name: functools.partial(alone, name) for name in names}
+    rows |= {f"{name}+surrogate": functools.partial(steered, name) for name in names}
     out: dict[str, dict[str, float]] = {}
     for name, call in rows.items():
         for _ in range(WARMUP_CALLS):
