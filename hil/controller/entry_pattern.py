@@ -47,8 +47,10 @@ falls back and says by how much. It needs :data:`MIN_MARKERS` seen markers whose
 conditioned (:data:`MIN_CONDITION`); else the pair falls back to ``local-tps`` (then
 ``weighted``) and says why. The CT's localisation error passes into ``C``.
 
-Cost per pair: the ``weighted`` fit (compiled) and two ((r + 6) x 3n) products; the solver runs
-once per set of seen markers.
+Cost per pair: the ``weighted`` fit and the entry's arithmetic, both compiled
+(hil/geometry/_native.c ``local_change``, ``pattern_entry``; :func:`entry_numpy` is the reference
+it is tested against and what runs when the numpy code is selected, :mod:`hil.geometry.native`);
+the solve runs once per set of seen markers.
 """
 
 from __future__ import annotations
@@ -60,12 +62,13 @@ from numpy.typing import NDArray
 
 from hil.controller.plan_file import ProcedurePlan
 from hil.errors import InputFileError
+from hil.geometry import native
 from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 
 FloatArray = NDArray[np.float64]
 
 __all__ = ["MAX_PATTERNS", "MIN_CONDITION", "MIN_MARKERS", "PATTERN_SHARE", "EntryPattern", "EntryRows",
-           "fit_entry_pattern"]
+           "Solver", "entry_numpy", "fit_entry_pattern"]
 
 #: the most breathing patterns the model keeps (thoracic and abdominal breathing)
 MAX_PATTERNS = 2
@@ -134,17 +137,11 @@ class EntryRows:
     at_entry: FloatArray
     #: a pair whose markers the model leaves more than this off (per-marker RMS, mm) is refused
     residual_bound_mm: float = 2.0
-    _rows: dict[bytes, FloatArray | str] = field(default_factory=dict, repr=False)
+    _rows: dict[bytes, Solver | str] = field(default_factory=dict, repr=False)
 
-    @property
-    def patterns(self) -> int:
-        """r: the breathing patterns the model holds."""
-        return int(self.at_entry.shape[1]) - 6
-
-    def solver(self, seen: NDArray[np.bool_]) -> FloatArray:
-        """``B[seen]^+`` (r + 6, 3n) for the seen markers (``seen``: (N,) mask in the plan's order):
-        the patterns' scores, the translation and the rotation (about the entry) from the seen
-        markers' stacked displacements (n, 3) flattened. Read-only; solved once per set.
+    def solver(self, seen: NDArray[np.bool_]) -> Solver:
+        """The :class:`Solver` of the seen markers (``seen``: (N,) mask in the plan's order), solved
+        once per set and kept.
 
         Raises:
             ValueError: fewer than :data:`MIN_MARKERS` seen, or a basis they cannot carry (the
@@ -166,29 +163,27 @@ class EntryRows:
         """Where the model puts the entry (optical, mm) for the seen markers' reference and live
         positions (n, 3) and the entry at registration (module doc): the linear solve, then once
         more with the live markers pulled back by the rigid motion it found, so that a turn since
-        registration does not mix with the breathing (the cross term of the first solve).
+        registration does not mix with the breathing (the cross term of the first solve). Compiled
+        (``pattern_entry``) when selected and able, else :func:`entry_numpy`.
 
         Raises:
             ValueError: as :meth:`solver`; or the markers the model leaves more than
                 ``residual_bound_mm`` off (per-marker RMS after the second solve: a cough, a new
                 way of breathing, a marker swapped), saying by how much.
         """
-        P, r = self.solver(seen), self.patterns
-        params = P @ (live_mm - reference_mm).reshape(-1)
-        R = rotvec_to_matrix(params[r + 3:r + 6])
-        shift = params[r:r + 3]
-        pulled = (live_mm - entry_mm - shift) @ R + entry_mm          # R^T (x - e - t) + e, per row
-        moved = (pulled - reference_mm).reshape(-1)
-        params = P @ moved
-        unexplained = moved - self.basis[seen].reshape(len(moved), -1) @ params
-        resid_mm = float(np.sqrt(unexplained @ unexplained / len(reference_mm)))
+        sol = self.solver(seen)
+        k = native.active()
+        out = np.empty(4)
+        if k is None or k.pattern_entry(sol.P6, sol.E, sol.Q, reference_mm, live_mm,
+                                        np.ascontiguousarray(entry_mm, dtype=np.float64), out) != 0:
+            out = entry_numpy(sol, reference_mm, live_mm, entry_mm)
+        resid_mm = float(out[3])
         if not resid_mm <= self.residual_bound_mm:
             raise ValueError(f"the markers do not move as the 4D CT's breathing patterns (per-marker RMS "
                              f"residual {resid_mm:.2f} mm beyond {self.residual_bound_mm} mm)")
-        out: FloatArray = R @ (self.at_entry @ params) + entry_mm + shift
-        return out
+        return out[:3]
 
-    def _solve(self, seen: NDArray[np.bool_]) -> FloatArray | str:
+    def _solve(self, seen: NDArray[np.bool_]) -> Solver | str:
         n = int(seen.sum())
         if n < MIN_MARKERS:
             return f"{n} markers seen: the breathing pattern needs {MIN_MARKERS}"
@@ -201,8 +196,40 @@ class EntryRows:
             return (f"the seen markers cannot tell the breathing patterns from a rigid motion "
                     f"(condition {sv[0] / max(float(sv[-1]), 1e-300):.0f})")
         P = np.asarray(np.linalg.pinv(B), dtype=np.float64)
-        P.setflags(write=False)
-        return P
+        r = P.shape[0] - 6
+        return Solver(P6=_frozen(P[r:]), E=_frozen(self.at_entry @ P), Q=_frozen(np.eye(3 * n) - B @ P))
+
+
+@dataclass(frozen=True)
+class Solver:
+    """One set of seen markers' solve (read-only, C-contiguous; n seen markers): ``P6`` (6, 3n) the
+    rows of ``B[seen]^+`` that give the translation and the rotation vector; ``E`` (3, 3n) the
+    entry's displacement ``B_e B[seen]^+``; ``Q`` (3n, 3n) what the model leaves, ``I - B B^+``."""
+
+    P6: FloatArray
+    E: FloatArray
+    Q: FloatArray
+
+
+def _frozen(a: FloatArray) -> FloatArray:
+    out = np.ascontiguousarray(a, dtype=np.float64)
+    out.setflags(write=False)
+    return out
+
+
+def entry_numpy(sol: Solver, reference_mm: FloatArray, live_mm: FloatArray,
+                entry_mm: FloatArray) -> FloatArray:
+    """:meth:`EntryRows.entry_mm`'s arithmetic in numpy (the reference of the compiled
+    ``pattern_entry``): (4,) the entry (optical, mm) and the per-marker RMS residual (mm)."""
+    p6 = sol.P6 @ (live_mm - reference_mm).reshape(-1)
+    R = rotvec_to_matrix(p6[3:6])
+    shift = p6[:3]
+    moved = ((live_mm - entry_mm - shift) @ R + entry_mm - reference_mm).reshape(-1)   # R^T (.) per row
+    unexplained = sol.Q @ moved
+    out = np.empty(4)
+    out[:3] = R @ (sol.E @ moved) + entry_mm + shift
+    out[3] = np.sqrt(unexplained @ unexplained / len(reference_mm))
+    return out
 
 
 def fit_entry_pattern(plan: ProcedurePlan) -> EntryPattern:

@@ -1535,6 +1535,98 @@ done:
     return result;
 }
 
+/* ---- the pattern estimator's entry ------------------------------------------------------------ */
+
+PyDoc_STRVAR(pattern_entry_doc,
+"pattern_entry(P6, E, Q, reference, live, entry, out) -> int\n\n"
+"The 'pattern' estimator's entry (hil.controller.entry_pattern, the numpy reference\n"
+"entry_numpy): reference, live (N, 3) the seen markers (optical frame, mm); entry (3,) mm; P6 (6,\n"
+"3N) the rows of the basis's pseudo-inverse that give the translation and the rotation vector about\n"
+"the entry; E (3, 3N) the entry's displacement per marker displacement; Q (3N, 3N) the part of a\n"
+"marker displacement the model leaves. d = live - reference; (t, w) = P6 d; R = exp(w); the live\n"
+"markers pulled back, m_i = R^T (live_i - entry - t) + entry - reference_i; out (4,) = the entry\n"
+"R (E m) + entry + t, then the per-marker RMS of Q m (mm). Returns 0; -1 (out undefined) when a\n"
+"value is not finite or N > 64: the numpy code decides. TypeError / ValueError for a bad buffer.");
+
+static PyObject *k_pattern_entry(PyObject *self, PyObject *args)
+{
+    static const BufSpec spec[7] = {
+        {"P6", 2, {6, -1}, 0}, {"E", 2, {3, -1}, 0}, {"Q", 2, {-1, -1}, 0}, {"reference", 2, {-1, 3}, 0},
+        {"live", 2, {-1, 3}, 0}, {"entry", 1, {3}, 0}, {"out", 1, {4}, 1}};
+    PyObject *o[7];
+    double *q[7];
+    if (!PyArg_ParseTuple(args, "OOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6])) {
+        return NULL;
+    }
+    Py_buffer views[7];
+    PyObject *result = NULL;
+    if (get_all(o, spec, 7, views, q) != 0) {
+        goto done;
+    }
+    Py_ssize_t n = views[3].shape[0], m = 3 * n;
+    if (views[4].shape[0] != n) {
+        PyErr_Format(PyExc_ValueError, "pattern_entry: live has %zd rows, the reference %zd", views[4].shape[0],
+                     n);
+        goto done;
+    }
+    if (views[0].shape[1] != m || views[1].shape[1] != m || views[2].shape[0] != m || views[2].shape[1] != m) {
+        PyErr_Format(PyExc_ValueError, "pattern_entry: P6, E and Q must have 3N = %zd columns (Q %zd rows)", m,
+                     m);
+        goto done;
+    }
+    if (n > TARGET_MAX_MARKERS || n < 1) {
+        result = PyLong_FromLong(-1);
+        goto done;
+    }
+    const double *P6 = q[0], *E = q[1], *Q = q[2], *ref = q[3], *live = q[4], *entry = q[5];
+    double d[3 * TARGET_MAX_MARKERS], moved[3 * TARGET_MAX_MARKERS], p6[6] = {0.0}, R[9];
+    for (Py_ssize_t k = 0; k < m; k++) {
+        d[k] = live[k] - ref[k];
+    }
+    for (int r = 0; r < 6; r++) {
+        for (Py_ssize_t k = 0; k < m; k++) {
+            p6[r] += P6[r * m + k] * d[k];
+        }
+    }
+    if (!all_finite(p6, 6) || rodrigues(p6 + 3, R) != 0) {
+        result = PyLong_FromLong(-1);
+        goto done;
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {   /* R^T (live_i - entry - t) + entry - reference_i */
+        double a[3], b[3];
+        for (int j = 0; j < 3; j++) {
+            a[j] = live[3 * i + j] - entry[j] - p6[j];
+        }
+        mat3t_vec(R, a, b);
+        for (int j = 0; j < 3; j++) {
+            moved[3 * i + j] = b[j] + entry[j] - ref[3 * i + j];
+        }
+    }
+    double de[3] = {0.0, 0.0, 0.0}, ss = 0.0, rde[3];
+    for (int j = 0; j < 3; j++) {
+        for (Py_ssize_t k = 0; k < m; k++) {
+            de[j] += E[j * m + k] * moved[k];
+        }
+    }
+    for (Py_ssize_t r = 0; r < m; r++) {
+        double u = 0.0;
+        for (Py_ssize_t k = 0; k < m; k++) {
+            u += Q[r * m + k] * moved[k];
+        }
+        ss += u * u;
+    }
+    mat3_vec(R, de, rde);
+    double *out = q[6];
+    for (int j = 0; j < 3; j++) {
+        out[j] = rde[j] + entry[j] + p6[j];
+    }
+    out[3] = sqrt(ss / (double)n);
+    result = PyLong_FromLong(all_finite(out, 4) ? 0 : -1);
+done:
+    release(views, 7);
+    return result;
+}
+
 /* ---- module --------------------------------------------------------------------------------- */
 
 static PyMethodDef native_methods[] = {
@@ -1550,6 +1642,7 @@ static PyMethodDef native_methods[] = {
     {"target_turn", k_target_turn, METH_VARARGS, target_turn_doc},
     {"turn_about", k_turn_about, METH_VARARGS, turn_about_doc},
     {"local_change", k_local_change, METH_VARARGS, local_change_doc},
+    {"pattern_entry", k_pattern_entry, METH_VARARGS, pattern_entry_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -5,15 +5,18 @@ motion; too few markers fall back and say why; a plan that cannot carry the mode
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hil.controller.change_estimate import estimate_change
-from hil.controller.entry_pattern import EntryRows, fit_entry_pattern
+from hil.controller.entry_pattern import EntryRows, entry_numpy, fit_entry_pattern
 from hil.controller.plan_file import PlanPhase, ProcedurePlan
 from hil.errors import InputFileError
+from hil.geometry import native
 from hil.geometry.transform import RigidTransform
 from tests.geometry.strategies import rigid_transforms
 
@@ -118,8 +121,61 @@ def test_the_solver_is_kept_per_seen_set() -> None:
     seen = np.ones(6, dtype=np.bool_)
     first = rows.solver(seen)
     assert rows.solver(seen.copy()) is first
-    assert not first.flags.writeable
-    assert first.shape == (2 + 6, 18)
+    assert (first.P6.shape, first.E.shape, first.Q.shape) == ((6, 18), (3, 18), (18, 18))
+    assert [a.flags.writeable for a in (first.P6, first.E, first.Q)] == [False, False, False]
+
+
+def _both(rows: EntryRows, seen: np.ndarray, ref: np.ndarray, live: np.ndarray,
+          entry: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The compiled ``pattern_entry``'s (4,) out and :func:`entry_numpy`'s for the same solve."""
+    assert native.is_built(), native.native_status()
+    previous = native.use_native(True)
+    try:
+        k = native.active()
+        assert k is not None
+        sol = rows.solver(seen)
+        out = np.full(4, np.nan)
+        assert k.pattern_entry(sol.P6, sol.E, sol.Q, ref, live, entry, out) == 0
+    finally:
+        native.use_native(previous)
+    return out, entry_numpy(sol, ref, live, entry)
+
+
+@settings(max_examples=150, deadline=None)
+@given(T_reg=rigid_transforms(500.0), M=rigid_transforms(20.0), s1=st.floats(-3.0, 15.0),
+       s2=st.floats(-3.0, 12.0), unseen=st.sampled_from([None, 1, 4]), seed=st.integers(0, 2**32 - 1))
+def test_the_compiled_entry_agrees_with_numpy(T_reg: RigidTransform, M: RigidTransform, s1: float, s2: float,
+                                              unseen: int | None, seed: int) -> None:
+    markers, _ = _body(np.array([s1, s2]))
+    ref, entry = T_reg.apply(MARKERS_MM), T_reg.apply(ENTRY_MM)
+    live = M.apply(T_reg.apply(markers)) + np.random.default_rng(seed).normal(0.0, 0.3, size=(6, 3))
+    seen = np.ones(6, dtype=np.bool_)
+    if unseen is not None:
+        seen[unseen] = False
+    got, want = _both(_rows(T_reg), seen, np.ascontiguousarray(ref[seen]), np.ascontiguousarray(live[seen]),
+                      entry)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize(("case", "error", "message"), [
+    ("int", TypeError, "reference: expected float64 items"),
+    ("rows", ValueError, "pattern_entry: live has 5 rows, the reference 6"),
+    ("columns", ValueError, "pattern_entry: P6, E and Q must have 3N = 18 columns"),
+])
+def test_a_bad_buffer_is_named(case: str, error: type[Exception], message: str,
+                               compiled_geometry: Any) -> None:
+    k = compiled_geometry
+    sol = _rows(RigidTransform.identity()).solver(np.ones(6, dtype=np.bool_))
+    ref, live, out = MARKERS_MM.copy(), MARKERS_MM.copy(), np.empty(4)
+    P6 = sol.P6
+    if case == "int":
+        ref = ref.astype(np.int64)
+    elif case == "rows":
+        live = live[:5].copy()
+    else:
+        P6 = np.ascontiguousarray(P6[:, :15])
+    with pytest.raises(error, match=message):
+        k.pattern_entry(P6, sol.E, sol.Q, ref, live, ENTRY_MM.copy(), out)
 
 
 def test_the_fit_holds_both_patterns() -> None:
