@@ -18,10 +18,10 @@ what they assume of the body (docs/compensation.md):
   says so), and extrapolates affinely outside their hull.
 - ``pattern`` — the entry moved by how the 4D CT shows it moving with the markers
   (hil/controller/entry_pattern.py): the markers' displacements mapped to the entry's through the
-  CT's breathing patterns and the linearised rigid motions; the rotation is the weighted fit's. Assumes the
-  patient breathes with the CT's patterns; needs the entry at every phase of the plan's 4D CT and
-  4 seen markers that carry the patterns (else it falls back to ``local-tps``, then ``weighted``,
-  and says why).
+  CT's breathing patterns and the linearised rigid motions; the rotation is the weighted fit's.
+  Assumes the patient breathes with the CT's patterns; needs the entry at every phase of the
+  plan's 4D CT and 4 seen markers that carry the patterns (else it falls back to ``local-tps``,
+  then ``weighted``, and says why).
 
 ``weighted``'s and ``local-tps``'s per-pair arithmetic after the spline's row (weights, the
 weighted fit, the spline's step) is compiled (hil/geometry/_native.c ``local_change``);
