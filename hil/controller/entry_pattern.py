@@ -6,8 +6,9 @@ spline over markers tens of mm apart; where the skin's displacement varies over 
 (amplitude and direction change across the skin, thoracic and abdominal breathing blend) the
 spline misses it. On the simulated patient with the markers' true positions, the spline leaves
 the entry p50 / p95 0.29 / 2.60 mm off over free breathing (seeds 1-12, 55 s each); this model
-0.13 / 0.65 mm (docs/benchmarks.md, tenth session). A 4D CT shows the skin at every phase, the
-entry with it: how the entry moves with the markers is then measured, not interpolated.
+0.12 / 0.62 mm (``tools/bench entry``; docs/benchmarks.md, tenth session). A 4D CT shows the
+skin at every phase, the entry with it: how the entry moves with the markers is then measured, not
+interpolated.
 
 **The model** (fitted once from the plan's ``phases`` that give ``entry_mm``,
 hil/controller/plan_file.py). With ``F_0``, ``e_0`` the registered phase (end-exhale) and ``F_k``,
