@@ -1265,15 +1265,13 @@ PyDoc_STRVAR(target_turn_doc,
 "turn_numpy). reference, live, pattern (N, 3) as target_score; R_oi (3, 3), t_oi (3,)\n"
 "T_optical_from_image; entry, target (3,) the plan's (image frame, mm); a, b (3,) the target per\n"
 "mm of score and per mm/s of rate; R_change (3, 3), t_change (3,) the estimator's\n"
-"T_live_from_ref; z (mm), rate (mm/s). T_breath is Horn's fit of the seen reference rows onto\n"
-"themselves displaced by z R_oi u; the target z a + rate b from the plan's, moved by\n"
-"T_change T_breath^-1; d0 the changed planned direction, d1 from the changed entry to the moved\n"
-"target. Writes out (5,) = [rotation vector of the smallest rotation taking d0 onto d1 (3, rad),\n"
-"its angle atan2(|d0 x d1|, d0 . d1) (deg), |z a + rate b| (mm)]. Returns 0; -1 (out undefined)\n"
-"when the numpy code must decide: more than 64 seen rows, the breathing fit refused (fewer than\n"
-"3 seen, a degenerate set: the numpy code names why), z or rate not finite, or a path shorter\n"
-"than 1 mm (from the entry to the target, planned or modelled). TypeError / ValueError for a bad\n"
-"buffer.");
+"T_live_from_ref; z (mm), rate (mm/s). The target z a + rate b from the plan's, moved by the\n"
+"seen rows' mean of live - reference - z R_oi u (what the markers moved beyond the pattern);\n"
+"d0 the changed planned direction, d1 from the changed entry to the moved target. Writes out\n"
+"(5,) = [rotation vector of the smallest rotation taking d0 onto d1 (3, rad), its angle\n"
+"atan2(|d0 x d1|, d0 . d1) (deg), |z a + rate b| (mm)]. Returns 0; -1 (out undefined) when the\n"
+"numpy code must decide: no row seen, z or rate not finite, or a path shorter than 1 mm (from\n"
+"the entry to the target, planned or modelled). TypeError / ValueError for a bad buffer.");
 
 static PyObject *k_target_turn(PyObject *self, PyObject *args)
 {
@@ -1297,29 +1295,23 @@ static PyObject *k_target_turn(PyObject *self, PyObject *args)
     const double *Rc = q[9], *tc = q[10];
     double *out = q[11];
     Py_ssize_t n = views[0].shape[0], k = 0;
-    double fixed[3 * TARGET_MAX_MARKERS], moving[3 * TARGET_MAX_MARKERS], res[TARGET_MAX_MARKERS];
-    for (Py_ssize_t i = 0; i < n; i++) {   /* the seen rows, and the pattern's displacement of them */
+    double other[3] = {0.0, 0.0, 0.0};
+    for (Py_ssize_t i = 0; i < n; i++) {   /* the seen rows' mean displacement beyond the pattern */
         if (!row_seen(ref, live, i)) {
             continue;
-        }
-        if (k == TARGET_MAX_MARKERS) {
-            result = PyLong_FromLong(-1);
-            goto done;
         }
         double du[3];
         mat3_vec(R_oi, u + 3 * i, du);
         for (int j = 0; j < 3; j++) {
-            moving[3 * k + j] = ref[3 * i + j];
-            fixed[3 * k + j] = ref[3 * i + j] + z * du[j];
+            other[j] += live[3 * i + j] - ref[3 * i + j] - z * du[j];
         }
         k++;
     }
-    double Rb[9], tb[3];
-    if (!isfinite(z) || !isfinite(rate) || horn_solve(fixed, moving, NULL, k, Rb, tb, res) < 0.0) {
+    if (k == 0 || !isfinite(z) || !isfinite(rate)) {
         result = PyLong_FromLong(-1);
         goto done;
     }
-    double entry_ref[3], target_ref[3], shift[3], shift_o[3], p[3], qv[3], target_live[3], entry_live[3];
+    double entry_ref[3], target_ref[3], shift[3], shift_o[3], target_live[3], entry_live[3];
     mat3_vec(R_oi, q[5], entry_ref);
     mat3_vec(R_oi, q[6], target_ref);
     for (int j = 0; j < 3; j++) {
@@ -1328,15 +1320,12 @@ static PyObject *k_target_turn(PyObject *self, PyObject *args)
         shift[j] = z * q[7][j] + rate * q[8][j];
     }
     mat3_vec(R_oi, shift, shift_o);
-    for (int j = 0; j < 3; j++) {   /* T_breath^-1 (target_ref + R_oi shift) */
-        p[j] = target_ref[j] + shift_o[j] - tb[j];
-    }
-    mat3t_vec(Rb, p, qv);
-    mat3_vec(Rc, qv, target_live);
     mat3_vec(Rc, entry_ref, entry_live);
+    for (int j = 0; j < 3; j++) {   /* the modelled target, moved with what breathing leaves */
+        target_live[j] = target_ref[j] + shift_o[j] + other[j] / (double)k;
+    }
     double planned[3], d0[3], d1[3];
     for (int j = 0; j < 3; j++) {
-        target_live[j] += tc[j];
         entry_live[j] += tc[j];
         planned[j] = target_ref[j] - entry_ref[j];
     }

@@ -18,7 +18,7 @@ from hil.controller.plan_file import PlanPhase, ProcedurePlan
 from hil.controller.target_model import SurrogateTargetModel, TargetTracker, fit_target_model
 from hil.errors import InputFileError
 from hil.geometry.registration import register_horn
-from hil.geometry.transform import RigidTransform
+from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 from tests.geometry.strategies import rigid_transforms
 
 FIDUCIALS = np.array([[40.0, 0.0, 0.0], [-30.0, 25.0, 2.0], [0.0, -45.0, -3.0], [55.0, 50.0, -6.0],
@@ -79,17 +79,19 @@ def test_the_score_is_the_same_in_any_registration(T_oi: RigidTransform, z: floa
 
 @settings(max_examples=60, deadline=None)
 @given(T_oi=rigid_transforms(max_translation_mm=500.0), z=st.floats(0.0, 18.0),
-       shift=st.tuples(*[st.floats(-1.5, 1.5)] * 3))
+       shift=st.tuples(*[st.floats(-1.1, 1.1)] * 3))
 def test_the_steered_change_keeps_the_entry_and_aims_at_the_modelled_target(
         T_oi: RigidTransform, z: float, shift: tuple[float, float, float]) -> None:
-    """The change is breathing's own rigid part (what a rigid fit of the markers gives) after a
-    small shift of the patient: the entry stays where the change puts it; the path points from
-    there at the plan's target moved by the model's ``z a`` and by the shift."""
+    """The patient breathes and shifts a little on the table (across the pattern's mean direction,
+    so the score reads breathing alone; under the residual bound); the change is what a rigid fit
+    of the markers gives: the entry stays where the change puts it; the path points from there at
+    the plan's target moved by the model's ``z a`` and by the shift."""
     m = _model(turn=45.0)
     ref = T_oi.apply(FIDUCIALS)
-    live = T_oi.apply(FIDUCIALS + z * UNIT)
-    E = np.asarray(shift)
-    change = RigidTransform.from_translation(E) @ register_horn(live, ref).T_fixed_from_moving
+    across = T_oi.R @ UNIT.sum(axis=0)
+    E = np.asarray(shift) - (np.asarray(shift) @ across) / (across @ across) * across
+    live = T_oi.apply(FIDUCIALS + z * UNIT) + E
+    change = register_horn(live, ref).T_fixed_from_moving
     steer = m.steer(change, ref, live, _plan(), T_oi)
     assert steer.fallback == ""
     entry_ref = T_oi.apply(ENTRY).reshape(3)
@@ -102,10 +104,39 @@ def test_the_steered_change_keeps_the_entry_and_aims_at_the_modelled_target(
     assert steer.target_shift_mm == pytest.approx(z * float(np.linalg.norm(A_TRUE)), abs=1e-9)
 
 
+@settings(max_examples=60, deadline=None)
+@given(T_oi=rigid_transforms(max_translation_mm=500.0), z=st.floats(1.0, 18.0),
+       tilt=st.tuples(*[st.floats(-0.05, 0.05)] * 3))
+def test_the_skins_tilt_does_not_swing_the_target(T_oi: RigidTransform, z: float,
+                                                  tilt: tuple[float, float, float]) -> None:
+    """The markers move exactly by the pattern; the change turns with the skin about the entry
+    (a fit weighted near the entry tilts with the surface, up to 5 deg here): the path still
+    points at the plan's target moved by ``z a`` alone, not at a target turned with the surface
+    75 mm above it (the rule before the tenth session's measurement: 2.4 deg p95 off)."""
+    m = _model(turn=45.0)
+    ref = T_oi.apply(FIDUCIALS)
+    live = T_oi.apply(FIDUCIALS + z * UNIT)
+    entry_ref = T_oi.apply(ENTRY).reshape(3)
+    R = rotvec_to_matrix(np.asarray(tilt))
+    change = RigidTransform(R, entry_ref - R @ entry_ref + np.array([0.0, 0.0, 0.5]))
+    steer = m.steer(change, ref, live, _plan(), T_oi)
+    assert steer.fallback == ""
+    entry_live = change.apply(entry_ref).reshape(3)
+    want = T_oi.apply(TARGET + z * A_TRUE).reshape(3) - entry_live
+    path = steer.T_live_from_ref.R @ (T_oi.apply(TARGET).reshape(3) - entry_ref)
+    assert float(np.linalg.norm(np.cross(path / np.linalg.norm(path), want / np.linalg.norm(want)))) < 1e-9
+    assert float(path @ want) > 0
+
+
 def test_at_the_registered_phase_nothing_turns() -> None:
+    """The markers back at the registered phase but shifted a little across the pattern (the score
+    reads 0), the change that shift: entry and target move alike, the path does not turn."""
     m = _model()
-    T = RigidTransform.from_translation(np.array([0.3, 0.0, -0.2]))
-    steer = m.steer(T, FIDUCIALS, FIDUCIALS.copy(), _plan(), RigidTransform.identity())
+    across = UNIT.sum(axis=0)
+    t = np.array([0.3, 0.0, -0.2])
+    t -= (t @ across) / (across @ across) * across
+    T = RigidTransform.from_translation(t)
+    steer = m.steer(T, FIDUCIALS, FIDUCIALS + t, _plan(), RigidTransform.identity())
     assert steer.fallback == ""
     assert steer.turn_deg == pytest.approx(0.0, abs=1e-6)
     np.testing.assert_allclose(steer.T_live_from_ref.as_matrix(), T.as_matrix(), atol=1e-9)
@@ -116,7 +147,7 @@ def test_at_the_registered_phase_nothing_turns() -> None:
     ("shifted", "the markers do not move as in the 4D CT: residual 5.0 mm beyond 2.0 mm (patient moved, "
                 "a cough, a marker swapped)"),
     ("deep", "breathing beyond the 4D CT's range: score 30.0 mm outside 0.0..16.0 mm"),
-    ("turn", "the model would turn the path 5.8 deg (bound 5.0 deg)"),
+    ("turn", "the model would turn the path 7.9 deg (bound 5.0 deg)"),
 ])
 def test_a_pair_the_model_cannot_vouch_for_keeps_the_rigid_direction(case: str, reason: str) -> None:
     m = _model(turn=5.0)
