@@ -111,3 +111,33 @@ def test_a_calibration_file_missing_is_one_line_not_a_traceback(tmp_path: Path,
     assert code == 2
     missing = tmp_path / "calibration" / "sim_stereo.json"
     assert err == f"tools/bench accuracy: error: {missing}: calibration file not found\n"
+
+
+@pytest.mark.parametrize("noise", ["-0.1", "nan", "10"])
+def test_a_ct_noise_out_of_range_is_a_usage_error(noise: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        _bench().main(["--ct-noise-mm", noise, "--json"])
+    assert exc.value.code == 2
+    assert "--ct-noise-mm must be >= 0 and < 10 mm" in capsys.readouterr().err
+
+
+def test_the_seeds_4d_ct_carries_the_asked_localisation_error() -> None:
+    """``--ct-noise-mm`` reaches the simulated 4D CT each seed gets: 0 gives the body's own phases,
+    the default the module's 0.3 mm draws."""
+    bench = _bench()
+    from drivers.sim.planning_ct import DEFAULT_CT_NOISE_MM, four_d_ct_phases
+    from hil.config import load_setup
+    from hil.controller.plan_file import load_plan
+
+    base = load_setup(Path("configs/sim_patient.toml"))
+    comp = base.procedure.compensation.model_copy(update={"target_model": "surrogate"})
+    setup = base.model_copy(update={"procedure": base.procedure.model_copy(update={"compensation": comp})})
+    plan = load_plan(Path("configs/plans/sim_patient_plan.json"))
+    for noise in (0.0, DEFAULT_CT_NOISE_MM):
+        got = bench._with_4d_ct(plan, setup, noise)
+        want = four_d_ct_phases(setup.simulation, noise_mm=noise)
+        assert [p.fiducials_mm.tolist() for p in got.phases] == [w["fiducials_mm"] for w in want]
+        assert [p.entry_mm.tolist() for p in got.phases] == [w["entry_mm"] for w in want]
+    exact = bench._with_4d_ct(plan, setup, 0.0)
+    noisy = bench._with_4d_ct(plan, setup)
+    assert exact.phases[0].fiducials_mm.tolist() != noisy.phases[0].fiducials_mm.tolist()

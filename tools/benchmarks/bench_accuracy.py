@@ -3,7 +3,7 @@
 Run: ``tools/bench accuracy [--json] [--runs N | --rigs N [--tolerances FILE] [--executor local|dask]
 [--workers W] [--scheduler ADDRESS] [--rig-timeout-s S]] [--first-seed S] [--follow-s S] [--config FILE]
 [--no-rig-calibration] [--trace FILE [--trace-format F]] [--predictor NAME] [--estimator NAME]
-[--target-model rigid|surrogate]``
+[--target-model rigid|surrogate] [--ct-noise-mm X]``
 
 Each run is ``hil run`` on the simulator (configs/sim.toml by default) with seed-001-like camera
 noise (the sim camera's defaults: 1394 px, 120 mm baseline, 2 grey levels of sensor noise, blur),
@@ -60,7 +60,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.sim.planning_ct import four_d_ct_phases
+from drivers.sim.planning_ct import DEFAULT_CT_NOISE_MM, four_d_ct_phases
 from hil.cli.cmd_run import run_procedure
 from hil.config import SetupConfig, build_devices, default_setup_path, load_setup
 from hil.config.build import clock_for
@@ -144,9 +144,11 @@ def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Pa
     return kept, s.target_model_fallback_fraction
 
 
-def _with_4d_ct(plan: ProcedurePlan, setup: SetupConfig) -> ProcedurePlan:
-    """``plan`` with this seed's simulated 4D CT (drivers/sim/planning_ct.py) when the surrogate
-    target model or the pattern estimator needs one and the plan has none; else ``plan``.
+def _with_4d_ct(plan: ProcedurePlan, setup: SetupConfig,
+                ct_noise_mm: float = DEFAULT_CT_NOISE_MM) -> ProcedurePlan:
+    """``plan`` with this seed's simulated 4D CT (drivers/sim/planning_ct.py; localisation error
+    ``ct_noise_mm`` per axis in every phase) when the surrogate target model or the pattern
+    estimator needs one and the plan has none; else ``plan``.
 
     Raises:
         InputFileError: the simulated patient cannot give a 4D CT (a rigid phantom, a trace-driven
@@ -156,7 +158,7 @@ def _with_4d_ct(plan: ProcedurePlan, setup: SetupConfig) -> ProcedurePlan:
     if (c.target_model != "surrogate" and c.estimator != "pattern") or plan.phases:
         return plan
     try:
-        phases = four_d_ct_phases(setup.simulation)
+        phases = four_d_ct_phases(setup.simulation, noise_mm=ct_noise_mm)
     except ValueError as exc:
         raise InputFileError(plan.source, f"no phases for the surrogate target model or the pattern "
                                           f"estimator, and {exc}") from None
@@ -247,7 +249,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
         seed = args.first_seed + k
         sim = base.simulation.model_copy(update={"seed": seed, "breathing": breathing})
         setup = base.model_copy(update={"simulation": sim})
-        seed_plan = _with_4d_ct(plan, setup)
+        seed_plan = _with_4d_ct(plan, setup, args.ct_noise_mm)
         if calibrate:
             rig_path = tmp / f"rig_{seed}.json"
             rc = _calibrate_rig(cfg_path, setup, rig_path)
@@ -403,6 +405,9 @@ def _parser() -> argparse.ArgumentParser:
                     help=f"with --rigs: wall-time bound of one rig (default {DEFAULT_RIG_TIMEOUT_S:g} s)")
     ap.add_argument("--predictor", choices=PREDICTOR_NAMES,
                     help="override [procedure.compensation] predictor for this run (docs/prediction.md)")
+    ap.add_argument("--ct-noise-mm", type=float, default=DEFAULT_CT_NOISE_MM,
+                    help="the simulated 4D CT's localisation error per axis in every phase, mm (default "
+                         f"{DEFAULT_CT_NOISE_MM}; used where a seed gets its simulated 4D CT)")
     ap.add_argument("--target-model", choices=TARGET_MODELS,
                     help="override [procedure.compensation] target_model for this run "
                          "(docs/compensation.md); surrogate with a plan without phases uses each seed's "
@@ -422,6 +427,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.runs < 1:
         ap.error("--runs must be >= 1")
+    if not 0.0 <= args.ct_noise_mm < 10.0:
+        ap.error("--ct-noise-mm must be >= 0 and < 10 mm")
     if args.rigs is not None:
         return _main_rigs(ap, args)
     configure_logging(level="error")
@@ -460,6 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     out["estimator"] = base.procedure.compensation.estimator
     out["predictor"] = base.procedure.compensation.predictor
     out["target_model"] = base.procedure.compensation.target_model
+    out["ct_noise_mm"] = args.ct_noise_mm
     if args.json:
         print(json.dumps(out))
     else:
