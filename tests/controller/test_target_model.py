@@ -111,8 +111,9 @@ def test_the_skins_tilt_does_not_swing_the_target(T_oi: RigidTransform, z: float
                                                   tilt: tuple[float, float, float]) -> None:
     """The markers move exactly by the pattern; the change turns with the skin about the entry
     (a fit weighted near the entry tilts with the surface, up to 5 deg here): the path still
-    points at the plan's target moved by ``z a`` alone, not at a target turned with the surface
-    75 mm above it (the rule before the tenth session's measurement: 2.4 deg p95 off)."""
+    points at the plan's target moved by ``z a`` alone, not at a target swung with the surface
+    75 mm above it (the rule until the eleventh session; on the simulated patient it left the
+    path 2.4 deg p95 off)."""
     m = _model(turn=45.0)
     ref = T_oi.apply(FIDUCIALS)
     live = T_oi.apply(FIDUCIALS + z * UNIT)
