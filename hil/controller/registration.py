@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,6 +31,9 @@ from hil.geometry.registration import register_horn
 from hil.geometry.stereotaxy import load_frame, load_spots, register_single_slice, robot_from_image_via_frame
 from hil.geometry.transform import RigidTransform
 from hil.geometry.tre import expected_tre_mm
+
+if TYPE_CHECKING:
+    from hil.controller.registration_breathing import RegistrationBreathing
 
 FloatArray = NDArray[np.float64]
 
@@ -116,12 +120,16 @@ class PatientRegistration:
     """Image -> optical registration and the reference marker state.
 
     Attributes:
-        T_optical_from_image: the registration.
-        fre_rms_mm: fiducial registration error.
+        T_optical_from_image: the registration: Horn's fit of the fiducials, or, with a 4D CT's
+            breathing model, the plan's path moved to the breathing state at registration
+            (hil/controller/registration_breathing.py; Horn's is then in ``breathing``).
+        fre_rms_mm: fiducial registration error (Horn's fit).
         tre_expected_mm: expected RMS TRE at the target for the configured FLE.
         reference_optical_mm: (N, 3) averaged marker positions, CT fiducial order (NaN: unseen).
         markers_used: how many fiducials entered the registration.
         frames: how many frames were averaged.
+        breathing: the breathing state found at registration and what it changed (None without a
+            4D CT's breathing model).
     """
 
     T_optical_from_image: RigidTransform
@@ -130,6 +138,7 @@ class PatientRegistration:
     reference_optical_mm: FloatArray
     markers_used: int
     frames: int
+    breathing: RegistrationBreathing | None = None
 
 
 def register_patient(frames_identified: Sequence[FloatArray], plan: ProcedurePlan,

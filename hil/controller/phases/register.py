@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hil.controller import events as ev
-from hil.controller.estimate import FloatArray, count_seen
+from hil.controller.estimate import Estimate, FloatArray, count_seen
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
 from hil.controller.registration import (
@@ -21,6 +21,7 @@ from hil.controller.registration import (
     register_robot,
     register_robot_via_stereotaxy,
 )
+from hil.controller.registration_breathing import at_breathing_state
 from hil.controller.target_model import SurrogateTargetModel
 from hil.geometry.transform import RigidTransform
 
@@ -108,6 +109,10 @@ class RegisterPhase(Phase):
         except RegistrationFailedError as exc:
             ctx.session.write(ev.REGISTRATION_FAILED, reason=exc.reason)
             return out.fire(Event.REGISTRATION_FAILED, exc.reason)
+        residuals_mm = np.linalg.norm(preg.T_optical_from_image.apply(est.plan.fiducials_mm)
+                                      - preg.reference_optical_mm, axis=1)     # Horn's fit's
+        preg = at_breathing_state(preg, est.plan, est.entry_pattern, est.target_model,
+                                  _breathing_residual_bound_mm(est))
         est.accept_registration(preg, rreg)
         ctx.roles.record_reference(est)
         ctx.session.write(ev.REGISTRATION_DONE, fre_mm=preg.fre_rms_mm, tre_expected_mm=preg.tre_expected_mm,
@@ -115,12 +120,18 @@ class RegisterPhase(Phase):
                           T_optical_from_image=preg.T_optical_from_image,
                           robot_fre_mm=rreg.fre_rms_mm, T_robot_from_optical=rreg.T_robot_from_optical,
                           robot_method=rreg.method, robot_residual_mm=rreg.fre_rms_mm,
-                          reference_optical_mm=preg.reference_optical_mm,
-                          residuals_mm=np.linalg.norm(preg.T_optical_from_image.apply(est.plan.fiducials_mm)
-                                                      - preg.reference_optical_mm, axis=1),
-                          **_target_model_fields(est.target_model))
+                          reference_optical_mm=preg.reference_optical_mm, residuals_mm=residuals_mm,
+                          **_target_model_fields(est.target_model),
+                          **({} if preg.breathing is None else {"breathing": preg.breathing.record()}))
         return out.fire(Event.REGISTERED,
                         f"FRE {preg.fre_rms_mm:.3f} mm, expected TRE {preg.tre_expected_mm:.3f} mm")
+
+
+def _breathing_residual_bound_mm(est: Estimate) -> float:
+    """The bound of the breathing solve at registration: the breathing model's own (the ``pattern``
+    estimator's, else the target model's)."""
+    c = est.comp_cfg
+    return c.pattern_residual_mm if est.entry_pattern is not None else c.target_model_residual_mm
 
 
 def _target_model_fields(model: SurrogateTargetModel | None) -> dict[str, object]:
