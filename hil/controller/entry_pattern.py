@@ -18,8 +18,15 @@ hil/controller/plan_file.py). With ``F_0``, ``e_0`` the registered phase (end-ex
 - the skin's breathing patterns ``U`` (3N x r): the first right singular vectors of the stacked
   ``D_k``, at most :data:`MAX_PATTERNS`; one whose singular value is under :data:`PATTERN_SHARE`
   of the first is left out (the CT's localisation noise, not breathing);
-- the entry per unit score ``C = argmin sum_k |E_k - C z_k|^2`` (3 x r), ``z_k = U^T D_k``
-  (least squares through the registered phase).
+- the entry per unit score ``C = argmin sum_k |E_k - C z_k|^2 + lambda |C_2|^2`` (3 x r),
+  ``z_k = U^T D_k`` (least squares through the registered phase), with a ridge ``lambda`` on the
+  coefficients of the patterns after the first (``C_2``), chosen from :data:`RIDGE_GRID_MM2` by
+  leave-one-out over the phases (PRESS, in closed form: ``sum_k |r_k / (1 - H_kk)|^2``, ``r_k``
+  the fit's residual at phase k and ``H`` its hat matrix; 0 when that fits best). Why: the second
+  pattern is the smaller, and its scores over a CT's few inhaling phases are small, so the CT's
+  localisation error passes into its coefficient amplified. Offline, with the markers' true
+  positions (seeds 1-12, 0.3 mm CT; docs/benchmarks.md, twelfth session) the entry's p95 went
+  0.62 -> 0.55 mm; with an exact CT the ridge is 0 and the model exact.
 
 **Live** (:meth:`EntryPattern.registered`, optical frame after a registration ``R``, ``t``): the
 markers' basis ``B`` (3N x (r + 6)) holds the patterns turned into the optical frame and the six
@@ -68,8 +75,8 @@ from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["MAX_PATTERNS", "MIN_CONDITION", "MIN_MARKERS", "PATTERN_SHARE", "EntryPattern", "EntryRows",
-           "Solver", "entry_numpy", "fit_entry_pattern"]
+__all__ = ["MAX_PATTERNS", "MIN_CONDITION", "MIN_MARKERS", "PATTERN_SHARE", "RIDGE_GRID_MM2", "EntryPattern",
+           "EntryRows", "Solver", "entry_coefficients", "entry_numpy", "fit_entry_pattern"]
 
 #: the most breathing patterns the model keeps (thoracic and abdominal breathing)
 MAX_PATTERNS = 2
@@ -82,6 +89,9 @@ MIN_MARKERS = 4
 #: the seen markers' basis (columns scaled to unit length) must have its smallest singular value at
 #: least this share of its largest
 MIN_CONDITION = 1e-3
+#: the ridge weights tried on the entry's coefficients of the patterns after the first, mm^2 of
+#: score (module doc)
+RIDGE_GRID_MM2: tuple[float, ...] = (0.0, *(float(x) for x in np.logspace(-1.0, 4.0, 26)))
 #: the row matrices kept, one per set of seen markers
 _ROWS_KEPT = 64
 
@@ -95,12 +105,14 @@ class EntryPattern:
         entry_per_score: ``C``, (3, r): the entry's displacement per mm of each pattern's score.
         explained: the share of the fiducials' displacement variance the patterns hold.
         fit_residual_mm: the RMS of the entry's displacement the model leaves over the phases.
+        ridge_mm2: the ridge the leave-one-out chose (module doc), mm^2.
     """
 
     patterns: FloatArray
     entry_per_score: FloatArray
     explained: float
     fit_residual_mm: float
+    ridge_mm2: float = 0.0
 
     def registered(self, T_optical_from_image: RigidTransform, reference_optical_mm: FloatArray,
                    entry_optical_mm: FloatArray, residual_bound_mm: float = 2.0) -> EntryRows:
@@ -257,7 +269,34 @@ def fit_entry_pattern(plan: ProcedurePlan) -> EntryPattern:
     r = int(min(MAX_PATTERNS, int((sv >= PATTERN_SHARE * sv[0]).sum())))
     U = vt[:r].T                                   # (3N, r)
     Z = D @ U                                      # (K, r)
-    coef, *_ = np.linalg.lstsq(Z, E, rcond=None)   # (r, 3)
+    coef, ridge = entry_coefficients(Z, E)        # (r, 3)
     resid = float(np.sqrt(((E - Z @ coef) ** 2).sum(axis=1).mean()))
     return EntryPattern(patterns=U.reshape(-1, 3, r), entry_per_score=np.ascontiguousarray(coef.T),
-                        explained=float((sv[:r] ** 2).sum() / (sv**2).sum()), fit_residual_mm=resid)
+                        explained=float((sv[:r] ** 2).sum() / (sv**2).sum()), fit_residual_mm=resid,
+                        ridge_mm2=ridge)
+
+
+def entry_coefficients(Z: FloatArray, E: FloatArray) -> tuple[FloatArray, float]:
+    """(``C^T`` (r, 3), the ridge) of the module doc: the ridge on the patterns after the first
+    with the least leave-one-out error over the phases. A ridge at which some phase has all the
+    leverage (``H_kk`` = 1: its left-out error is not defined) is not chosen."""
+    r = Z.shape[1]
+    penalty = np.eye(r)
+    penalty[0, 0] = 0.0
+    best: tuple[float, FloatArray, float] | None = None
+    for ridge in RIDGE_GRID_MM2 if r > 1 else (0.0,):
+        A = Z.T @ Z + ridge * penalty
+        try:
+            coef = np.asarray(np.linalg.solve(A, Z.T @ E), dtype=np.float64)
+            H_diag = np.einsum("kr,rk->k", Z, np.linalg.solve(A, Z.T))
+        except np.linalg.LinAlgError:
+            continue
+        left = 1.0 - H_diag
+        if not (left > 1e-9).all():
+            continue
+        press = float((((E - Z @ coef) / left[:, None]) ** 2).sum())
+        if best is None or press < best[0]:
+            best = (press, coef, ridge)
+    if best is None:          # every phase's leverage 1 (as many phases as unknowns): plain fit
+        return np.asarray(np.linalg.lstsq(Z, E, rcond=None)[0], dtype=np.float64), 0.0
+    return best[1], best[2]

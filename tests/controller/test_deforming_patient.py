@@ -195,6 +195,9 @@ def test_the_registration_puts_the_entry_and_target_where_the_hold_had_them(tmp_
     reg = next(r for r in log if r["event"] == "registration_done")
     breathing = reg["breathing"]
     assert breathing["kept_rigid_because"] == ""
+    assert reg["entry_model"]["patterns"] == 2
+    assert reg["entry_model"]["explained"] > 0.95
+    assert reg["entry_model"]["ridge_mm2"] >= 0.0
     assert breathing["residual_mm"] < 0.3
     truth = min((r for r in log if r["event"] == "truth_positions"),
                 key=lambda r: abs(r["truth_t_ns"] - reg["t_ns"]))

@@ -13,7 +13,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hil.controller.change_estimate import estimate_change
-from hil.controller.entry_pattern import EntryRows, entry_numpy, fit_entry_pattern
+from hil.controller.entry_pattern import (
+    RIDGE_GRID_MM2,
+    EntryRows,
+    entry_coefficients,
+    entry_numpy,
+    fit_entry_pattern,
+)
 from hil.controller.plan_file import PlanPhase, ProcedurePlan
 from hil.errors import InputFileError
 from hil.geometry import native
@@ -213,3 +219,33 @@ def test_markers_that_leave_the_patterns_fall_back_and_say_by_how_much() -> None
     assert fit.fallback.startswith("breathing pattern: the markers do not move as the 4D CT's breathing "
                                    "patterns (per-marker RMS residual ")
     assert fit.fallback.endswith(" mm beyond 2.0 mm)")
+
+
+def _left_out_error(Z: np.ndarray, E: np.ndarray, ridge: float) -> float:
+    """Leave-one-out by refitting without each phase (what PRESS computes in closed form)."""
+    penalty = np.diag([0.0] + [1.0] * (Z.shape[1] - 1))
+    total = 0.0
+    for k in range(len(Z)):
+        keep = np.arange(len(Z)) != k
+        coef = np.linalg.solve(Z[keep].T @ Z[keep] + ridge * penalty, Z[keep].T @ E[keep])
+        total += float(((E[k] - Z[k] @ coef) ** 2).sum())
+    return total
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), noise_mm=st.floats(0.0, 1.0))
+def test_the_ridge_is_the_one_leaving_out_a_phase_predicts_best(seed: int, noise_mm: float) -> None:
+    """The closed-form choice is the brute-force leave-one-out's, on a CT of 9 phases whose second
+    pattern's scores are small (the case the ridge is for)."""
+    rng = np.random.default_rng(seed)
+    Z = np.column_stack([rng.uniform(0.0, 20.0, 9), rng.normal(0.0, 1.0, 9)])
+    E = Z @ rng.normal(0.0, 1.0, (2, 3)) + rng.normal(0.0, noise_mm, (9, 3))
+    coef, ridge = entry_coefficients(Z, E)
+    errors = {g: _left_out_error(Z, E, g) for g in RIDGE_GRID_MM2}
+    assert errors[ridge] == pytest.approx(min(errors.values()), rel=1e-9, abs=1e-12)
+    penalty = np.diag([0.0, ridge])
+    np.testing.assert_allclose(coef, np.linalg.solve(Z.T @ Z + penalty, Z.T @ E), rtol=1e-9, atol=1e-12)
+
+
+def test_an_exact_ct_keeps_no_ridge() -> None:
+    assert fit_entry_pattern(_plan()).ridge_mm2 == 0.0

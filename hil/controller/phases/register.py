@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hil.controller import events as ev
+from hil.controller.entry_pattern import EntryPattern
 from hil.controller.estimate import Estimate, FloatArray, count_seen
 from hil.controller.fsm import Event, State
 from hil.controller.phases.base import Phase, PhaseContext, PhaseResult
@@ -121,7 +122,7 @@ class RegisterPhase(Phase):
                           robot_fre_mm=rreg.fre_rms_mm, T_robot_from_optical=rreg.T_robot_from_optical,
                           robot_method=rreg.method, robot_residual_mm=rreg.fre_rms_mm,
                           reference_optical_mm=preg.reference_optical_mm, residuals_mm=residuals_mm,
-                          **_target_model_fields(est.target_model),
+                          **_target_model_fields(est.target_model), **_entry_model_fields(est.entry_pattern),
                           **({} if preg.breathing is None else {"breathing": preg.breathing.record()}))
         return out.fire(Event.REGISTERED,
                         f"FRE {preg.fre_rms_mm:.3f} mm, expected TRE {preg.tre_expected_mm:.3f} mm")
@@ -132,6 +133,16 @@ def _breathing_residual_bound_mm(est: Estimate) -> float:
     estimator's, else the target model's)."""
     c = est.comp_cfg
     return c.pattern_residual_mm if est.entry_pattern is not None else c.target_model_residual_mm
+
+
+def _entry_model_fields(model: EntryPattern | None) -> dict[str, object]:
+    """``registration_done``'s account of the ``pattern`` estimator's model (none without one): its
+    breathing patterns, the share of the fiducials' motion they hold, the entry's fit residual over
+    the 4D CT's phases and the ridge chosen on the second pattern (hil/controller/entry_pattern.py)."""
+    if model is None:
+        return {}
+    return {"entry_model": {"patterns": int(model.patterns.shape[2]), "explained": model.explained,
+                            "fit_residual_mm": model.fit_residual_mm, "ridge_mm2": model.ridge_mm2}}
 
 
 def _target_model_fields(model: SurrogateTargetModel | None) -> dict[str, object]:
