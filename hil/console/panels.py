@@ -53,7 +53,20 @@ def registration_text(v: ConsoleView) -> Text:
         f"FRE            {mm(v.fre_mm)}\n"
         f"expected TRE   {mm(v.tre_expected_mm)}\n"
         f"robot FRE      {mm(v.robot_fre_mm)}\n"
-        f"comp. error    {mm(v.comp_error_mm)}" + ("" if v.comp_error_mm is None else " (truth)"))
+        f"comp. error    {mm(v.comp_error_mm)}" + ("" if v.comp_error_mm is None else " (truth)")
+        + breathing_line(v))
+
+
+def breathing_line(v: ConsoleView) -> str:
+    """The registration panel's line on the breathing state at registration (docs/compensation.md):
+    how far it moved the plan's entry and target, or why Horn's fit was kept; "" without a 4D
+    CT's breathing model."""
+    if v.breathing_kept_rigid_because:
+        return f"\nbreathing      Horn's fit kept: {v.breathing_kept_rigid_because}"
+    if v.breathing_entry_shift_mm is None or v.breathing_target_shift_mm is None:
+        return ""
+    return (f"\nbreathing      entry moved {mm(v.breathing_entry_shift_mm)}, "
+            f"target {mm(v.breathing_target_shift_mm)}")
 
 
 def robot_text(v: ConsoleView) -> Text:

@@ -92,6 +92,11 @@ class ConsoleView:
     target_shift_mm: float | None = None
     target_turn_deg: float | None = None
     target_fallback: str | None = None
+    #: the breathing state at registration (snapshot ``breathing_*``): how far it moved the plan's
+    #: entry and target (mm), or why Horn's fit was kept; None without a 4D CT's breathing model
+    breathing_entry_shift_mm: float | None = None
+    breathing_target_shift_mm: float | None = None
+    breathing_kept_rigid_because: str | None = None
     error: str = ""
     #: markers located in the latest pair: (left image, right image, triangulated); None before
     #: a pair, or a camera's count None when the locator does not say
@@ -213,5 +218,8 @@ def build_view(snap: ControllerSnapshot, vs: ViewSetup, *, breathing_mm: Sequenc
         change_estimator=snap.change_estimator, change_fre_mm=snap.change_fre_mm,
         target_shift_mm=snap.target_shift_mm, target_turn_deg=snap.target_turn_deg,
         target_fallback=snap.target_fallback,
+        breathing_entry_shift_mm=snap.breathing_entry_shift_mm,
+        breathing_target_shift_mm=snap.breathing_target_shift_mm,
+        breathing_kept_rigid_because=snap.breathing_kept_rigid_because,
         located_counts=None if snap.located is None else snap.located.counts,
     )

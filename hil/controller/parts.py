@@ -91,6 +91,15 @@ def _target_fields(est: Estimate) -> dict[str, Any]:
             "target_fallback": None if steer is None else steer.fallback}
 
 
+def _breathing_fields(preg: PatientRegistration | None) -> dict[str, Any]:
+    """The snapshot's ``breathing_*`` fields (none without a 4D CT's breathing model)."""
+    b = None if preg is None else preg.breathing
+    if b is None:
+        return {}
+    return {"breathing_entry_shift_mm": b.entry_shift_mm, "breathing_target_shift_mm": b.target_shift_mm,
+            "breathing_kept_rigid_because": b.kept_rigid_because}
+
+
 def _path_fields(est: Estimate) -> dict[str, Any]:
     """The snapshot's ``path_*`` fields (none before a change was measured)."""
     preg, change, t_ns = est.patient_reg, est.T_change_meas, est.change_t_ns
@@ -479,7 +488,8 @@ class ControllerParts(abc.ABC):
             marker_deviations_mm=frozen_array(deviations),
             gate_shape_mm=None if gm is None else _finite(gm.shape_mm),
             gate_ok=None if gm is None else gm.problem(self.cfg.gate) is None,
-            **_target_fields(est), **_predictor_fields(est), **_path_fields(est))
+            **_target_fields(est), **_predictor_fields(est), **_path_fields(est),
+            **_breathing_fields(preg))
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> RunSummary:

@@ -108,11 +108,13 @@ def at_breathing_state(preg: PatientRegistration, plan: ProcedurePlan, entry_pat
     """``preg`` with its registration moved to the breathing state at registration (module doc) and
     :attr:`PatientRegistration.breathing` saying how; ``preg`` itself without a breathing model.
     Never raises: what the solve cannot vouch for keeps Horn's registration and says why."""
-    if entry_pattern is None and target_model is None:
+    if entry_pattern is not None:
+        patterns = entry_pattern.patterns
+    elif target_model is not None:
+        patterns = np.asarray(target_model.pattern, dtype=np.float64)[:, :, None]
+    else:
         return preg
     T = preg.T_optical_from_image
-    patterns = (entry_pattern.patterns if entry_pattern is not None
-                else np.asarray(target_model.pattern, dtype=np.float64)[:, :, None])  # type: ignore[union-attr]
     solved = _solve(T, preg.reference_optical_mm, plan, patterns)
     if isinstance(solved, str):
         return replace(preg, breathing=RegistrationBreathing(T, kept_rigid_because=solved))

@@ -132,6 +132,12 @@ class ControllerSnapshot:
     #: the filter, the prediction over the latency and the servo loop.
     path_optical_mm: FloatArray | None = None
     path_t_ns: int | None = None
+    #: the breathing state at registration (docs/compensation.md "The breathing state at
+    #: registration"): how far it moved the plan's entry and target from Horn's fit (mm), or why
+    #: Horn's was kept ("" when it was not); None without a 4D CT's breathing model
+    breathing_entry_shift_mm: float | None = None
+    breathing_target_shift_mm: float | None = None
+    breathing_kept_rigid_because: str | None = None
 
 
 def guide_in_image(est: Estimate) -> RigidTransform | None:

@@ -4,6 +4,7 @@ a full procedure driven by key presses, a fault shown and recovered, an abort.""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import re
 import threading
@@ -17,7 +18,7 @@ from textual.widgets import DataTable, Static
 
 from hil.console.app import ConfirmScreen, ConsoleApp
 from hil.console.operator import ConsoleOperator
-from hil.console.panels import gate_text, markers_title
+from hil.console.panels import gate_text, markers_title, registration_text
 from hil.console.session import ConsoleSession
 from hil.console.view import ConsoleView
 from hil.controller.fsm import Event
@@ -441,3 +442,13 @@ def test_the_gate_panel_says_what_the_target_model_does() -> None:
     assert "\ntarget model: target 6.250 mm from plan, path turned 3.50 deg" in steered
     kept = str(gate_text(_gate_view(target_shift_mm=0.0, target_turn_deg=0.0, target_fallback="why not")))
     assert "\ntarget model: rigid direction kept (why not)" in kept
+
+
+def test_the_registration_panel_says_where_the_breathing_moved_the_path() -> None:
+    view = _gate_view()
+    assert "breathing" not in str(registration_text(view))           # no 4D CT model: nothing said
+    moved = dataclasses.replace(view, breathing_entry_shift_mm=0.6, breathing_target_shift_mm=1.35,
+                                breathing_kept_rigid_because="")
+    assert str(registration_text(moved)).endswith("\nbreathing      entry moved 0.600 mm, target 1.350 mm")
+    kept = dataclasses.replace(moved, breathing_kept_rigid_because="3 markers seen")
+    assert str(registration_text(kept)).endswith("\nbreathing      Horn's fit kept: 3 markers seen")
