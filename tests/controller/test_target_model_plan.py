@@ -14,10 +14,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.sim.planning_ct import four_d_ct_phases, four_d_ct_plan
+from drivers.sim.body import body_from_config
+from drivers.sim.motion import PatientMotion
+from drivers.sim.planning_ct import four_d_ct, four_d_ct_phases, four_d_ct_plan
+from drivers.sim.world import phantom_from_config
 from hil.cli import main
 from hil.cli.cmd_run import run_procedure
 from hil.config import load_setup
+from hil.config.body import BodyTraceConfig
+from hil.config.simulation import SimulationConfig
 from hil.controller.plan_file import load_plan, plan_from_dict
 from hil.controller.target_model import fit_target_model
 from hil.errors import InputFileError
@@ -106,15 +111,46 @@ def test_the_simulated_4d_ct_is_the_seeds_and_fits_the_model() -> None:
     assert m.fit_residual_mm < 0.2 * peak
 
 
-def test_a_rigid_phantom_or_a_trace_has_no_simulated_4d_ct() -> None:
+def test_a_rigid_phantom_has_no_simulated_4d_ct() -> None:
     rigid = load_setup(Path("configs/sim.toml")).simulation
     with pytest.raises(ValueError, match="a 4D CT of a rigid phantom"):
         four_d_ct_phases(rigid)
+
+
+def _traced(tmp_path: Path, period_s: float) -> SimulationConfig:
+    """sim_patient driven by a 200 s surrogate trace breathing ``period_s`` (end-exhale at 0 s)."""
+    t = np.arange(0.0, 200.0, 0.1)
+    trace = tmp_path / "resp.txt"
+    trace.write_text("".join(f"{a:.3f} {-math.cos(2 * math.pi * a / period_s):.9f}\n" for a in t))
     sim = load_setup(CONFIG).simulation
-    traced = sim.model_copy(update={"body": sim.body.model_copy(update={
-        "trace": sim.body.trace.model_copy(update={"path": Path("x.csv")})})})
-    with pytest.raises(ValueError, match="this body is driven by a trace"):
-        four_d_ct_phases(traced)
+    return sim.model_copy(update={"body": sim.body.model_copy(update={"trace": BodyTraceConfig(
+        path=trace, start_s=0.0, rate_hz=10.0)})})
+
+
+def test_a_traced_patients_4d_ct_is_sorted_from_the_breaths_before_the_start(tmp_path: Path) -> None:
+    sim = _traced(tmp_path, 4.0)
+    ct = four_d_ct(sim, noise_mm=0.0)
+    assert ct.period_s == pytest.approx(4.0, abs=0.03)
+    assert len(ct.phases) == 9
+    # every breath alike: each phase is the body at that fraction of one breath after an end-exhale
+    # (before the start the world wraps to the trace's end, its last sample at 199.9 s: world time
+    # -39.9 s is the trace's 160 s, an end-exhale)
+    world_body = body_from_config(sim, phantom_from_config(sim.patient), PatientMotion(sim))
+    assert world_body is not None
+    for k, phase in enumerate(ct.phases, start=1):
+        want = world_body.state(-39.9 + 4.0 * k / 10)
+        np.testing.assert_allclose(phase["entry_mm"], want.entry_mm, atol=0.05)
+        np.testing.assert_allclose(phase["target_mm"], want.target_mm, atol=0.05)
+        np.testing.assert_allclose(phase["fiducials_mm"], want.markers_mm, atol=0.05)
+    plan = plan_from_dict(four_d_ct_plan(sim), "ct")
+    assert plan.phases_period_s == pytest.approx(4.0, abs=0.03)
+    assert fit_target_model(plan, 2.0, 10.0).explained > 0.9
+
+
+def test_a_trace_without_three_breaths_before_the_start_has_no_4d_ct(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"^a 4D CT of the trace needs 3 whole breaths in the 60 s before "
+                                         r"the start; it has 1$"):
+        four_d_ct(_traced(tmp_path, 20.0))
 
 
 def test_the_tool_writes_a_plan_hil_reads(tmp_path: Path) -> None:

@@ -60,7 +60,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.sim.planning_ct import DEFAULT_CT_NOISE_MM, four_d_ct_phases
+from drivers.sim.planning_ct import DEFAULT_CT_NOISE_MM, four_d_ct
 from hil.cli.cmd_run import run_procedure
 from hil.config import SetupConfig, build_devices, default_setup_path, load_setup
 from hil.config.build import clock_for
@@ -151,20 +151,20 @@ def _with_4d_ct(plan: ProcedurePlan, setup: SetupConfig,
     estimator needs one and the plan has none; else ``plan``.
 
     Raises:
-        InputFileError: the simulated patient cannot give a 4D CT (a rigid phantom, a trace-driven
-            body), naming the plan.
+        InputFileError: the simulated patient cannot give a 4D CT (a rigid phantom, a trace with
+            too few breaths before the start), naming the plan.
     """
     c = setup.procedure.compensation
     if (c.target_model != "surrogate" and c.estimator != "pattern") or plan.phases:
         return plan
     try:
-        phases = four_d_ct_phases(setup.simulation, noise_mm=ct_noise_mm)
+        ct = four_d_ct(setup.simulation, noise_mm=ct_noise_mm)
     except ValueError as exc:
         raise InputFileError(plan.source, f"no phases for the surrogate target model or the pattern "
                                           f"estimator, and {exc}") from None
     doc = {"format": "hil-plan", "version": 1, "fiducials_mm": plan.fiducials_mm.tolist(),
-           "entry_mm": plan.entry_mm.tolist(), "target_mm": plan.target_mm.tolist(), "phases": phases,
-           "phases_period_s": setup.simulation.breathing.period_s}
+           "entry_mm": plan.entry_mm.tolist(), "target_mm": plan.target_mm.tolist(), "phases": ct.phases,
+           "phases_period_s": ct.period_s}
     return plan_from_dict(doc, f"{plan.source} + simulated 4D CT (seed {setup.simulation.seed})")
 
 

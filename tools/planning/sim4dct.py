@@ -7,7 +7,9 @@ phases of one breath, each with the CT's localisation error. ``hil run CONFIG --
 run's: the skin field and the target's motion are drawn from it.
 
 Exit 0 with the file written and one line saying what it holds; exit 2 with one line for bad
-input (an unreadable config, a rigid phantom, a body driven by a trace, fewer than 3 phases).
+input (an unreadable config or trace, a rigid phantom, a trace with fewer than 3 breaths in the
+minute before the start, fewer than 3 phases). A body driven by a recorded trace
+(``[simulation.body.trace]``) gets the CT sorted from the trace's breaths before the start.
 """
 
 from __future__ import annotations
