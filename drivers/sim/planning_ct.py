@@ -17,10 +17,10 @@ target's are those of a 4D CT without it.
 
 A body driven by a recorded trace (``[simulation.body.trace]``) has no model cycle; its CT is
 sorted from the recording as a 4D CT is from the patient's breaths: the :data:`TRACE_CT_WINDOW_S`
-of the trace before the procedure's start (wrapping at the trace's start, as the world does), cut
-into breaths at their end-exhales (the lowest signal between two inhales, an inhale being the
-signal rising through 0.5 after it was under 0.3), each breath's body sampled at the phase
-fractions ``k / phases`` and averaged over the breaths. The recorded target's lag and hysteresis
+of the trace before the procedure's start (before the trace's start it wraps to its end, as the
+world does), cut into breaths at their end-exhales (the lowest signal between two inhales, an
+inhale being the signal rising through 0.5 after it was under 0.3), each breath's body sampled at
+the phase fractions ``k / phases`` and averaged over the breaths. The recorded target's lag and hysteresis
 against the skin are then in the phases as the recording has them; the plan's period
 (``phases_period_s``) is the breaths' mean length. Fewer than :data:`MIN_TRACE_BREATHS` breaths in
 the window is refused.
@@ -138,7 +138,8 @@ def _trace_states(sim: SimulationConfig, phantom: BodyPhantom, phases: int) -> t
     breaths' mean length (module doc)."""
     free = sim.model_copy(update={"breath_holds": []})              # the CT's breaths hold nothing
     body = body_from_config(free, phantom, PatientMotion(free))
-    assert body is not None                                          # a trace: never the rigid model
+    if body is None:                                  # four_d_ct refused the rigid model already
+        raise ValueError("a 4D CT of a rigid phantom: [simulation.body] model is 'rigid'")
     t = np.arange(-TRACE_CT_WINDOW_S, 0.0, _SCAN_STEP_S)
     s = np.array([body.signal.s(float(x)) for x in t])
     inhales, armed = [], bool(s[0] < _REARM_LEVEL)
