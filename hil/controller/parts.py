@@ -488,8 +488,7 @@ class ControllerParts(abc.ABC):
             marker_deviations_mm=frozen_array(deviations),
             gate_shape_mm=None if gm is None else _finite(gm.shape_mm),
             gate_ok=None if gm is None else gm.problem(self.cfg.gate) is None,
-            **_target_fields(est), **_predictor_fields(est), **_path_fields(est),
-            **_breathing_fields(preg))
+            **_target_fields(est), **_predictor_fields(est), **_path_fields(est), **_breathing_fields(preg))
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> RunSummary:
