@@ -76,7 +76,7 @@ from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 FloatArray = NDArray[np.float64]
 
 __all__ = ["MAX_PATTERNS", "MIN_CONDITION", "MIN_MARKERS", "PATTERN_SHARE", "RIDGE_GRID_MM2", "EntryPattern",
-           "EntryRows", "Solver", "entry_coefficients", "entry_numpy", "fit_entry_pattern"]
+           "EntryRows", "Solver", "cross_matrices", "entry_coefficients", "entry_numpy", "fit_entry_pattern"]
 
 #: the most breathing patterns the model keeps (thoracic and abdominal breathing)
 MAX_PATTERNS = 2
@@ -123,7 +123,7 @@ class EntryPattern:
         n = len(reference_optical_mm)
         turned = np.einsum("ij,njr->nir", R, self.patterns)                  # (N, 3, r)
         rigid = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)),
-                                _cross_matrices(reference_optical_mm - entry_optical_mm)], axis=2)
+                                cross_matrices(reference_optical_mm - entry_optical_mm)], axis=2)
         basis = np.concatenate([turned, rigid], axis=2)                          # (N, 3, r + 6)
         r = self.patterns.shape[2]
         at_entry = np.zeros((3, r + 6))
@@ -132,7 +132,7 @@ class EntryPattern:
         return EntryRows(basis, at_entry, residual_bound_mm)
 
 
-def _cross_matrices(d: FloatArray) -> FloatArray:
+def cross_matrices(d: FloatArray) -> FloatArray:
     """``M_i`` with ``M_i @ w = w x d_i``, (n, 3, 3)."""
     out = np.zeros((len(d), 3, 3))
     out[:, 0, 1], out[:, 0, 2] = d[:, 2], -d[:, 1]

@@ -54,11 +54,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from hil.controller.entry_pattern import MIN_CONDITION, MIN_MARKERS, EntryPattern
+from hil.controller.entry_pattern import MIN_CONDITION, MIN_MARKERS, EntryPattern, cross_matrices
 from hil.controller.plan_file import ProcedurePlan
 from hil.controller.registration import PatientRegistration
 from hil.controller.target_model import SurrogateTargetModel
-from hil.geometry.transform import RigidTransform, rotvec_to_matrix, skew
+from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 
 FloatArray = NDArray[np.float64]
 
@@ -166,8 +166,7 @@ def _solve(T: RigidTransform, reference_mm: FloatArray, plan: ProcedurePlan,
         basis = np.zeros((n, 3, r + 6))
         basis[:, :, :r] = np.einsum("ij,njr->nir", T.R, patterns[ok])
         basis[:, :, r:r + 3] = np.eye(3)
-        for row, d in zip(basis, mapped - entry, strict=True):
-            row[:, r + 3:] = -skew(d)                      # w x d
+        basis[:, :, r + 3:] = cross_matrices(mapped - entry)         # w x d
         B = basis.reshape(3 * n, r + 6)
         scale = np.linalg.norm(B, axis=0)
         if not (scale > 0.0).all():
