@@ -59,10 +59,20 @@ it could vouch for fading out over :data:`TURN_RAMP_S`), and says why, when:
   the wrong markers seen;
 - the markers do not move as the pattern says: the per-marker RMS residual of ``D - z u`` beyond
   ``target_model_residual_mm`` (the patient moved on the table, a cough, a marker swapped);
-- the score is outside the 4D CT's range by more than half of it (breathing much deeper than at
-  the CT: the linear model would extrapolate far);
-- the model would turn the path by more than ``target_model_max_turn_deg``;
 - the modelled target comes within :data:`MIN_PATH_MM` of the entry (no direction to trust).
+
+Two bounds hold the model's answer instead of discarding it, and say so
+(:attr:`TargetSteer.limited`): a pair that breathes as the pattern says but deeper than the CT
+tells the direction the target went, not how far beyond the CT's breaths. The rigid direction is
+then the worse answer: on the recorded liver traces (docs/compensation.md), breaths up to 1.8 times
+the 4D CT's average ones put 6-19 % of the pairs beyond the range, and keeping the rigid direction
+there left the path 7-16 deg p95 off where the held model leaves it 0.7-6 deg off.
+
+- the score beyond the 4D CT's range by more than half of it (breathing much deeper than at the
+  CT: the line would extrapolate far) is held at that edge for the target (the markers' own
+  displacement beyond the pattern is still taken at the score they read);
+- a turn beyond ``target_model_max_turn_deg`` is held at the bound, about the same axis (the
+  path never turns further than the bound; it turns towards the modelled target as far as it may).
 
 Cost per pair: a few dot products over the seen markers, compiled
 (hil/geometry/_native.c ``target_score``, ``target_turn``, ``turn_about``; :func:`score_parts_numpy`,
@@ -129,6 +139,7 @@ class TargetSteer:
         target_shift_mm: the modelled target's displacement from the plan's, mm (0 on fallback).
         turn_deg: the rotation added to the estimator's direction, deg (0 on fallback).
         fallback: why the rigid direction was kept ("" when the model steered).
+        limited: which bound held the model's answer, and where ("" when none did; module doc).
     """
 
     T_live_from_ref: RigidTransform
@@ -136,6 +147,7 @@ class TargetSteer:
     target_shift_mm: float
     turn_deg: float
     fallback: str = ""
+    limited: str = ""
 
 
 @dataclass(frozen=True)
@@ -198,12 +210,19 @@ class SurrogateTargetModel:
         if resid > self.residual_bound_mm:
             return math.nan, (f"the markers do not move as in the 4D CT: residual {resid:.1f} mm beyond "
                               f"{self.residual_bound_mm} mm (patient moved, a cough, a marker swapped)")
+        return z, ""
+
+    def held_score(self, z: float) -> tuple[float, str]:
+        """(the score the target is modelled at, "" or the note saying it was held): ``z`` (mm)
+        itself within the 4D CT's range widened by half of it on each side, else that edge (module
+        doc)."""
         span = self.score_max_mm - self.score_min_mm
         lo, hi = self.score_min_mm - _RANGE_MARGIN * span, self.score_max_mm + _RANGE_MARGIN * span
-        if not lo <= z <= hi:
-            return math.nan, (f"breathing beyond the 4D CT's range: score {z:.1f} mm outside "
-                              f"{self.score_min_mm:.1f}..{self.score_max_mm:.1f} mm")
-        return z, ""
+        if lo <= z <= hi:
+            return z, ""
+        held = min(max(z, lo), hi)
+        return held, (f"breathing beyond the 4D CT's range: score {z:.1f} mm (CT {self.score_min_mm:.1f}.."
+                      f"{self.score_max_mm:.1f} mm), target held at {held:.1f} mm")
 
     def steer(self, T_live_from_ref: RigidTransform, reference_mm: FloatArray, live_mm: FloatArray,
               plan: ProcedurePlan, T_optical_from_image: RigidTransform) -> TargetSteer:
@@ -224,30 +243,39 @@ class SurrogateTargetModel:
         if isinstance(turn, str):
             return TargetSteer(T_live_from_ref, z, 0.0, 0.0, turn)
         T = turned_about_entry(T_live_from_ref, turn.rotvec, 1.0, T_optical_from_image, plan.entry_mm)
-        return TargetSteer(T, z, turn.shift_mm, turn.deg)
+        return TargetSteer(T, z, turn.shift_mm, turn.deg, limited=turn.limited)
 
     def turn_at(self, T_live_from_ref: RigidTransform, reference_mm: FloatArray, live_mm: FloatArray,
                 plan: ProcedurePlan, T_optical_from_image: RigidTransform, z: float,
                 rate_mm_s: float) -> PathTurn | str:
-        """The rotation that turns the changed path at the modelled target (module doc "Live"), or
-        why the model cannot vouch for it (the breathing pattern's rigid fit refused, a turn beyond
-        ``max_turn_deg``). The compiled kernel computes it when selected and able (it leaves a
-        refused fit to the numpy code, which names why), else :func:`turn_numpy`."""
+        """The rotation that turns the changed path at the modelled target (module doc "Live"; the
+        score and the turn held at their bounds, :attr:`PathTurn.limited` saying which), or why the
+        model cannot vouch for it (the breathing pattern's rigid fit refused). The compiled kernel
+        computes it when selected and able (it leaves a refused fit to the numpy code, which names
+        why), else :func:`turn_numpy`."""
+        z_held, limited = self.held_score(z)
+        # the target at the held score: ``a`` scaled by z_held / z (z is not 0 when held: the range
+        # holds 0), so the markers' displacement beyond the pattern is still taken at ``z``
+        a = self.target_per_score if z_held == z else self.target_per_score * (z_held / z)
         k = native.active()
         turn: PathTurn | str | None = None
         if k is not None:
             out = np.empty(5)
             T_oi, T = T_optical_from_image, T_live_from_ref
             if k.target_turn(_c64(reference_mm), _c64(live_mm), self.pattern, T_oi.R, T_oi.t,
-                             _c64(plan.entry_mm), _c64(plan.target_mm), self.target_per_score,
+                             _c64(plan.entry_mm), _c64(plan.target_mm), a,
                              self.target_per_rate, T.R, T.t, z, rate_mm_s, out) == 0:
                 turn = PathTurn(out[:3], float(out[3]), float(out[4]))
         if turn is None:
             turn = turn_numpy(self, T_live_from_ref, reference_mm, live_mm, plan, T_optical_from_image, z,
-                              rate_mm_s)
-        if isinstance(turn, PathTurn) and turn.deg > self.max_turn_deg:
-            return f"the model would turn the path {turn.deg:.1f} deg (bound {self.max_turn_deg} deg)"
-        return turn
+                              rate_mm_s, z_held)
+        if isinstance(turn, str):
+            return turn
+        if turn.deg > self.max_turn_deg:
+            note = f"the model's turn {turn.deg:.1f} deg held at the bound {self.max_turn_deg} deg"
+            limited = f"{limited}; {note}" if limited else note
+            turn = PathTurn(turn.rotvec * (self.max_turn_deg / turn.deg), self.max_turn_deg, turn.shift_mm)
+        return turn._replace(limited=limited) if limited else turn
 
 
 class PathTurn(NamedTuple):
@@ -258,11 +286,13 @@ class PathTurn(NamedTuple):
             the changed entry to the modelled target (axis * angle, rad, optical frame).
         deg: its angle, deg.
         shift_mm: the modelled target's displacement from the plan's, mm.
+        limited: which bound held the score or the turn ("" when none did).
     """
 
     rotvec: FloatArray
     deg: float
     shift_mm: float
+    limited: str = ""
 
 
 def _c64(a: FloatArray) -> FloatArray:
@@ -290,10 +320,11 @@ def score_parts_numpy(pattern: FloatArray, reference_mm: FloatArray, live_mm: Fl
 
 def turn_numpy(model: SurrogateTargetModel, T_live_from_ref: RigidTransform, reference_mm: FloatArray,
                live_mm: FloatArray, plan: ProcedurePlan, T_optical_from_image: RigidTransform, z: float,
-               rate_mm_s: float) -> PathTurn | str:
+               rate_mm_s: float, z_target: float | None = None) -> PathTurn | str:
     """The numpy reference of the compiled ``target_turn`` (:meth:`SurrogateTargetModel.turn_at`
-    without the turn's bound): the turn, or why there is none (no marker seen, a modelled target
-    at the entry)."""
+    without the bounds): the turn, or why there is none (no marker seen, a modelled target at the
+    entry). ``z_target``: the score the target is modelled at (default ``z``; a held score,
+    :meth:`SurrogateTargetModel.held_score`)."""
     R_oi = T_optical_from_image.R
     ok = np.isfinite(reference_mm).all(axis=1) & np.isfinite(live_mm).all(axis=1)
     if not ok.any():
@@ -303,7 +334,8 @@ def turn_numpy(model: SurrogateTargetModel, T_live_from_ref: RigidTransform, ref
     other = (live_mm[ok] - reference_mm[ok] - z * (model.pattern[ok] @ R_oi.T)).mean(axis=0)
     entry_ref = T_optical_from_image.apply(plan.entry_mm).reshape(3)
     target_ref = T_optical_from_image.apply(plan.target_mm).reshape(3)
-    shift_img = z * model.target_per_score + rate_mm_s * model.target_per_rate
+    z_t = z if z_target is None else z_target
+    shift_img = z_t * model.target_per_score + rate_mm_s * model.target_per_rate
     target_live = target_ref + R_oi @ shift_img + other
     entry_live = T_live_from_ref.apply(entry_ref).reshape(3)
     d0 = T_live_from_ref.R @ (target_ref - entry_ref)
@@ -394,8 +426,9 @@ class TargetTracker:
         T = turned_about_entry(T_live_from_ref, self._turn_rotvec, self.weight, T_optical_from_image,
                                plan.entry_mm)
         turn_deg = math.degrees(self.weight * float(np.linalg.norm(self._turn_rotvec)))
-        shift = 0.0 if isinstance(turn, str) else turn.shift_mm
-        return TargetSteer(T, z, shift, turn_deg, why)
+        if isinstance(turn, str):
+            return TargetSteer(T, z, 0.0, turn_deg, why)
+        return TargetSteer(T, z, turn.shift_mm, turn_deg, limited=turn.limited)
 
     def _update_rate(self, z: float, exposure_t_ns: int) -> None:
         last = self._last

@@ -147,22 +147,60 @@ def test_at_the_registered_phase_nothing_turns() -> None:
     ("few", "the seen markers carry 4% of the 4D CT's breathing pattern (need 25%)"),
     ("shifted", "the markers do not move as in the 4D CT: residual 5.0 mm beyond 2.0 mm (patient moved, "
                 "a cough, a marker swapped)"),
-    ("deep", "breathing beyond the 4D CT's range: score 30.0 mm outside 0.0..16.0 mm"),
-    ("turn", "the model would turn the path 7.9 deg (bound 5.0 deg)"),
 ])
 def test_a_pair_the_model_cannot_vouch_for_keeps_the_rigid_direction(case: str, reason: str) -> None:
     m = _model(turn=5.0)
-    live = FIDUCIALS + {"few": 8.0, "shifted": 0.0, "deep": 30.0, "turn": 16.0}[case] * UNIT
+    live = FIDUCIALS + 8.0 * UNIT
     if case == "few":
         live[[0, 1, 2, 4, 5]] = np.nan             # only the fourth, which barely moves
     if case == "shifted":
-        live = live + np.array([0.0, 5.0, 0.0])    # the patient slid 5 mm on the table
+        live = FIDUCIALS + np.array([0.0, 5.0, 0.0])    # the patient slid 5 mm on the table
     T = RigidTransform.from_translation(np.array([0.0, 0.0, 1.0]))
     steer = m.steer(T, FIDUCIALS, live, _plan(), RigidTransform.identity())
     assert steer.fallback == reason
+    assert steer.limited == ""
     assert steer.T_live_from_ref is T
     assert (steer.turn_deg, steer.target_shift_mm) == (0.0, 0.0)
-    assert math.isnan(steer.score_mm) == (case != "turn")
+    assert math.isnan(steer.score_mm)
+
+
+def _steered_direction(steer_T: RigidTransform) -> np.ndarray:
+    d = steer_T.R @ (TARGET - ENTRY)
+    return d / np.linalg.norm(d)
+
+
+@pytest.mark.parametrize(("score", "turn_bound", "held_at", "limited"), [
+    # range 0..16 widened by half of it: 24 at most
+    (30.0, 20.0, 24.0, "breathing beyond the 4D CT's range: score 30.0 mm (CT 0.0..16.0 mm), target held "
+                       "at 24.0 mm"),
+    (-12.0, 20.0, -8.0, "breathing beyond the 4D CT's range: score -12.0 mm (CT 0.0..16.0 mm), target held "
+                        "at -8.0 mm"),
+    (16.0, 5.0, 16.0, "the model's turn 7.9 deg held at the bound 5.0 deg"),
+    (30.0, 5.0, 24.0, "breathing beyond the 4D CT's range: score 30.0 mm (CT 0.0..16.0 mm), target held "
+                      "at 24.0 mm; the model's turn 11.9 deg held at the bound 5.0 deg"),
+])
+def test_a_pair_beyond_the_bounds_is_held_at_them_not_dropped(score: float, turn_bound: float, held_at: float,
+                                                              limited: str) -> None:
+    """Breathing deeper than the 4D CT: the target is modelled at the range's edge, and the turn
+    goes towards it as far as the bound lets it, about the same axis; the entry stays put."""
+    m = _model(turn=turn_bound)
+    T = RigidTransform.from_translation(np.array([0.0, 0.0, 1.0]))
+    steer = m.steer(T, FIDUCIALS, FIDUCIALS + score * UNIT, _plan(), RigidTransform.identity())
+    assert (steer.fallback, steer.limited) == ("", limited)
+    assert steer.score_mm == pytest.approx(score, abs=1e-9)
+    assert steer.target_shift_mm == pytest.approx(abs(held_at) * float(np.linalg.norm(A_TRUE)), abs=1e-9)
+    np.testing.assert_allclose(steer.T_live_from_ref.apply(ENTRY).reshape(3), ENTRY + T.t, atol=1e-9)
+    d0 = (TARGET - ENTRY) / np.linalg.norm(TARGET - ENTRY)
+    want = TARGET + held_at * A_TRUE - (ENTRY + T.t)
+    want /= np.linalg.norm(want)
+    got = _steered_direction(steer.T_live_from_ref)
+    full = math.degrees(math.atan2(np.linalg.norm(np.cross(d0, want)), d0 @ want))
+    turned = math.degrees(math.atan2(np.linalg.norm(np.cross(d0, got)), d0 @ got))
+    assert steer.turn_deg == pytest.approx(min(full, turn_bound), abs=1e-9)
+    assert (f"the model's turn {full:.1f} deg held" in limited) == (full > turn_bound)
+    assert turned == pytest.approx(min(full, turn_bound), abs=1e-9)
+    assert abs(float(np.cross(d0, want) @ got)) == pytest.approx(0.0, abs=1e-12)   # in d0 and want's plane
+    assert float(got @ want) > float(d0 @ want)                                     # towards the target
 
 
 def test_a_plan_without_a_4d_ct_is_refused() -> None:
@@ -242,8 +280,11 @@ def test_the_tracker_learns_the_rate_and_restarts_after_a_gap_or_a_fallback() ->
     assert tracker.rate_mm_s == 0.0
     tracker.steer(T, FIDUCIALS, FIDUCIALS + 9.0 * UNIT, plan, T, t_ns + 666_666_667)
     assert tracker.rate_mm_s != 0.0
-    kept = tracker.steer(T, FIDUCIALS, FIDUCIALS + 60.0 * UNIT, plan, T, t_ns + 733_333_334)
-    assert kept.fallback.startswith("breathing beyond the 4D CT's range")
+    held = tracker.steer(T, FIDUCIALS, FIDUCIALS + 60.0 * UNIT, plan, T, t_ns + 733_333_334)
+    assert (held.fallback, held.limited[:34]) == ("", "breathing beyond the 4D CT's range")
+    assert tracker.rate_mm_s != 0.0                      # a held pair is still a judged one
+    kept = tracker.steer(T, FIDUCIALS, FIDUCIALS + np.array([0.0, 5.0, 0.0]), plan, T, t_ns + 800_000_000)
+    assert kept.fallback.startswith("the markers do not move as in the 4D CT")
     assert tracker.rate_mm_s == 0.0
 
 

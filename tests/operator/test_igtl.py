@@ -194,7 +194,7 @@ def test_deformation_string_per_marker() -> None:
                                   target_fallback="")
     assert igtl_snapshot(steered, PLAN).deformation.endswith(  # type: ignore[arg-type]
         "target_model=surrogate target_shift_mm=6.12 target_turn_deg=2.50")
-    kept = dataclasses.replace(steered, target_fallback="breathing beyond the 4D CT's range")
+    kept = dataclasses.replace(steered, target_fallback="the markers do not move as in the 4D CT")
     assert igtl_snapshot(kept, PLAN).deformation.endswith(  # type: ignore[arg-type]
         "target_model=surrogate target_shift_mm=- target_turn_deg=-")
     assert igtl_snapshot(dataclasses.replace(base, T_optical_from_image=None), PLAN).deformation == ""  # type: ignore[arg-type]
