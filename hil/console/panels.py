@@ -112,6 +112,8 @@ def gate_text(v: ConsoleView) -> Text:
     elif v.target_shift_mm is not None:
         gate.append(f"\ntarget model: target {mm(v.target_shift_mm)} from plan, path turned "
                     f"{v.target_turn_deg or 0.0:.2f} deg")
+        if v.target_limited:
+            gate.append(f"\n  held at its bounds: {v.target_limited}", style="yellow")
     return gate
 
 

@@ -88,10 +88,11 @@ class ConsoleView:
     change_estimator: str | None = None
     change_fre_mm: float | None = None
     #: the surrogate target model's last pair (snapshot ``target_*``): shift mm, turn deg, why it
-    #: kept the rigid direction; None without the model
+    #: kept the rigid direction, which bound held it; None without the model
     target_shift_mm: float | None = None
     target_turn_deg: float | None = None
     target_fallback: str | None = None
+    target_limited: str | None = None
     #: the breathing state at registration (snapshot ``breathing_*``): how far it moved the plan's
     #: entry and target (mm), or why Horn's fit was kept; None without a 4D CT's breathing model
     breathing_entry_shift_mm: float | None = None
@@ -217,7 +218,7 @@ def build_view(snap: ControllerSnapshot, vs: ViewSetup, *, breathing_mm: Sequenc
         gate_shape_mm=snap.gate_shape_mm, gate_worst_marker_mm=_worst(snap.marker_deviations_mm),
         change_estimator=snap.change_estimator, change_fre_mm=snap.change_fre_mm,
         target_shift_mm=snap.target_shift_mm, target_turn_deg=snap.target_turn_deg,
-        target_fallback=snap.target_fallback,
+        target_fallback=snap.target_fallback, target_limited=snap.target_limited,
         breathing_entry_shift_mm=snap.breathing_entry_shift_mm,
         breathing_target_shift_mm=snap.breathing_target_shift_mm,
         breathing_kept_rigid_because=snap.breathing_kept_rigid_because,

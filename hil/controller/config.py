@@ -211,8 +211,8 @@ class CompensationConfig(BaseModel):
         2.0, gt=0, description="surrogate: per-marker RMS residual of the breathing pattern beyond which a "
                                "pair keeps the rigid direction")
     target_model_max_turn_deg: float = Field(
-        10.0, gt=0, le=45, description="surrogate: the most the model may turn the path; beyond, a pair "
-                                       "keeps the rigid direction")
+        10.0, gt=0, le=45, description="surrogate: the most the model may turn the path; a larger turn is "
+                                       "held at it (towards the modelled target, as far as this)")
 
 
 class NeedleCheckConfig(BaseModel):

@@ -57,6 +57,9 @@ class RunSummary:
     #: with ``target_model = "surrogate"``: the share of judged pairs that kept the rigid direction
     #: (docs/compensation.md "The direction"); None without the model
     target_model_fallback_fraction: float | None = None
+    #: with ``target_model = "surrogate"``: the share of judged pairs it steered with its score or
+    #: turn held at a bound (breathing deeper than the 4D CT); None without the model
+    target_model_held_fraction: float | None = None
     #: the published chain head: SHA-256 of the session log's last line (set once it is closed)
     session_log_sha256: str | None = None
     #: the HTML report built after the run (``hil run``; None when not built)
@@ -132,9 +135,11 @@ class RunMetrics:
     processing_ms: SampleSeries = field(default_factory=samples)   # tick work, wall clock (profiling)
     gate_samples: int = 0
     gate_open_samples: int = 0
-    #: pairs the surrogate target model judged (steered or fell back), and those it fell back on
+    #: pairs the surrogate target model judged (steered or fell back), those it fell back on, and
+    #: those it steered with its score or turn held at a bound
     target_model_pairs: int = 0
     target_model_fallbacks: int = 0
+    target_model_held: int = 0
     lock_time_s: float | None = None
     frames: int = 0
     frames_overwritten: int = 0   # prefetched pairs replaced before a tick took them (latest wins)
@@ -148,6 +153,7 @@ class RunMetrics:
         if est.target_steer is not None:
             self.target_model_pairs += 1
             self.target_model_fallbacks += int(bool(est.target_steer.fallback))
+            self.target_model_held += int(bool(est.target_steer.limited))
 
     @property
     def gate_open_fraction(self) -> float | None:
@@ -158,6 +164,12 @@ class RunMetrics:
         """Share of the pairs the surrogate target model judged that kept the rigid direction
         (None without the model)."""
         return (self.target_model_fallbacks / self.target_model_pairs) if self.target_model_pairs else None
+
+    @property
+    def target_model_held_fraction(self) -> float | None:
+        """Share of the pairs the surrogate target model judged that it steered with its score or
+        turn held at a bound (None without the model)."""
+        return (self.target_model_held / self.target_model_pairs) if self.target_model_pairs else None
 
 
 #: a gate open while the true target is farther than this from the guide axis line is a false open

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import abc
 import collections
+import itertools
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -88,7 +89,8 @@ def _target_fields(est: Estimate) -> dict[str, Any]:
     return {"target_model": est.comp_cfg.target_model,
             "target_shift_mm": None if steer is None else steer.target_shift_mm,
             "target_turn_deg": None if steer is None else steer.turn_deg,
-            "target_fallback": None if steer is None else steer.fallback}
+            "target_fallback": None if steer is None else steer.fallback,
+            "target_limited": None if steer is None else steer.limited}
 
 
 def _breathing_fields(preg: PatientRegistration | None) -> dict[str, Any]:
@@ -492,10 +494,7 @@ class ControllerParts(abc.ABC):
 
     # ------------------------------------------------------------------ summary
     def summary(self) -> RunSummary:
-        states: list[str] = []
-        for row in self.timeline:
-            if not states or states[-1] != row["state"]:
-                states.append(row["state"])
+        states = [str(s) for s, _ in itertools.groupby(row["state"] for row in self.timeline)]
         tm, m, est = self.truth_meter, self.metrics, self.est
         lock = tm.lock_errors[0] if tm.lock_errors else None  # at the moment of locking
         comp = tm.comp_errors_mm
@@ -512,7 +511,8 @@ class ControllerParts(abc.ABC):
             latency_ms={"p50": percentile(lat, 50), "p95": percentile(lat, 95)},
             processing_ms={"p50": percentile(m.processing_ms, 50), "p95": percentile(m.processing_ms, 95)},
             gate_open_fraction=m.gate_open_fraction, time_to_lock_s=m.lock_time_s, duration_s=self.t_s(),
-            target_model_fallback_fraction=m.target_model_fallback_fraction, frames=m.frames,
+            target_model_fallback_fraction=m.target_model_fallback_fraction,
+            target_model_held_fraction=m.target_model_held_fraction, frames=m.frames,
             commands_sent=self.safety.commands_sent, commands_refused=self.safety.commands_refused,
             faults=list(self.faults), session_log=str(self.session.path), comp_errors_mm=list(comp),
             comp_error_age_s=list(tm.comp_error_age_s), needle_direction_error_deg=self.needle.summary_deg(),

@@ -119,12 +119,14 @@ class ControllerSnapshot:
     predictor_fallback_reason: str | None = None
     #: the path's direction (``[procedure.compensation] target_model``; docs/compensation.md "The
     #: direction"): with the surrogate model, the last pair's modelled target shift (mm), the turn
-    #: it added (deg) and why that pair kept the rigid direction ("" when it steered); None without
-    #: the model or before a change was measured
+    #: it added (deg), why that pair kept the rigid direction ("" when it steered) and which bound
+    #: held its score or turn ("" when none did); None without the model or before a change was
+    #: measured
     target_model: str = "rigid"
     target_shift_mm: float | None = None
     target_turn_deg: float | None = None
     target_fallback: str | None = None
+    target_limited: str | None = None
     #: the path the controller follows for the last measured change: the planned entry and target
     #: (rows, optical frame, mm) moved by the change (the estimator's, steered by the target model
     #: when there is one), and when what it was measured on was taken (``Estimate.change_t_ns``,

@@ -228,9 +228,14 @@ def plot_target_model(data: SessionData) -> Plot:
         shown = sorted(counts.items(), key=lambda kv: -kv[1])[:_FALLBACK_REASONS_SHOWN]
         label = "fell back: " + "; ".join(f"{why[:50]} (x{n})" for why, n in shown)
         ax.plot(tf, [0.0] * len(tf), "x", color="#de2d26", markersize=5, label=label)
+    if data.target_held:
+        th = [tt for tt, _ in data.target_held]
+        ax.plot(th, [0.0] * len(th), "|", color="#fd8d3c", markersize=6,
+                label=f"held at a bound (x{len(th)}): score beyond the 4D CT's range or turn at its bound")
     _time_axis(ax, data)
     _mark_faults(ax, data)
-    note = f"fell back on {len(data.target_fallbacks)} of {len(turn)} pairs"
+    note = (f"fell back on {len(data.target_fallbacks)} of {len(turn)} pairs, "
+            f"held at a bound on {len(data.target_held)}")
     ax.set_title(f"{title} ({note})")
     ax.legend(loc="upper right", fontsize=6)
     return Plot(key, title, _png(fig), True, note)

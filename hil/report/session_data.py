@@ -105,6 +105,8 @@ class SessionData:
     target_turn_deg: Series = field(default_factory=Series)
     target_shift_mm: Series = field(default_factory=Series)
     target_fallbacks: list[tuple[float, str]] = field(default_factory=list)
+    #: the pairs the model steered with its score or turn held at a bound (time s, which)
+    target_held: list[tuple[float, str]] = field(default_factory=list)
     robot_speed_mm_s: Series = field(default_factory=Series)
     robot_speed_kind: str = ""  # "measured", "commanded" or "" (none)
     fre_mm: float | None = None
@@ -174,6 +176,13 @@ class SessionData:
         if not len(self.target_turn_deg):
             return None
         return len(self.target_fallbacks) / len(self.target_turn_deg)
+
+    def target_model_held_fraction(self) -> float | None:
+        """Of the pairs the surrogate target model judged, the share it steered with its score or
+        turn held at a bound (None: the session ran without the model)."""
+        if not len(self.target_turn_deg):
+            return None
+        return len(self.target_held) / len(self.target_turn_deg)
 
     def gate_open_fraction(self) -> float | None:
         if not self.gate_samples:
@@ -403,7 +412,8 @@ def _read_procedure_event(data: SessionData, ln: _Line, event: str, t: float, st
 def _read_target_model(data: SessionData, ln: _Line, t: float) -> None:
     """The surrogate target model's fields of a ``compensation_step`` (absent without the model:
     nothing is added). A pair counts when it logged its turn; a non-empty ``target_fallback`` is
-    a pair that kept the rigid direction, with the reason."""
+    a pair that kept the rigid direction, with the reason; a non-empty ``target_limited`` (absent
+    in older logs) a pair steered with its score or turn held at a bound."""
     turn = ln.num("target_turn_deg")
     if turn is None:
         return
@@ -412,6 +422,9 @@ def _read_target_model(data: SessionData, ln: _Line, t: float) -> None:
     why = ln.text("target_fallback")
     if why:
         data.target_fallbacks.append((t, why))
+    held = ln.text("target_limited")
+    if held:
+        data.target_held.append((t, held))
 
 
 def _read_body_state(data: SessionData, ln: _Line, t: float) -> None:

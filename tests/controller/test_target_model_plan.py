@@ -202,7 +202,8 @@ def test_a_procedure_steers_by_the_model_and_says_so(tmp_path: Path) -> None:
     steps = [r for r in log if r["event"] == "compensation_step"]
     assert steps
     for r in steps:
-        assert {"target_score_mm", "target_shift_mm", "target_turn_deg", "target_fallback"} <= r.keys()
+        assert {"target_score_mm", "target_shift_mm", "target_turn_deg", "target_fallback",
+                "target_limited"} <= r.keys()
         assert 0.0 <= r["target_turn_deg"] <= setup.procedure.compensation.target_model_max_turn_deg
         if r["target_fallback"] == "":
             assert math.isfinite(r["target_score_mm"])
@@ -230,12 +231,12 @@ def test_following_free_breathing_the_path_follows_the_modelled_target(tmp_path:
         comp = base.procedure.compensation.model_copy(update={"target_model": model})
         setup = base.model_copy(update={"simulation": sim, "procedure": base.procedure.model_copy(
             update={"compensation": comp})})
-        follow, fallback = bench._follow_run(CONFIG, setup, plan, tmp_path / model, 12.0)
+        follow, shares = bench._follow_run(CONFIG, setup, plan, tmp_path / model, 12.0)
         path, entry = follow["guide"], follow["axis_entry"]
         assert len(path) > 100
-        assert (fallback is None) == (model == "rigid")
-        if fallback is not None:
-            assert fallback < 0.5           # the model steered most pairs of the free breathing
+        assert (shares is None) == (model == "rigid")
+        if shares is not None:
+            assert shares[0] < 0.5           # the model steered most pairs of the free breathing
         figures[model] = (float(np.percentile(path, 95)), float(np.percentile(entry, 95)))
     assert figures["surrogate"][0] < 0.7 * figures["rigid"][0], figures
     assert figures["surrogate"][1] == pytest.approx(figures["rigid"][1], abs=0.3), figures

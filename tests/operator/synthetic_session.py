@@ -20,7 +20,11 @@ FAULT_REASON = "camera: no frame for 0.30 s"
 #: compensation pairs (index -> reason) the surrogate target model fell back on
 TARGET_FALLBACKS = {3: "markers off the pattern by 2.40 mm > 2.00 mm",
                     4: "markers off the pattern by 2.40 mm > 2.00 mm",
-                    11: "score 9.1 mm outside the CT's range"}
+                    11: "the seen markers carry 20% of the 4D CT's breathing pattern (need 25%)"}
+#: compensation pairs (index -> which) the model steered held at a bound
+TARGET_HELD = {15: "breathing beyond the 4D CT's range: score 30.0 mm (CT 0.0..16.0 mm), target held at "
+                   "24.0 mm",
+               16: "the model's turn 11.0 deg held at the bound 10.0 deg"}
 REFERENCE_MM = np.array([[0.0, 0.0, 1000.0], [80.0, 0.0, 1000.0], [0.0, 80.0, 1010.0],
                          [80.0, 80.0, 990.0], [40.0, 40.0, 1020.0]])
 DT_S = 0.1
@@ -84,7 +88,7 @@ def write_full_session(path: Path) -> Path:
                   guide_error_mm=2.0 / (k + 1), gate_deviation_mm=0.4, change_fre_mm=0.05 * k,
                   target_score_mm=0.3 * k, target_shift_mm=0.2 * k,
                   target_turn_deg=0.0 if k in TARGET_FALLBACKS else 1.5 * math.sin(2 * math.pi * k / 20),
-                  target_fallback=TARGET_FALLBACKS.get(k, ""))
+                  target_fallback=TARGET_FALLBACKS.get(k, ""), target_limited=TARGET_HELD.get(k, ""))
         log.write("command_sent", command="servo", target_mm=[0.0, 0.0, 0.0], period_s=DT_S, speed_mm_s=5.0)
         log.write("truth_error", state="compensate", position_mm=1.0 + 0.1 * k, direction_deg=0.5)
     w.enter("compensate", "lock", "compensate_to_lock")

@@ -442,6 +442,11 @@ def test_the_gate_panel_says_what_the_target_model_does() -> None:
     assert "\ntarget model: target 6.250 mm from plan, path turned 3.50 deg" in steered
     kept = str(gate_text(_gate_view(target_shift_mm=0.0, target_turn_deg=0.0, target_fallback="why not")))
     assert "\ntarget model: rigid direction kept (why not)" in kept
+    assert "held at its bounds" not in steered
+    bound = "the model's turn 12.0 deg held at the bound 10.0 deg"
+    view = _gate_view(target_shift_mm=9.0, target_turn_deg=10.0, target_fallback="")
+    held = str(gate_text(dataclasses.replace(view, target_limited=bound)))
+    assert f"path turned 10.00 deg\n  held at its bounds: {bound}" in held
 
 
 def test_the_registration_panel_says_where_the_breathing_moved_the_path() -> None:

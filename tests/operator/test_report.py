@@ -21,6 +21,7 @@ from tests.operator.synthetic_session import (
     LOCK_ERROR_MM,
     ROBOT_FRE_MM,
     TARGET_FALLBACKS,
+    TARGET_HELD,
     TRE_MM,
     write_empty_session,
     write_full_session,
@@ -67,7 +68,8 @@ def test_full_session_report_has_every_plot_and_number(tmp_path: Path) -> None:
     assert _number(page, "lock_truth_error_mm") == "0.520"
     assert _number(page, "faults") == "1"
     assert _number(page, "target_model_fallback_fraction") == "0.150"
-    assert "fell back on 3 of 20 pairs" in page
+    assert _number(page, "target_model_held_fraction") == "0.100"
+    assert "fell back on 3 of 20 pairs, held at a bound on 2" in page
     assert _number(page, "final_state") == "done"
     assert FAULT_REASON in page
     nums = {n.key: n.value for n in res.numbers}
@@ -116,6 +118,9 @@ def test_session_data_series(tmp_path: Path) -> None:
     assert data.target_shift_mm.y == pytest.approx([0.2 * k for k in range(20)], abs=1e-12)
     assert [why for _, why in data.target_fallbacks] == list(TARGET_FALLBACKS.values())
     assert data.target_model_fallback_fraction() == pytest.approx(3 / 20)
+    assert data.target_held == [(pytest.approx(t), why) for t, why in zip(
+        [data.target_turn_deg.t_s[k] for k in TARGET_HELD], TARGET_HELD.values(), strict=True)]
+    assert data.target_model_held_fraction() == pytest.approx(2 / 20)
 
 
 def test_empty_session_plots_say_no_data(tmp_path: Path) -> None:
@@ -129,6 +134,7 @@ def test_empty_session_plots_say_no_data(tmp_path: Path) -> None:
     assert all(len(png) > 1000 for _, png in figs.values())
     assert _number(page, "fre_mm") == "n/a"
     assert _number(page, "target_model_fallback_fraction") == "n/a"
+    assert _number(page, "target_model_held_fraction") == "n/a"
     assert res.chain.ok
 
 

@@ -55,6 +55,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -119,12 +120,12 @@ FOLLOW_SERIES = ("guide", "axis_entry", "path_pair", "path_now", "path_entry", "
 
 
 def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Path,
-                follow_s: float) -> tuple[dict[str, list[float]], float | None]:
+                follow_s: float) -> tuple[dict[str, list[float]], tuple[float, float] | None]:
     """Follow free breathing: the gate opens at once (no breath-hold asked, wide tolerance) and
     compensation runs ``follow_s`` seconds before the run is stopped; returns the truth errors after
     the first 2 s (the catch-up from the stand-off onto the moving path), by :data:`FOLLOW_SERIES`
-    (NaN where the controller had no path yet), and the share of pairs the surrogate target model
-    kept the rigid direction on (None without the model)."""
+    (NaN where the controller had no path yet), and the shares of pairs the surrogate target model
+    kept the rigid direction on and steered held at a bound (None without the model)."""
     p = setup.procedure
     proc = p.model_copy(update={
         "gate": p.gate.model_copy(update={"tolerance_mm": 30.0, "hold_request_s": 0.1,
@@ -141,7 +142,9 @@ def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Pa
               s.comp_path_entry_errors_mm, s.comp_path_direction_errors_deg)
     kept = {name: [e for e, ok in zip(xs, late, strict=True) if ok]
             for name, xs in zip(FOLLOW_SERIES, series, strict=True)}
-    return kept, s.target_model_fallback_fraction
+    shares = None if s.target_model_fallback_fraction is None else (
+        s.target_model_fallback_fraction, s.target_model_held_fraction or 0.0)
+    return kept, shares
 
 
 def _with_4d_ct(plan: ProcedurePlan, setup: SetupConfig,
@@ -177,9 +180,10 @@ def _calibrate_rig(cfg_path: Path, setup: SetupConfig, out: Path) -> dict[str, A
 
 
 def _column(runs: list[dict[str, Any]], comp_all: list[float], hold_targets: list[float],
-            follow: dict[str, list[float]], follow_fallbacks: list[float]) -> dict[str, Any]:
+            follow: dict[str, list[float]], follow_model: list[tuple[float, float]]) -> dict[str, Any]:
     """One column's figures from its seeds' records and the pooled samples (mm, deg, s; None where
-    no run gave the figure). The compensation p95 is the following run's where one was made."""
+    no run gave the figure). The compensation p95 is the following run's where one was made;
+    ``follow_model``: each following run's target model shares (fell back, held at a bound)."""
     follow_all = follow["guide"]
     comp_main = follow_all or comp_all
     locked = [r for r in runs if r["lock_error_mm"] is not None]
@@ -203,8 +207,10 @@ def _column(runs: list[dict[str, Any]], comp_all: list[float], hold_targets: lis
         "comp_err_mm_rms_following": _rms(follow_all),
         "comp_entry_err_mm_p95_following": _p95(follow["axis_entry"]),
         **_following_split(follow),
-        "target_model_fallback_fraction_following": statistics.fmean(follow_fallbacks) if follow_fallbacks
-        else None,
+        "target_model_fallback_fraction_following": statistics.fmean(f for f, _ in follow_model)
+        if follow_model else None,
+        "target_model_held_fraction_following": statistics.fmean(h for _, h in follow_model)
+        if follow_model else None,
         "comp_err_mm_rms_hold": _rms(comp_all),
         "comp_err_mm_p95_hold": float(np.percentile(comp_all, 95)) if comp_all else None,
         "target_err_mm_rms": _rms(targets),
@@ -243,7 +249,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
     comp_all: list[float] = []
     follow: dict[str, list[float]] = {name: [] for name in FOLLOW_SERIES}
     hold_targets: list[float] = []
-    follow_fallbacks: list[float] = []
+    follow_model: list[tuple[float, float]] = []
     rig_errors: list[dict[str, Any]] = []
     for k in range(args.runs):
         seed = args.first_seed + k
@@ -261,16 +267,16 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
         comp_all += s.comp_errors_mm
         hold_targets += s.lock_target_errors_mm
         if args.follow_s > 0:
-            got, fallback = _follow_run(cfg_path, setup, seed_plan, tmp, args.follow_s)
+            got, shares = _follow_run(cfg_path, setup, seed_plan, tmp, args.follow_s)
             for name in FOLLOW_SERIES:
                 follow[name] += got[name]
-            if fallback is not None:
-                follow_fallbacks.append(fallback)
+            if shares is not None:
+                follow_model.append(shares)
         runs.append(_run_record(seed, s))
         if not args.json:
             print(f"{'calibrated' if calibrate else 'as given'} seed {seed}: {s.final_state}, "
                   f"lock {s.lock_error_mm}, dir {s.lock_direction_error_deg}", file=sys.stderr)
-    out = _column(runs, comp_all, hold_targets, follow, follow_fallbacks)
+    out = _column(runs, comp_all, hold_targets, follow, follow_model)
     if calibrate:
         layout = [float(r["layout_mm_rms"]) for r in rig_errors if r["layout_mm_rms"] is not None]
         offs = [abs(float(e)) for r in rig_errors for e in (r["time_offset_error_ms"] or {}).values()]
@@ -337,7 +343,8 @@ def _print_rigs(out: dict[str, Any]) -> None:
 def _print(cols: dict[str, dict[str, Any]]) -> None:
     def f(x: float | None, u: str) -> str:
         return "n/a" if x is None else f"{x:.3f} {u}"
-    rows = [("runs reaching done", lambda o: f"{o['runs_done']}/{o['runs']}"),
+    rows: list[tuple[str, Callable[[dict[str, Any]], str]]] = [
+            ("runs reaching done", lambda o: f"{o['runs_done']}/{o['runs']}"),
             ("lock error RMS", lambda o: f(o["lock_err_mm_rms"], "mm")),
             ("lock error mean", lambda o: f(o["lock_err_mm_mean"], "mm")),
             ("lock error max", lambda o: f(o["lock_err_mm_max"], "mm")),

@@ -260,9 +260,11 @@ class CompensatePhase(Phase):
 
 def _steer_fields(steer: TargetSteer | None) -> dict[str, float | str]:
     """``compensation_step``'s surrogate target model fields (none without the model): the
-    breathing score, the modelled target's shift, the turn added, and why a pair kept the rigid
-    direction ("" when the model steered)."""
+    breathing score, the modelled target's shift, the turn added, why a pair kept the rigid
+    direction ("" when the model steered) and which bound held the score or the turn ("" when none
+    did)."""
     if steer is None:
         return {}
     return {"target_score_mm": steer.score_mm, "target_shift_mm": steer.target_shift_mm,
-            "target_turn_deg": steer.turn_deg, "target_fallback": steer.fallback}
+            "target_turn_deg": steer.turn_deg, "target_fallback": steer.fallback,
+            "target_limited": steer.limited}
