@@ -64,9 +64,11 @@ it could vouch for fading out over :data:`TURN_RAMP_S`), and says why, when:
 Two bounds hold the model's answer instead of discarding it, and say so
 (:attr:`TargetSteer.limited`): a pair that breathes as the pattern says but deeper than the CT
 tells the direction the target went, not how far beyond the CT's breaths. The rigid direction is
-then the worse answer: on the recorded liver traces (docs/compensation.md), breaths up to 1.8 times
-the 4D CT's average ones put 6-19 % of the pairs beyond the range, and keeping the rigid direction
-there left the path 7-16 deg p95 off where the held model leaves it 0.7-6 deg off.
+then the worse answer: on the two recorded 6-DoF liver traces (docs/benchmarks.md "Issue 41:
+breathing deeper than the 4D CT"), breaths up to 1.9 times the 4D CT's average one put 11 % and
+19 % of the pairs beyond the range or the turn bound, and keeping the rigid direction there left
+the path 6.8 and 16 deg p95 off (the true markers, offline) where the held model leaves it 0.7 and
+6 deg off.
 
 - the score beyond the 4D CT's range by more than half of it (breathing much deeper than at the
   CT: the line would extrapolate far) is held at that edge for the target (the markers' own
