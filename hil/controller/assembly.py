@@ -22,6 +22,7 @@ from hil.clock import Clock, MonotonicClock
 from hil.config import Devices
 from hil.config.build import RobotFollower
 from hil.config.setup import SetupConfig
+from hil.controller.compensation import limiter_args
 from hil.controller.controller import Controller
 from hil.controller.crosscheck import CrossCheckBounds
 from hil.controller.observers import HookCaller, TickObserver
@@ -137,11 +138,10 @@ def with_servo_process(setup: SetupConfig, devices: Devices, clock: Clock) -> De
     from hil.servo.client import ServoRobot
     from hil.servo.process import ServoProcess, ServoSpec
 
-    c, sv = setup.procedure.compensation, setup.servo
-    spec = ServoSpec(setup, (c.max_speed_mm_s, c.max_accel_mm_s2, c.max_angular_speed_rad_s,
-                             c.max_angular_accel_rad_s2),
-                     realtime=sv.realtime, priority=sv.priority, cpu=sv.cpu, reserve_cpu=sv.reserve_cpu)
+    sv = setup.servo
     inner = devices.robot
+    spec = ServoSpec(setup, limiter_args(setup.procedure, rig_geometry(setup, inner).T_tcp_from_guide),
+                     realtime=sv.realtime, priority=sv.priority, cpu=sv.cpu, reserve_cpu=sv.reserve_cpu)
     robot = ServoRobot(ServoProcess(spec, inner.name, inner.T_flange_from_tcp), inner.limits)
     if isinstance(devices.world, RobotFollower):
         devices.world.follow_robot(robot.state_view())

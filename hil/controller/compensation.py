@@ -24,16 +24,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hil.controller.change_estimate import ChangeFit
-from hil.controller.config import CompensationConfig
+from hil.controller.config import CompensationConfig, ProcedureConfig
 from hil.errors import GeometryError
 from hil.geometry import native
 from hil.geometry.registration import Registration, register_horn
 from hil.geometry.transform import RigidTransform, rotvec_to_matrix
 from hil.prediction import GuardedPredictor, PredictionError, SafetyLimits, make_predictor
-from hil.servo.limiter import RateLimiter
+from hil.servo.limiter import LimiterArgs, RateLimiter
 
 __all__ = ["ChangePredictor", "MotionFilter", "PredictorFallback", "RateLimiter", "change_out_of_bounds",
-           "correction_out_of_bounds", "deformation_out_of_bounds", "interpolate_pose", "rigid_change"]
+           "correction_out_of_bounds", "deformation_out_of_bounds", "interpolate_pose", "limiter_args",
+           "rigid_change"]
 
 FloatArray = NDArray[np.float64]
 
@@ -48,6 +49,20 @@ def rigid_change(reference_mm: FloatArray, live_mm: FloatArray) -> Registration 
         return register_horn(live_mm[ok], reference_mm[ok])
     except GeometryError:
         return None
+
+
+def limiter_args(procedure: ProcedureConfig, T_tcp_from_guide: RigidTransform) -> LimiterArgs:
+    """The servo's :class:`RateLimiter` for ``procedure``: the correction's limits
+    (``[procedure.compensation]``) about the pivot ``rate_limit_pivot`` names: the entry, the
+    stand-off (``[procedure.planning] standoff_mm``) down the guide's z axis, in the TCP frame
+    (``T_tcp_from_guide``: the rig's guide), or the TCP."""
+    c = procedure.compensation
+    pivot = (0.0, 0.0, 0.0)
+    if c.rate_limit_pivot == "entry":
+        entry_tcp_mm = T_tcp_from_guide.apply(np.array([0.0, 0.0, procedure.planning.standoff_mm]))
+        x, y, z = (float(v) for v in entry_tcp_mm)
+        pivot = (x, y, z)
+    return (c.max_speed_mm_s, c.max_accel_mm_s2, c.max_angular_speed_rad_s, c.max_angular_accel_rad_s2, pivot)
 
 
 def _to_vec(T: RigidTransform) -> FloatArray:

@@ -179,6 +179,11 @@ class CompensationConfig(BaseModel):
     max_angular_accel_rad_s2: float = Field(
         2.0, gt=0, description="angular acceleration limit of the correction (noise in the measured "
                                "attitude otherwise reaches the arm as bursts at the angular speed limit)")
+    rate_limit_pivot: Literal["entry", "tcp"] = Field(
+        "entry", description="the point whose translation the rate limits above hold, the rotation being "
+                             "about it: entry (stand-off down the guide's axis: the axis stays through the "
+                             "entry while a fast turn is clipped) or tcp (as before issue 41); the TCP's own "
+                             "speed and acceleration are held to the same limits either way")
     max_correction_mm: float = Field(25.0, gt=0, description="beyond this change: pause, ask the operator")
     max_correction_deg: float = Field(10.0, gt=0)
     predict_latency: bool = Field(True, description="extrapolate the motion over the measured latency")

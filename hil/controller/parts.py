@@ -21,6 +21,7 @@ from drivers.interfaces.tracker import PoseTracker
 from hil.clock import Clock
 from hil.controller import events as ev
 from hil.controller.commands import Command
+from hil.controller.compensation import limiter_args
 from hil.controller.config import ProcedureConfig
 from hil.controller.cost import CostFigures
 from hil.controller.crosscheck import CameraCrossCheck, CrossCheckBounds
@@ -158,7 +159,7 @@ class ControllerParts(abc.ABC):
         crosscheck: CrossCheckBounds | None = None,
         camera_silence_s: float | None = None,
     ) -> None:
-        robot = self._servo_robot(robot, limits, procedure, clock, session)
+        robot = self._servo_robot(robot, limits, procedure, rig, clock, session)
         self.camera, self.robot, self.tracker, self.clock = camera, robot, tracker, clock
         self.servo_stats = StatsEverySecond(lambda: robot.link.regions.stats)
         self._robot_view = robot.state_view()   # the arm for snapshots: never takes the loop's events
@@ -242,19 +243,16 @@ class ControllerParts(abc.ABC):
         return OperatorView(self.state, self._pending_name(), self._last_reason, self.t_s(), self._started)
 
     @staticmethod
-    def _servo_robot(robot: Robot, limits: MotionLimits, procedure: ProcedureConfig, clock: Clock,
-                     session: SessionLog) -> ServoRobot:
+    def _servo_robot(robot: Robot, limits: MotionLimits, procedure: ProcedureConfig, rig: RigGeometry,
+                     clock: Clock, session: SessionLog) -> ServoRobot:
         """The robot behind its servo loop: a :class:`ServoRobot` as given (the servo process,
         started by the assembly), else ``robot`` behind a loop stepped in this process."""
         if isinstance(robot, ServoRobot):
             if robot.on_event is None:
                 robot.on_event = servo_event_logger(session)
             return robot
-        c = procedure.compensation
-        return in_process_servo(robot, limits, RateLimiter(c.max_speed_mm_s, c.max_accel_mm_s2,
-                                                           c.max_angular_speed_rad_s,
-                                                           c.max_angular_accel_rad_s2), clock,
-                                servo_event_logger(session))
+        return in_process_servo(robot, limits, RateLimiter(*limiter_args(procedure, rig.T_tcp_from_guide)),
+                                clock, servo_event_logger(session))
 
     def _servo_timing(self) -> ServoTiming:
         ready = self.pipeline.next_pair_ready

@@ -56,7 +56,7 @@ from hil.childproc import ChildProcess
 from hil.clock import MonotonicClock
 from hil.config.setup import SetupConfig
 from hil.geometry.transform import RigidTransform
-from hil.servo.limiter import RateLimiter
+from hil.servo.limiter import LimiterArgs, RateLimiter
 from hil.servo.link import Regions
 from hil.servo.loop import ServoLoop
 from hil.servo.reserve import release_cpu, reserve_cpu
@@ -83,8 +83,8 @@ class ServoSpec:
 
     Attributes:
         setup: the validated setup (its robot section is built in the child).
-        limiter: max speed mm/s, max acceleration mm/s², max angular speed rad/s, max angular
-            acceleration rad/s² of the tracking.
+        limiter: the tracking's :class:`RateLimiter` arguments (:data:`LimiterArgs`: its limits and
+            pivot).
         realtime: ask for SCHED_FIFO / pinning / mlockall.
         priority: the SCHED_FIFO priority (1-99).
         cpu: the CPU to pin to (None: the last one).
@@ -93,7 +93,7 @@ class ServoSpec:
     """
 
     setup: SetupConfig
-    limiter: tuple[float, float, float, float]
+    limiter: LimiterArgs
     realtime: bool = True
     priority: int = 80
     cpu: int | None = None

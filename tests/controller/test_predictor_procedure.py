@@ -23,7 +23,8 @@ CONFIG = Path("configs/sim.toml")
 PLAN = load_plan("configs/plans/sim_plan.json")
 
 #: ``_following("alpha-beta")``'s figures before issue 42's predictor existed (commit 0be3925, the
-#: compiled kernels built; the same seed): the alpha-beta path must reproduce them exactly
+#: compiled kernels built; the same seed; the rate limits about the TCP, as then): the alpha-beta
+#: path must reproduce them exactly
 BEFORE: dict[str, Any] = {
     "final_state": "safe_stop", "fre_mm": 0.016238866263402308, "robot_fre_mm": 0.033003384419303644,
     "comp_error_rms_mm": 0.4320535359268331, "comp_error_p95_mm": 0.6063231926398089,
@@ -65,7 +66,11 @@ def test_alpha_beta_is_the_controller_before_the_predictor(tmp_path: Path) -> No
     was_geometry, was_vision = native.use_native(True), kernel.use_kernel(True)
     try:
         assert native.active() is not None, native.native_status()
-        s = _run(_following("alpha-beta"), tmp_path, 10.0)
+        setup = _following("alpha-beta")
+        comp = setup.procedure.compensation.model_copy(update={"rate_limit_pivot": "tcp"})
+        proc = setup.procedure.model_copy(update={"compensation": comp})
+        setup = setup.model_copy(update={"procedure": proc})
+        s = _run(setup, tmp_path, 10.0)
     finally:
         native.use_native(was_geometry)
         kernel.use_kernel(was_vision)

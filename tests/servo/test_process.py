@@ -30,8 +30,12 @@ from hil.servo.shm import Stat
 ROOT = Path(__file__).resolve().parents[2]
 
 
+#: the correction's limits about a pivot 90 mm down the TCP's z axis (the entry)
+LIMITS = (60.0, 400.0, 0.5, 2.0, (0.0, 0.0, 90.0))
+
+
 def _spec(realtime: bool = False) -> ServoSpec:
-    return ServoSpec(load_setup(default_setup_path()), (60.0, 400.0, 0.5, 2.0), realtime=realtime)
+    return ServoSpec(load_setup(default_setup_path()), LIMITS, realtime=realtime)
 
 
 def _wait(cond: Callable[[], bool], what: str, timeout_s: float = 20.0) -> None:
@@ -208,7 +212,8 @@ _PARENT = textwrap.dedent("""
     from hil.config import default_setup_path, load_setup
     from hil.geometry.transform import RigidTransform
     from hil.servo.process import ServoProcess, ServoSpec
-    p = ServoProcess(ServoSpec(load_setup(default_setup_path()), (60.0, 400.0, 0.5, 2.0), realtime=False),
+    p = ServoProcess(ServoSpec(load_setup(default_setup_path()), (60.0, 400.0, 0.5, 2.0, (0.0, 0.0, 90.0)),
+                               realtime=False),
                      "robot", RigidTransform.identity())
     ready = p.start()
     print("PID", ready.pid, flush=True)
@@ -261,7 +266,7 @@ def test_a_robot_that_cannot_be_opened_fails_the_start_with_its_own_error(tmp_pa
                         f'stereo = "{ROOT / "configs" / "calibration" / "sim_stereo.json"}"', 1)
     cfg = tmp_path / "u.toml"
     cfg.write_text(text)
-    proc = ServoProcess(ServoSpec(load_setup(cfg), (60.0, 400.0, 0.5, 2.0), realtime=False), "robot",
+    proc = ServoProcess(ServoSpec(load_setup(cfg), LIMITS, realtime=False), "robot",
                         RigidTransform.identity())
     with pytest.raises(DisconnectedError, match=r"127\.0\.0\.9"):
         proc.start()

@@ -26,6 +26,8 @@ import numpy as np
 
 from hil.clock import ManualClock
 from hil.config import build_devices, default_setup_path, load_setup
+from hil.controller.assembly import rig_geometry
+from hil.controller.compensation import limiter_args
 from hil.log import configure_logging
 from hil.servo.limiter import RateLimiter
 from hil.servo.link import Regions
@@ -50,7 +52,6 @@ def measure(config: Path, rate_hz: float, periods: int, repeats: int) -> dict[st
     if not (rate_hz > 0 and periods > 0 and repeats > 0):
         raise ValueError(f"rate, periods and repeats must be > 0 (got {rate_hz}, {periods}, {repeats})")
     setup = load_setup(config)
-    c = setup.procedure.compensation
     clock = ManualClock(10**9)
     devices = build_devices(setup, clock)
     regions = Regions.create(shared=False)
@@ -60,8 +61,8 @@ def measure(config: Path, rate_hz: float, periods: int, repeats: int) -> dict[st
         robot = devices.robot
         loop = ServoLoop(robot, robot.limits, clock, regions.block, regions.ring, regions.stats,
                          period_s=period_s, report=lambda kind, fields: None,
-                         limiter=RateLimiter(c.max_speed_mm_s, c.max_accel_mm_s2, c.max_angular_speed_rad_s,
-                                             c.max_angular_accel_rad_s2))
+                         limiter=RateLimiter(*limiter_args(setup.procedure,
+                                                           rig_geometry(setup, robot).T_tcp_from_guide)))
         home = robot.state_now().T_robot_from_tcp
         amplitude = np.asarray(AMPLITUDE_MM)
 
