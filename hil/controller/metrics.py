@@ -90,6 +90,8 @@ class RunSummary:
     comp_errors_mm: list[float] = field(default_factory=list, repr=False)
     comp_error_age_s: list[float] = field(default_factory=list, repr=False)
     lock_target_errors_mm: list[float] = field(default_factory=list, repr=False)
+    #: every LOCK sample's guide axis line to the true entry, mm (simulation only)
+    lock_entry_errors_mm: list[float] = field(default_factory=list, repr=False)
     comp_entry_errors_mm: list[float] = field(default_factory=list, repr=False)
     #: simulation only, while compensating: the path the controller follows against the true body
     #: (:class:`PathSample`), p95 mm: its stand-off point against the ideal one when its pair was
@@ -113,8 +115,9 @@ class RunSummary:
 
 #: :class:`RunSummary`'s per-tick series, left out of its JSON
 _SERIES_FIELDS: Final = ("comp_errors_mm", "comp_error_age_s", "lock_target_errors_mm",
-                         "comp_entry_errors_mm", "comp_path_errors_mm", "comp_path_now_errors_mm",
-                         "comp_path_entry_errors_mm", "comp_path_direction_errors_deg")
+                         "lock_entry_errors_mm", "comp_entry_errors_mm", "comp_path_errors_mm",
+                         "comp_path_now_errors_mm", "comp_path_entry_errors_mm",
+                         "comp_path_direction_errors_deg")
 
 
 def percentile(values: Sequence[float] | SampleSeries, q: float) -> float | None:

@@ -541,6 +541,7 @@ def _body_truth(tm: TruthMeter) -> dict[str, Any]:
         "comp_path_direction_errors_deg": list(tm.comp_path_direction_errors_deg),
         "change_fre_mm": {"p50": percentile(tm.change_fre_mm, 50), "p95": percentile(tm.change_fre_mm, 95)},
         "lock_target_errors_mm": targets,
+        "lock_entry_errors_mm": [x.entry_mm for x in lock],
         "gate_false_open_rate": tm.gate_false_open_ticks / tm.gate_open_ticks if tm.gate_open_ticks else None,
         "gate_open_ticks": tm.gate_open_ticks,
     }

@@ -46,7 +46,7 @@ def test_a_column_from_a_locked_and_a_faulted_seed() -> None:
                      path_now=[nan, 2.0, 3.0, 4.0], path_entry=[nan, 0.1, 0.2, 0.3],
                      path_direction=[nan, 1.0, 1.0, 1.0])
     out = _bench()._column(runs, comp_all=[0.1, 0.2], hold_targets=[0.4, 0.6], follow=follow,
-                           follow_model=[(0.1, 0.0), (0.3, 0.2)])
+                           follow_model=[(0.1, 0.0), (0.3, 0.2)], hold_entries=[0.1, 0.2, 0.2])
     assert out["runs"] == 2
     assert out["runs_done"] == 1
     # only the locked seed has lock figures
@@ -56,6 +56,7 @@ def test_a_column_from_a_locked_and_a_faulted_seed() -> None:
     assert out["dir_err_deg_rms"] == pytest.approx(0.1)
     assert out["target_err_mm_p95"] == pytest.approx(1.0)
     assert out["entry_axis_err_mm_rms"] == pytest.approx(0.2)
+    assert out["entry_axis_err_hold_mm_rms"] == pytest.approx(math.sqrt(0.03))   # every LOCK sample
     # the following run's samples give the compensation p95; the hold's stand beside it
     assert out["comp_err_mm_p95"] == pytest.approx(3.85)
     assert out["comp_err_mm_rms_following"] == pytest.approx(math.sqrt(7.5))
@@ -81,7 +82,7 @@ def test_a_column_from_a_locked_and_a_faulted_seed() -> None:
 
 def test_without_a_following_run_the_hold_gives_the_compensation_figure() -> None:
     out = _bench()._column(_records(), comp_all=[0.1, 0.2], hold_targets=[], follow=_follow([], []),
-                           follow_model=[])
+                           follow_model=[], hold_entries=[])
     assert out["comp_err_mm_p95"] == pytest.approx(0.195)
     assert out["comp_err_mm_rms_following"] is None
     assert out["comp_entry_err_mm_p95_following"] is None
@@ -89,11 +90,12 @@ def test_without_a_following_run_the_hold_gives_the_compensation_figure() -> Non
     assert out["target_model_held_fraction_following"] is None
     assert out["follow_path_pair_mm_p95"] is None
     assert out["target_err_hold_mm_p95"] is None
+    assert out["entry_axis_err_hold_mm_rms"] is None
 
 
 def test_no_seed_locked_leaves_the_lock_figures_empty() -> None:
     out = _bench()._column(_records()[1:], comp_all=[], hold_targets=[], follow=_follow([], []),
-                           follow_model=[])
+                           follow_model=[], hold_entries=[])
     assert out["runs_done"] == 0
     for key in ("lock_err_mm_mean", "lock_err_mm_rms", "lock_err_mm_max", "dir_err_deg_rms",
                 "comp_err_mm_p95", "target_err_mm_p95", "target_err_mm_max", "entry_axis_err_mm_rms",

@@ -180,10 +180,12 @@ def _calibrate_rig(cfg_path: Path, setup: SetupConfig, out: Path) -> dict[str, A
 
 
 def _column(runs: list[dict[str, Any]], comp_all: list[float], hold_targets: list[float],
-            follow: dict[str, list[float]], follow_model: list[tuple[float, float]]) -> dict[str, Any]:
+            follow: dict[str, list[float]], follow_model: list[tuple[float, float]],
+            hold_entries: list[float]) -> dict[str, Any]:
     """One column's figures from its seeds' records and the pooled samples (mm, deg, s; None where
     no run gave the figure). The compensation p95 is the following run's where one was made;
-    ``follow_model``: each following run's target model shares (fell back, held at a bound)."""
+    ``follow_model``: each following run's target model shares (fell back, held at a bound);
+    ``hold_targets`` / ``hold_entries``: every LOCK sample's axis to the true target / entry."""
     follow_all = follow["guide"]
     comp_main = follow_all or comp_all
     locked = [r for r in runs if r["lock_error_mm"] is not None]
@@ -218,6 +220,7 @@ def _column(runs: list[dict[str, Any]], comp_all: list[float], hold_targets: lis
         "target_err_mm_max": max(targets) if targets else None,
         "target_err_hold_mm_p95": _p95(hold_targets),
         "entry_axis_err_mm_rms": _rms(entries),
+        "entry_axis_err_hold_mm_rms": _rms(hold_entries),
         "body_rigid_residual_mm_p95": _p95(residuals),
         "change_fre_mm_p95": _p95(fres),
         "gate_false_open_rate": _false_open(runs),
@@ -249,6 +252,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
     comp_all: list[float] = []
     follow: dict[str, list[float]] = {name: [] for name in FOLLOW_SERIES}
     hold_targets: list[float] = []
+    hold_entries: list[float] = []
     follow_model: list[tuple[float, float]] = []
     rig_errors: list[dict[str, Any]] = []
     for k in range(args.runs):
@@ -266,6 +270,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
         s = run_procedure(cfg_path, setup, seed_plan, auto=True, session_dir=tmp)
         comp_all += s.comp_errors_mm
         hold_targets += s.lock_target_errors_mm
+        hold_entries += s.lock_entry_errors_mm
         if args.follow_s > 0:
             got, shares = _follow_run(cfg_path, setup, seed_plan, tmp, args.follow_s)
             for name in FOLLOW_SERIES:
@@ -276,7 +281,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
         if not args.json:
             print(f"{'calibrated' if calibrate else 'as given'} seed {seed}: {s.final_state}, "
                   f"lock {s.lock_error_mm}, dir {s.lock_direction_error_deg}", file=sys.stderr)
-    out = _column(runs, comp_all, hold_targets, follow, follow_model)
+    out = _column(runs, comp_all, hold_targets, follow, follow_model, hold_entries)
     if calibrate:
         layout = [float(r["layout_mm_rms"]) for r in rig_errors if r["layout_mm_rms"] is not None]
         offs = [abs(float(e)) for r in rig_errors for e in (r["time_offset_error_ms"] or {}).values()]
@@ -361,6 +366,7 @@ def _print(cols: dict[str, dict[str, Any]]) -> None:
             ("target error p95", lambda o: f(o["target_err_mm_p95"], "mm")),
             ("target over hold p95", lambda o: f(o["target_err_hold_mm_p95"], "mm")),
             ("axis to entry RMS", lambda o: f(o["entry_axis_err_mm_rms"], "mm")),
+            ("axis to entry, hold RMS", lambda o: f(o["entry_axis_err_hold_mm_rms"], "mm")),
             ("body residual p95", lambda o: f(o["body_rigid_residual_mm_p95"], "mm")),
             ("change FRE p95", lambda o: f(o["change_fre_mm_p95"], "mm")),
             ("gate false-open rate", lambda o: f(o["gate_false_open_rate"], "")),
