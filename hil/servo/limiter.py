@@ -73,6 +73,7 @@ class RateLimiter:
     velocity_mm_s: FloatArray | None = None
     angular_velocity_rad_s: FloatArray | None = None   # robot base frame
     _pivot: FloatArray = field(init=False, repr=False)
+    _lever_mm: float = field(init=False, repr=False, default=0.0)
     _lever_w_rad_s: float = field(init=False, repr=False, default=math.inf)
     _lever_a_rad_s2: float = field(init=False, repr=False, default=math.inf)
 
@@ -82,7 +83,7 @@ class RateLimiter:
             raise GeometryError(f"pivot_tcp_mm must be 3 finite values, got {self.pivot_tcp_mm!r}")
         self._pivot = pivot
         # the rotation alone never asks the TCP, at the pivot's lever arm, for more than its limits
-        lever_mm = float(np.linalg.norm(pivot))
+        lever_mm = self._lever_mm = float(np.linalg.norm(pivot))
         self._lever_w_rad_s = _LEVER_SHARE * self.max_speed_mm_s / lever_mm if lever_mm > 0 else math.inf
         self._lever_a_rad_s2 = _LEVER_SHARE * self.max_accel_mm_s2 / lever_mm if lever_mm > 0 else math.inf
 
@@ -111,6 +112,21 @@ class RateLimiter:
         a_w_max = min(self.max_angular_accel_rad_s2, self._lever_a_rad_s2)
         w = _limited_velocity(e_rot, w_prev, dt_s, w_max, a_w_max, 0.999)
         R_step = rotvec_to_matrix(w * dt_s)
+        if self._lever_mm == 0.0:   # the pivot at the TCP: the translation alone, as before issue 41
+            v = _limited_velocity(desired.t - cmd.t, v_prev, dt_s, v_max, self.max_accel_mm_s2, 1.0)
+        else:
+            v = self._pivot_velocity(desired, cmd, R_step, v_prev, v_max, dt_s)
+        # a product of rotations and a fresh translation, finite (the limits bound both):
+        # valid by construction, so the checked constructor's cost is skipped
+        self.command = RigidTransform._composed(R_step @ cmd.R, cmd.t + v * dt_s)
+        self.velocity_mm_s = v
+        self.angular_velocity_rad_s = w
+        return self.command
+
+    def _pivot_velocity(self, desired: RigidTransform, cmd: RigidTransform, R_step: FloatArray,
+                        v_prev: FloatArray, v_max: float, dt_s: float) -> FloatArray:
+        """The TCP's velocity (mm/s, base frame) for this step's turn ``R_step`` about the pivot
+        and the pivot's own limited translation towards where ``desired`` puts it (class doc)."""
         r = cmd.R @ self._pivot   # the pivot from the TCP, base frame
         # the TCP's velocity that turns the tool about the pivot, the pivot standing still
         turn_v = (r - R_step @ r) / dt_s
@@ -118,11 +134,7 @@ class RateLimiter:
         # turn leaves of the speed limit
         v_p = _limited_velocity(desired.t + desired.R @ self._pivot - (cmd.t + r), v_prev - turn_v, dt_s,
                                 max(v_max - _norm(turn_v), 0.0), self.max_accel_mm_s2, 1.0)
-        v = _within_limits(v_p + turn_v, v_prev, v_max, self.max_accel_mm_s2 * dt_s * 0.999)
-        self.command = RigidTransform(R_step @ cmd.R, cmd.t + v * dt_s)
-        self.velocity_mm_s = v
-        self.angular_velocity_rad_s = w
-        return self.command
+        return _within_limits(v_p + turn_v, v_prev, v_max, self.max_accel_mm_s2 * dt_s * 0.999)
 
 
 def _within_limits(v: FloatArray, v_prev: FloatArray, v_max: float, dv_max: float) -> FloatArray:
