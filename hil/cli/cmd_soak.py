@@ -258,6 +258,10 @@ def _print_text(res: SoakResult, probe: dict[str, Any]) -> None:
     cf = res.change_fit_us
     out.write(f"change estimate      {cf.get('p50_us')} / {cf.get('p99_us')} / {cf.get('max_us')} us "
               f"(p50/p99/max over {cf.get('count', 0)} pairs; estimator {res.estimator})\n")
+    pm = res.pair_model_us
+    out.write(f"models per pair      {pm.get('p50_us')} / {pm.get('p99_us')} / {pm.get('max_us')} us "
+              f"(p50/p99/max over {pm.get('count', 0)} pairs: each pair's change estimate and "
+              f"setpoint work added)\n")
     out.write(f"latency bound        {_latency_bound(res)}\n")
     out.write(f"camera clock         {res.camera_clock_ppm:g} ppm off the host's (--camera-clock-ppm)\n")
     out.write(f"stop->command        {_fmt(res.stop_to_command_ms)} ms (p50/p99/max)\n")

@@ -9,10 +9,11 @@ differencing two runs' end-to-end latencies, whose run-to-run spread is millisec
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["COST_BINS", "COST_BIN_US", "CostFigures", "CostHistogram"]
+__all__ = ["COST_BINS", "COST_BIN_US", "CostFigures", "CostHistogram", "PairCosts"]
 
 #: bin width, µs, and number of bins (the last counts everything longer: 10 ms and over)
 COST_BIN_US = 1
@@ -65,3 +66,19 @@ class CostHistogram:
             return float(min((k + 1) * COST_BIN_US, self._max_ns / 1000.0))
 
         return CostFigures(self._count, edge(0.5), edge(0.99), round(self._max_ns / 1000.0, 3))
+
+
+class PairCosts(NamedTuple):
+    """What the controller's models cost on the pair path so far (``hil soak``'s figures).
+
+    Attributes:
+        setpoint: COMPENSATE's setpoint work per pair (the predictor's update, then the setpoint).
+        change_fit: the change estimator and the target model's steering, per registered pair.
+        pair_model: per COMPENSATE pair, the two above of the same pair added: what the estimator,
+            the target model and the predictor together put on the frame -> command path (the
+            sum of the two parts' p99s overstates it: their slow pairs are not the same pairs).
+    """
+
+    setpoint: CostFigures
+    change_fit: CostFigures
+    pair_model: CostFigures

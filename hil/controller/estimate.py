@@ -105,6 +105,9 @@ class Estimate:
         self.target_steer: TargetSteer | None = None
         #: the last pair's change estimate (estimator, rigid-fit residuals: the deformation monitor)
         self.change_fit: ChangeFit | None = None
+        #: (the pair's exposure, controller clock ns; the change estimator's and the target
+        #: model's time on it, ns: hil/controller/cost.py), for COMPENSATE's per-pair sum
+        self.change_fit_cost: tuple[int, int] = (-1, 0)
         self.live_mm: FloatArray | None = None      # skin markers, reference order
         self.flange_mm: FloatArray | None = None    # flange markers, layout order
         self.T_change_meas: RigidTransform | None = None

@@ -81,7 +81,9 @@ class MarkerTracker:
             est.target_steer = est.target_tracker.steer(change, ref, live, est.plan,
                                                         est.patient_reg.T_optical_from_image, exposure_t_ns)
             change = est.target_steer.T_live_from_ref
-        self.change_cost.add_ns(time.perf_counter_ns() - t0)
+        fit_ns = time.perf_counter_ns() - t0
+        self.change_cost.add_ns(fit_ns)
+        est.change_fit_cost = (exposure_t_ns, fit_ns)
         est.change_fit = fit
         est.T_change_meas = change
         est.change_t_ns = None if change is None else exposure_t_ns

@@ -23,7 +23,7 @@ from hil.controller import events as ev
 from hil.controller.commands import Command
 from hil.controller.compensation import limiter_args
 from hil.controller.config import ProcedureConfig
-from hil.controller.cost import CostFigures
+from hil.controller.cost import PairCosts
 from hil.controller.crosscheck import CameraCrossCheck, CrossCheckBounds
 from hil.controller.estimate import Estimate, FloatArray, count_seen
 from hil.controller.fsm import Event, FireResult, Fsm, State
@@ -416,9 +416,10 @@ class ControllerParts(abc.ABC):
         return self.ctx.latency_ms
 
     @property
-    def pair_costs(self) -> tuple[CostFigures, CostFigures]:
-        """COMPENSATE's setpoint work and the change estimator's time per pair so far, µs."""
-        return self.ctx.setpoint_cost.figures(), self.markers.change_cost.figures()
+    def pair_costs(self) -> PairCosts:
+        """COMPENSATE's setpoint work, the change estimator's time and their sum per pair so far, µs."""
+        return PairCosts(self.ctx.setpoint_cost.figures(), self.markers.change_cost.figures(),
+                         self.ctx.pair_model_cost.figures())
 
     @property
     def servo_deadlines_missed(self) -> int:

@@ -16,6 +16,11 @@ Definitions (the servo loop's own wake-up times on the monotonic clock; hil/serv
   that period's work). ``setpoint_us``: the setpoint work inside it, per pair (the predictor's
   update and the setpoint; hil/controller/cost.py), under ``predictor``: what a predictor adds
   to the path, measured in the run rather than by differencing two runs' latencies.
+  ``change_fit_us``: the change estimator's and the target model's time per registered pair
+  (``estimator``). ``pair_model_us``: per compensation pair, that pair's change estimate and
+  setpoint work added: what the three together put on the path (the two parts' p99s added
+  overstate it, their slow pairs being different pairs); its p99 against the defaults' is the
+  growth issue 41 bounds.
 - *memory growth*: resident set size of the supervisor (``rss_mb``), of the servo process
   (``servo_rss_mb``) and of the perception process (``perception_rss_mb``, when it runs), sampled
   once a second. ``growth``: the median of the last window minus the median of the first window
@@ -173,6 +178,8 @@ class SoakResult:
     #: (count, p50_us / p99_us / max_us; hil/controller/cost.py)
     estimator: str = ""
     change_fit_us: dict[str, float | int | None] = field(default_factory=dict)
+    #: per compensation pair, its change estimate and its setpoint work added (module doc)
+    pair_model_us: dict[str, float | int | None] = field(default_factory=dict)
     #: the supervisor's heap trims (hil/heap.py): trims, released, max_ms, total_ms
     heap_trim: dict[str, float | int] = field(default_factory=dict)
     frame_boundaries: int = 0
@@ -714,8 +721,9 @@ def analyse(
     res.frame_to_setpoint_ms = _stats(list(ctl.latency_ms))
     if ctl.latency_ms:   # beyond the series' capacity its percentiles are estimates; the max is exact
         res.frame_to_setpoint_ms["max"] = round(float(ctl.latency_ms.max or 0.0), 4)
-    setpoint, change_fit = ctl.pair_costs
-    res.setpoint_us, res.change_fit_us = setpoint.to_dict(), change_fit.to_dict()
+    costs = ctl.pair_costs
+    res.setpoint_us, res.change_fit_us = costs.setpoint.to_dict(), costs.change_fit.to_dict()
+    res.pair_model_us = costs.pair_model.to_dict()
     res.heap_trim = ctl.heap.figures().to_dict()
     res.frames_overwritten = ctl.frames_overwritten
     res.rss_mb = _rss_figures([(t, m) for t, m, _ in rss], operator.t_comp, minutes)

@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 
 from hil.cli.cmd_soak import _latency_bound, _print_memory
 from hil.config import default_setup_path, load_setup
-from hil.controller.cost import CostHistogram
+from hil.controller.cost import CostHistogram, PairCosts
 from hil.controller.series import SampleSeries
 from hil.errors import InputFileError
 from hil.heap import HeapTrimmer
@@ -66,9 +66,11 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
                        read_errors=0, command_errors=0, stops_sent=0, late_wakes=1, overruns=1,
                        wake_late_max_ms=26.0, step_max_ms=3.5, overrun_max_ms=2.5, overruns_off_cpu=1,
                        step_cpu_max_ms=0.9, step_off_cpu_max_ms=2.6)
-    cost = CostHistogram()
+    cost, pair = CostHistogram(), CostHistogram()
     for ns in (12_300, 15_000, 80_200):
         cost.add_ns(ns)
+    for ns in (52_100, 60_000):
+        pair.add_ns(ns)
     heap = HeapTrimmer(1.0, trim=lambda: 1)
     for t_ns in (0, 1_000_000_000, 2_500_000_000):
         heap.after_tick(t_ns)
@@ -76,7 +78,8 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     for ms in (30.0, 40.0, 50.0):
         latency.append(ms)
     ctl = SimpleNamespace(latency_ms=latency, servo_deadlines_missed=0, frames_overwritten=4,
-                          pair_costs=(cost.figures(), CostHistogram().figures()), heap=heap)
+                          pair_costs=PairCosts(cost.figures(), CostHistogram().figures(), pair.figures()),
+                          heap=heap)
     op = SoakOperator(60.0, 60.0, lambda: None)
     op.t_comp = 0.0
     rss = [(0.0, 100.0, 500.0), (10.0, 100.5, 500.0), (20.0, 101.0, 500.0), (30.0, 101.0, 500.2),
@@ -98,6 +101,7 @@ def test_analyse_maps_the_loop_figures_and_memory() -> None:
     assert res.compensation_frames == 3
     assert res.setpoint_us == {"count": 3, "p50_us": 16.0, "p99_us": 80.2, "max_us": 80.2}
     assert res.change_fit_us == {"count": 0, "p50_us": None, "p99_us": None, "max_us": None}
+    assert res.pair_model_us == {"count": 2, "p50_us": 53.0, "p99_us": 60.0, "max_us": 60.0}
     assert res.heap_trim["trims"] == 2
     assert res.heap_trim["released"] == 2
     assert res.frames_overwritten == 4
@@ -169,7 +173,7 @@ def test_memory_growth_reads_through_the_heap_trims_saw_tooth() -> None:
                        wake_late_max_ms=0.0, step_max_ms=0.0, overrun_max_ms=0.0, overruns_off_cpu=0,
                        step_cpu_max_ms=0.0, step_off_cpu_max_ms=0.0)
     ctl = SimpleNamespace(latency_ms=SampleSeries(), servo_deadlines_missed=0, frames_overwritten=0,
-                          pair_costs=(CostHistogram().figures(), CostHistogram().figures()),
+                          pair_costs=PairCosts(*(CostHistogram().figures() for _ in range(3))),
                           heap=HeapTrimmer(0.0))
     flat = analyse(500.0, 10.0, figs, ctl, op, series(0.0), "compensate", [], [], "x")  # type: ignore[arg-type]
     assert flat.rss_mb["after_warmup"] == 200.0
@@ -234,6 +238,10 @@ def test_short_soak_compensates_with_the_servo_loop(short_soak: Any) -> None:
     # the change estimator is timed on every registered pair (compensation and before it)
     assert res.estimator == "rigid"
     assert res.change_fit_us["count"] >= res.compensation_frames
+    # and each compensation pair's estimate and setpoint added (a pair whose change was not its
+    # own, held from an earlier pair, is not counted)
+    assert 0 < res.pair_model_us["count"] <= res.setpoint_us["count"]
+    assert res.setpoint_us["p50_us"] < res.pair_model_us["p50_us"] <= res.pair_model_us["max_us"]
 
 
 #: further 10 s soaks (about 60 s of wall time each on a busy host) tried when the host took the

@@ -94,6 +94,9 @@ class PhaseContext:
     latency_ms: SampleSeries = field(default_factory=SampleSeries)
     #: COMPENSATE's setpoint work per pair (the predictor's update, then the setpoint), µs
     setpoint_cost: CostHistogram = field(default_factory=CostHistogram)
+    #: per pair, its change estimate (the estimator and the target model) and its setpoint work
+    #: added: what the three parts together put on the frame -> command path, µs
+    pair_model_cost: CostHistogram = field(default_factory=CostHistogram)
     servo_deadlines_missed: int = 0
 
 

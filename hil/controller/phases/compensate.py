@@ -235,7 +235,11 @@ class CompensatePhase(Phase):
         if sp is None:   # alpha-beta: configured, or the predictor's fallback
             sp = est.tracking_setpoint(t_exp, c.max_prediction_s, _VELOCITY_STEP_S if predict else 0.0)
         cp = est.filter.predictor
-        ctx.setpoint_cost.add_ns(time.perf_counter_ns() - t0 + (0 if cp is None else cp.update_ns))
+        setpoint_ns = time.perf_counter_ns() - t0 + (0 if cp is None else cp.update_ns)
+        ctx.setpoint_cost.add_ns(setpoint_ns)
+        fit_t_ns, fit_ns = est.change_fit_cost
+        if fit_t_ns == t_exp:   # this pair's change estimate (not an earlier pair's, held)
+            ctx.pair_model_cost.add_ns(fit_ns + setpoint_ns)
         D0, v, w = sp
         timing = ctx.servo_timing()
         valid_until = t_exp + round(timing.camera_max_age_s * 1e9)
