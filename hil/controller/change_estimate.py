@@ -211,7 +211,10 @@ def estimate_change(reference_mm: FloatArray, live_mm: FloatArray, entry_mm: Flo
     if estimator == "weighted":
         return fit(weighted, "weighted")
     if entry_now is not None:   # the entry where the patterns put it, the weighted fit's rotation
-        moved = RigidTransform.from_translation(entry_now - weighted.apply(entry_mm)) @ weighted
+        # translation(entry_now - weighted(entry)) @ weighted, composed directly: the parts of a
+        # valid transform and a finite shift (the checked constructor's cost, on the pair path)
+        R, t = weighted.R, weighted.t
+        moved = RigidTransform._composed(R.copy(), t + (entry_now - (R @ entry_mm + t)))
         return fit(moved, "pattern")
     if tps is None:
         return fit(weighted, "weighted", "; ".join(w for w in (pattern_why, tps_why) if w))

@@ -63,6 +63,7 @@ the solve runs once per set of seen markers.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -180,9 +181,9 @@ class EntryRows:
         (``pattern_entry``) when selected and able, else :func:`entry_numpy`.
 
         Raises:
-            ValueError: as :meth:`solver`; or the markers the model leaves more than
-                ``residual_bound_mm`` off (per-marker RMS after the second solve: a cough, a new
-                way of breathing, a marker swapped), saying by how much.
+            ValueError: as :meth:`solver`; an entry that is not finite; or the markers the model
+                leaves more than ``residual_bound_mm`` off (per-marker RMS after the second solve:
+                a cough, a new way of breathing, a marker swapped), saying by how much.
         """
         sol = self.solver(seen)
         k = native.active()
@@ -190,7 +191,9 @@ class EntryRows:
         if k is None or k.pattern_entry(sol.P6, sol.E, sol.Q, reference_mm, live_mm,
                                         np.ascontiguousarray(entry_mm, dtype=np.float64), out) != 0:
             out = entry_numpy(sol, reference_mm, live_mm, entry_mm)
-        resid_mm = float(out[3])
+        x, y, z, resid_mm = out.tolist()
+        if not math.isfinite(x + y + z):   # the caller composes it unchecked
+            raise ValueError("the breathing patterns put the entry at a value that is not finite")
         if not resid_mm <= self.residual_bound_mm:
             raise ValueError(f"the markers do not move as the 4D CT's breathing patterns (per-marker RMS "
                              f"residual {resid_mm:.2f} mm beyond {self.residual_bound_mm} mm)")

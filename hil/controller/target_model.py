@@ -427,7 +427,7 @@ class TargetTracker:
             self._turn_rotvec = turn.rotvec
         T = turned_about_entry(T_live_from_ref, self._turn_rotvec, self.weight, T_optical_from_image,
                                plan.entry_mm)
-        turn_deg = math.degrees(self.weight * float(np.linalg.norm(self._turn_rotvec)))
+        turn_deg = math.degrees(self.weight * math.hypot(*self._turn_rotvec.tolist()))
         if isinstance(turn, str):
             return TargetSteer(T, z, 0.0, turn_deg, why)
         return TargetSteer(T, z, turn.shift_mm, turn_deg, limited=turn.limited)
