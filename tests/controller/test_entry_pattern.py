@@ -221,6 +221,21 @@ def test_markers_that_leave_the_patterns_fall_back_and_say_by_how_much() -> None
     assert fit.fallback.endswith(" mm beyond 2.0 mm)")
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_an_entry_that_is_not_finite_is_refused_not_composed(compiled: bool) -> None:
+    """The estimator composes the pattern's entry without the checked constructor, so the model
+    must never hand it a NaN: it says so instead, with either kernel."""
+    rows = _rows(RigidTransform.identity())
+    markers, _ = _body(np.array([5.0, 2.0]))
+    was = native.use_native(compiled)
+    try:
+        with pytest.raises(ValueError, match=r"^the breathing patterns put the entry at a value that is "
+                                             r"not finite$"):
+            rows.entry_mm(np.ones(6, dtype=np.bool_), MARKERS_MM, markers, np.array([np.nan, 0.0, 0.0]))
+    finally:
+        native.use_native(was)
+
+
 def _left_out_error(Z: np.ndarray, E: np.ndarray, ridge: float) -> float:
     """Leave-one-out by refitting without each phase (what PRESS computes in closed form)."""
     penalty = np.diag([0.0] + [1.0] * (Z.shape[1] - 1))
