@@ -3,6 +3,7 @@ each figure on two hand-made seeds, one locked and one that faulted, exactly."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from types import ModuleType
@@ -80,6 +81,20 @@ def test_a_column_from_a_locked_and_a_faulted_seed() -> None:
     assert out["per_run"] is runs
 
 
+def test_the_following_error_seed_by_seed() -> None:
+    """Each seed's own p95 beside the pooled one: median, the worst and its seed, how many over
+    1 mm; a seed without a following run (``--follow-s 0``) is left out."""
+    runs = [{**r, "seed": seed, "follow_guide_mm_p95": p95}
+            for r, (seed, p95) in zip(_records() * 2, [(1, 0.5), (2, 1.2), (3, 0.8), (4, None)], strict=True)]
+    out = _bench()._column(runs, comp_all=[], hold_targets=[], follow=_follow([1.0], [0.5]),
+                           follow_model=[], hold_entries=[])
+    assert out["follow_guide_mm_p95_seed_median"] == pytest.approx(0.8)
+    assert out["follow_guide_mm_p95_seed_max"] == 1.2
+    assert out["follow_guide_mm_p95_worst_seed"] == 2
+    assert out["follow_guide_seeds_over_1mm"] == 1
+    assert _bench()._per_seed_row(out) == "0.80/1.20 (s2)"
+
+
 def test_without_a_following_run_the_hold_gives_the_compensation_figure() -> None:
     out = _bench()._column(_records(), comp_all=[0.1, 0.2], hold_targets=[], follow=_follow([], []),
                            follow_model=[], hold_entries=[])
@@ -89,6 +104,9 @@ def test_without_a_following_run_the_hold_gives_the_compensation_figure() -> Non
     assert out["target_model_fallback_fraction_following"] is None
     assert out["target_model_held_fraction_following"] is None
     assert out["follow_path_pair_mm_p95"] is None
+    assert out["follow_guide_mm_p95_seed_max"] is None
+    assert out["follow_guide_seeds_over_1mm"] == 0
+    assert _bench()._per_seed_row(out) == "n/a"
     assert out["target_err_hold_mm_p95"] is None
     assert out["entry_axis_err_hold_mm_rms"] is None
 
@@ -145,3 +163,17 @@ def test_the_seeds_4d_ct_carries_the_asked_localisation_error() -> None:
     exact = bench._with_4d_ct(plan, setup, 0.0)
     noisy = bench._with_4d_ct(plan, setup)
     assert exact.phases[0].fiducials_mm.tolist() != noisy.phases[0].fiducials_mm.tolist()
+
+
+def test_one_seed_s_own_following_p95_is_the_pooled_one(capsys: pytest.CaptureFixture[str]) -> None:
+    """Through the bench's loop: the following run's p95 lands in the seed's record, and with one
+    seed the per-seed figures and the pooled p95 are the same samples' figure."""
+    code = _bench().main(["--config", str(CONFIG), "--plan", str(PLAN), "--runs", "1", "--follow-s", "3",
+                          "--no-rig-calibration", "--json"])
+    assert code == 0
+    col = json.loads(capsys.readouterr().out)   # one column: the config has no rig errors
+    own = col["per_run"][0]["follow_guide_mm_p95"]
+    assert isinstance(own, float)
+    assert own > 0.0
+    assert own == col["comp_err_mm_p95"] == col["follow_guide_mm_p95_seed_max"]
+    assert col["follow_guide_mm_p95_worst_seed"] == 1
