@@ -117,6 +117,11 @@ def _p95(xs: list[float]) -> float | None:
     return float(np.percentile(xs, 95)) if xs else None
 
 
+def _fmt(x: float | None, unit: str = "") -> str:
+    """A figure for the text tables: three decimals and its unit, or n/a."""
+    return "n/a" if x is None else f"{x:.3f} {unit}".rstrip()
+
+
 #: the following run's per-sample series (:func:`_follow_run`): the guide against the ideal
 #: stand-off point, the guide axis line against the true entry, and the controller's path against
 #: the truth (``hil.controller.metrics.PathSample``: its stand-off point when its pair was taken and
@@ -351,7 +356,7 @@ def bench_rigs(cfg_path: Path, plan_path: Path, tolerances: RigTolerances,
 
 def _print_rigs(out: dict[str, Any]) -> None:
     def f(x: float | None) -> str:
-        return "n/a" if x is None else f"{x:.3f} mm"
+        return _fmt(x, "mm")
     print(f"rigs: {out['rigs']} ({out['executor']['kind']}, {out['executor']['workers']} workers)")
     print(f"{'lock error over rigs':24}{'p50':>12}{'p95':>12}{'p99':>12}{'max':>12}{'locked':>8}{'done':>6}")
     for col in ("cad", "calibrated"):
@@ -377,8 +382,7 @@ def _per_seed_row(o: dict[str, Any]) -> str:
 
 
 def _print(cols: dict[str, dict[str, Any]]) -> None:
-    def f(x: float | None, u: str) -> str:
-        return "n/a" if x is None else f"{x:.3f} {u}"
+    f = _fmt
     rows: list[tuple[str, Callable[[dict[str, Any]], str]]] = [
             ("runs reaching done", lambda o: f"{o['runs_done']}/{o['runs']}"),
             ("lock error RMS", lambda o: f(o["lock_err_mm_rms"], "mm")),
@@ -580,10 +584,6 @@ def _judged(out: dict[str, Any]) -> dict[str, Any]:
 def _trace_name(trace: str) -> str:
     """A trace's short name: its file's or its directory's (a paired trace is a directory)."""
     return Path(trace).stem or trace
-
-
-def _fmt(x: float | None, digits: int = 3) -> str:
-    return "n/a" if x is None else f"{x:.{digits}f}"
 
 
 def _trace_summary(results: list[dict[str, Any]]) -> dict[str, Any]:
