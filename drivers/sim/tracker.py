@@ -1,8 +1,10 @@
 """Simulated magnetic tracker: sensor poses from the simulated world, with noise and distortion.
 
 Samples exist at ``t0 + k / update_rate_hz``; :meth:`SimTracker.latest` returns the newest one
-(computed on demand, cached). Sensors are attached to the patient (moving with the phantom),
-the robot flange, or fixed in the transmitter frame. Field distortion is a smooth radial error
+(computed on demand, cached). Sensors are attached to the patient (moving with the phantom's rigid
+part), the target (moving with the internal target: an EM-tracked marker placed at the tumour;
+``T_target_from_sensor`` is oriented as the CT, at the target), the robot flange, or fixed in the
+transmitter frame. Field distortion is a smooth radial error
 ``distortion_mm_per_m2 * r^2`` (r = distance from the transmitter, m), as metal near the field
 would give; it also raises the quality figure. Sensors beyond ``volume_radius_mm`` are missing.
 
@@ -33,7 +35,9 @@ class SimSensorConfig(BaseModel):
     model_config = STRICT
 
     name: str = Field(min_length=1)
-    attached_to: Literal["patient", "flange", "transmitter"] = "patient"
+    attached_to: Literal["patient", "target", "flange", "transmitter"] = Field(
+        "patient", description="patient (its rigid part), target (the internal target, oriented as the "
+                               "CT), flange, or transmitter (fixed)")
     T_attached_from_sensor: TransformConfig = TransformConfig.identity()
 
 
@@ -96,6 +100,8 @@ class SimTracker(PoseTracker):
             return self._attach[sensor_index]
         if s.attached_to == "patient":
             T_opt = w.T_optical_from_image(t_ns)
+        elif s.attached_to == "target":   # at the target, turned as the patient's rigid part
+            T_opt = RigidTransform(w.T_optical_from_image(t_ns).R, w.target_optical(t_ns))
         else:
             T_flange = w.T_optical_from_flange(t_ns)
             if T_flange is None:

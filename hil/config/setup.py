@@ -197,6 +197,13 @@ class SetupConfig(BaseModel):
             raise ValueError("must be a driver config model instance (load the file with load_setup)")
         return v
 
+    @model_validator(mode="after")
+    def _target_sensor(self) -> SetupConfig:
+        why = target_sensor_problem(self)
+        if why is not None:
+            raise ValueError(why)
+        return self
+
     def device_sections(self) -> dict[str, BaseModel]:
         """The configured device sections by role (tracker only when present)."""
         out: dict[str, BaseModel] = {"camera": self.camera, "robot": self.robot}
@@ -210,3 +217,30 @@ class SetupConfig(BaseModel):
         for role, section in self.device_sections().items():
             data[role] = section.model_dump(mode="json")
         return data
+
+
+def target_sensor_problem(setup: SetupConfig) -> str | None:
+    """What is wrong with ``[procedure.tracking] target_sensor`` in ``setup`` (None: nothing): it
+    must name a sensor of the setup's tracker, or the controller would never see it and keep the
+    model without saying why. A driver whose config declares no sensor names is not checked."""
+    name = setup.procedure.tracking.target_sensor
+    if name is None:
+        return None
+    if setup.tracker is None:
+        return f"procedure.tracking.target_sensor = {name!r} needs a tracker: the setup has no [tracker]"
+    names = _sensor_names(setup.tracker)
+    if names is not None and name not in names:
+        return (f"procedure.tracking.target_sensor = {name!r}: the tracker has no such sensor (its sensors: "
+                f"{', '.join(names)})")
+    return None
+
+
+def _sensor_names(tracker: BaseModel) -> list[str] | None:
+    """The sensor names a tracker driver's config declares (a mapping of name to port, or
+    entries with a ``name``), or None when it declares none."""
+    sensors = getattr(tracker, "sensors", None)
+    if isinstance(sensors, dict):
+        return [str(k) for k in sensors]
+    if isinstance(sensors, (tuple, list)):
+        return [str(getattr(x, "name", x)) for x in sensors]
+    return None

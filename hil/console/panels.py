@@ -110,10 +110,13 @@ def gate_text(v: ConsoleView) -> Text:
     if v.target_fallback:
         gate.append(f"\ntarget model: rigid direction kept ({v.target_fallback})", style="yellow")
     elif v.target_shift_mm is not None:
-        gate.append(f"\ntarget model: target {mm(v.target_shift_mm)} from plan, path turned "
+        by = "target sensor" if v.target_source == "sensor" else "target model"
+        gate.append(f"\n{by}: target {mm(v.target_shift_mm)} from plan, path turned "
                     f"{v.target_turn_deg or 0.0:.2f} deg")
         if v.target_limited:
             gate.append(f"\n  held at its bounds: {v.target_limited}", style="yellow")
+    if v.target_sensor_why_not:
+        gate.append(f"\ntarget sensor: none this pair ({v.target_sensor_why_not})", style="yellow")
     return gate
 
 

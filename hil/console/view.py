@@ -93,6 +93,9 @@ class ConsoleView:
     target_turn_deg: float | None = None
     target_fallback: str | None = None
     target_limited: str | None = None
+    #: with a target sensor: what the path pointed at, and why the sensor gave no target (snapshot)
+    target_source: str | None = None
+    target_sensor_why_not: str | None = None
     #: the breathing state at registration (snapshot ``breathing_*``): how far it moved the plan's
     #: entry and target (mm), or why Horn's fit was kept; None without a 4D CT's breathing model
     breathing_entry_shift_mm: float | None = None
@@ -219,6 +222,7 @@ def build_view(snap: ControllerSnapshot, vs: ViewSetup, *, breathing_mm: Sequenc
         change_estimator=snap.change_estimator, change_fre_mm=snap.change_fre_mm,
         target_shift_mm=snap.target_shift_mm, target_turn_deg=snap.target_turn_deg,
         target_fallback=snap.target_fallback, target_limited=snap.target_limited,
+        target_source=snap.target_source, target_sensor_why_not=snap.target_sensor_why_not,
         breathing_entry_shift_mm=snap.breathing_entry_shift_mm,
         breathing_target_shift_mm=snap.breathing_target_shift_mm,
         breathing_kept_rigid_because=snap.breathing_kept_rigid_because,

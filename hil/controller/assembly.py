@@ -235,7 +235,8 @@ def _tracker_use(setup: SetupConfig, simulated_world: bool) -> TrackerUse | None
         CalibrationError: the calibration file is malformed.
     """
     tc = setup.procedure.tracking
-    if setup.tracker is None or (tc.needle_sensor is None and tc.reference_sensor is None):
+    if setup.tracker is None or (tc.needle_sensor is None and tc.reference_sensor is None
+                                 and tc.target_sensor is None):
         return None
     if tc.calibration is not None:
         path = Path(tc.calibration)

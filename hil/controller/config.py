@@ -334,6 +334,24 @@ class TrackingConfig(BaseModel):
     reference_disagreement_mm: float = Field(
         2.0, gt=0, description="log reference_disagreement when sensor and markers move the entry "
                                "differently by more than this")
+    target_sensor: str | None = Field(
+        None, description="a sensor at the target (an EM-tracked marker placed at the tumour): while its "
+                          "samples are fresh the path points at the target it measures; the surrogate "
+                          "target model otherwise (needs [procedure.compensation] target_model = "
+                          "\"surrogate\"; docs/compensation.md \"A sensor at the target\"). None: not used")
+    target_sensor_offset_mm: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="where the target sensor sits against the target, image (CT) frame, "
+                                     "mm: its position in the planning CT less the planned target")
+    target_sensor_max_turn_deg: float = Field(
+        20.0, gt=0, le=45, description="the most the target sensor's target may turn the path from the "
+                                       "rigidly moved plan; a larger turn is held at it (a measured target "
+                                       "swings further than the model may extrapolate: breaths twice the "
+                                       "CT's turn a liver path by over 10 deg)")
+    target_sensor_max_age_ms: float = Field(
+        60.0, gt=0, le=1000, description="a pair's target is interpolated between the sensor's two samples "
+                                         "around its exposure when they are at most this far apart, else "
+                                         "taken from the nearest within this of it, ms; else the pair "
+                                         "falls back to the model")
 
 
 #: Names of the forward transitions that can be made to wait for an operator CONFIRM.
@@ -386,4 +404,7 @@ class ProcedureConfig(BaseModel):
             raise ValueError("lock.drift_alarm_mm must be larger than lock.tolerance_mm")
         if len(set(self.confirm)) != len(self.confirm):
             raise ValueError("confirm lists a transition twice")
+        if self.tracking.target_sensor is not None and self.compensation.target_model != "surrogate":
+            raise ValueError("tracking.target_sensor needs compensation.target_model = \"surrogate\" (the "
+                             "model the path falls back to when the sensor's samples are missing or late)")
         return self

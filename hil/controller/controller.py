@@ -240,6 +240,7 @@ class Controller(ControllerParts):
             phase.command(TickInputs(detected_ns, command, frame, points, st, self.est.tracker_samples),
                           flange)
         flange()   # off the pair's path unless the setpoint needed it
+        self.roles.target_sensor(self.est, self.state)
         self.fire(Event.ROBOT_STATE_RECEIVED)   # a data event every state stays in: off the pair's path
         if self.pipeline.tracker_deferred and not self._read_deferred_tracker():
             return

@@ -34,6 +34,7 @@ from hil.controller.plan_file import ProcedurePlan
 from hil.controller.planning import GuidePlan, RigGeometry
 from hil.controller.registration import PatientRegistration, RobotRegistration
 from hil.controller.target_model import SurrogateTargetModel, TargetSteer, TargetTracker, fit_target_model
+from hil.controller.target_sensor import TargetSensor
 from hil.errors import ConfigError
 from hil.geometry import native
 from hil.geometry.registration import register_horn
@@ -72,7 +73,7 @@ class Estimate:
     """
 
     def __init__(self, plan: ProcedurePlan, rig: RigGeometry, cfg: ProcedureConfig,
-                 camera_rate_hz: float | None = None) -> None:
+                 camera_rate_hz: float | None = None, target_sensor: TargetSensor | None = None) -> None:
         self.plan, self.rig = plan, rig
         self.patient_reg: PatientRegistration | None = None
         self.robot_reg: RobotRegistration | None = None
@@ -100,7 +101,8 @@ class Estimate:
                                                    else None)
         self.entry_rows: EntryRows | None = None
         #: the model in the loop (the score's rate from pair to pair)
-        self.target_tracker = None if self.target_model is None else TargetTracker(self.target_model)
+        self.target_tracker = None if self.target_model is None else TargetTracker(
+            self.target_model, cfg.tracking.target_sensor_max_turn_deg)
         #: the last pair's use of it (None: no model, or no change measured this pair)
         self.target_steer: TargetSteer | None = None
         #: the last pair's change estimate (estimator, rigid-fit residuals: the deformation monitor)
@@ -118,6 +120,9 @@ class Estimate:
         self.last_state: RobotState | None = None
         self.state_history: deque[RobotState] = deque(maxlen=STATE_HISTORY)
         self.tracker_samples: dict[str, TrackerSample] = {}
+        #: the sensor at the target (``[procedure.tracking] target_sensor``; None: not used): its
+        #: recent samples, fed by :meth:`record_tracker_samples`
+        self.target_sensor = target_sensor
         #: when the last resume / recovery re-entered the forward path (the servo speed ramp)
         self.resumed_ns: int | None = None
         #: the flange set :meth:`T_optical_from_tcp_measured` last registered, and its result
@@ -152,6 +157,12 @@ class Estimate:
         if self.target_tracker is not None:
             self.target_tracker.reset()
         self.filter.reset()
+
+    def record_tracker_samples(self, samples: dict[str, TrackerSample]) -> None:
+        """A tracker read's samples: the tick's, and the target sensor's history."""
+        self.tracker_samples = samples
+        if self.target_sensor is not None:
+            self.target_sensor.add(samples)
 
     def record_robot_state(self, st: RobotState) -> None:
         self.last_state = st

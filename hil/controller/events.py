@@ -65,5 +65,8 @@ REFERENCE_IN_USE: Final = "reference_in_use"
 REFERENCE_RELEASED: Final = "reference_released"
 REFERENCE_DISAGREEMENT: Final = "reference_disagreement"
 REFERENCE_AGREES: Final = "reference_agrees"
+#: the path points at the target sensor's target again / no longer (hil/controller/target_sensor.py)
+TARGET_SENSOR_IN_USE: Final = "target_sensor_in_use"
+TARGET_SENSOR_LOST: Final = "target_sensor_lost"
 # simulator truth (an observer, never the control path)
 TRUTH_ERROR: Final = "truth_error"

@@ -78,8 +78,11 @@ class MarkerTracker:
         change = None if fit is None else fit.T_live_from_ref
         est.target_steer = None
         if change is not None and est.target_tracker is not None:
-            est.target_steer = est.target_tracker.steer(change, ref, live, est.plan,
-                                                        est.patient_reg.T_optical_from_image, exposure_t_ns)
+            T_oi = est.patient_reg.T_optical_from_image
+            measured = (None if est.target_sensor is None
+                        else est.target_sensor.target_at(exposure_t_ns, change.R @ T_oi.R))
+            est.target_steer = est.target_tracker.steer(change, ref, live, est.plan, T_oi, exposure_t_ns,
+                                                        measured)
             change = est.target_steer.T_live_from_ref
         fit_ns = time.perf_counter_ns() - t0
         self.change_cost.add_ns(fit_ns)

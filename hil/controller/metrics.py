@@ -60,6 +60,9 @@ class RunSummary:
     #: with ``target_model = "surrogate"``: the share of judged pairs it steered with its score or
     #: turn held at a bound (breathing deeper than the 4D CT); None without the model
     target_model_held_fraction: float | None = None
+    #: with ``[procedure.tracking] target_sensor``: the share of judged pairs whose path pointed at
+    #: the sensor's target (the rest: the model's, or the rigid direction); None without the sensor
+    target_sensor_fraction: float | None = None
     #: the published chain head: SHA-256 of the session log's last line (set once it is closed)
     session_log_sha256: str | None = None
     #: the HTML report built after the run (``hil run``; None when not built)
@@ -143,6 +146,8 @@ class RunMetrics:
     target_model_pairs: int = 0
     target_model_fallbacks: int = 0
     target_model_held: int = 0
+    #: of those, the pairs whose path pointed at the target sensor's target (None: no sensor)
+    target_sensor_pairs: int | None = None
     lock_time_s: float | None = None
     frames: int = 0
     frames_overwritten: int = 0   # prefetched pairs replaced before a tick took them (latest wins)
@@ -157,6 +162,9 @@ class RunMetrics:
             self.target_model_pairs += 1
             self.target_model_fallbacks += int(bool(est.target_steer.fallback))
             self.target_model_held += int(bool(est.target_steer.limited))
+            if est.target_sensor is not None:
+                self.target_sensor_pairs = ((self.target_sensor_pairs or 0)
+                                            + int(est.target_steer.source == "sensor"))
 
     @property
     def gate_open_fraction(self) -> float | None:
@@ -173,6 +181,14 @@ class RunMetrics:
         """Share of the pairs the surrogate target model judged that it steered with its score or
         turn held at a bound (None without the model)."""
         return (self.target_model_held / self.target_model_pairs) if self.target_model_pairs else None
+
+    @property
+    def target_sensor_fraction(self) -> float | None:
+        """Share of the pairs the surrogate target model judged whose path pointed at the target
+        sensor's target (None without a target sensor or before a judged pair)."""
+        if self.target_sensor_pairs is None or not self.target_model_pairs:
+            return None
+        return self.target_sensor_pairs / self.target_model_pairs
 
 
 #: a gate open while the true target is farther than this from the guide axis line is a false open

@@ -87,11 +87,14 @@ def _target_fields(est: Estimate) -> dict[str, Any]:
     steer = est.target_steer
     if est.comp_cfg.target_model == "rigid":
         return {}
+    sensed = est.target_sensor is not None and steer is not None
     return {"target_model": est.comp_cfg.target_model,
             "target_shift_mm": None if steer is None else steer.target_shift_mm,
             "target_turn_deg": None if steer is None else steer.turn_deg,
             "target_fallback": None if steer is None else steer.fallback,
-            "target_limited": None if steer is None else steer.limited}
+            "target_limited": None if steer is None else steer.limited,
+            "target_source": steer.source if sensed and steer is not None else None,
+            "target_sensor_why_not": steer.sensor_why_not if sensed and steer is not None else None}
 
 
 def _breathing_fields(preg: PatientRegistration | None) -> dict[str, Any]:
@@ -178,7 +181,8 @@ class ControllerParts(abc.ABC):
         self.watchdogs = WatchdogSet(ages)
         self.frame_period_s = 1.0 / camera.frame_rate_hz
         self.t0_ns = clock.now_ns()
-        self.est = Estimate(plan, rig, procedure, camera.frame_rate_hz)
+        self.est = Estimate(plan, rig, procedure, camera.frame_rate_hz,
+                            None if self.tracker_use is None else self.tracker_use.target_sensor())
         self.metrics = RunMetrics()
         self.heap = HeapTrimmer(procedure.heap_trim_every_s)   # free heap pages back (hil/heap.py)
         sup_ms = procedure.supervisor_period_ms
@@ -511,7 +515,8 @@ class ControllerParts(abc.ABC):
             processing_ms={"p50": percentile(m.processing_ms, 50), "p95": percentile(m.processing_ms, 95)},
             gate_open_fraction=m.gate_open_fraction, time_to_lock_s=m.lock_time_s, duration_s=self.t_s(),
             target_model_fallback_fraction=m.target_model_fallback_fraction,
-            target_model_held_fraction=m.target_model_held_fraction, frames=m.frames,
+            target_model_held_fraction=m.target_model_held_fraction,
+            target_sensor_fraction=m.target_sensor_fraction, frames=m.frames,
             commands_sent=self.safety.commands_sent, commands_refused=self.safety.commands_refused,
             faults=list(self.faults), session_log=str(self.session.path), comp_errors_mm=list(comp),
             comp_error_age_s=list(tm.comp_error_age_s), needle_direction_error_deg=self.needle.summary_deg(),

@@ -220,7 +220,7 @@ class DevicePipeline:
         if self.tracker is None:
             return
         samples = self.tracker.latest()
-        est.tracker_samples = samples
+        est.record_tracker_samples(samples)
         fresh = [s.t_ns for s in samples.values() if not s.missing]
         if fresh:
             self.watchdogs["tracker"].feed(max(fresh), self.clock.now_ns())

@@ -127,6 +127,11 @@ class ControllerSnapshot:
     target_turn_deg: float | None = None
     target_fallback: str | None = None
     target_limited: str | None = None
+    #: with a target sensor (``[procedure.tracking] target_sensor``): what the last pair's path
+    #: pointed at ("sensor", "model" or "" for the rigid direction) and why the sensor gave no
+    #: target for it ("" when it did); None without a target sensor or before a change was measured
+    target_source: str | None = None
+    target_sensor_why_not: str | None = None
     #: the path the controller follows for the last measured change: the planned entry and target
     #: (rows, optical frame, mm) moved by the change (the estimator's, steered by the target model
     #: when there is one), and when what it was measured on was taken (``Estimate.change_t_ns``,

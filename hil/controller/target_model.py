@@ -93,6 +93,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hil.controller.plan_file import ProcedurePlan
+from hil.controller.target_sensor import TargetReading
 from hil.errors import GeometryError, InputFileError
 from hil.geometry import native
 from hil.geometry.transform import RigidTransform, rotvec_to_matrix
@@ -101,8 +102,8 @@ FloatArray = NDArray[np.float64]
 
 __all__ = ["MAX_RATE_GAP_S", "MIN_PATH_MM", "MIN_PATTERN_SHARE", "MIN_PHASES", "MIN_PHASES_FOR_RATE",
            "MIN_SCORE_RANGE_MM", "RATE_GAIN", "TARGET_MODELS", "TURN_RAMP_S", "PathTurn",
-           "SurrogateTargetModel", "TargetSteer", "TargetTracker", "fit_target_model", "score_parts_numpy",
-           "turn_numpy", "turned_about_entry"]
+           "SurrogateTargetModel", "TargetSteer", "TargetTracker", "fit_target_model", "held_turn",
+           "score_parts_numpy", "turn_numpy", "turn_to_target", "turned_about_entry"]
 
 #: ``[procedure.compensation] target_model``'s values
 TARGET_MODELS: tuple[str, ...] = ("rigid", "surrogate")
@@ -140,8 +141,12 @@ class TargetSteer:
         score_mm: the breathing score (NaN when not computed).
         target_shift_mm: the modelled target's displacement from the plan's, mm (0 on fallback).
         turn_deg: the rotation added to the estimator's direction, deg (0 on fallback).
-        fallback: why the rigid direction was kept ("" when the model steered).
+        fallback: why the rigid direction was kept ("" when the model or the sensor steered).
         limited: which bound held the model's answer, and where ("" when none did; module doc).
+        source: what the path pointed at: "model" (the modelled target), "sensor" (the target
+            sensor's, :mod:`hil.controller.target_sensor`) or "" (the rigid direction kept).
+        sensor_why_not: with a target sensor configured, why this pair had no measurement from it
+            ("" when it had, or without one).
     """
 
     T_live_from_ref: RigidTransform
@@ -150,6 +155,8 @@ class TargetSteer:
     turn_deg: float
     fallback: str = ""
     limited: str = ""
+    source: str = "model"
+    sensor_why_not: str = ""
 
 
 @dataclass(frozen=True)
@@ -234,7 +241,7 @@ class SurrogateTargetModel:
         keeps the estimator's change and names why in :attr:`TargetSteer.fallback`."""
         z, why = self.score(reference_mm, live_mm, T_optical_from_image)
         if why:
-            return TargetSteer(T_live_from_ref, z, 0.0, 0.0, why)
+            return TargetSteer(T_live_from_ref, z, 0.0, 0.0, why, source="")
         return self.steer_at(T_live_from_ref, reference_mm, live_mm, plan, T_optical_from_image, z, 0.0)
 
     def steer_at(self, T_live_from_ref: RigidTransform, reference_mm: FloatArray, live_mm: FloatArray,
@@ -243,7 +250,7 @@ class SurrogateTargetModel:
         """:meth:`steer` at a score ``z`` (mm) the caller judged, and its rate (mm/s)."""
         turn = self.turn_at(T_live_from_ref, reference_mm, live_mm, plan, T_optical_from_image, z, rate_mm_s)
         if isinstance(turn, str):
-            return TargetSteer(T_live_from_ref, z, 0.0, 0.0, turn)
+            return TargetSteer(T_live_from_ref, z, 0.0, 0.0, turn, source="")
         T = turned_about_entry(T_live_from_ref, turn.rotvec, 1.0, T_optical_from_image, plan.entry_mm)
         return TargetSteer(T, z, turn.shift_mm, turn.deg, limited=turn.limited)
 
@@ -273,11 +280,22 @@ class SurrogateTargetModel:
                               rate_mm_s, z_held)
         if isinstance(turn, str):
             return turn
-        if turn.deg > self.max_turn_deg:
-            note = f"the model's turn {turn.deg:.1f} deg held at the bound {self.max_turn_deg} deg"
-            limited = f"{limited}; {note}" if limited else note
-            turn = PathTurn(turn.rotvec * (self.max_turn_deg / turn.deg), self.max_turn_deg, turn.shift_mm)
-        return turn._replace(limited=limited) if limited else turn
+        return self.bounded(turn, limited)
+
+    def bounded(self, turn: PathTurn, limited: str = "") -> PathTurn:
+        """``turn`` held at ``target_model_max_turn_deg`` (:func:`held_turn`)."""
+        return held_turn(turn, self.max_turn_deg, limited, "model's")
+
+
+def held_turn(turn: PathTurn, bound_deg: float, limited: str = "", whose: str = "model's") -> PathTurn:
+    """``turn`` held at ``bound_deg`` (about the same axis) when beyond it, its
+    :attr:`PathTurn.limited` saying so (the ``whose`` turn) after ``limited`` (what held it
+    before)."""
+    if turn.deg > bound_deg:
+        note = f"the {whose} turn {turn.deg:.1f} deg held at the bound {bound_deg} deg"
+        limited = f"{limited}; {note}" if limited else note
+        turn = PathTurn(turn.rotvec * (bound_deg / turn.deg), bound_deg, turn.shift_mm)
+    return turn._replace(limited=limited) if limited else turn
 
 
 class PathTurn(NamedTuple):
@@ -339,21 +357,44 @@ def turn_numpy(model: SurrogateTargetModel, T_live_from_ref: RigidTransform, ref
     z_t = z if z_target is None else z_target
     shift_img = z_t * model.target_per_score + rate_mm_s * model.target_per_rate
     target_live = target_ref + R_oi @ shift_img + other
+    return _turn_onto(T_live_from_ref, entry_ref, target_ref, target_live, float(np.linalg.norm(shift_img)),
+                      "modelled")
+
+
+def turn_to_target(T_live_from_ref: RigidTransform, plan: ProcedurePlan, T_optical_from_image: RigidTransform,
+                   target_live_mm: FloatArray) -> PathTurn | str:
+    """The smallest rotation turning the changed planned path so it points from the changed entry
+    at ``target_live_mm`` (optical frame, mm: a measured target, :mod:`hil.controller.target_sensor`),
+    without the bound (:meth:`SurrogateTargetModel.bounded`); or why there is none (the target
+    within :data:`MIN_PATH_MM` of the entry). :attr:`PathTurn.shift_mm`: the target's displacement
+    from the registered plan's, mm. numpy only (a few vector operations)."""
+    entry_ref = T_optical_from_image.apply(plan.entry_mm).reshape(3)
+    target_ref = T_optical_from_image.apply(plan.target_mm).reshape(3)
+    target = np.asarray(target_live_mm, dtype=np.float64).reshape(3)
+    shift_mm = math.hypot(*(target - target_ref).tolist())
+    return _turn_onto(T_live_from_ref, entry_ref, target_ref, target, shift_mm, "measured")
+
+
+def _turn_onto(T_live_from_ref: RigidTransform, entry_ref: FloatArray, target_ref: FloatArray,
+               target_live: FloatArray, shift_mm: float, kind: str) -> PathTurn | str:
+    """The smallest rotation taking the changed planned direction (``entry_ref`` -> ``target_ref``,
+    optical at registration, turned by ``T_live_from_ref``) onto the direction from the changed
+    entry to ``target_live``; or why there is none (``kind`` names the target in it)."""
     entry_live = T_live_from_ref.apply(entry_ref).reshape(3)
-    d0 = T_live_from_ref.R @ (target_ref - entry_ref)
-    d1 = target_live - entry_live
-    n0, n1 = float(np.linalg.norm(d0)), float(np.linalg.norm(d1))
+    # plain floats on 3-vectors: a tenth of numpy's per-call cost on the pair's path
+    a0, a1, a2 = (T_live_from_ref.R @ (target_ref - entry_ref)).tolist()
+    b0, b1, b2 = (target_live - entry_live).tolist()
+    n0, n1 = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2), math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
     if not (MIN_PATH_MM <= n0 < math.inf and MIN_PATH_MM <= n1 < math.inf):
-        return (f"the modelled target is {n1:.2g} mm from the entry (under {MIN_PATH_MM} mm): "
+        return (f"the {kind} target is {n1:.2g} mm from the entry (under {MIN_PATH_MM} mm): "
                 "the path has no direction to trust")
-    d0 /= n0
-    d1 /= n1
-    c = float(np.clip(d0 @ d1, -1.0, 1.0))
-    axis = np.cross(d0, d1)
-    s = float(np.linalg.norm(axis))
+    a0, a1, a2, b0, b1, b2 = a0 / n0, a1 / n0, a2 / n0, b0 / n1, b1 / n1, b2 / n1
+    c = min(max(a0 * b0 + a1 * b1 + a2 * b2, -1.0), 1.0)
+    x, y, z = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+    s = math.sqrt(x * x + y * y + z * z)
     angle = math.atan2(s, c)      # exact near 0, where acos(c) loses half the digits
-    rotvec = np.zeros(3) if s < 1e-12 else axis / s * angle
-    return PathTurn(rotvec, math.degrees(angle), float(np.linalg.norm(shift_img)))
+    rotvec = np.zeros(3) if s < 1e-12 else np.array([x, y, z]) * (angle / s)
+    return PathTurn(rotvec, math.degrees(angle), shift_mm)
 
 
 def turned_about_entry(T_live_from_ref: RigidTransform, rotvec: FloatArray, weight: float,
@@ -390,8 +431,10 @@ class TargetTracker:
     estimator's change. One per procedure; :meth:`reset` at a new registration. Never raises; not
     thread-safe (the controller's thread)."""
 
-    def __init__(self, model: SurrogateTargetModel) -> None:
+    def __init__(self, model: SurrogateTargetModel, sensor_max_turn_deg: float = 20.0) -> None:
         self.model = model
+        #: the bound on a measured target's turn (``target_sensor_max_turn_deg``), deg
+        self.sensor_max_turn_deg = sensor_max_turn_deg
         self._last: tuple[int, float] | None = None
         self._t_ns: int | None = None
         #: the score's rate now, mm/s (0 until two judged pairs)
@@ -406,18 +449,30 @@ class TargetTracker:
         self._turn_rotvec = np.zeros(3)
 
     def steer(self, T_live_from_ref: RigidTransform, reference_mm: FloatArray, live_mm: FloatArray,
-              plan: ProcedurePlan, T_optical_from_image: RigidTransform, exposure_t_ns: int) -> TargetSteer:
+              plan: ProcedurePlan, T_optical_from_image: RigidTransform, exposure_t_ns: int,
+              measured: TargetReading | None = None) -> TargetSteer:
         """:meth:`SurrogateTargetModel.steer` with the score's rate and the faded turn at this pair's
-        exposure (controller clock, ns)."""
+        exposure (controller clock, ns). ``measured``: the target sensor's reading for the pair
+        (None: no sensor configured); when it has a target, the path points at it (its own bound,
+        :attr:`sensor_max_turn_deg`; the same fade) and the model is judged only to keep its score's
+        rate going."""
         m = self.model
         step = 0.0 if self._t_ns is None else max(0.0, (exposure_t_ns - self._t_ns) * 1e-9) / TURN_RAMP_S
         self._t_ns = exposure_t_ns
         z, why = m.score(reference_mm, live_mm, T_optical_from_image)
-        turn: PathTurn | str = why
         if not why:
             self._update_rate(z, exposure_t_ns)
+        turn: PathTurn | str = why
+        source = ""
+        if measured is not None and measured.target_optical_mm is not None:
+            turn = turn_to_target(T_live_from_ref, plan, T_optical_from_image, measured.target_optical_mm)
+            if not isinstance(turn, str):
+                turn = held_turn(turn, self.sensor_max_turn_deg, "", "sensor's")
+            source = "sensor"
+        elif not why:
             turn = m.turn_at(T_live_from_ref, reference_mm, live_mm, plan, T_optical_from_image, z,
                              self.rate_mm_s)
+            source = "model"
         if isinstance(turn, str):
             why = turn
             self._last, self.rate_mm_s = None, 0.0
@@ -428,9 +483,11 @@ class TargetTracker:
         T = turned_about_entry(T_live_from_ref, self._turn_rotvec, self.weight, T_optical_from_image,
                                plan.entry_mm)
         turn_deg = math.degrees(self.weight * math.hypot(*self._turn_rotvec.tolist()))
+        sensor_why_not = "" if measured is None else measured.why_not
         if isinstance(turn, str):
-            return TargetSteer(T, z, 0.0, turn_deg, why)
-        return TargetSteer(T, z, turn.shift_mm, turn_deg, limited=turn.limited)
+            return TargetSteer(T, z, 0.0, turn_deg, why, source="", sensor_why_not=sensor_why_not)
+        return TargetSteer(T, z, turn.shift_mm, turn_deg, limited=turn.limited, source=source,
+                           sensor_why_not=sensor_why_not)
 
     def _update_rate(self, z: float, exposure_t_ns: int) -> None:
         last = self._last

@@ -1,9 +1,11 @@
 """The magnetic tracker's roles during the procedure (``[procedure.tracking]``, issue 7), as the
 controller applies them each pair: the patient reference sensor backs up and checks the skin
-markers' rigid change, and while LOCKed the tracked needle tip is measured against the target.
+markers' rigid change, while LOCKed the tracked needle tip is measured against the target, and a
+sensor at the target gives the target the path points at (issue 41).
 
-The maths is :mod:`hil.controller.tracker_use`; this module decides when it applies and writes the
-session-log records (``reference_*``, ``needle_tracked``).
+The maths is :mod:`hil.controller.tracker_use` and :mod:`hil.controller.target_sensor`; this module
+decides when it applies and writes the session-log records (``reference_*``, ``needle_tracked``,
+``target_sensor_*``).
 """
 
 from __future__ import annotations
@@ -26,12 +28,15 @@ class TrackerRoles:
         self.tracked_needle: dict[str, float] | None = None
         self._reference_in_use = False
         self._reference_disagrees = False
+        self._target_sensor_used: bool | None = None
 
     @property
     def feeds_markers(self) -> bool:
         """Whether a tracker sample takes part in the marker update (a reference sensor backs up
-        and checks the skin markers' change): then the tracker is read before it."""
-        return self.use is not None and self.use.cfg.reference_sensor is not None
+        and checks the skin markers' change; a target sensor's sample around the pair's exposure
+        gives the target): then the tracker is read before it."""
+        c = None if self.use is None else self.use.cfg
+        return c is not None and (c.reference_sensor is not None or c.target_sensor is not None)
 
     def reference_sensor(self, est: Estimate, state: State) -> None:
         """When the skin markers give no rigid change this pair, the reference sensor's stands in
@@ -63,6 +68,24 @@ class TrackerRoles:
             self.session.write(ev.REFERENCE_DISAGREEMENT if disagrees else ev.REFERENCE_AGREES,
                                sensor=tu.cfg.reference_sensor, entry_difference_mm=d,
                                limit_mm=tu.cfg.reference_disagreement_mm, state=state)
+
+    def target_sensor(self, est: Estimate, state: State) -> None:
+        """With a target sensor, after a pair's change: when the path comes to point at the sensor's
+        target, or stops, say so (``target_sensor_in_use``; ``target_sensor_lost`` with why and
+        what the path points at instead: the model's target, or the rigid direction)."""
+        sensor, steer = est.target_sensor, est.target_steer
+        if sensor is None or steer is None:
+            return
+        used = steer.source == "sensor"
+        if used == self._target_sensor_used:
+            return
+        self._target_sensor_used = used
+        if used:
+            self.session.write(ev.TARGET_SENSOR_IN_USE, sensor=sensor.name, state=state)
+        else:
+            instead = "the model's target" if steer.source == "model" else "the rigid direction"
+            self.session.write(ev.TARGET_SENSOR_LOST, sensor=sensor.name, state=state,
+                               reason=steer.sensor_why_not or steer.fallback, instead=instead)
 
     def record_reference(self, est: Estimate) -> None:
         """At registration: the reference sensor's pose becomes its reference

@@ -1,6 +1,6 @@
 """The magnetic tracker in the procedure (issue 7; seed 003 clinical step 5).
 
-Two uses, both in the optical frame (mm, rad), through the tracker registration
+Three uses, all in the optical frame (mm, rad), through the tracker registration
 ``T_optical_from_tracker``:
 
 - the tracked needle tip against the planned target while LOCKed
@@ -8,7 +8,9 @@ Two uses, both in the optical frame (mm, rad), through the tracker registration
 - a patient reference sensor: its rigid change since registration
   (:func:`hil.tracking.needle.reference_motion`) is the patient's change the controller otherwise
   estimates from the skin markers (seed 000 section 3); it stands in for them when they cannot
-  give it (occluded) and is compared with them when both can.
+  give it (occluded) and is compared with them when both can;
+- a sensor at the target: the target it measures is where the path points
+  (:mod:`hil.controller.target_sensor`).
 
 A sensor sample is usable when it is not missing and has a pose. Nothing here blocks or talks
 to a device: the controller hands in the samples it read this tick.
@@ -23,6 +25,7 @@ import numpy as np
 
 from drivers.interfaces.tracker import TrackerSample
 from hil.controller.config import TrackingConfig
+from hil.controller.target_sensor import TargetSensor
 from hil.geometry.transform import FloatArray, RigidTransform
 from hil.tracking.needle import NeedleTipError, needle_tip_error, reference_motion
 
@@ -53,7 +56,17 @@ class TrackerUse:
     @property
     def wanted(self) -> bool:
         """Whether any sensor is configured for use."""
-        return self.cfg.needle_sensor is not None or self.cfg.reference_sensor is not None
+        c = self.cfg
+        return c.needle_sensor is not None or c.reference_sensor is not None or c.target_sensor is not None
+
+    def target_sensor(self) -> TargetSensor | None:
+        """The target sensor's history (hil/controller/target_sensor.py), or None when none is
+        configured."""
+        c = self.cfg
+        if c.target_sensor is None:
+            return None
+        return TargetSensor(c.target_sensor, np.asarray(c.target_sensor_offset_mm, dtype=np.float64),
+                            c.target_sensor_max_age_ms / 1e3, self.T_optical_from_tracker)
 
     def record_reference(self, samples: Mapping[str, TrackerSample]) -> bool:
         """Take the reference sensor's pose as the registration-time reference (call when the

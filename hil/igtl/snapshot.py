@@ -69,7 +69,8 @@ def deformation_text(snap: ControllerSnapshot) -> str:
     deviations_mm=<m0>,<m1>,... residuals_mm=<m0>,...`` — per-marker lists in the registration's
     marker order, ``-`` where a value is unknown (before registration, an unseen marker) — then
     ``target_model=<rigid|surrogate> target_shift_mm=<x> target_turn_deg=<x>`` (the surrogate
-    model's last pair; ``-`` without it, or when the pair kept the rigid direction). Empty before
+    model's last pair; ``-`` without it, or when the pair kept the rigid direction) and
+    ``target_source=<sensor|model|->`` (what the path pointed at; only with a target sensor). Empty before
     the patient is registered."""
     if snap.T_optical_from_image is None:
         return ""
@@ -77,7 +78,8 @@ def deformation_text(snap: ControllerSnapshot) -> str:
             f"shape_mm={_mm(snap.gate_shape_mm)} deviations_mm={_mm_list(snap.marker_deviations_mm)} "
             f"residuals_mm={_mm_list(snap.marker_residuals_mm)} target_model={snap.target_model} "
             f"target_shift_mm={_mm(None if snap.target_fallback else snap.target_shift_mm)} "
-            f"target_turn_deg={_mm(None if snap.target_fallback else snap.target_turn_deg)}")
+            f"target_turn_deg={_mm(None if snap.target_fallback else snap.target_turn_deg)}"
+            + ("" if snap.target_source is None else f" target_source={snap.target_source or '-'}"))
 
 
 def igtl_snapshot(snap: ControllerSnapshot, plan: ProcedurePlan) -> IgtlSnapshot:

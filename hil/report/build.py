@@ -116,6 +116,8 @@ def compute_numbers(data: SessionData) -> tuple[Number, ...]:
         Number("target_model_held_fraction",
                "Surrogate target model: compensation pairs it steered held at a bound",
                data.target_model_held_fraction(), ""),
+        Number("target_sensor_fraction", "Target sensor: compensation pairs whose path pointed at its target",
+               data.target_sensor_fraction(), ""),
         Number("time_to_lock_s", "Time to lock", data.time_to_lock_s(), "s"),
         Number("duration_s", "Session duration", data.duration_s, "s"),
         Number("faults", "Faults", len(data.faults), ""),

@@ -107,6 +107,9 @@ class SessionData:
     target_fallbacks: list[tuple[float, str]] = field(default_factory=list)
     #: the pairs the model steered with its score or turn held at a bound (time s, which)
     target_held: list[tuple[float, str]] = field(default_factory=list)
+    #: with a target sensor: how many pairs pointed the path at its target (None: the session ran
+    #: without one, or its log is older than ``target_source``)
+    target_sensor_pairs: int | None = None
     robot_speed_mm_s: Series = field(default_factory=Series)
     robot_speed_kind: str = ""  # "measured", "commanded" or "" (none)
     fre_mm: float | None = None
@@ -176,6 +179,13 @@ class SessionData:
         if not len(self.target_turn_deg):
             return None
         return len(self.target_fallbacks) / len(self.target_turn_deg)
+
+    def target_sensor_fraction(self) -> float | None:
+        """Of the pairs the surrogate target model judged, the share whose path pointed at the
+        target sensor's target (None: the session ran without a target sensor)."""
+        if not len(self.target_turn_deg) or self.target_sensor_pairs is None:
+            return None
+        return self.target_sensor_pairs / len(self.target_turn_deg)
 
     def target_model_held_fraction(self) -> float | None:
         """Of the pairs the surrogate target model judged, the share it steered with its score or
@@ -425,6 +435,8 @@ def _read_target_model(data: SessionData, ln: _Line, t: float) -> None:
     held = ln.text("target_limited")
     if held:
         data.target_held.append((t, held))
+    if ln.text("target_sensor_why_not") is not None:   # logged only with a target sensor
+        data.target_sensor_pairs = (data.target_sensor_pairs or 0) + int(ln.text("target_source") == "sensor")
 
 
 def _read_body_state(data: SessionData, ln: _Line, t: float) -> None:

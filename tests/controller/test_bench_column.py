@@ -47,7 +47,7 @@ def test_a_column_from_a_locked_and_a_faulted_seed() -> None:
                      path_now=[nan, 2.0, 3.0, 4.0], path_entry=[nan, 0.1, 0.2, 0.3],
                      path_direction=[nan, 1.0, 1.0, 1.0])
     out = _bench()._column(runs, comp_all=[0.1, 0.2], hold_targets=[0.4, 0.6], follow=follow,
-                           follow_model=[(0.1, 0.0), (0.3, 0.2)], hold_entries=[0.1, 0.2, 0.2])
+                           follow_model=[(0.1, 0.0, 0.5), (0.3, 0.2, 0.75)], hold_entries=[0.1, 0.2, 0.2])
     assert out["runs"] == 2
     assert out["runs_done"] == 1
     # only the locked seed has lock figures
@@ -69,6 +69,7 @@ def test_a_column_from_a_locked_and_a_faulted_seed() -> None:
     assert out["follow_path_direction_deg_p95"] == pytest.approx(1.0)
     assert out["target_model_fallback_fraction_following"] == pytest.approx(0.2)
     assert out["target_model_held_fraction_following"] == pytest.approx(0.1)
+    assert out["target_sensor_fraction_following"] == pytest.approx(0.625)
     assert out["comp_err_mm_p95_hold"] == pytest.approx(0.195)
     assert out["target_err_hold_mm_p95"] == pytest.approx(0.59)
     # every seed with the figure counts: the faulted one's residual too

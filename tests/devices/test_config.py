@@ -58,8 +58,14 @@ def test_sim_patient_is_the_realistic_rig_with_a_deformable_body(registry: Drive
     assert patient.simulation.rig_errors == realistic.simulation.rig_errors
     assert patient.simulation.patient == realistic.simulation.patient
     assert patient.simulation.breathing == realistic.simulation.breathing
-    assert (patient.camera, patient.robot, patient.procedure) == (realistic.camera, realistic.robot,
-                                                                  realistic.procedure)
+    # the one procedure key of its own: where its simulated target sensor sits against the target
+    sensor = next(s for s in patient.tracker.sensors if s.attached_to == "target")
+    offset = patient.procedure.tracking.target_sensor_offset_mm
+    assert offset == sensor.T_attached_from_sensor.translation_mm == (4.0, -3.0, 2.0)
+    assert patient.procedure.tracking.target_sensor is None
+    procedure = patient.procedure.model_copy(update={"tracking": realistic.procedure.tracking})
+    assert (patient.camera, patient.robot, procedure) == (realistic.camera, realistic.robot,
+                                                          realistic.procedure)
     assert realistic.simulation.body.model == "rigid"
 
 

@@ -14,6 +14,7 @@ from drivers.sim.tracker import SimSensorConfig, SimTracker, SimTrackerConfig
 from drivers.sim.world import FLANGE_MARKER_ID_BASE, SimWorld
 from hil.clock import ManualClock, MonotonicClock
 from hil.config import Devices, FramesConfig, ScenarioWorld, SimulationConfig
+from hil.config.body import BodyConfig
 from hil.geometry.transform import RigidTransform
 from hil.vision.camera_model import StereoCalibration
 
@@ -270,6 +271,28 @@ def test_tracker_flange_sensor_without_robot_is_missing(clock: ManualClock) -> N
     s = t.latest()["needle"]
     assert s.missing
     assert s.flags == ("not_attached",)
+
+
+def test_the_simulated_sensor_at_the_target_moves_with_the_true_target(clock: ManualClock) -> None:
+    sim = SimulationConfig(body=BodyConfig(model="deformable"))
+    world = SimWorld(sim, FramesConfig(), clock)
+    offset = (4.0, -3.0, 2.0)
+    cfg = SimTrackerConfig(driver="sim", position_noise_mm=0.0, rotation_noise_rad=0.0, sensors=(
+        SimSensorConfig(name="target", attached_to="target",
+                        T_attached_from_sensor={"translation_mm": offset, "rotvec_rad": (0.0, 0.0, 0.0)}),))
+    tracker = SimTracker("tracker", cfg, clock, world)
+    tracker.open()
+    moved = []
+    for _ in range(5):
+        clock.advance(0.7)
+        s = tracker.latest()["target"]
+        assert s.T_tracker_from_sensor is not None
+        p = world.T_optical_from_tracker.apply(s.T_tracker_from_sensor.t).reshape(3)
+        R = world.T_optical_from_image(s.t_ns).R
+        want = world.target_optical(s.t_ns) + R @ np.array(offset)
+        np.testing.assert_allclose(p, want, atol=1e-9)
+        moved.append(p)
+    assert np.ptp(np.array(moved), axis=0).max() > 1.0        # it breathes with the target
 
 
 def test_duplicate_sensor_names_are_refused() -> None:

@@ -121,6 +121,7 @@ def test_session_data_series(tmp_path: Path) -> None:
     assert data.target_held == [(pytest.approx(t), why) for t, why in zip(
         [data.target_turn_deg.t_s[k] for k in TARGET_HELD], TARGET_HELD.values(), strict=True)]
     assert data.target_model_held_fraction() == pytest.approx(2 / 20)
+    assert data.target_sensor_fraction() is None          # no target sensor: no target_source logged
 
 
 def test_empty_session_plots_say_no_data(tmp_path: Path) -> None:

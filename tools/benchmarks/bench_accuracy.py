@@ -65,18 +65,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from drivers.sim.planning_ct import DEFAULT_CT_NOISE_MM, four_d_ct
 from hil.cli.cmd_run import run_procedure
 from hil.config import SetupConfig, build_devices, default_setup_path, load_setup
 from hil.config.build import clock_for
 from hil.config.overrides import TRACE_FORMATS, with_trace
+from hil.config.setup import target_sensor_problem
 from hil.config.simulation import RigErrorsConfig
 from hil.controller.change_estimate import CHANGE_ESTIMATORS
+from hil.controller.config import ProcedureConfig
 from hil.controller.metrics import RunSummary
 from hil.controller.plan_file import ProcedurePlan, load_plan, plan_from_dict
 from hil.controller.target_model import TARGET_MODELS
-from hil.errors import HilError, InputFileError
+from hil.errors import ConfigError, HilError, InputFileError
 from hil.log import configure_logging
 from hil.prediction import PREDICTOR_NAMES
 from hil.rigcal.collect import auto_confirm
@@ -103,7 +106,8 @@ def _run_record(seed: int, s: RunSummary) -> dict[str, Any]:
             "body_rigid_residual_mm_p95": s.body_rigid_residual_mm_p95,
             "change_fre_mm_p95": s.change_fre_mm["p95"],
             "gate_false_open_rate": s.gate_false_open_rate, "gate_open_ticks": s.gate_open_ticks,
-            "target_model_fallback_fraction": s.target_model_fallback_fraction}
+            "target_model_fallback_fraction": s.target_model_fallback_fraction,
+            "target_sensor_fraction": s.target_sensor_fraction}
 
 
 def _false_open(runs: list[dict[str, Any]]) -> float | None:
@@ -130,12 +134,13 @@ FOLLOW_SERIES = ("guide", "axis_entry", "path_pair", "path_now", "path_entry", "
 
 
 def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Path,
-                follow_s: float) -> tuple[dict[str, list[float]], tuple[float, float] | None]:
+                follow_s: float) -> tuple[dict[str, list[float]], tuple[float, float, float | None] | None]:
     """Follow free breathing: the gate opens at once (no breath-hold asked, wide tolerance) and
     compensation runs ``follow_s`` seconds before the run is stopped; returns the truth errors after
     the first 2 s (the catch-up from the stand-off onto the moving path), by :data:`FOLLOW_SERIES`
     (NaN where the controller had no path yet), and the shares of pairs the surrogate target model
-    kept the rigid direction on and steered held at a bound (None without the model)."""
+    kept the rigid direction on, steered held at a bound and pointed at the target sensor's target (None
+    without a sensor; the whole None without the model)."""
     p = setup.procedure
     proc = p.model_copy(update={
         "gate": p.gate.model_copy(update={"tolerance_mm": 30.0, "hold_request_s": 0.1,
@@ -153,7 +158,7 @@ def _follow_run(cfg_path: Path, setup: SetupConfig, plan: ProcedurePlan, tmp: Pa
     kept = {name: [e for e, ok in zip(xs, late, strict=True) if ok]
             for name, xs in zip(FOLLOW_SERIES, series, strict=True)}
     shares = None if s.target_model_fallback_fraction is None else (
-        s.target_model_fallback_fraction, s.target_model_held_fraction or 0.0)
+        s.target_model_fallback_fraction, s.target_model_held_fraction or 0.0, s.target_sensor_fraction)
     return kept, shares
 
 
@@ -190,11 +195,12 @@ def _calibrate_rig(cfg_path: Path, setup: SetupConfig, out: Path) -> dict[str, A
 
 
 def _column(runs: list[dict[str, Any]], comp_all: list[float], hold_targets: list[float],
-            follow: dict[str, list[float]], follow_model: list[tuple[float, float]],
+            follow: dict[str, list[float]], follow_model: list[tuple[float, float, float | None]],
             hold_entries: list[float]) -> dict[str, Any]:
     """One column's figures from its seeds' records and the pooled samples (mm, deg, s; None where
     no run gave the figure). The compensation p95 is the following run's where one was made;
-    ``follow_model``: each following run's target model shares (fell back, held at a bound);
+    ``follow_model``: each following run's target model shares (fell back, held at a bound, by the
+    target sensor or None);
     ``hold_targets`` / ``hold_entries``: every LOCK sample's axis to the true target / entry."""
     follow_all = follow["guide"]
     comp_main = follow_all or comp_all
@@ -220,10 +226,12 @@ def _column(runs: list[dict[str, Any]], comp_all: list[float], hold_targets: lis
         **_following_per_seed(runs),
         "comp_entry_err_mm_p95_following": _p95(follow["axis_entry"]),
         **_following_split(follow),
-        "target_model_fallback_fraction_following": statistics.fmean(f for f, _ in follow_model)
+        "target_model_fallback_fraction_following": statistics.fmean(f for f, *_ in follow_model)
         if follow_model else None,
-        "target_model_held_fraction_following": statistics.fmean(h for _, h in follow_model)
+        "target_model_held_fraction_following": statistics.fmean(h for _, h, _ in follow_model)
         if follow_model else None,
+        "target_sensor_fraction_following": statistics.fmean(f for *_, f in follow_model if f is not None)
+        if any(f is not None for *_, f in follow_model) else None,
         "comp_err_mm_rms_hold": _rms(comp_all),
         "comp_err_mm_p95_hold": float(np.percentile(comp_all, 95)) if comp_all else None,
         "target_err_mm_rms": _rms(targets),
@@ -279,7 +287,7 @@ def _bench(cfg_path: Path, base: SetupConfig, plan: ProcedurePlan, args: argpars
     follow: dict[str, list[float]] = {name: [] for name in FOLLOW_SERIES}
     hold_targets: list[float] = []
     hold_entries: list[float] = []
-    follow_model: list[tuple[float, float]] = []
+    follow_model: list[tuple[float, float, float | None]] = []
     rig_errors: list[dict[str, Any]] = []
     for k in range(args.runs):
         seed = args.first_seed + k
@@ -462,6 +470,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="override [procedure.compensation] target_model for this run "
                          "(docs/compensation.md); surrogate with a plan without phases uses each seed's "
                          "simulated 4D CT")
+    ap.add_argument("--target-sensor", metavar="NAME",
+                    help="override [procedure.tracking] target_sensor for this run: the path points at the "
+                         "target this tracker sensor measures, the surrogate model when it has none "
+                         "(docs/compensation.md \"A sensor at the target\"; needs the surrogate model)")
     ap.add_argument("--json", action="store_true", help="one JSON object on stdout")
     return ap
 
@@ -470,6 +482,25 @@ def _with_compensation(setup: SetupConfig, **update: str) -> SetupConfig:
     """``setup`` with ``[procedure.compensation]`` keys overridden (``--estimator``, ``--predictor``)."""
     comp = setup.procedure.compensation.model_copy(update=update)
     return setup.model_copy(update={"procedure": setup.procedure.model_copy(update={"compensation": comp})})
+
+
+def _with_target_sensor(setup: SetupConfig, name: str) -> SetupConfig:
+    """``setup`` with ``[procedure.tracking] target_sensor = name`` (``--target-sensor``), checked as
+    the setup file's would be.
+
+    Raises:
+        ConfigError: the procedure or the setup refuses it (no surrogate model, no such sensor)."""
+    p = setup.procedure
+    tracking = p.tracking.model_copy(update={"target_sensor": name})
+    try:
+        proc = ProcedureConfig.model_validate(p.model_copy(update={"tracking": tracking}).model_dump())
+    except ValidationError as exc:
+        raise ConfigError("--target-sensor", [e["msg"] for e in exc.errors()]) from None
+    out = setup.model_copy(update={"procedure": proc})
+    why = target_sensor_problem(out)
+    if why is not None:
+        raise ConfigError("--target-sensor", [why])
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -516,6 +547,8 @@ def _one_setup(cfg_path: Path, trace: str | None, args: argparse.Namespace) -> d
                                    ("target_model", args.target_model)) if v}
     if overrides:
         base = _with_compensation(base, **overrides)
+    if args.target_sensor:
+        base = _with_target_sensor(base, args.target_sensor)
     bundled = cfg_path.resolve().parent / "plans" / f"{cfg_path.stem}_plan.json"
     plan = load_plan(Path(args.plan) if args.plan else bundled)
     _with_4d_ct(plan, base)
@@ -534,6 +567,7 @@ def _one_setup(cfg_path: Path, trace: str | None, args: argparse.Namespace) -> d
     out["estimator"] = base.procedure.compensation.estimator
     out["predictor"] = base.procedure.compensation.predictor
     out["target_model"] = base.procedure.compensation.target_model
+    out["target_sensor"] = base.procedure.tracking.target_sensor
     out["ct_noise_mm"] = args.ct_noise_mm
     return out
 

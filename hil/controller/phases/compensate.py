@@ -165,7 +165,7 @@ class CompensatePhase(Phase):
                           setpoint_by=self.setpoint_by,
                           change_fre_mm=None if fit is None else fit.rigid_fre_mm,
                           marker_residuals_mm=None if fit is None else fit.residuals_mm,
-                          **_steer_fields(steer))
+                          **_steer_fields(steer, est.target_sensor is not None))
         moved = self._patient_moved(frame.left.t_ns)
         if moved is not None:
             ctx.session.write(ev.CORRECTION_OUT_OF_BOUNDS, reason=moved)
@@ -262,13 +262,16 @@ class CompensatePhase(Phase):
         return min(1.0, f0 + (1.0 - f0) * since_s / r.ramp_s)
 
 
-def _steer_fields(steer: TargetSteer | None) -> dict[str, float | str]:
+def _steer_fields(steer: TargetSteer | None, sensed: bool) -> dict[str, float | str]:
     """``compensation_step``'s surrogate target model fields (none without the model): the
     breathing score, the modelled target's shift, the turn added, why a pair kept the rigid
     direction ("" when the model steered) and which bound held the score or the turn ("" when none
-    did)."""
+    did); with a target sensor (``sensed``), what the path pointed at (``target_source``: "model",
+    "sensor" or "") and why the sensor gave no target for the pair (``target_sensor_why_not``, ""
+    when it did)."""
     if steer is None:
         return {}
+    sensor = {"target_source": steer.source, "target_sensor_why_not": steer.sensor_why_not} if sensed else {}
     return {"target_score_mm": steer.score_mm, "target_shift_mm": steer.target_shift_mm,
             "target_turn_deg": steer.turn_deg, "target_fallback": steer.fallback,
-            "target_limited": steer.limited}
+            "target_limited": steer.limited, **sensor}
