@@ -44,6 +44,11 @@ Live, the score's rate comes from pair to pair (:class:`TargetTracker`: an expon
 the differences, gain :data:`RATE_GAIN`, restarted after a gap over :data:`MAX_RATE_GAP_S` or a
 pair the model could not judge, held within 1.5 times the 4D CT's fastest).
 
+With a sensor at the target (``[procedure.tracking] target_sensor``,
+:mod:`hil.controller.target_sensor`) the tracker turns the path at the target it measures instead
+(:func:`turn_to_target`, bound ``target_sensor_max_turn_deg``) whenever the pair has a measurement,
+and at the model's when it has none; :attr:`TargetSteer.source` says which.
+
 **What it assumes, where it fails**: one breathing pattern (the first principal component) and a
 target linear in it and its rate (without ``phases_period_s``, in it alone: the target's lag and
 its loop between inhale and exhale are then averaged into ``a``); the patient breathes as in the
@@ -365,8 +370,8 @@ def turn_to_target(T_live_from_ref: RigidTransform, plan: ProcedurePlan, T_optic
                    target_live_mm: FloatArray) -> PathTurn | str:
     """The smallest rotation turning the changed planned path so it points from the changed entry
     at ``target_live_mm`` (optical frame, mm: a measured target, :mod:`hil.controller.target_sensor`),
-    without the bound (:meth:`SurrogateTargetModel.bounded`); or why there is none (the target
-    within :data:`MIN_PATH_MM` of the entry). :attr:`PathTurn.shift_mm`: the target's displacement
+    without a bound (:func:`held_turn` gives one); or why there is none (the target within
+    :data:`MIN_PATH_MM` of the entry). :attr:`PathTurn.shift_mm`: the target's displacement
     from the registered plan's, mm. numpy only (a few vector operations)."""
     entry_ref = T_optical_from_image.apply(plan.entry_mm).reshape(3)
     target_ref = T_optical_from_image.apply(plan.target_mm).reshape(3)
