@@ -87,14 +87,14 @@ def _target_fields(est: Estimate) -> dict[str, Any]:
     steer = est.target_steer
     if est.comp_cfg.target_model == "rigid":
         return {}
-    sensed = est.target_sensor is not None and steer is not None
+    sensed = None if est.target_sensor is None else steer   # the sensor's fields: only with one
     return {"target_model": est.comp_cfg.target_model,
             "target_shift_mm": None if steer is None else steer.target_shift_mm,
             "target_turn_deg": None if steer is None else steer.turn_deg,
             "target_fallback": None if steer is None else steer.fallback,
             "target_limited": None if steer is None else steer.limited,
-            "target_source": steer.source if sensed and steer is not None else None,
-            "target_sensor_why_not": steer.sensor_why_not if sensed and steer is not None else None}
+            "target_source": None if sensed is None else sensed.source,
+            "target_sensor_why_not": None if sensed is None else sensed.sensor_why_not}
 
 
 def _breathing_fields(preg: PatientRegistration | None) -> dict[str, Any]:
